@@ -1,0 +1,407 @@
+"""Anny (PyPI `anny`, Apache-2.0 code, CC0 data): the default, embedded body model.
+
+Anny's rig has 104 bones in metres, Z up, facing -Y, `.L` bones on +X; its identity pose is
+a reference A-pose (upper arms ~49 deg down, elbows ~40 deg bent forward). pressurepose
+parameters are SMPL-style (docs/conventions.md): J24 rotations in SMPL's body axes relative
+to a T-pose. The bridge, per bone b with J24 rotation R_b (identity for unmapped bones):
+
+    anny_local_b = G_parent(b)^T  (C R_b C^T)  G_b
+
+where C maps SMPL's axes to Anny's and G_b rotates bone b from Anny's reference pose into the
+T-pose (identity except on the arms: G = the smallest rotation laying the upper arm, then the
+forearm, along +-x). G depends on the shape, so it is recomputed per sample from the rest
+skeleton. The elbow rotation is split into swing (on `lowerarm01`) and twist about the forearm
+(on `lowerarm02`), because twisting `lowerarm01` kinks the elbow.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.metadata
+import io
+import logging
+
+import torch
+
+from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
+from pressurepose.body.model import BodyModel, part_weights_onto_j24
+from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
+from pressurepose.cache import cache_dir, file_lock
+
+log = logging.getLogger(__name__)
+
+ANNY_SHAPE_NAMES = ("gender", "age", "muscle", "weight", "height", "proportions")
+# gender 0 = male, 1 = female; age 0.667 = young adult, 1 = old (Anny's anchors).
+ANNY_DEFAULT_SHAPE = (0.5, 0.75, 0.5, 0.5, 0.5, 0.5)
+DEFAULT_TOPOLOGY = "anny-noeyes-notongue"  # one watertight part: exact volumes, no eyeballs
+
+# SMPL body axes -> Anny axes: x stays the left, SMPL's up (y) is Anny's +z, front (z) is -y.
+C_SMPL_TO_ANNY = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))
+
+
+def _sides(name: str) -> list[str]:
+    return [name.replace("*", "L"), name.replace("*", "R")]
+
+
+# J24 joint -> Anny bones whose head gives its position (averaged).
+_POSITION_BONES: dict[str, list[str]] = {
+    "pelvis": ["root"],
+    "spine1": ["spine04"], "spine2": ["spine02"], "spine3": ["spine01"],
+    "neck": ["neck01"], "head": ["head"],
+}
+# J24 joint -> Anny bones that take its rotation.
+_ROTATION_BONES: dict[str, list[str]] = {
+    "spine1": ["spine04"], "spine2": ["spine02"], "spine3": ["spine01"],
+    "neck": ["neck01"], "head": ["head"],
+}
+for _side, _s in (("left", "L"), ("right", "R")):
+    _pos = {
+        "hip": [f"upperleg01.{_s}"], "knee": [f"lowerleg01.{_s}"], "ankle": [f"foot.{_s}"],
+        "foot": [f"toe{i}-1.{_s}" for i in range(1, 6)],
+        "collar": [f"clavicle.{_s}"], "shoulder": [f"upperarm01.{_s}"],
+        "elbow": [f"lowerarm01.{_s}"], "wrist": [f"wrist.{_s}"],
+        "hand": [f"finger{i}-1.{_s}" for i in range(2, 6)],
+    }
+    for _joint, _bones in _pos.items():
+        _POSITION_BONES[f"{_side}_{_joint}"] = _bones
+        _ROTATION_BONES[f"{_side}_{_joint}"] = list(_bones)
+    # Hands flex every finger, thumb included; elbows are handled by swing/twist.
+    _ROTATION_BONES[f"{_side}_hand"] = [f"finger{i}-1.{_s}" for i in range(1, 6)]
+    del _ROTATION_BONES[f"{_side}_elbow"]
+
+
+def load_anny(topology: str = DEFAULT_TOPOLOGY):
+    """Anny model (float64, CPU) from the project cache, building the cache on first use.
+
+    The build (about a minute, ~2 GB of RAM, ~0.8 GB written) leaves a ~50 MB compact file;
+    the intermediate files are deleted afterwards. A lock lets parallel processes wait for
+    one build instead of racing.
+    """
+    import anny
+    import anny.paths
+
+    root = cache_dir() / "anny"
+    anny.paths.set_anny_cache_path(root)
+    stamp = root / f"ready-{topology}-anny{importlib.metadata.version('anny')}"
+    with file_lock(root / ".lock"):
+        if not stamp.exists():
+            log.warning(
+                "Building the Anny body-model cache in %s (first use only: about a minute "
+                "and 2 GB of RAM; set PRESSUREPOSE_CACHE to put it elsewhere)", root,
+            )
+        model = _quiet(lambda: anny.Anny(topology=topology, skinning_method="lbs"))
+        if not stamp.exists():
+            for pattern in ("*/build_model_data_*", "*/load_data_*"):
+                for path in root.glob(pattern):
+                    path.unlink()  # only the compact file is read afterwards
+            stamp.touch()
+    return model
+
+
+def _quiet(fn):
+    # Anny and Warp print banners on stdout; keep the CLI's stdout clean.
+    with contextlib.redirect_stdout(io.StringIO()):
+        return fn()
+
+
+class AnnyBody(BodyModel):
+    """Anny behind the BodyModel interface. Shape = 6 phenotypes in [0, 1]."""
+
+    name = "anny"
+    shape_names = ANNY_SHAPE_NAMES
+
+    def __init__(
+        self,
+        topology: str = DEFAULT_TOPOLOGY,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        super().__init__()
+        from anny.utils import kinematics
+
+        self._kinematics = kinematics
+        model = load_anny(topology)
+        if list(model.phenotype_labels) != list(ANNY_SHAPE_NAMES):
+            raise RuntimeError(f"unexpected Anny phenotypes {model.phenotype_labels}")
+        self.anny = model
+        self.topology = topology
+        labels = list(model.bone_labels)
+        self.bone_labels = labels
+        parents = torch.tensor(model.bone_parents[1:], dtype=torch.long)
+        self.register_buffer("bone_parents", torch.cat([torch.zeros(1, dtype=torch.long), parents]), persistent=False)
+        idx = labels.index
+
+        # J24 positions as an average of bone heads: (24, num_bones) regressor.
+        regressor = torch.zeros(NUM_JOINTS, len(labels), dtype=torch.float64)
+        for j, name in enumerate(J24_NAMES):
+            bones = _POSITION_BONES[name]
+            for bone in bones:
+                regressor[j, idx(bone)] = 1.0 / len(bones)
+        self.register_buffer("joint_regressor", regressor, persistent=False)
+
+        # Which J24 rotation drives each bone (-1: none).
+        driver = torch.full((len(labels),), -1, dtype=torch.long)
+        for j, name in enumerate(J24_NAMES):
+            for bone in _ROTATION_BONES.get(name, []):
+                driver[idx(bone)] = j
+        self.register_buffer("bone_driver", driver, persistent=False)
+
+        # Bones needed for J24 alone (ancestors of the position bones and the arm chains).
+        needed = {b for name in J24_NAMES for b in map(idx, _POSITION_BONES[name])}
+        needed |= {idx(f"{bone}.{s}") for s in "LR" for bone in ("lowerarm02", "wrist")}
+        closure = set()
+        for b in needed:
+            while b >= 0 and b not in closure:
+                closure.add(b)
+                b = model.bone_parents[b] if b else -1
+        self.full = _Skeleton(list(range(len(labels))), model.bone_parents, labels)
+        self.light = _Skeleton(sorted(closure), model.bone_parents, labels)
+        self.register_buffer("reference_orientations", model.reference_bone_orientations.clone(), persistent=False)
+        self.register_buffer("skin_matrix", _skin_matrix(model), persistent=False)
+
+        # Body part of each bone: the J24 joint of its nearest mapped ancestor (or itself).
+        part_of_bone = torch.zeros(len(labels), dtype=torch.long)
+        owner = {b: j for j, name in enumerate(J24_NAMES) for b in map(idx, _POSITION_BONES[name])}
+        owner[idx("lowerarm02.L")] = J24_NAMES.index("left_elbow")
+        owner[idx("lowerarm02.R")] = J24_NAMES.index("right_elbow")
+        for b in range(len(labels)):
+            a = b
+            while a not in owner:
+                a = model.bone_parents[a]
+            part_of_bone[b] = owner[a]
+        weights = part_weights_onto_j24(model.vertex_bone_weights, model.vertex_bone_indices, part_of_bone)
+        self.register_buffer("skinning_weights", weights, persistent=False)
+        self.register_buffer("part_labels", weights.argmax(-1), persistent=False)
+        self.register_buffer("faces", model.faces.long().clone(), persistent=False)
+        self.register_buffer("c_smpl_to_anny", torch.tensor(C_SMPL_TO_ANNY, dtype=torch.float64), persistent=False)
+        self.to(dtype=dtype, device=device)
+
+    # --- shape ----------------------------------------------------------------------------
+    def default_shape(self, batch_size: int = 1) -> torch.Tensor:
+        return torch.tensor(ANNY_DEFAULT_SHAPE, dtype=self.dtype, device=self.device).expand(batch_size, -1).clone()
+
+    def shape_from_dict(self, values: dict[str, float], batch_size: int = 1) -> torch.Tensor:
+        """(B, 6) shape from phenotype names; the others take the default adult's value."""
+        unknown = set(values) - set(ANNY_SHAPE_NAMES)
+        if unknown:
+            raise ValueError(
+                f"unknown phenotype name(s) {sorted(unknown)}; expected some of {', '.join(ANNY_SHAPE_NAMES)}"
+            )
+        shape = self.default_shape(batch_size)
+        for name, value in values.items():
+            shape[:, ANNY_SHAPE_NAMES.index(name)] = torch.as_tensor(value, dtype=self.dtype)
+        self.validate_shape(shape)
+        return shape
+
+    def validate_shape(self, shape: torch.Tensor) -> None:
+        if not torch.isfinite(shape).all():
+            raise ValueError("shape (Anny phenotypes) contains NaN or infinite values")
+        lo, hi = shape.amin(), shape.amax()
+        if lo < 0 or hi > 1:
+            bad = ((shape < 0) | (shape > 1)).any(0).nonzero().flatten().tolist()
+            names = ", ".join(ANNY_SHAPE_NAMES[i] for i in bad)
+            raise ValueError(
+                f"shape (Anny phenotypes) must lie in [0, 1]; {names} out of range "
+                f"(min {lo.item():.3g}, max {hi.item():.3g})"
+            )
+
+    # --- skeleton -------------------------------------------------------------------------
+    def _coefficients(self, shape: torch.Tensor) -> torch.Tensor:
+        zeros = shape.new_zeros(shape.shape[0], 0)
+        return self.anny._get_phenotype_blendshape_coefficients(shape, zeros, zeros)
+
+    def _rest_skeleton(self, coeffs: torch.Tensor, sk: "_Skeleton") -> tuple[torch.Tensor, torch.Tensor]:
+        """Rest bone heads (B, n, 3) and orientations (B, n, 3, 3) of the bones `sk.bones`,
+        computed without the rest mesh (Anny's 'cached' orientation: a special Procrustes of
+        a cross-covariance that is linear in the blendshape coefficients)."""
+        import roma
+
+        m = self.anny
+        heads = m.template_bone_heads[sk.bones] + torch.einsum("ba,akx->bkx", coeffs, m.bone_heads_blendshapes[:, sk.bones])
+        M = m.bone_template_orientation_matrices[sk.bones] + torch.einsum(
+            "ba,akij->bkij", coeffs, m.bone_orientation_blendshapes[:, sk.bones])
+        R = roma.special_procrustes(M[:, 1:])
+        eye = torch.eye(3, dtype=R.dtype, device=R.device).expand(R.shape[0], 1, 3, 3)
+        return heads, torch.cat([eye, R], 1)  # the root keeps an identity rest orientation
+
+    def _reference_offsets(self, heads, R, sk):
+        """A_b = U_b R_b^T (rest -> reference rotation) and each bone's head offset from its
+        parent's head in Anny's reference pose, (B, n, 3)."""
+        A = self.reference_orientations[sk.bones] @ R.transpose(-1, -2)
+        offsets = (A[:, sk.parents] @ (heads - heads[:, sk.parents])[..., None])[..., 0]
+        return A, offsets
+
+    def _t_pose_corrections(self, offsets: torch.Tensor, sk: "_Skeleton") -> torch.Tensor:
+        """(B, n, 3, 3) G_b: Anny's reference pose -> T-pose, per bone (Anny axes)."""
+        B, n = offsets.shape[:2]
+        eye = torch.eye(3, dtype=offsets.dtype, device=offsets.device)
+        G = eye.expand(B, n, 3, 3).clone()
+        for arm in sk.arms:
+            target = torch.tensor([arm["sign"], 0.0, 0.0], dtype=offsets.dtype, device=offsets.device).expand(B, 3)
+            upper = offsets[:, arm["upper_chain"]].sum(1)  # shoulder -> elbow
+            fore = offsets[:, arm["fore_chain"]].sum(1)    # elbow -> wrist
+            G_upper = rotation_between(upper, target)
+            G_fore = rotation_between((G_upper @ fore[..., None])[..., 0], target) @ G_upper
+            G[:, arm["upper"]] = G_upper[:, None]
+            G[:, arm["fore"]] = G_fore[:, None]
+        return G
+
+    def _local_rotations(self, pose: torch.Tensor, G: torch.Tensor, sk: "_Skeleton") -> torch.Tensor:
+        """J24 pose (B, 23, 3) in SMPL axes -> Anny local-ref rotations (B, n, 3, 3)."""
+        B, n = G.shape[:2]
+        C = self.c_smpl_to_anny
+        eye = torch.eye(3, dtype=pose.dtype, device=pose.device)
+        R_all = torch.cat([eye.expand(B, 1, 3, 3), axis_angle_to_matrix(pose)], 1)  # J24-indexed
+        driver = self.bone_driver[sk.bones]
+        driven = driver >= 0
+        R = eye.expand(B, n, 3, 3).clone()
+        R[:, driven] = R_all[:, driver[driven]]
+        axis = torch.tensor([1.0, 0.0, 0.0], dtype=pose.dtype, device=pose.device)
+        for arm in sk.arms:
+            swing, twist = swing_twist(pose[:, arm["elbow_joint"] - 1], axis)
+            R[:, arm["elbow"]] = swing
+            R[:, arm["twist"]] = twist
+        return G[:, sk.parents].transpose(-1, -2) @ (C @ R @ C.T) @ G
+
+    @staticmethod
+    def _forward_kinematics(offsets, local, sk):
+        """Posed accumulated rotations (B, n, 3, 3) and heads (B, n, 3), level by level.
+
+        With world-aligned ('local-ref') deltas D, a bone's accumulated rotation is its
+        parent's times D, and its head is the parent's head plus the parent's accumulated
+        rotation applied to the reference offset; the root stays at the origin.
+        """
+        B = local.shape[0]
+        rot = [local[:, :1]]
+        heads = [offsets.new_zeros(B, 1, 3)]
+        for level, parent in zip(sk.levels, sk.level_parents):  # parent: position in the concatenation
+            rot_all, heads_all = torch.cat(rot, 1), torch.cat(heads, 1)
+            rot_p = rot_all[:, parent]
+            rot.append(rot_p @ local[:, level])
+            heads.append(heads_all[:, parent] + (rot_p @ offsets[:, level, :, None])[..., 0])
+        order = sk.inverse_order
+        return torch.cat(rot, 1)[:, order], torch.cat(heads, 1)[:, order]
+
+    def _body_frame(self, shape, pose, with_vertices):
+        sk = self.full if with_vertices else self.light
+        coeffs = self._coefficients(shape)
+        rest_heads, rest_R = self._rest_skeleton(coeffs, sk)
+        A, offsets = self._reference_offsets(rest_heads, rest_R, sk)
+        G = self._t_pose_corrections(offsets, sk)
+        rot, heads = self._forward_kinematics(offsets, self._local_rotations(pose, G, sk), sk)
+        C = self.c_smpl_to_anny
+        joints = torch.einsum("jk,bkx->bjx", self.joint_regressor[:, sk.bones], heads) @ C
+        if not with_vertices:
+            return None, joints
+        # Skinning transforms x -> T x + t mapping rest to posed: T = rot A, t = head - T h.
+        T = rot @ A
+        t = heads - (T @ rest_heads[..., None])[..., 0]
+        rest_vertices = self.anny.get_rest_vertices(coeffs)
+        return sparse_linear_blend_skinning(rest_vertices, self.skin_matrix, T, t) @ C, joints
+
+    def native_rest_pose(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B, 23, 3) pose that reproduces Anny's own reference (A-)pose for these shapes.
+
+        The bridge gives anny_local_b = I when C R_b C^T = G_parent G_b^T.
+        """
+        from pressurepose.body.rotations import matrix_to_axis_angle
+
+        self.validate_shape(shape)
+        sk = self.full
+        heads, R = self._rest_skeleton(self._coefficients(shape), sk)
+        G = self._t_pose_corrections(self._reference_offsets(heads, R, sk)[1], sk)
+        C = self.c_smpl_to_anny
+        R_smpl = C.T @ (G[:, sk.parents] @ G.transpose(-1, -2)) @ C  # (B, K, 3, 3)
+        pose = shape.new_zeros(shape.shape[0], NUM_JOINTS - 1, 3)
+        for j, name in enumerate(J24_NAMES[1:], start=1):
+            bones = _ROTATION_BONES.get(name)
+            if bones is not None:
+                pose[:, j - 1] = matrix_to_axis_angle(R_smpl[:, self.bone_labels.index(bones[0])])
+        for arm in sk.arms:
+            elbow = R_smpl[:, arm["elbow"]] @ R_smpl[:, arm["twist"]]
+            pose[:, arm["elbow_joint"] - 1] = matrix_to_axis_angle(elbow)
+        return pose
+
+
+class _Skeleton(torch.nn.Module):
+    """A subset of Anny's bones closed under ancestors, with local parent indices and the
+    depth levels the forward kinematics walks through."""
+
+    def __init__(self, bones: list[int], all_parents: list[int], labels: list[str]) -> None:
+        super().__init__()
+        local = {b: i for i, b in enumerate(bones)}
+        parents = [0] + [local[all_parents[b]] for b in bones[1:]]
+        depth = [0] * len(bones)
+        for i in range(1, len(bones)):
+            depth[i] = depth[parents[i]] + 1
+        order = [0]
+        levels = []
+        for d in range(1, max(depth) + 1):
+            level = [i for i in range(len(bones)) if depth[i] == d]
+            levels.append(level)
+            order += level
+        position = {b: p for p, b in enumerate(order)}
+        self.register_buffer("bones", torch.tensor(bones), persistent=False)
+        self.register_buffer("parents", torch.tensor(parents), persistent=False)
+        self.register_buffer("inverse_order", torch.tensor([position[i] for i in range(len(bones))]), persistent=False)
+        for d, level in enumerate(levels):
+            self.register_buffer(f"level{d}", torch.tensor(level), persistent=False)
+            self.register_buffer(f"level_parent{d}", torch.tensor([position[parents[i]] for i in level]), persistent=False)
+        self.num_levels = len(levels)
+        j = {name: local[labels.index(name)] for name in labels if labels.index(name) in local}
+        self.arms = []
+        for s, sign in (("L", 1.0), ("R", -1.0)):
+            fore_root = labels.index(f"lowerarm01.{s}")
+            fore = [local[b] for b in bones if _descends(all_parents, b, fore_root)]
+            self.arms.append(dict(
+                sign=sign, elbow=j[f"lowerarm01.{s}"], twist=j[f"lowerarm02.{s}"],
+                upper=[j[f"upperarm01.{s}"], j[f"upperarm02.{s}"]], fore=fore,
+                upper_chain=[j[f"upperarm02.{s}"], j[f"lowerarm01.{s}"]],
+                fore_chain=[j[f"lowerarm02.{s}"], j[f"wrist.{s}"]],
+                elbow_joint=J24_NAMES.index("left_elbow" if s == "L" else "right_elbow"),
+            ))
+
+    @property
+    def levels(self) -> list[torch.Tensor]:
+        return [getattr(self, f"level{d}") for d in range(self.num_levels)]
+
+    @property
+    def level_parents(self) -> list[torch.Tensor]:
+        return [getattr(self, f"level_parent{d}") for d in range(self.num_levels)]
+
+
+def _descends(parents: list[int], bone: int, ancestor: int) -> bool:
+    while bone > 0 and bone != ancestor:
+        bone = parents[bone]
+    return bone == ancestor
+
+
+def _skin_matrix(model) -> torch.Tensor:
+    """Sparse (V, num_bones) skinning weights (most vertices have 1-3 bones of Anny's 9 slots)."""
+    w, i = model.vertex_bone_weights, model.vertex_bone_indices.long()
+    V = w.shape[0]
+    rows = torch.arange(V).repeat_interleave(w.shape[1])
+    keep = w.flatten() > 0
+    index = torch.stack([rows[keep], i.flatten()[keep]])
+    return torch.sparse_coo_tensor(
+        index, w.flatten()[keep], (V, len(model.bone_labels)), check_invariants=True
+    ).coalesce()
+
+
+def sparse_linear_blend_skinning(
+    rest_vertices: torch.Tensor, weights: torch.Tensor, T: torch.Tensor, t: torch.Tensor
+) -> torch.Tensor:
+    """Linear blend skinning: rest vertices (B, V, 3), sparse weights (V, K), per-bone rigid
+    transforms T (B, K, 3, 3), t (B, K, 3) -> posed vertices (B, V, 3).
+
+    Blends the 12 transform entries with one sparse matrix product (cost ~ non-zero weights,
+    not V x K), then applies each vertex's blended transform.
+    """
+    B, K = T.shape[:2]
+    affine = torch.cat([T, t[..., None]], -1).permute(1, 0, 2, 3).reshape(K, B * 12)
+    blended = torch.sparse.mm(weights, affine).view(-1, B, 3, 4)  # (V, B, 3, 4)
+    v = rest_vertices.transpose(0, 1)  # (V, B, 3)
+    # Written out per column: much faster on CPU than a batched 3x3 matmul of this shape.
+    posed = (blended[..., 3] + blended[..., 0] * v[..., :1] + blended[..., 1] * v[..., 1:2]
+             + blended[..., 2] * v[..., 2:])
+    return posed.transpose(0, 1)

@@ -1,0 +1,129 @@
+"""The body-model interface: every backend turns BodyParams into a BodyOutput the same way.
+
+A backend implements only `_body_frame` (joints, and optionally vertices, in SMPL's body axes
+with the shape's own pelvis position) and its shape checks; placing the body in the mat frame,
+the joints-only path, measurements and validation live here once.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+
+import torch
+
+from pressurepose.body.joints import NUM_JOINTS
+from pressurepose.body.params import BodyOutput, BodyParams, place_in_mat
+
+# Body density used for mass = volume x density (Anny's anthropometry uses the same value).
+BODY_DENSITY_KG_M3 = 980.0
+
+
+@dataclasses.dataclass(frozen=True)
+class BodyMeasurements:
+    height_m: torch.Tensor   # (B,) top of the head to the soles, standing T-pose
+    volume_m3: torch.Tensor  # (B,) enclosed mesh volume
+    mass_kg: torch.Tensor    # (B,) volume x BODY_DENSITY_KG_M3
+
+
+class BodyModel(torch.nn.Module, abc.ABC):
+    """Batched, differentiable body model (float32 or float64, CPU or CUDA).
+
+    Subclasses register the buffers `faces` (F, 3), `part_labels` (V,) and
+    `skinning_weights` (V, 24) and set `name` and `shape_names`.
+    """
+
+    name: str
+    shape_names: tuple[str, ...]
+    faces: torch.Tensor
+    part_labels: torch.Tensor
+    skinning_weights: torch.Tensor
+
+    @property
+    def shape_dim(self) -> int:
+        return len(self.shape_names)
+
+    @property
+    def num_vertices(self) -> int:
+        return self.part_labels.shape[0]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.skinning_weights.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.skinning_weights.device
+
+    # --- to implement -------------------------------------------------------------------
+    @abc.abstractmethod
+    def _body_frame(
+        self, shape: torch.Tensor, pose: torch.Tensor, with_vertices: bool
+    ) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """(vertices (B, V, 3) or None, joints (B, 24, 3)) in body axes, zero root rotation."""
+
+    @abc.abstractmethod
+    def default_shape(self, batch_size: int = 1) -> torch.Tensor:
+        """(B, S) shape of an average adult."""
+
+    def validate_shape(self, shape: torch.Tensor) -> None:
+        """Backend-specific range checks on (B, S) shape parameters (ValueError)."""
+
+    # --- shared ---------------------------------------------------------------------------
+    def _check(self, params: BodyParams) -> None:
+        if not isinstance(params, BodyParams):
+            raise ValueError(f"expected BodyParams, got {type(params).__name__}")
+        params.validate(self.shape_dim, self.dtype, self.device)
+        self.validate_shape(params.shape)
+
+    def forward(self, params: BodyParams) -> BodyOutput:
+        """Posed mesh and J24 joints in the mat frame (metres)."""
+        self._check(params)
+        vertices, joints = self._body_frame(params.shape, params.pose, with_vertices=True)
+        pelvis = joints[:, 0]
+        return BodyOutput(
+            vertices=place_in_mat(vertices, pelvis, params),
+            joints=place_in_mat(joints, pelvis, params),
+            faces=self.faces,
+            part_labels=self.part_labels,
+            skinning_weights=self.skinning_weights,
+        )
+
+    def joints(self, params: BodyParams) -> torch.Tensor:
+        """J24 joints (B, 24, 3) in the mat frame, without skinning the mesh (fast path)."""
+        self._check(params)
+        _, joints = self._body_frame(params.shape, params.pose, with_vertices=False)
+        return place_in_mat(joints, joints[:, 0], params)
+
+    def rest_vertices(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B, V, 3) zero-pose (T-pose) mesh in body axes, pelvis at the origin."""
+        params = BodyParams.zeros(shape.shape[0], shape)
+        self._check(params)
+        vertices, joints = self._body_frame(params.shape, params.pose, with_vertices=True)
+        return vertices - joints[:, :1]
+
+    def measure(self, shape: torch.Tensor) -> BodyMeasurements:
+        """Height, volume and mass of (B, S) shapes, differentiable."""
+        vertices = self.rest_vertices(shape)
+        volume = mesh_volume(vertices, self.faces)
+        return BodyMeasurements(
+            height_m=vertices[..., 1].amax(-1) - vertices[..., 1].amin(-1),
+            volume_m3=volume,
+            mass_kg=volume * BODY_DENSITY_KG_M3,
+        )
+
+
+def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Enclosed volume (B,) of closed, outward-oriented triangle meshes (B, V, 3), (F, 3)."""
+    v0, v1, v2 = (vertices[:, faces[:, k]] for k in range(3))
+    return (torch.linalg.cross(v0, v1, dim=-1) * v2).sum((-1, -2)) / 6.0
+
+
+def part_weights_onto_j24(
+    bone_weights: torch.Tensor, bone_indices: torch.Tensor, bone_to_j24: torch.Tensor
+) -> torch.Tensor:
+    """Sparse per-vertex bone weights (V, K) with bone ids (V, K) -> dense (V, 24) weights
+    summed onto the J24 part each bone belongs to (`bone_to_j24`, (num_bones,))."""
+    V = bone_weights.shape[0]
+    out = torch.zeros(V, NUM_JOINTS, dtype=bone_weights.dtype, device=bone_weights.device)
+    return out.scatter_add_(1, bone_to_j24[bone_indices.long()], bone_weights)
