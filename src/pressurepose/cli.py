@@ -1,0 +1,61 @@
+"""`pressurepose` command line: one subcommand per pipeline stage.
+
+User errors (bad input, missing files) print one line and exit with status 2; anything else
+is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import tyro
+
+from pressurepose.demo import DemoConfig
+
+
+def demo(cfg: DemoConfig) -> None:
+    """Run the main job on embedded defaults: pose a body lying on the mat and write a PNG."""
+    from pressurepose.demo import run_demo
+
+    paths = run_demo(cfg)
+    print(f"wrote {paths['png']} and {paths['json']}")
+
+
+def cache(build: bool = True) -> None:
+    """Show the cache directory and build the Anny body-model cache if missing.
+
+    Args:
+        build: Build the Anny cache now (about a minute, once).
+    """
+    from pressurepose.cache import cache_dir
+
+    root = cache_dir()
+    if build:
+        from pressurepose.body.anny_backend import load_anny
+
+        load_anny()
+    size = sum(p.stat().st_size for p in Path(root).rglob("*") if p.is_file())
+    print(f"{root} ({size / 1e6:.0f} MB)")
+
+
+COMMANDS = {"demo": demo, "cache": cache}
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        tyro.extras.subcommand_cli_from_dict(
+            COMMANDS, prog="pressurepose", args=argv, config=(tyro.conf.OmitArgPrefixes,)
+        )
+    except (ValueError, OSError) as exc:
+        # Our checks raise ValueError naming the problem; OSError covers unreadable,
+        # unwritable or missing files. Neither deserves a traceback.
+        print(f"pressurepose: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Figures: pressure images, bodies on the mat (matplotlib PNGs)."""

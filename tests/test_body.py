@@ -1,0 +1,211 @@
+"""Body models: conventions, J24 mapping, gradients, fast paths, measurements, bad input."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch.autograd import gradcheck
+
+from pressurepose.body import BodyParams, load_body_model
+from pressurepose.body.joints import J24_MIRROR, J24_NAMES, joint_index
+from pressurepose.mat import MatSpec
+
+J = {n: i for i, n in enumerate(J24_NAMES)}
+
+
+@pytest.fixture(params=["anny", "smpl"])
+def model(request, anny64, smpl64):
+    return anny64 if request.param == "anny" else smpl64
+
+
+def random_params(model, B=3, seed=0, pose_scale=0.4):
+    g = torch.Generator().manual_seed(seed)
+    shape = (torch.rand(B, model.shape_dim, generator=g, dtype=model.dtype) * 0.8 + 0.1
+             if model.name == "anny" else torch.randn(B, model.shape_dim, generator=g, dtype=model.dtype))
+    return BodyParams(
+        shape=shape,
+        root_rotation=torch.randn(B, 3, generator=g, dtype=model.dtype) * 0.5,
+        root_translation=torch.randn(B, 3, generator=g, dtype=model.dtype),
+        pose=torch.randn(B, 23, 3, generator=g, dtype=model.dtype) * pose_scale,
+    )
+
+
+def supine_on_mat(model):
+    mat = MatSpec()
+    p = BodyParams.zeros(1, model.default_shape(1))
+    top_of_head = model.rest_vertices(p.shape)[0, :, 1].max().item()  # body y = towards the head
+    t = torch.tensor([[0.05 + top_of_head, mat.centre_m[1], 0.12]], dtype=model.dtype)
+    return mat, p.replace(root_translation=t)
+
+
+def test_supine_conventions(model):
+    """docs/conventions.md: head over rows ~0-10, the subject's left hand towards +y (higher
+    columns), feet towards the foot end, face up (+z)."""
+    mat, p = supine_on_mat(model)
+    out = model(p)
+    rc = mat.to_taxel(out.joints[0, :, :2])
+    assert 0 <= rc[J["head"], 0] <= 10
+    assert rc[J["left_foot"], 0] > 55 and rc[J["right_foot"], 0] > 55
+    centre_col = mat.cols / 2
+    for side, sign in (("left", 1), ("right", -1)):
+        for joint in ("hand", "wrist", "elbow", "shoulder", "hip", "knee", "ankle"):
+            assert sign * (rc[J[f"{side}_{joint}"], 1] - centre_col) > 0, f"{side}_{joint}"
+    assert out.joints[0, J["left_foot"], 2] > out.joints[0, J["left_ankle"], 2]  # toes up
+    if model.name == "anny":  # the synthetic SMPL file's 'head' is a round cloud
+        # The face is up: head vertices reach higher above the head joint than below it.
+        head = out.vertices[0, out.part_labels == J["head"]]
+        assert head[:, 2].max() - out.joints[0, J["head"], 2] > out.joints[0, J["head"], 2] - head[:, 2].min()
+
+
+def test_root_translation_is_the_pelvis_and_zero_pose_is_a_t_pose(model):
+    p = random_params(model, pose_scale=0.0).replace(root_rotation=torch.zeros(3, 3, dtype=model.dtype))
+    j = model.joints(p)
+    assert torch.allclose(j[:, 0], p.root_translation, atol=1e-12)
+    if model.name != "anny":
+        return  # SMPL's own rest pose is only roughly a T
+    # T-pose: shoulder, elbow, wrist of each arm on one line across the bed (along y).
+    for side in ("left", "right"):
+        arm = j[:, [J[f"{side}_shoulder"], J[f"{side}_elbow"], J[f"{side}_wrist"]]]
+        assert torch.allclose(arm[:, :, 0], arm[:, :1, 0].expand(-1, 3), atol=1e-9)
+        assert torch.allclose(arm[:, :, 2], arm[:, :1, 2].expand(-1, 3), atol=1e-9)
+
+
+def test_roll_pi_is_prone(model):
+    _, p = supine_on_mat(model)
+    prone = p.replace(root_rotation=torch.tensor([[math.pi, 0.0, 0.0]], dtype=model.dtype))
+    a, b = model.joints(p)[0], model.joints(prone)[0]
+    pelvis = p.root_translation[0]
+    # Rolling about the bed axis through the pelvis: x kept, y and z mirrored.
+    assert torch.allclose(b[:, 0], a[:, 0], atol=1e-9)
+    assert torch.allclose(b[:, 1:] - pelvis[1:], -(a[:, 1:] - pelvis[1:]), atol=1e-9)
+
+
+def test_mirrored_pose_gives_mirrored_body(model):
+    p = random_params(model, B=2, seed=3)
+    p = p.replace(shape=model.default_shape(2), root_rotation=torch.zeros(2, 3, dtype=model.dtype),
+                  root_translation=torch.zeros(2, 3, dtype=model.dtype))
+    mirror = torch.tensor(J24_MIRROR[1:]) - 1
+    flip = torch.tensor([1.0, -1.0, -1.0], dtype=model.dtype)  # rotation vectors are pseudovectors
+    pm = p.replace(pose=p.pose[:, mirror] * flip)
+    a, b = model.joints(p), model.joints(pm)
+    expected = a[:, list(J24_MIRROR)] * torch.tensor([1.0, -1.0, 1.0], dtype=model.dtype)
+    tol = 2e-3 if model.name == "anny" else 1e-9  # Anny's mesh is symmetric to ~1 mm
+    assert (b - expected).abs().max() < tol
+
+
+def test_joints_fast_path_equals_full_forward(model):
+    p = random_params(model, B=4, seed=5)
+    out = model(p)
+    assert out.vertices.shape == (4, model.num_vertices, 3) and out.joints.shape == (4, 24, 3)
+    assert torch.allclose(model.joints(p), out.joints, atol=1e-10)
+
+
+def test_outputs_are_consistent(model):
+    out = model(random_params(model, B=1))
+    V = model.num_vertices
+    assert out.faces.dtype == torch.int64 and out.faces.max() < V and out.faces.min() >= 0
+    assert out.part_labels.shape == (V,) and out.part_labels.max() < 24
+    assert out.skinning_weights.shape == (V, 24)
+    assert torch.allclose(out.skinning_weights.sum(-1), torch.ones(V, dtype=model.dtype), atol=1e-6)
+    assert set(out.part_labels.unique().tolist()) >= {J["head"], J["left_knee"], J["right_elbow"]}
+
+
+def test_gradcheck_float64(model):
+    """Exact gradients w.r.t. shape, pose and root, through joints and vertices."""
+    p = random_params(model, B=1, seed=7)
+    g = torch.Generator().manual_seed(0)
+    w_vertices = torch.randn(model.num_vertices, 3, generator=g, dtype=torch.float64)
+    w_joints = torch.randn(24, 3, generator=g, dtype=torch.float64)
+
+    def f(shape, root_rotation, pose):
+        q = p.replace(shape=shape, root_rotation=root_rotation, pose=pose)
+        out = model(q)
+        return (out.vertices[0] * w_vertices).sum() + (model.joints(q)[0] * w_joints).sum()
+
+    inputs = tuple(t.clone().requires_grad_() for t in (p.shape, p.root_rotation, p.pose))
+    assert gradcheck(f, inputs, eps=1e-6, atol=1e-5, fast_mode=True)
+
+
+def test_float32_matches_float64(anny32, anny64):
+    p = random_params(anny64, B=2, seed=11)
+    a = anny64(p)
+    b = anny32(p.to(torch.float32))
+    assert (a.vertices - b.vertices.double()).abs().max() < 1e-4
+
+
+def test_anny_native_rest_pose_reproduces_anny(anny64):
+    """The T-pose bridge is exact: the pose that undoes it gives Anny's own A-pose mesh."""
+    shape = torch.tensor([[0.1, 0.8, 0.3, 0.9, 0.2, 0.6]], dtype=torch.float64)
+    pose = anny64.native_rest_pose(shape)
+    # A-pose: upper arms ~45-50 deg below horizontal (left shoulder pitch about z < 0).
+    assert -55 < math.degrees(pose[0, J["left_shoulder"] - 1, 2]) < -40
+    p = BodyParams.zeros(1, shape).replace(pose=pose)
+    out = anny64(p)
+    native = anny64.anny(None, phenotype_kwargs=shape)
+    C = anny64.c_smpl_to_anny
+    v = native["vertices"] @ C  # Anny axes -> body axes; the root sits at the origin
+    v = v @ torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # R_SUPINE^T
+    assert (out.vertices - v).abs().max() < 1e-9
+
+
+def test_measurements_are_plausible_and_monotone(anny64):
+    s = anny64.shape_from_dict
+    base = anny64.measure(anny64.default_shape(1))
+    assert 1.6 < base.height_m.item() < 2.0
+    assert 55 < base.mass_kg.item() < 95
+    assert base.mass_kg.item() == pytest.approx(base.volume_m3.item() * 980.0)
+    heavy = anny64.measure(s({"weight": 0.9}))
+    tall = anny64.measure(s({"height": 0.9}))
+    assert heavy.mass_kg > base.mass_kg + 5
+    assert tall.height_m > base.height_m + 0.05
+    # Volume is invariant to the pose for a rigid motion: closed mesh, correct orientation.
+    assert base.volume_m3.item() > 0
+
+
+def test_measure_is_differentiable(anny64):
+    shape = anny64.default_shape(1).requires_grad_()
+    anny64.measure(shape).mass_kg.sum().backward()
+    assert shape.grad[0, 3] > 0  # more 'weight' phenotype -> more mass
+
+
+# --- bad input ----------------------------------------------------------------------------
+def test_bad_shapes_dtypes_and_nan(anny32):
+    p = BodyParams.zeros(2, anny32.default_shape(2))
+    with pytest.raises(ValueError, match=r"BodyParams.pose must have shape \(B, 23, 3\), got \(2, 24, 3\)"):
+        anny32(p.replace(pose=torch.zeros(2, 24, 3)))
+    with pytest.raises(ValueError, match=r"BodyParams.shape must have shape \(B, 6\)"):
+        anny32(p.replace(shape=torch.zeros(2, 10)))
+    with pytest.raises(ValueError, match="batch size 3"):
+        anny32(p.replace(root_translation=torch.zeros(3, 3)))
+    with pytest.raises(ValueError, match="dtype torch.float64, but the body model is torch.float32"):
+        anny32(p.to(torch.float64))
+    bad = p.pose.clone()
+    bad[0, 3, 1] = float("nan")
+    with pytest.raises(ValueError, match="BodyParams.pose contains NaN"):
+        anny32.joints(p.replace(pose=bad))
+    with pytest.raises(ValueError, match="expected BodyParams"):
+        anny32({"pose": p.pose})
+
+
+def test_bad_phenotypes(anny32):
+    with pytest.raises(ValueError, match=r"unknown phenotype name\(s\) \['bmi'\]"):
+        anny32.shape_from_dict({"bmi": 0.3})
+    shape = anny32.default_shape(1)
+    shape[0, 4] = 1.5
+    with pytest.raises(ValueError, match=r"must lie in \[0, 1\]; height out of range"):
+        anny32(BodyParams.zeros(1, shape))
+
+
+def test_unknown_names():
+    with pytest.raises(ValueError, match="unknown joint name 'elbow'"):
+        joint_index("elbow")
+    with pytest.raises(ValueError, match="unknown body backend 'star'"):
+        load_body_model("star")
+
+
+def test_j24_tables():
+    assert len(J24_NAMES) == 24 and J24_NAMES[0] == "pelvis" and J24_NAMES[15] == "head"
+    assert J24_MIRROR[J["left_hand"]] == J["right_hand"] and J24_MIRROR[J["neck"]] == J["neck"]
+    assert all(J24_MIRROR[J24_MIRROR[i]] == i for i in range(24))
+    assert np.all(np.diff([J["left_hip"], J["left_knee"], J["left_ankle"], J["left_foot"]]) > 0)

@@ -1,0 +1,58 @@
+import math
+
+import torch
+from torch.autograd import gradcheck
+
+from pressurepose.body.rotations import (axis_angle_to_matrix, matrix_to_axis_angle, rotation_between,
+                                         swing_twist)
+
+
+def naive_rodrigues(r):
+    theta = r.norm()
+    if theta == 0:
+        return torch.eye(3, dtype=r.dtype)
+    k = r / theta
+    K = torch.tensor([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]], dtype=r.dtype)
+    return torch.eye(3, dtype=r.dtype) + math.sin(theta) * K + (1 - math.cos(theta)) * K @ K
+
+
+def test_rodrigues_matches_naive_and_is_orthonormal():
+    torch.manual_seed(0)
+    r = torch.randn(20, 3, dtype=torch.float64) * 1.5
+    r[0] = 0
+    r[1] = 1e-7
+    R = axis_angle_to_matrix(r)
+    for i in range(20):
+        assert torch.allclose(R[i], naive_rodrigues(r[i]), atol=1e-12)
+    assert torch.allclose(R @ R.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(20, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(20, dtype=torch.float64))
+
+
+def test_gradients_exact_at_zero_and_elsewhere():
+    r = torch.zeros(2, 3, dtype=torch.float64, requires_grad=True)
+    assert gradcheck(axis_angle_to_matrix, (r,))
+    r = (torch.randn(4, 3, dtype=torch.float64)).requires_grad_()
+    assert gradcheck(axis_angle_to_matrix, (r,))
+    assert gradcheck(lambda x: swing_twist(x, torch.tensor([1.0, 0, 0], dtype=torch.float64)), (r,))
+
+
+def test_axis_angle_round_trip():
+    torch.manual_seed(1)
+    r = torch.randn(100, 3, dtype=torch.float64)
+    r = r / r.norm(dim=-1, keepdim=True) * torch.rand(100, 1, dtype=torch.float64) * 3.0
+    assert torch.allclose(matrix_to_axis_angle(axis_angle_to_matrix(r)), r, atol=1e-9)
+
+
+def test_rotation_between_and_swing_twist():
+    torch.manual_seed(2)
+    a, b = torch.randn(10, 3, dtype=torch.float64), torch.randn(10, 3, dtype=torch.float64)
+    R = rotation_between(a, b)
+    Ra = (R @ a[..., None])[..., 0]
+    assert torch.allclose(Ra / Ra.norm(dim=-1, keepdim=True), b / b.norm(dim=-1, keepdim=True), atol=1e-12)
+    axis = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    r = torch.randn(10, 3, dtype=torch.float64)
+    swing, twist = swing_twist(r, axis)
+    assert torch.allclose(swing @ twist, axis_angle_to_matrix(r), atol=1e-12)
+    # The twist keeps the axis fixed; the swing has no component about it.
+    assert torch.allclose(twist @ axis, axis.expand(10, 3), atol=1e-12)
+    assert torch.allclose(matrix_to_axis_angle(swing)[:, 0], torch.zeros(10, dtype=torch.float64), atol=1e-9)
