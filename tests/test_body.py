@@ -209,3 +209,15 @@ def test_j24_tables():
     assert J24_MIRROR[J["left_hand"]] == J["right_hand"] and J24_MIRROR[J["neck"]] == J["neck"]
     assert all(J24_MIRROR[J24_MIRROR[i]] == i for i in range(24))
     assert np.all(np.diff([J["left_hip"], J["left_knee"], J["left_ankle"], J["left_foot"]]) > 0)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("backend", ["anny", "smpl"])
+def test_cuda_matches_cpu(backend, smpl_dir):
+    options = {"model_dir": smpl_dir} if backend == "smpl" else {}
+    cpu = load_body_model(backend, dtype=torch.float64, **options)
+    gpu = load_body_model(backend, dtype=torch.float64, device="cuda", **options)
+    p = random_params(cpu, B=3, seed=13)
+    a, b = cpu(p), gpu(p.to("cuda"))
+    assert (a.vertices - b.vertices.cpu()).abs().max() < 1e-9
+    assert (cpu.joints(p) - gpu.joints(p.to("cuda")).cpu()).abs().max() < 1e-9

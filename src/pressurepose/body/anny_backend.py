@@ -117,9 +117,6 @@ class AnnyBody(BodyModel):
         device: torch.device | str = "cpu",
     ) -> None:
         super().__init__()
-        from anny.utils import kinematics
-
-        self._kinematics = kinematics
         model = load_anny(topology)
         if list(model.phenotype_labels) != list(ANNY_SHAPE_NAMES):
             raise RuntimeError(f"unexpected Anny phenotypes {model.phenotype_labels}")
@@ -127,8 +124,6 @@ class AnnyBody(BodyModel):
         self.topology = topology
         labels = list(model.bone_labels)
         self.bone_labels = labels
-        parents = torch.tensor(model.bone_parents[1:], dtype=torch.long)
-        self.register_buffer("bone_parents", torch.cat([torch.zeros(1, dtype=torch.long), parents]), persistent=False)
         idx = labels.index
 
         # J24 positions as an average of bone heads: (24, num_bones) regressor.
