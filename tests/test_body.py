@@ -9,6 +9,7 @@ from torch.autograd import gradcheck
 
 from pressurepose.body import BodyParams, load_body_model
 from pressurepose.body.joints import J24_MIRROR, J24_NAMES, joint_index
+from pressurepose.body.params import supine_rotation
 from pressurepose.mat import MatSpec
 
 J = {n: i for i, n in enumerate(J24_NAMES)}
@@ -145,7 +146,7 @@ def test_anny_native_rest_pose_reproduces_anny(anny64):
     native = anny64.anny(None, phenotype_kwargs=shape)
     C = anny64.c_smpl_to_anny
     v = native["vertices"] @ C  # Anny axes -> body axes; the root sits at the origin
-    v = v @ torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # R_SUPINE^T
+    v = v @ supine_rotation(torch.float64).T  # zero root rotation = the supine reference
     assert (out.vertices - v).abs().max() < 1e-9
 
 
@@ -159,7 +160,7 @@ def test_measurements_are_plausible_and_monotone(anny64):
     tall = anny64.measure(s({"height": 0.9}))
     assert heavy.mass_kg > base.mass_kg + 5
     assert tall.height_m > base.height_m + 0.05
-    # Volume is invariant to the pose for a rigid motion: closed mesh, correct orientation.
+    # A closed mesh with outward faces has a positive signed volume.
     assert base.volume_m3.item() > 0
 
 

@@ -39,10 +39,6 @@ DEFAULT_TOPOLOGY = "anny-noeyes-notongue"  # one watertight part: exact volumes,
 C_SMPL_TO_ANNY = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))
 
 
-def _sides(name: str) -> list[str]:
-    return [name.replace("*", "L"), name.replace("*", "R")]
-
-
 # J24 joint -> Anny bones whose head gives its position (averaged).
 _POSITION_BONES: dict[str, list[str]] = {
     "pelvis": ["root"],
@@ -343,7 +339,7 @@ class _Skeleton(torch.nn.Module):
             self.register_buffer(f"level{d}", torch.tensor(level), persistent=False)
             self.register_buffer(f"level_parent{d}", torch.tensor([position[parents[i]] for i in level]), persistent=False)
         self.num_levels = len(levels)
-        j = {name: local[labels.index(name)] for name in labels if labels.index(name) in local}
+        j = {labels[b]: i for i, b in enumerate(bones)}  # bone name -> local index
         self.arms = []
         for s, sign in (("L", 1.0), ("R", -1.0)):
             fore_root = labels.index(f"lowerarm01.{s}")

@@ -48,7 +48,7 @@ def find_smpl_file(model_dir: Path, gender: str) -> Path:
 
 
 class _State:
-    """Stand-in for chumpy / scipy.sparse objects: keeps their pickled state only."""
+    """Stand-in for a chumpy or scipy.sparse object: keeps its pickled state only."""
 
     def __init__(self, *args, **kwargs) -> None:
         self.state = None
@@ -56,23 +56,32 @@ class _State:
     def __setstate__(self, state) -> None:
         self.state = state
 
+
+class _ChumpyState(_State):
+    def to_array(self) -> np.ndarray:
+        if not isinstance(self.state, dict) or "x" not in self.state:
+            raise SmplFileError("SMPL file holds a chumpy object without an array")
+        return np.asarray(self.state["x"])
+
+
+class _SparseState(_State):
+    compressed_axis = 1  # csc: indptr runs over columns; csr overrides with 0
+
     def to_array(self) -> np.ndarray:
         s = self.state if isinstance(self.state, dict) else {}
-        if "x" in s:  # chumpy.Ch
-            return np.asarray(s["x"])
-        if {"data", "indices", "indptr"} <= set(s):  # scipy.sparse csc/csr matrix
-            shape = tuple(s.get("_shape", s.get("shape")))
-            dense = np.zeros(shape, dtype=np.float64)
-            data, indices, indptr = (np.asarray(s[k]) for k in ("data", "indices", "indptr"))
-            csc = s.get("format", "csc") == "csc" or shape[1] + 1 == len(indptr)
-            for k in range(len(indptr) - 1):
-                sl = slice(indptr[k], indptr[k + 1])
-                if csc:
-                    dense[indices[sl], k] = data[sl]
-                else:
-                    dense[k, indices[sl]] = data[sl]
-            return dense
-        raise SmplFileError("SMPL file holds an object that is neither an array, chumpy nor sparse")
+        if not {"data", "indices", "indptr"} <= set(s):
+            raise SmplFileError("SMPL file holds a sparse matrix without data/indices/indptr")
+        shape = tuple(s.get("_shape", s.get("shape")))
+        dense = np.zeros(shape, dtype=np.float64)
+        data, indices, indptr = (np.asarray(s[k]) for k in ("data", "indices", "indptr"))
+        major = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+        where = (indices, major) if self.compressed_axis == 1 else (major, indices)
+        np.add.at(dense, where, data)  # duplicate entries add up, as in scipy
+        return dense
+
+
+class _CsrState(_SparseState):
+    compressed_axis = 0
 
 
 class _RestrictedUnpickler(pickle.Unpickler):
@@ -86,8 +95,10 @@ class _RestrictedUnpickler(pickle.Unpickler):
     }
 
     def find_class(self, module: str, name: str):
-        if module.startswith("chumpy") or module.startswith("scipy.sparse"):
-            return _State
+        if module.startswith("chumpy"):
+            return _ChumpyState
+        if module.startswith("scipy.sparse"):
+            return _CsrState if name.startswith("csr") else _SparseState
         if (module, name) in self._ALLOWED:
             module = {"copy_reg": "copyreg", "__builtin__": "builtins"}.get(module, module)
             return super().find_class(module, name)
