@@ -6,6 +6,7 @@ is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import json
 import logging
 import sys
 from pathlib import Path
@@ -13,6 +14,7 @@ from pathlib import Path
 import tyro
 
 from pressurepose.demo import DemoConfig
+from pressurepose.sampling.run import SampleConfig
 
 
 def demo(cfg: DemoConfig) -> None:
@@ -40,7 +42,18 @@ def cache(build: bool = True) -> None:
     print(f"{root} ({size / 1e6:.0f} MB)")
 
 
-COMMANDS = {"demo": demo, "cache": cache}
+def sample(cfg: SampleConfig) -> None:
+    """Draw initial poses for one partition (seed A.1) and write poses.npz, cells.png and
+    bodies.png."""
+    from pressurepose.sampling.run import run_sample
+
+    paths = run_sample(cfg)
+    record = json.loads(paths["config"].read_text())
+    print(f"{record['count']} poses ({record['samples_per_second']:.0f}/s) -> {cfg.out}: "
+          + ", ".join(p.name for p in paths.values()))
+
+
+COMMANDS = {"demo": demo, "sample": sample, "cache": cache}
 
 
 def main(argv: list[str] | None = None) -> int:

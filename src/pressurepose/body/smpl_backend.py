@@ -198,7 +198,7 @@ class SmplBody(BodyModel):
         eye = torch.eye(3, dtype=pose.dtype, device=pose.device).expand(B, 1, 3, 3)
         return torch.cat([eye, axis_angle_to_matrix(pose)], 1)  # (B, 24, 3, 3), root = I
 
-    def _body_frame(self, shape, pose, with_vertices):
+    def _body_frame(self, shape, pose, with_vertices, vertex_ids=None):
         rot = self._rotations(pose)
         if not with_vertices:
             J = self.J_template + torch.einsum("jxb,nb->njx", self.J_shapedirs, shape)
@@ -208,7 +208,7 @@ class SmplBody(BodyModel):
             shape, rot, self.v_template, self.shapedirs, self.posedirs, self.J_regressor,
             self.parents, self.skinning_weights, pose2rot=False,
         )
-        return vertices, joints
+        return (vertices if vertex_ids is None else vertices[:, vertex_ids]), joints
 
 
 def write_synthetic_smpl_file(path: str | Path, seed: int = 0, num_vertices: int = 6890) -> Path:

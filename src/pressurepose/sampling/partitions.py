@@ -1,0 +1,124 @@
+"""Dataset partitions of seed Table 4 as named presets, and the cells that spread the limbs.
+
+A partition fixes the root distribution (roll, yaw, shift), which stratification cells each
+limb may be asked to reach, and extra conditions (hands behind the head, crossed feet,
+straight knees and elbows). Gender and the over-the-bed flag are chosen alongside it
+(`SamplingConfig`), as Table 4 splits every partition by both.
+
+Cells (seed A.1, Fig. 10; cell layout as in the original generator). They live in the bed's
+axes after the root roll and yaw (x along the bed toward the foot, z up), so "height" is the
+height above the bed whatever way the body lies:
+- legs: the ankle may not lie above the hip (toward the head); its drop below the hip along
+  the bed, d in [0, L] with L = the leg's rest length hip-knee-ankle, is split into 4 cells of
+  L / 4 (the last one open-ended);
+- arms: the wrist's offset from the shoulder toward the head, o in [-A, A] with A = the arm's
+  rest length shoulder-elbow-wrist, is split into 8 cells of A / 4 (cell 0 = highest, the two
+  outer cells open-ended);
+- every distal joint (ankle, wrist) starts within +-10 cm of its proximal joint's height.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+LEG_CELLS = 4
+ARM_CELLS = 8
+HEIGHT_TOLERANCE_M = 0.10  # seed A.1: distal joint within +-10 cm of the proximal joint's height
+GENDERS = ("female", "male")
+
+
+@dataclasses.dataclass(frozen=True)
+class Partition:
+    """One row group of seed Table 4 (angles in radians, lengths in metres)."""
+
+    name: str
+    description: str
+    roll: tuple[float, float]                 # root roll about the bed's long axis, uniform
+    yaw: tuple[float, float] = (-math.pi / 6, math.pi / 6)  # in the bed plane, uniform
+    shift_x: tuple[float, float] = (-0.2, 0.2)  # pelvis along the bed from the mattress centre
+    shift_y: tuple[float, float] = (-0.2, 0.2)  # pelvis across the bed
+    leg_cells: tuple[int, ...] = tuple(range(LEG_CELLS))
+    arm_cells: tuple[int, ...] = tuple(range(ARM_CELLS))
+    hands_behind_head: bool = False
+    crossed_legs: bool = False
+    straight_limbs: bool = False
+    # Capsules checked for self-collision (seed A.1); the hands may touch the head when they
+    # rest behind it, so that partition leaves them out, as the original did.
+    checked_capsules: tuple[str, ...] = tuple(
+        f"{s}_{p}" for s in ("left", "right") for p in ("hand", "forearm", "foot", "calf"))
+    over_bed_choices: tuple[bool, ...] = (False, True)  # Table 4 rows that exist
+
+
+def _partitions() -> dict[str, Partition]:
+    no_hands = tuple(f"{s}_{p}" for s in ("left", "right") for p in ("forearm", "foot", "calf"))
+    parts = [
+        Partition("general", "any roll, even leg and arm space", roll=(-math.pi, math.pi)),
+        Partition("supine", "supine general: on the back, even leg and arm space", roll=(0.0, 0.0)),
+        Partition("hands_behind_head", "supine, even leg space, both hands behind the head (Fig. 10b)",
+                  roll=(0.0, 0.0), arm_cells=(0, 1, 2, 3), hands_behind_head=True,
+                  checked_capsules=no_hands, over_bed_choices=(True,)),
+        Partition("prone_hands_up", "prone, even leg space, hands above the shoulders",
+                  roll=(math.pi, math.pi), arm_cells=(0, 1, 2, 3), over_bed_choices=(True,)),
+        # Crossed feet cannot be near the buttocks (leg cell 0: no solution in 1e5 draws).
+        Partition("crossed_legs", "supine, even leg and arm space, feet crossed (left ankle right of the right)",
+                  roll=(0.0, 0.0), leg_cells=(1, 2, 3), crossed_legs=True),
+        # A straight leg held within 10 cm of the hip's height ends more than 3/4 of its length
+        # below the hip (hip abduction <= 38.6 deg), so only the last leg cell is reachable.
+        Partition("straight_limbs", "supine, knees and elbows straight, even arm space",
+                  roll=(0.0, 0.0), leg_cells=(LEG_CELLS - 1,), straight_limbs=True),
+    ]
+    return {p.name: p for p in parts}
+
+
+PARTITIONS: dict[str, Partition] = _partitions()
+
+
+def get_partition(name: str) -> Partition:
+    """A partition by name; ValueError listing the valid names otherwise."""
+    try:
+        return PARTITIONS[name]
+    except KeyError:
+        raise ValueError(f"unknown partition {name!r}; valid partitions: {', '.join(PARTITIONS)}") from None
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplingConfig:
+    """Which initial poses to draw.
+
+    Attributes:
+        partition: one of the seed's Table 4 partitions (see `pressurepose sample --help`).
+        gender: female or male.
+        over_bed: keep knees, ankles, feet, elbows, wrists and hands over the mattress.
+        seed: dataset seed; a sample is a function of (seed, partition, gender, over_bed, index).
+        max_failures: failed pose attempts (a limb that cannot reach its cell, or a self
+            collision) before the shape and root are drawn again (seed: 20).
+        max_shapes: shapes tried per sample before giving up with an error.
+        max_limb_draws: joint-angle draws per limb and attempt before it counts as a failure.
+    """
+
+    partition: str = "general"
+    gender: str = "female"
+    over_bed: bool = False
+    seed: int = 0
+    max_failures: int = 20
+    max_shapes: int = 20
+    max_limb_draws: int = 16384
+
+    def __post_init__(self) -> None:
+        part = get_partition(self.partition)
+        if self.gender not in GENDERS:
+            raise ValueError(f"unknown gender {self.gender!r}; expected one of {', '.join(GENDERS)}")
+        if self.over_bed not in part.over_bed_choices:
+            raise ValueError(
+                f"partition {self.partition!r} exists only with over_bed={part.over_bed_choices[0]} (seed Table 4)"
+            )
+        for name in ("max_failures", "max_shapes", "max_limb_draws"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+
+    @property
+    def spec(self) -> Partition:
+        return get_partition(self.partition)
