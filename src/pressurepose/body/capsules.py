@@ -245,7 +245,10 @@ def fit_capsules(model: BodyModel, shape: torch.Tensor, stride: int = FIT_STRIDE
             band_lo, band_hi = t_lo + 0.2 * span, t_hi - 0.2 * span
         foot = a0[:, None] + t[..., None] * u[:, None]
         dist = (v - foot).norm(dim=-1)
+        if v.shape[1] == 0:
+            raise ValueError(f"body model {model.name!r} has no vertices on the {spec.name} part; cannot fit its capsule")
         in_band = (t >= band_lo[:, None]) & (t <= band_hi[:, None])
+        in_band |= ~in_band.any(1, keepdim=True)  # a part with no vertex mid-segment: use them all
         r = torch.where(in_band, dist, torch.full_like(dist, float("nan"))).nanmedian(1).values
         if spec.child is None and spec.name != "head":
             half = ((t_hi - t_lo) / 2 - r).clamp_min(0.0)

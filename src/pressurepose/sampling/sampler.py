@@ -10,8 +10,9 @@ endless loop.
 
 Determinism: every sample owns a random generator seeded from (seed, partition, gender,
 over_bed, index) and draws from it in a fixed pattern that depends only on its own outcomes,
-so a sample is the same whether it is drawn alone or in a batch of any size, and float64
-geometry keeps the accept/reject decisions batch-independent.
+so a sample is the same whether it is drawn alone or in a batch of any size: the capsule
+geometry is fitted in float64 and rounded to 1 nm, so batched round-off cannot change a
+decision or a recorded number.
 
 Speed: all samples of a batch advance together - shapes, capsules and the limb forward
 kinematics of every candidate draw are batched tensors.
@@ -19,6 +20,7 @@ kinematics of every candidate draw are batched tensors.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import zlib
@@ -46,6 +48,7 @@ HIP_DEG = ((-90.0, 17.8), (-33.7, 32.6), (-30.5, 38.6))
 KNEE_DEG = (-1.3, 139.9)   # about x
 SHOULDER_DEG = ((-88.9, 81.4), (-140.7, 43.7), (-90.0, 80.4))
 ELBOW_DEG = (-147.3, 2.8)  # about y
+GEOMETRY_QUANTUM_M = 1e-9
 FIRST_ROUND, LARGEST_ROUND = 64, 4096  # joint-angle draws per round, per limb and sample
 
 LIMBS = ("left_leg", "right_leg", "left_arm", "right_arm")  # the order limbs are drawn in
@@ -302,15 +305,17 @@ class PoseSampler:
         need = [st for st in states if st.rest is None]
         if not need:
             return
-        dtype = self.model.dtype
-        shape = torch.tensor(np.stack([st.shape for st in need]), dtype=dtype, device=self.model.device)
+        model = self._fit_model()
+        shape = torch.tensor(np.stack([st.shape for st in need]), dtype=torch.float64, device=model.device)
         with torch.no_grad():
-            caps = fit_capsules(self.model, shape)
-            rest = caps.rest.to(torch.float64).cpu()
+            caps = fit_capsules(model, shape)
+        # Rounded to 1 nm: float64 round-off of a batched fit (~1e-16 m) can then never make
+        # a sample depend on the batch it was drawn in.
+        q = lambda x: (x.cpu() / GEOMETRY_QUANTUM_M).round() * GEOMETRY_QUANTUM_M  # noqa: E731
+        rest, start, end, radius = q(caps.rest), q(caps.start), q(caps.end), q(caps.radius)
         for i, st in enumerate(need):
             st.rest = rest[i]
-            st.caps = (caps.start[i].to(torch.float64).cpu(), caps.end[i].to(torch.float64).cpu(),
-                       caps.radius[i].to(torch.float64).cpu())
+            st.caps = (start[i], end[i], radius[i])
             roll, yaw = float(st.root[0]), float(st.root[1])
             R = _rz(yaw) @ _rx(roll)
             st.root_aa = matrix_to_axis_angle(torch.tensor(R))
@@ -320,6 +325,14 @@ class PoseSampler:
             lengths = lambda a, b, c: float((rest[i, a] - rest[i, b]).norm() + (rest[i, b] - rest[i, c]).norm())  # noqa: E731
             st.leg_length = lengths(_J("left_hip"), _J("left_knee"), _J("left_ankle"))
             st.arm_length = lengths(_J("left_shoulder"), _J("left_elbow"), _J("left_wrist"))
+
+    def _fit_model(self) -> BodyModel:
+        """The body model in float64 on the CPU (a copy if the given one is not)."""
+        if getattr(self, "_model64", None) is None:
+            m = self.model
+            self._model64 = m if (m.dtype == torch.float64 and m.device.type == "cpu") else \
+                copy.deepcopy(m).to(dtype=torch.float64, device="cpu")
+        return self._model64
 
     def _draw_limbs(self, states: list[_State]) -> None:
         """One pose attempt: limbs in a fixed order, each drawn until it reaches its cell
@@ -458,12 +471,15 @@ class PoseSampler:
         root_aa = torch.stack([st.root_aa for st in states])
         R = root_matrix(root_aa)
         # Pelvis height: the lowest capsule surface touches the undeformed mattress top.
-        a = torch.stack([st.placed[0] for st in states]) @ R.transpose(-1, -2)
-        b = torch.stack([st.placed[1] for st in states]) @ R.transpose(-1, -2)
+        # (Element-wise products, not a batched matmul: the result must not depend on the
+        # batch size, to the last bit.)
+        up = R[:, None, 2, :]  # the mat's z axis in body coordinates
+        za = (torch.stack([st.placed[0] for st in states]) * up).sum(-1)
+        zb = (torch.stack([st.placed[1] for st in states]) * up).sum(-1)
         radius = torch.stack([st.caps[2] for st in states])
-        lowest = (torch.minimum(a[..., 2], b[..., 2]) - radius).amin(-1)
+        lowest = (torch.minimum(za, zb) - radius).amin(-1)
         trans = torch.stack([st.shift for st in states])
-        trans[:, 2] = -lowest
+        trans[:, 2] = -(lowest / GEOMETRY_QUANTUM_M).round() * GEOMETRY_QUANTUM_M
         params = BodyParams(shape=shape, root_rotation=root_aa, root_translation=trans, pose=pose)
         _, joints = forward_kinematics(torch.stack([st.rest for st in states]), pose, R)
         return InitialPoses(

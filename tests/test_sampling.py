@@ -1,0 +1,220 @@
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pressurepose.body.capsules import capsule_clearance, collision_pairs, fit_capsules
+from pressurepose.body.joints import J24_NAMES
+from pressurepose.body.kinematics import forward_kinematics
+from pressurepose.body.limits import JointLimits
+from pressurepose.body.params import root_matrix
+from pressurepose.mat import MatSpec
+from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig, UnreachableConstraints, get_partition
+from pressurepose.sampling.partitions import HEIGHT_TOLERANCE_M
+from pressurepose.sampling.shapes import shape_bounds
+
+J = J24_NAMES.index
+# Chi-square critical values at p = 0.01 (df = 3 and df = 7).
+CHI2_CRIT = {3: 11.345, 7: 18.475}
+
+
+@pytest.fixture(scope="module")
+def anny(anny32):
+    return anny32
+
+
+_CACHE = {}
+
+
+def draw(model, n, **kwargs):
+    key = (n, tuple(sorted(kwargs.items())))
+    if key not in _CACHE:
+        cfg = SamplingConfig(**kwargs)
+        _CACHE[key] = PoseSampler(model, cfg).sample(range(n))
+    return _CACHE[key]
+
+
+def roll_frame(poses):
+    """Joints relative to the pelvis, yaw undone: x along the body toward the foot, z height."""
+    yaw = torch.as_tensor(poses.root_draw[:, 1])
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    d = poses.joints - poses.params.root_translation[:, None]
+    return torch.stack([c[:, None] * d[..., 0] + s[:, None] * d[..., 1],
+                        -s[:, None] * d[..., 0] + c[:, None] * d[..., 1], d[..., 2]], -1)
+
+
+def body_axes(poses):
+    R = root_matrix(poses.params.root_rotation)
+    return (poses.joints - poses.params.root_translation[:, None]) @ R
+
+
+def limb_cells(poses):
+    """Cells recomputed from the joints: (B, 4)."""
+    p = roll_frame(poses)
+    out = []
+    for side in ("left", "right"):
+        hip, knee, ankle = (p[:, J(f"{side}_{n}")] for n in ("hip", "knee", "ankle"))
+        L = (knee - hip).norm(dim=-1) + (ankle - knee).norm(dim=-1)
+        drop = ankle[:, 0] - hip[:, 0]
+        assert (drop >= 0).all(), "an ankle lies above its hip"
+        out.append((drop / (L / 4)).floor().clamp(0, 3))
+    for side in ("left", "right"):
+        sh, el, wr = (p[:, J(f"{side}_{n}")] for n in ("shoulder", "elbow", "wrist"))
+        A = (el - sh).norm(dim=-1) + (wr - el).norm(dim=-1)
+        rise = -(wr[:, 0] - sh[:, 0])
+        out.append(3 - (rise / (A / 4)).floor().clamp(-4, 3))
+    return torch.stack(out, -1).long().numpy()
+
+
+def assert_collision_free(model, poses, checked):
+    caps = fit_capsules(model, poses.params.shape.to(model.dtype))
+    caps = type(caps)(*(x.double() for x in (caps.start, caps.end, caps.radius, caps.rest)))
+    rot, pos = forward_kinematics(caps.rest, poses.params.pose)
+    a, b = caps.place(rot, pos)
+    clear = capsule_clearance(a, b, caps.radius, collision_pairs(checked))
+    assert (clear >= -1e-6).all(), f"{int((clear < 0).any(-1).sum())} samples in self-collision"
+
+
+def test_unknown_partition_lists_the_valid_ones():
+    with pytest.raises(ValueError, match="valid partitions: general, supine, hands_behind_head"):
+        SamplingConfig(partition="sideways")
+    with pytest.raises(ValueError, match="unknown gender"):
+        SamplingConfig(gender="x")
+    with pytest.raises(ValueError, match="over_bed=True"):
+        SamplingConfig(partition="hands_behind_head", over_bed=False)
+    with pytest.raises(ValueError, match="max_limb_draws"):
+        SamplingConfig(max_limb_draws=0)
+    assert set(PARTITIONS) == {"general", "supine", "hands_behind_head", "prone_hands_up", "crossed_legs",
+                               "straight_limbs"}
+    assert get_partition("supine").roll == (0.0, 0.0)
+
+
+@pytest.mark.slow
+def test_distal_joint_cells_are_uniform_and_reached(anny):
+    poses = draw(anny, 2000, partition="general", gender="male")
+    cells = limb_cells(poses)
+    np.testing.assert_array_equal(cells, poses.cells)  # every distal joint lies in its drawn cell
+    for k, n_cells in enumerate((4, 4, 8, 8)):
+        counts = np.bincount(cells[:, k], minlength=n_cells)
+        expected = len(cells) / n_cells
+        chi2 = ((counts - expected) ** 2 / expected).sum()
+        assert chi2 < CHI2_CRIT[n_cells - 1], (k, counts)
+    # distal joints start within 10 cm of their proximal joint's height
+    p = roll_frame(poses)
+    for prox, dist in (("hip", "ankle"), ("shoulder", "wrist")):
+        for side in ("left", "right"):
+            dz = p[:, J(f"{side}_{dist}"), 2] - p[:, J(f"{side}_{prox}"), 2]
+            assert dz.abs().max() <= HEIGHT_TOLERANCE_M + 1e-9
+    # angles inside the limits, unsampled joints at zero
+    assert JointLimits.default(torch.float64).contains(poses.params.pose).all()
+    sampled = {J(f"{s}_{n}") - 1 for s in ("left", "right") for n in ("hip", "knee", "collar", "shoulder", "elbow")}
+    others = [j for j in range(23) if j not in sampled]
+    assert (poses.params.pose[:, others] == 0).all()
+    assert_collision_free(anny, poses, PARTITIONS["general"].checked_capsules)
+    # roll spread over the full circle, yaw within +-30 degrees
+    assert poses.root_draw[:, 0].min() < -3.0 and poses.root_draw[:, 0].max() > 3.0
+    assert np.abs(poses.root_draw[:, 1]).max() <= math.pi / 6
+
+
+def test_determinism_same_index_same_sample(anny):
+    cfg = SamplingConfig(partition="supine", gender="female", seed=7)
+    batch = PoseSampler(anny, cfg).sample(range(6))
+    alone = PoseSampler(anny, cfg).sample([3])
+    for field in ("shape", "root_rotation", "root_translation", "pose"):
+        torch.testing.assert_close(getattr(alone.params, field)[0], getattr(batch.params, field)[3], rtol=0, atol=0)
+    np.testing.assert_array_equal(alone.cells[0], batch.cells[3])
+    assert {k: int(v[0]) for k, v in alone.rejections.items()} == {k: int(v[3]) for k, v in batch.rejections.items()}
+    # another index, another seed or another partition -> another sample
+    assert not torch.equal(batch.params.pose[3], batch.params.pose[4])
+    other_seed = PoseSampler(anny, dataclasses.replace(cfg, seed=8)).sample([3])
+    assert not torch.equal(other_seed.params.shape[0], alone.params.shape[0])
+    other_part = PoseSampler(anny, dataclasses.replace(cfg, partition="general")).sample([3])
+    assert not torch.equal(other_part.params.shape[0], alone.params.shape[0])
+
+
+def test_records_partition_rejections_and_rests_on_the_mat(anny):
+    poses = draw(anny, 40, partition="supine", gender="female", over_bed=True)
+    assert poses.config.partition == "supine" and poses.config.over_bed
+    assert set(poses.rejections) == {"limb_draws_rejected", "limb_failures", "collisions", "shape_resamples"}
+    assert sum(int(v.sum()) for v in poses.rejections.values()) > 0
+    anny._check(poses.params.to(anny.dtype))  # valid BodyParams for the model
+    # shapes from the female box
+    low, high = shape_bounds("anny", "female", anny.shape_names)
+    s = poses.params.shape.numpy()
+    assert (s >= low - 1e-12).all() and (s <= high + 1e-12).all() and (s[:, 0] == 1.0).all()
+    # the lowest capsule point touches z = 0 (pelvis set accordingly)
+    caps = fit_capsules(anny, poses.params.shape.to(anny.dtype))
+    caps = type(caps)(*(x.double() for x in (caps.start, caps.end, caps.radius, caps.rest)))
+    a, b = caps.posed(poses.params.pose, poses.params.root_rotation, poses.params.root_translation)
+    lowest = (torch.minimum(a[..., 2], b[..., 2]) - caps.radius).amin(-1)
+    torch.testing.assert_close(lowest, torch.zeros_like(lowest), atol=1e-6, rtol=0)
+    # over the bed: knees, ankles, feet, elbows, wrists, hands inside the mattress
+    (x0, x1), (y0, y1) = MatSpec().mattress_bounds_m
+    limbs = [J(f"{s}_{n}") for s in ("left", "right") for n in ("knee", "ankle", "foot", "elbow", "wrist", "hand")]
+    xy = poses.joints[:, limbs, :2]
+    assert ((xy[..., 0] > x0) & (xy[..., 0] < x1) & (xy[..., 1] > y0) & (xy[..., 1] < y1)).all()
+    assert_collision_free(anny, poses, PARTITIONS["supine"].checked_capsules)
+    # supine: the body's front faces up
+    front = root_matrix(poses.params.root_rotation)[:, :, 2]
+    assert (front[:, 2] > 0.99).all()
+
+
+def test_crossed_legs_are_always_crossed(anny):
+    poses = draw(anny, 30, partition="crossed_legs", gender="male")
+    body = body_axes(poses)
+    assert (body[:, J("left_ankle"), 0] < body[:, J("right_ankle"), 0]).all()
+    assert_collision_free(anny, poses, PARTITIONS["crossed_legs"].checked_capsules)
+    np.testing.assert_array_equal(limb_cells(poses), poses.cells)
+
+
+def test_straight_limbs_have_straight_knees_and_elbows(anny):
+    poses = draw(anny, 30, partition="straight_limbs", gender="female")
+    for n in ("knee", "elbow"):
+        for s in ("left", "right"):
+            assert (poses.params.pose[:, J(f"{s}_{n}") - 1] == 0).all()
+    np.testing.assert_array_equal(limb_cells(poses), poses.cells)
+
+
+def test_hands_behind_head_and_prone_hands_up(anny):
+    poses = draw(anny, 20, partition="hands_behind_head", gender="female", over_bed=True)
+    body = body_axes(poses)
+    p = roll_frame(poses)
+    for s in ("left", "right"):
+        wr, sh = J(f"{s}_wrist"), J(f"{s}_shoulder")
+        assert (body[:, wr, 0].abs() < body[:, sh, 0].abs()).all()  # between midline and shoulder
+        assert (p[:, wr, 0] <= p[:, sh, 0]).all()                    # toward the head
+        assert (p[:, wr, 2] <= p[:, sh, 2] + 1e-9).all()             # not above the shoulder
+    assert_collision_free(anny, poses, PARTITIONS["hands_behind_head"].checked_capsules)
+    prone = draw(anny, 20, partition="prone_hands_up", gender="male", over_bed=True)
+    front = root_matrix(prone.params.root_rotation)[:, :, 2]
+    assert (front[:, 2] < -0.99).all()  # face down
+    p = roll_frame(prone)
+    for s in ("left", "right"):
+        assert (p[:, J(f"{s}_wrist"), 0] <= p[:, J(f"{s}_shoulder"), 0]).all()  # hands above the shoulders
+
+
+def test_unreachable_constraints_fail_fast_with_a_clear_error(anny):
+    impossible = dataclasses.replace(PARTITIONS["straight_limbs"], leg_cells=(0,))  # straight leg, foot at hip
+    cfg = SamplingConfig(partition="straight_limbs", max_limb_draws=256, max_shapes=3)
+    with pytest.raises(UnreachableConstraints, match="unreachable"):
+        PoseSampler(anny, cfg, partition=impossible).sample([0])
+
+
+def test_bad_indices_and_config(anny):
+    sampler = PoseSampler(anny, SamplingConfig())
+    with pytest.raises(ValueError, match="no sample indices"):
+        sampler.sample([])
+    with pytest.raises(ValueError, match=">= 0"):
+        sampler.sample([-1])
+    with pytest.raises(ValueError, match="SamplingConfig"):
+        PoseSampler(anny, {"partition": "general"})
+
+
+def test_smpl_backend_samples(smpl64):
+    poses = PoseSampler(smpl64, SamplingConfig(partition="supine", gender="male")).sample(range(3))
+    assert poses.backend == "smpl"
+    s = poses.params.shape
+    assert (s >= -3).all() and (s <= 3).all()
+    np.testing.assert_array_equal(limb_cells(poses), poses.cells)
