@@ -21,12 +21,14 @@ $(STAMP): pyproject.toml | $(BIN)/python
 
 demo: $(STAMP)
 	$(BIN)/pressurepose demo --out out/demo
+	$(BIN)/pressurepose sample --out out/demo/sample --n 96 --partition general
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/body.py
+	$(BIN)/python benchmarks/sampling.py
 
 clean-venv:
 	rm -rf $(VENV)

@@ -2,6 +2,9 @@ import json
 import subprocess
 import sys
 
+import numpy as np
+import pytest
+
 from pressurepose.cli import main
 
 
@@ -12,7 +15,7 @@ def run(*args):
 def test_help_lists_subcommands():
     r = run("--help")
     assert r.returncode == 0
-    for command in ("demo", "cache"):
+    for command in ("demo", "sample", "cache"):
         assert command in r.stdout
 
 
@@ -34,3 +37,51 @@ def test_user_errors_exit_2_without_traceback(tmp_path):
     assert "SMPL_NEUTRAL.npz or .pkl not found" in r.stderr
     r = run("demo", "--backend", "star")
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+def test_sample_writes_poses_and_figures(tmp_path):
+    out = tmp_path / "s"
+    assert main(["sample", "--out", str(out), "--n", "12", "--partition", "supine", "--gender", "male",
+                 "--batch", "5", "--figures", "4"]) == 0
+    from pressurepose.sampling.run import load_poses
+
+    arrays = load_poses(out / "poses.npz")
+    assert arrays["pose"].shape == (12, 23, 3) and arrays["joints"].shape == (12, 24, 3)
+    np.testing.assert_array_equal(arrays["index"], np.arange(12))
+    assert set(k for k in arrays if k.startswith("rejections_")) == {
+        "rejections_limb_draws_rejected", "rejections_limb_failures", "rejections_collisions",
+        "rejections_shape_resamples", "rejections_cell_redraws"}
+    record = json.loads((out / "config.json").read_text())
+    assert record["sampling"]["partition"] == "supine" and record["count"] == 12
+    assert sum(record["cell_counts"]["left_leg"]) == 12
+    for name in ("cells.png", "bodies.png"):
+        assert (out / name).read_bytes()[:4] == b"\x89PNG"
+    assert not list(out.glob(".*partial*"))  # no temporary files left behind
+    # the same indices drawn in another batch size are the same samples
+    again = tmp_path / "t"
+    assert main(["sample", "--out", str(again), "--n", "12", "--partition", "supine", "--gender", "male",
+                 "--batch", "12", "--figures", "0"]) == 0
+    other = load_poses(again / "poses.npz")
+    for key in ("shape", "pose", "root_rotation", "root_translation", "cells"):
+        np.testing.assert_array_equal(arrays[key], other[key])
+
+
+def test_sample_bad_input_exits_2(tmp_path):
+    r = run("sample", "--out", str(tmp_path / "x"), "--partition", "sideways")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "valid partitions: general, supine" in r.stderr
+    r = run("sample", "--out", str(tmp_path / "x"), "--n", "0")
+    assert r.returncode == 2 and "n must be >= 1" in r.stderr
+    r = run("sample", "--out", str(tmp_path / "x"), "--partition", "hands_behind_head")
+    assert r.returncode == 2 and "over_bed=True" in r.stderr
+
+
+def test_load_poses_refuses_missing_and_corrupt_files(tmp_path):
+    from pressurepose.sampling.run import load_poses
+
+    with pytest.raises(ValueError, match="no poses file"):
+        load_poses(tmp_path / "none.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="not a readable poses file"):
+        load_poses(bad)

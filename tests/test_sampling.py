@@ -137,7 +137,8 @@ def test_determinism_same_index_same_sample(anny):
 def test_records_partition_rejections_and_rests_on_the_mat(anny):
     poses = draw(anny, 40, partition="supine", gender="female", over_bed=True)
     assert poses.config.partition == "supine" and poses.config.over_bed
-    assert set(poses.rejections) == {"limb_draws_rejected", "limb_failures", "collisions", "shape_resamples"}
+    assert set(poses.rejections) == {"limb_draws_rejected", "limb_failures", "collisions", "shape_resamples",
+                                     "cell_redraws"}
     assert sum(int(v.sum()) for v in poses.rejections.values()) > 0
     anny._check(poses.params.to(anny.dtype))  # valid BodyParams for the model
     # shapes from the female box

@@ -53,7 +53,11 @@ FIRST_ROUND, LARGEST_ROUND = 64, 4096  # joint-angle draws per round, per limb a
 
 LIMBS = ("left_leg", "right_leg", "left_arm", "right_arm")  # the order limbs are drawn in
 _TORSO_JOINTS = tuple(_J(n) for n in ("pelvis", "spine1", "spine2", "spine3", "neck", "head"))
-REJECTION_KEYS = ("limb_draws_rejected", "limb_failures", "collisions", "shape_resamples")
+REJECTION_KEYS = ("limb_draws_rejected", "limb_failures", "collisions", "shape_resamples", "cell_redraws")
+# A limb whose cell had no solution for this many shapes gets a new cell: over the bed, a cell
+# can lie off the mattress for nearly every body (a straight arm held out sideways); the seed
+# clips such cells, the original redrew them.
+CELL_REDRAW_AFTER = 2
 
 
 def _mirror(ranges, side):
@@ -191,7 +195,9 @@ class _State:
     root_aa: torch.Tensor | None = None
     R_root: torch.Tensor | None = None  # body axes -> mat frame
     R_roll: torch.Tensor | None = None  # body axes -> mat frame axes, roll only (no yaw)
-    unreachable: bool = False          # a limb's conditions had no solution in a whole budget
+    unreachable: str | None = None     # a limb whose conditions had no solution in a whole budget
+    failed_limb: str | None = None     # the limb that failed the last attempt
+    blocked: dict = dataclasses.field(default_factory=dict)  # limb -> shapes it blocked in a row
     shift: torch.Tensor | None = None  # pelvis (x, y, 0) in the mat frame
     leg_length: float = 0.0
     arm_length: float = 0.0
@@ -268,20 +274,32 @@ class PoseSampler:
                 if len(st.angles) == len(LIMBS):
                     continue
                 st.failures += 1
-                if st.failures > self.config.max_failures or st.unreachable:
+                last = st.failed_limb
+                if st.failures > self.config.max_failures or st.unreachable is not None:
+                    # This shape is given up; a limb that blocked CELL_REDRAW_AFTER shapes in a
+                    # row gets a new cell.
+                    name = st.failed_limb
+                    st.blocked[name] = st.blocked.get(name, 0) + 1
+                    if st.blocked[name] >= CELL_REDRAW_AFTER:
+                        cells = self.part.leg_cells if name.endswith("leg") else self.part.arm_cells
+                        st.cells[LIMBS.index(name)] = st.rng.choice(np.array(cells))
+                        st.blocked[name] = 0
+                        st.counts["cell_redraws"] += 1
+                if st.failures > self.config.max_failures or st.unreachable is not None:
                     st.shapes += 1
                     st.counts["shape_resamples"] += 1
                     if st.shapes >= self.config.max_shapes:
+                        stuck = f"; last blocked: {last} in cell {st.cells[LIMBS.index(last)]}" if last else ""
                         raise UnreachableConstraints(
                             f"sample {st.index} of partition {self.config.partition!r} "
                             f"({self.config.gender}, over_bed={self.config.over_bed}) found no valid pose "
                             f"after {self.config.max_shapes} shapes x {self.config.max_failures + 1} attempts; "
                             f"its constraints are unreachable with these settings "
-                            f"(raise max_shapes or max_limb_draws, or use another partition)"
+                            f"(raise max_shapes or max_limb_draws, or use another partition){stuck}"
                         )
                     st.shape = None
                     st.failures = 0
-                    st.unreachable = False
+                    st.unreachable = None
                 still.append(st)
             pending = still
         return self._collect(states)
@@ -384,10 +402,11 @@ class PoseSampler:
             pending = still
         for st in pending:  # budget exhausted: this attempt fails
             st.counts["limb_failures"] += 1
+            st.failed_limb = limb.name
             # No draw met even the cell and bed conditions: other limbs cannot help (unless
             # the condition depends on them, as crossing does), only a new shape and root.
             if id(st) not in reachable and not (self.part.crossed_legs and limb.name == "right_leg"):
-                st.unreachable = True
+                st.unreachable = limb.name
         return placed_ok
 
     def _limb_geometry(self, states: list[_State], limb: _Limb, angles: torch.Tensor):
