@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from pressurepose.body import load_body_model
-from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig
+from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig, UnreachableConstraints
 
 
 def bench_sampling(n: int, threads: int) -> None:
@@ -24,17 +24,22 @@ def bench_sampling(n: int, threads: int) -> None:
     model = load_body_model("anny", dtype=torch.float32)
     print(f"accepted initial poses per second ({threads} thread(s), {n} samples, batch {min(n, 256)}, Anny)")
     print(f"{'partition':<18} {'over_bed':<8} {'poses/s':>8} {'draws rej.':>10} {'collisions':>10} "
-          f"{'limb fail':>9} {'new shape':>9}")
+          f"{'limb fail':>9} {'new shape':>9} {'new cell':>8}")
     for name, part in PARTITIONS.items():
         for over_bed in part.over_bed_choices:
             sampler = PoseSampler(model, SamplingConfig(partition=name, gender="male", over_bed=over_bed))
             sampler.sample([10**6])  # warm-up (and the float64 copy of the model)
             t = time.perf_counter()
-            out = [sampler.sample(range(lo, min(lo + 256, n))) for lo in range(0, n, 256)]
+            try:
+                out = [sampler.sample(range(lo, min(lo + 256, n))) for lo in range(0, n, 256)]
+            except UnreachableConstraints as exc:
+                print(f"{name:<18} {str(over_bed):<8} gave up: {exc}")
+                continue
             dt = time.perf_counter() - t
             rej = {k: np.concatenate([o.rejections[k] for o in out]).mean() for k in out[0].rejections}
             print(f"{name:<18} {str(over_bed):<8} {n / dt:8.0f} {rej['limb_draws_rejected']:10.0f} "
-                  f"{rej['collisions']:10.1f} {rej['limb_failures']:9.2f} {rej['shape_resamples']:9.2f}")
+                  f"{rej['collisions']:10.1f} {rej['limb_failures']:9.2f} {rej['shape_resamples']:9.2f} "
+                  f"{rej['cell_redraws']:8.3f}")
 
 
 def bench_shapes(n: int) -> None:

@@ -273,7 +273,7 @@ class AnnyBody(BodyModel):
         order = sk.inverse_order
         return torch.cat(rot, 1)[:, order], torch.cat(heads, 1)[:, order]
 
-    def _body_frame(self, shape, pose, with_vertices, vertex_ids=None):
+    def _body_frame(self, shape, pose, with_vertices):
         sk = self.full if with_vertices else self.light
         coeffs = self._coefficients(shape)
         rest_heads, rest_R = self._rest_skeleton(coeffs, sk)
@@ -288,20 +288,7 @@ class AnnyBody(BodyModel):
         T = rot @ A
         t = heads - (T @ rest_heads[..., None])[..., 0]
         rest_vertices = self.anny.get_rest_vertices(coeffs)
-        weights = self.skin_matrix
-        if vertex_ids is not None:
-            rest_vertices = rest_vertices[:, vertex_ids]
-            weights = self._skin_rows(vertex_ids)
-        return sparse_linear_blend_skinning(rest_vertices, weights, T, t) @ C, joints
-
-    def _skin_rows(self, vertex_ids: torch.Tensor) -> torch.Tensor:
-        """Rows of the sparse skinning matrix for a vertex subset (cached per subset)."""
-        key = (hash(vertex_ids.cpu().numpy().tobytes()), self.skin_matrix.dtype, self.skin_matrix.device)
-        cache = self.__dict__.setdefault("_skin_rows_cache", {})
-        if key not in cache:
-            dense_ids = vertex_ids.to(self.skin_matrix.device)
-            cache[key] = self.skin_matrix.index_select(0, dense_ids).coalesce()
-        return cache[key]
+        return sparse_linear_blend_skinning(rest_vertices, self.skin_matrix, T, t) @ C, joints
 
     def native_rest_pose(self, shape: torch.Tensor) -> torch.Tensor:
         """(B, 23, 3) pose that reproduces Anny's own reference (A-)pose for these shapes.

@@ -49,6 +49,11 @@ class CapsuleSpec:
     extend_end: bool = False    # grow the far end to the last vertex (head, hands, feet)
     extend_start: bool = False  # grow the near end back to the first vertex (heels)
 
+    @property
+    def crosswise(self) -> bool:
+        """Torso capsules lie across the body (SMPLify); the head has no child but an axis."""
+        return self.child is None and self.name != "head"
+
 
 def _layout() -> tuple[CapsuleSpec, ...]:
     specs = [
@@ -203,19 +208,15 @@ class Capsules:
         return a, b
 
 
-FIT_STRIDE = 1  # every vertex: extreme vertices set the end caps, so subsets move them by cm
-
-
-def fit_capsules(model: BodyModel, shape: torch.Tensor, stride: int = FIT_STRIDE) -> Capsules:
-    """Fit the 20 capsules to (B, S) shapes from the T-pose mesh (every `stride`-th vertex)
-    and its part labels."""
-    ids = torch.arange(0, model.num_vertices, stride, device=model.device)
+def fit_capsules(model: BodyModel, shape: torch.Tensor) -> Capsules:
+    """Fit the 20 capsules to (B, S) shapes from the T-pose mesh and its part labels (every
+    vertex: the extreme ones set the end caps)."""
     params = BodyParams.zeros(shape.shape[0], shape)
     model._check(params)
-    vertices, joints = model._body_frame(params.shape, params.pose, with_vertices=True, vertex_ids=ids)
+    vertices, joints = model._body_frame(params.shape, params.pose, with_vertices=True)
     rest = joints - joints[:, :1]
-    vertices = vertices - joints[:, :1]  # (B, N, 3) body axes, pelvis at the origin
-    labels = model.part_labels[ids]
+    vertices = vertices - joints[:, :1]  # (B, V, 3) body axes, pelvis at the origin
+    labels = model.part_labels
     B = shape.shape[0]
     starts, ends, radii = [], [], []
     x_axis = torch.tensor([1.0, 0.0, 0.0], dtype=vertices.dtype, device=vertices.device)
@@ -224,7 +225,9 @@ def fit_capsules(model: BodyModel, shape: torch.Tensor, stride: int = FIT_STRIDE
         for part in spec.parts:
             mask |= labels == part
         v = vertices[:, mask]  # (B, n, 3)
-        if spec.child is None and spec.name != "head":
+        if v.shape[1] == 0:
+            raise ValueError(f"body model {model.name!r} has no vertices on the {spec.name} part; cannot fit its capsule")
+        if spec.crosswise:
             # Crosswise torso capsule through the part's centroid.
             centre = v.mean(1)
             u = x_axis.expand(B, 3)
@@ -245,12 +248,10 @@ def fit_capsules(model: BodyModel, shape: torch.Tensor, stride: int = FIT_STRIDE
             band_lo, band_hi = t_lo + 0.2 * span, t_hi - 0.2 * span
         foot = a0[:, None] + t[..., None] * u[:, None]
         dist = (v - foot).norm(dim=-1)
-        if v.shape[1] == 0:
-            raise ValueError(f"body model {model.name!r} has no vertices on the {spec.name} part; cannot fit its capsule")
         in_band = (t >= band_lo[:, None]) & (t <= band_hi[:, None])
         in_band |= ~in_band.any(1, keepdim=True)  # a part with no vertex mid-segment: use them all
         r = torch.where(in_band, dist, torch.full_like(dist, float("nan"))).nanmedian(1).values
-        if spec.child is None and spec.name != "head":
+        if spec.crosswise:
             half = ((t_hi - t_lo) / 2 - r).clamp_min(0.0)
             mid = a0 + ((t_hi + t_lo) / 2)[:, None] * u
             s, e = mid - half[:, None] * u, mid + half[:, None] * u

@@ -58,11 +58,9 @@ class BodyModel(torch.nn.Module, abc.ABC):
     # --- to implement -------------------------------------------------------------------
     @abc.abstractmethod
     def _body_frame(
-        self, shape: torch.Tensor, pose: torch.Tensor, with_vertices: bool,
-        vertex_ids: torch.Tensor | None = None,
+        self, shape: torch.Tensor, pose: torch.Tensor, with_vertices: bool
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """(vertices (B, V, 3) - or only `vertex_ids` of them - or None, joints (B, 24, 3))
-        in body axes, zero root rotation."""
+        """(vertices (B, V, 3) or None, joints (B, 24, 3)) in body axes, zero root rotation."""
 
     @abc.abstractmethod
     def default_shape(self, batch_size: int = 1) -> torch.Tensor:
@@ -97,12 +95,11 @@ class BodyModel(torch.nn.Module, abc.ABC):
         _, joints = self._body_frame(params.shape, params.pose, with_vertices=False)
         return place_in_mat(joints, joints[:, 0], params)
 
-    def rest_vertices(self, shape: torch.Tensor, vertex_ids: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, V, 3) zero-pose (T-pose) mesh in body axes, pelvis at the origin; with
-        `vertex_ids` (N,) only those vertices (B, N, 3), computed without the others."""
+    def rest_vertices(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B, V, 3) zero-pose (T-pose) mesh in body axes, pelvis at the origin."""
         params = BodyParams.zeros(shape.shape[0], shape)
         self._check(params)
-        vertices, joints = self._body_frame(params.shape, params.pose, with_vertices=True, vertex_ids=vertex_ids)
+        vertices, joints = self._body_frame(params.shape, params.pose, with_vertices=True)
         return vertices - joints[:, :1]
 
     def measure(self, shape: torch.Tensor) -> BodyMeasurements:

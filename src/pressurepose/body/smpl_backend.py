@@ -198,7 +198,7 @@ class SmplBody(BodyModel):
         eye = torch.eye(3, dtype=pose.dtype, device=pose.device).expand(B, 1, 3, 3)
         return torch.cat([eye, axis_angle_to_matrix(pose)], 1)  # (B, 24, 3, 3), root = I
 
-    def _body_frame(self, shape, pose, with_vertices, vertex_ids=None):
+    def _body_frame(self, shape, pose, with_vertices):
         rot = self._rotations(pose)
         if not with_vertices:
             J = self.J_template + torch.einsum("jxb,nb->njx", self.J_shapedirs, shape)
@@ -208,7 +208,7 @@ class SmplBody(BodyModel):
             shape, rot, self.v_template, self.shapedirs, self.posedirs, self.J_regressor,
             self.parents, self.skinning_weights, pose2rot=False,
         )
-        return (vertices if vertex_ids is None else vertices[:, vertex_ids]), joints
+        return vertices, joints
 
 
 def write_synthetic_smpl_file(path: str | Path, seed: int = 0, num_vertices: int = 6890) -> Path:

@@ -2,11 +2,12 @@
 
 For each sample: draw the shape, the root (roll, yaw, shift) and, once, the cell each limb
 must reach; then draw joint angles limb by limb until the distal joint lands in its cell (and
-over the bed, crossed, ... as the partition asks); check the assembled pose for self-collision
-with the capsulised body. A limb that cannot reach its cell within `max_limb_draws` draws, or a
-collision, is a failure; after `max_failures` failures the shape and root are drawn again, and
-after `max_shapes` shapes the sample gives up with an error naming the partition - never an
-endless loop.
+over the bed, crossed, ... as the partition asks) with the limb's capsules clear of the torso,
+the head and the limbs placed before it. A limb that finds no such draw within
+`max_limb_draws` draws fails the attempt; after `max_failures` failures (or at once when no
+draw even reached the cell) the shape and root are drawn again, a limb that blocked
+CELL_REDRAW_AFTER shapes gets a new cell, and after `max_shapes` shapes the sample gives up
+with an error naming the partition - never an endless loop.
 
 Determinism: every sample owns a random generator seeded from (seed, partition, gender,
 over_bed, index) and draws from it in a fixed pattern that depends only on its own outcomes,
@@ -30,7 +31,7 @@ import torch
 
 from pressurepose.body.capsules import CAPSULES, capsule_clearance, collision_pairs, fit_capsules
 from pressurepose.body.joints import J24_NAMES, NUM_POSE_JOINTS
-from pressurepose.body.kinematics import forward_kinematics, rest_joints
+from pressurepose.body.kinematics import forward_kinematics
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
@@ -197,7 +198,7 @@ class _State:
     R_roll: torch.Tensor | None = None  # body axes -> mat frame axes, roll only (no yaw)
     unreachable: str | None = None     # a limb whose conditions had no solution in a whole budget
     failed_limb: str | None = None     # the limb that failed the last attempt
-    blocked: dict = dataclasses.field(default_factory=dict)  # limb -> shapes it blocked in a row
+    blocked: dict = dataclasses.field(default_factory=dict)  # limb -> shapes it blocked since its last cell
     shift: torch.Tensor | None = None  # pelvis (x, y, 0) in the mat frame
     leg_length: float = 0.0
     arm_length: float = 0.0
@@ -276,26 +277,24 @@ class PoseSampler:
                 st.failures += 1
                 last = st.failed_limb
                 if st.failures > self.config.max_failures or st.unreachable is not None:
-                    # This shape is given up; a limb that blocked CELL_REDRAW_AFTER shapes in a
-                    # row gets a new cell.
-                    name = st.failed_limb
-                    st.blocked[name] = st.blocked.get(name, 0) + 1
-                    if st.blocked[name] >= CELL_REDRAW_AFTER:
-                        cells = self.part.leg_cells if name.endswith("leg") else self.part.arm_cells
-                        st.cells[LIMBS.index(name)] = st.rng.choice(np.array(cells))
-                        st.blocked[name] = 0
+                    # This shape is given up; a limb that blocked CELL_REDRAW_AFTER shapes
+                    # gets a new cell.
+                    st.blocked[last] = st.blocked.get(last, 0) + 1
+                    if st.blocked[last] >= CELL_REDRAW_AFTER:
+                        cells = self.part.leg_cells if last.endswith("leg") else self.part.arm_cells
+                        st.cells[LIMBS.index(last)] = st.rng.choice(np.array(cells))
+                        st.blocked[last] = 0
                         st.counts["cell_redraws"] += 1
-                if st.failures > self.config.max_failures or st.unreachable is not None:
                     st.shapes += 1
                     st.counts["shape_resamples"] += 1
                     if st.shapes >= self.config.max_shapes:
-                        stuck = f"; last blocked: {last} in cell {st.cells[LIMBS.index(last)]}" if last else ""
                         raise UnreachableConstraints(
                             f"sample {st.index} of partition {self.config.partition!r} "
                             f"({self.config.gender}, over_bed={self.config.over_bed}) found no valid pose "
                             f"after {self.config.max_shapes} shapes x {self.config.max_failures + 1} attempts; "
                             f"its constraints are unreachable with these settings "
-                            f"(raise max_shapes or max_limb_draws, or use another partition){stuck}"
+                            f"(raise max_shapes or max_limb_draws, or use another partition); "
+                            f"last blocked: {last} in cell {st.cells[LIMBS.index(last)]}"
                         )
                     st.shape = None
                     st.failures = 0
@@ -335,10 +334,11 @@ class PoseSampler:
             st.rest = rest[i]
             st.caps = (start[i], end[i], radius[i])
             roll, yaw = float(st.root[0]), float(st.root[1])
-            R = _rz(yaw) @ _rx(roll)
-            st.root_aa = matrix_to_axis_angle(torch.tensor(R))
+            # Roll about the bed's long axis, then yaw in the bed plane.
+            Rx, Rz = axis_angle_to_matrix(torch.tensor([[roll, 0.0, 0.0], [0.0, 0.0, yaw]], dtype=torch.float64))
+            st.root_aa = matrix_to_axis_angle(Rz @ Rx)
             st.R_root = root_matrix(st.root_aa[None])[0]  # body axes -> mat frame
-            st.R_roll = root_matrix(torch.tensor([roll, 0.0, 0.0], dtype=torch.float64)[None])[0]
+            st.R_roll = root_matrix(torch.tensor([[roll, 0.0, 0.0]], dtype=torch.float64))[0]
             st.shift = torch.tensor([self.centre[0] + st.root[2], self.centre[1] + st.root[3], 0.0], dtype=torch.float64)
             lengths = lambda a, b, c: float((rest[i, a] - rest[i, b]).norm() + (rest[i, b] - rest[i, c]).norm())  # noqa: E731
             st.leg_length = lengths(_J("left_hip"), _J("left_knee"), _J("left_ankle"))
@@ -524,12 +524,3 @@ def _arm_cell(rise: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
     q = (rise / (A / 4)).floor().clamp(-4, 3).long()  # -4..3
     return 3 - q
 
-
-def _rx(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def _rz(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
