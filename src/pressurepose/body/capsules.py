@@ -481,7 +481,9 @@ def build_capsule_body(model: BodyModel, shape: torch.Tensor, volume_method: str
     average_shape = model.default_shape(shape.shape[0])
     if model.name == "anny":
         average_shape[:, 0] = shape[:, 0]
-    avg_volume = capsule_volumes(fit_capsules(model, average_shape), method=volume_method)
+    # One average body per distinct gender (datasets use exactly 0 and 1), not one per body.
+    unique, inverse = torch.unique(average_shape, dim=0, return_inverse=True)
+    avg_volume = capsule_volumes(fit_capsules(model, unique), method=volume_method)[inverse]
     fraction, seg_id = _segment_table(female)
     # V_R,g of the average body: sum of its capsule volumes over each segment (per side for
     # limbs: a left and a right segment are separate parts, each with fraction X_R).

@@ -3,8 +3,8 @@
 Anny (default): gender is exact (1 female, 0 male); age uniform over adults (Anny age 0.77 to
 0.852, i.e. 18 to ~70 years on Anny's anchors); muscle and proportions uniform on [0, 1];
 height and weight uniform on per-gender intervals chosen so the population spans
-- male:   ~1.48-2.08 m, ~38-147 kg, BMI ~16-40,
-- female: ~1.43-1.94 m, ~36-112 kg, BMI ~16-33
+- male:   ~1.48-2.02 m, ~37-140 kg, BMI ~16-40,
+- female: ~1.43-1.95 m, ~35-113 kg, BMI ~16-32.5
 (measured over 1,000 draws each: `python benchmarks/sampling.py --shapes`; docs/sampling.md).
 The full [0, 1] height range of Anny would reach 2.45 m and weights under BMI 12, outside
 any adult population; these intervals keep the seed's "wide, even" spirit (its SMPL betas
