@@ -1,0 +1,274 @@
+"""Sim #2: the rigid posed mesh at static rest on a nonlinear elastic-foundation mattress.
+
+Model (docs/physics.md): the mattress top is a grid over the covered area (68 x 33 taxels,
+each split `sub` x `sub`). Where the body's underside reaches below the undeformed top by w,
+the foam pushes back with p(w) = k1 w + k3 w^3 (MattressParams). The body is rigid; its rest
+is the vertical shift dz and the small roll a (about the bed's long axis) and pitch b (about
+the cross axis) through its centre of mass at which the foam's force equals the weight and
+its moments about the centre of mass vanish:
+
+    sum_i p(w_i) A = m g,   sum_i p(w_i) A (y_i - y_c) = 0,   sum_i p(w_i) A (x_i - x_c) = 0,
+    w_i = max(0, -(h_i + dz + a (y_i - y_c) - b (x_i - x_c)))
+
+with h_i the underside height over cell i (`maps.underside_height`). Newton's method solves it
+(analytic 3 x 3 Jacobian, clamped steps); the tilt is then applied to the mesh as an exact
+rotation and the system solved once more about the new pose, so the small-angle linearisation
+leaves a second-order error only; the last pass applies its small correction in the
+linearised form (heights only, O(angle^2) from rigid), so the rest is exactly the solved one. The mat and cover couple taxels laterally: the recorded
+pressure is the foundation pressure spread by a normalised Gaussian of width `spread_m`,
+which keeps the total force and the centre of pressure. The covered area is simulated; the
+sensing 64 x 27 taxels are recorded.
+
+Gradients: the converged rest is made differentiable by the implicit function theorem (one
+Newton step evaluated with autograd at the solution, Jacobian held fixed), so the pressure is
+differentiable with respect to the vertices, the mass and every MattressParams field given
+as a tensor. Batched over B bodies; CPU or CUDA; float32 or float64.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+import torch.nn.functional as F
+
+from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, underside_height
+from pressurepose.mat import MatSpec
+from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
+
+# Why a solve can fail (per sample). Empty string: converged.
+FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
+FAIL_TILT = "unstable: the centre of mass lies outside the support (tilt beyond limit)"
+FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
+FAIL_NOT_CONVERGED = "did not converge"
+
+MAX_TILT_RAD = 0.35
+
+
+@dataclasses.dataclass
+class PressureResult:
+    """Sim #2's rest of B bodies. Pressures in Pa on the covered grid, before the sensor."""
+
+    pressure_pa: torch.Tensor      # (B, covered_rows, covered_cols) per taxel, after spreading
+    foundation_pa: torch.Tensor    # (B, covered_rows*sub, covered_cols*sub) before spreading
+    vertices: torch.Tensor         # (B, V, 3) the mesh at rest (mat frame, m)
+    shift_m: torch.Tensor          # (B,) total vertical shift applied
+    tilt_rad: torch.Tensor         # (B, 2) roll about x, pitch about y (through the COM)
+    force_n: torch.Tensor          # (B,) total foundation force
+    max_compression_m: torch.Tensor  # (B,)
+    iterations: torch.Tensor       # (B,) Newton iterations (both passes)
+    failure: list[str]             # (B,) "" when at rest, else the reason
+    sub: int
+
+    @property
+    def ok(self) -> torch.Tensor:
+        return torch.tensor([not f for f in self.failure], device=self.shift_m.device)
+
+
+def mesh_centroid(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(B, 3) centre of the enclosed volume (uniform density) of closed meshes, by signed
+    tetrahedra; orientation-independent (a mirrored mesh gives the mirrored centroid)."""
+    v0, v1, v2 = vertices[:, faces[:, 0]], vertices[:, faces[:, 1]], vertices[:, faces[:, 2]]
+    vol = (v0 * torch.cross(v1, v2, dim=-1)).sum(-1) / 6.0  # (B, F)
+    c = (v0 + v1 + v2) / 4.0
+    return (vol[..., None] * c).sum(1) / vol.sum(1)[:, None]
+
+
+def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tensor:
+    """Separable normalised Gaussian blur of (B, R, C) with zero padding (force leaves the
+    grid only within 3 sigma of its edge). sigma may be a float or a 0-d tensor."""
+    out = p[:, None]
+    for dim, sigma in ((2, sigma_cells_r), (3, sigma_cells_c)):
+        s = float(sigma)
+        if s <= 1e-6:
+            continue
+        radius = max(1, int(math.ceil(3.0 * s)))
+        t = torch.arange(-radius, radius + 1, dtype=p.dtype, device=p.device)
+        k = torch.exp(-0.5 * (t / sigma) ** 2)
+        k = k / k.sum()
+        if dim == 2:
+            out = F.conv2d(out, k.view(1, 1, -1, 1), padding=(radius, 0))
+        else:
+            out = F.conv2d(out, k.view(1, 1, 1, -1), padding=(0, radius))
+    return out[:, 0]
+
+
+class _Grid:
+    """Cell geometry relative to each body's centre of mass."""
+
+    def __init__(self, h, mat, sub, com):
+        X, Y = cell_centres(mat, sub, covered=True, dtype=h.dtype, device=h.device)
+        self.h = h
+        self.dx = X[None] - com[:, 0, None, None]
+        self.dy = Y[None] - com[:, 1, None, None]
+        self.mask = (h < EMPTY_HEIGHT_M).to(h.dtype)
+        self.area = mat.pitch_row_m * mat.pitch_col_m / sub**2
+
+    def compression(self, q):
+        hq = self.h + q[:, 0, None, None] + q[:, 1, None, None] * self.dy - q[:, 2, None, None] * self.dx
+        return torch.relu(-hq) * self.mask
+
+    def residual(self, q, params, weight):
+        """(B, 3): force - weight, roll moment, pitch moment (N, N m); and the cell forces."""
+        w = self.compression(q)
+        f = params.foundation_pressure(w) * self.area
+        R = torch.stack([f.sum((1, 2)) - weight, (f * self.dy).sum((1, 2)), (f * self.dx).sum((1, 2))], -1)
+        return R, f, w
+
+    def jacobian(self, q, params):
+        w = self.compression(q)
+        k = params.foundation_stiffness(w) * self.area * (w > 0).to(w.dtype)
+        g = [torch.ones_like(self.dx), self.dy, self.dx]
+        dw = [-torch.ones_like(self.dx), -self.dy, self.dx]
+        J = torch.stack([torch.stack([(k * gi * dj).sum((1, 2)) for dj in dw], -1) for gi in g], -2)
+        return J
+
+
+def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
+    """Solve grid.residual(q) = 0 from q0 without gradients. Returns q, iterations, converged."""
+    B = q0.shape[0]
+    q = q0.clone()
+    iters = torch.zeros(B, dtype=torch.long, device=q.device)
+    done = torch.zeros(B, dtype=torch.bool, device=q.device)
+    scale = torch.stack([weight, weight, weight], -1)  # moments relative to weight x 1 m
+    step_max = torch.tensor([0.02, 0.03, 0.03], dtype=q.dtype, device=q.device)
+    eye = torch.eye(3, dtype=q.dtype, device=q.device)
+    for _ in range(max_iter):
+        R, _, _ = grid.residual(q, params, weight)
+        done = done | ((R.abs() / scale).amax(-1) < tol)
+        if bool(done.all()):
+            break
+        J = grid.jacobian(q, params)
+        # Regularise: with few cells in contact the tilt rows are nearly singular.
+        reg = 1e-6 * weight[:, None, None] * eye + 1e-3 * J.diagonal(dim1=-2, dim2=-1).abs().amax(-1)[:, None, None] * eye
+        step = torch.linalg.solve(J - reg, -R[..., None])[..., 0]
+        # Out of contact, or (nearly) no force yet: push down by the largest step.
+        no_contact = R[:, 0] < -0.999 * weight
+        step[no_contact] = torch.stack([-step_max[0], torch.zeros_like(step_max[0]), torch.zeros_like(step_max[0])])
+        step = torch.maximum(torch.minimum(step, step_max), -step_max)
+        step = torch.where(done[:, None], torch.zeros_like(step), step)
+        q = q + step
+        iters = iters + (~done).long()
+    R, _, _ = grid.residual(q, params, weight)
+    done = done | ((R.abs() / scale).amax(-1) < tol)
+    return q, iters, done
+
+
+def _rotate(vertices, com, q):
+    """Apply shift dz and the exact rotation Ry(b) Rx(a) about the COM."""
+    a, b = q[:, 1], q[:, 2]
+    ca, sa, cb, sb = torch.cos(a), torch.sin(a), torch.cos(b), torch.sin(b)
+    one, zero = torch.ones_like(a), torch.zeros_like(a)
+    Rx = torch.stack([one, zero, zero, zero, ca, -sa, zero, sa, ca], -1).view(-1, 3, 3)
+    Ry = torch.stack([cb, zero, sb, zero, one, zero, -sb, zero, cb], -1).view(-1, 3, 3)
+    R = Ry @ Rx
+    out = (vertices - com[:, None]) @ R.transpose(1, 2) + com[:, None]
+    return out + torch.stack([zero, zero, q[:, 0]], -1)[:, None]
+
+
+def _shear(vertices, com, q):
+    """The small-angle form of `_rotate`: heights change, points do not move sideways, so the
+    rasterised cells stay those the solve used (non-rigid by O(angle^2))."""
+    d = vertices - com[:, None]
+    dz = q[:, 0, None] + q[:, 1, None] * d[..., 1] - q[:, 2, None] * d[..., 0]
+    return vertices + torch.stack([torch.zeros_like(dz), torch.zeros_like(dz), dz], -1)
+
+
+def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torch.Tensor,
+                      params: MattressParams | None = None, mat: MatSpec | None = None,
+                      sub: int = 2, max_iter: int = 60, tol: float = 1e-6,
+                      passes: int = 2) -> PressureResult:
+    """Rest the rigid meshes (B, V, 3) (mat frame, m; faces (F, 3)) of mass (B,) kg on the
+    mattress and return the pressure on the covered grid (Pa) and the mesh at rest.
+
+    The meshes may start anywhere above or in the mattress; their horizontal placement and
+    yaw are kept. Failures (no support, tilting off, bottoming out, no convergence) are
+    reported per sample in `failure`, never as NaN: their pressure is set to zero.
+    """
+    params = params or MattressParams()
+    mat = mat or MatSpec()
+    if vertices.ndim != 3 or vertices.shape[-1] != 3:
+        raise ValueError(f"vertices must have shape (B, V, 3), got {tuple(vertices.shape)}")
+    if not torch.isfinite(vertices).all():
+        raise ValueError("vertices contain NaN or infinite values; pose the body with finite parameters")
+    mass_kg = torch.as_tensor(mass_kg, dtype=vertices.dtype, device=vertices.device).reshape(-1)
+    if mass_kg.shape[0] != vertices.shape[0]:
+        raise ValueError(f"mass_kg must have one value per body ({vertices.shape[0]}), got {mass_kg.shape[0]}")
+    if not torch.isfinite(mass_kg).all() or bool((mass_kg <= 0).any()):
+        raise ValueError("mass_kg must be finite and > 0 for every body")
+    faces = faces.to(vertices.device)
+    weight = mass_kg * GRAVITY_M_S2
+    B = vertices.shape[0]
+    total_q = vertices.new_zeros(B, 3)
+    iters = torch.zeros(B, dtype=torch.long, device=vertices.device)
+    verts = vertices
+    for p in range(passes):
+        com = mesh_centroid(verts, faces)
+        h = underside_height(verts, faces, mat, sub=sub, covered=True)
+        grid = _Grid(h, mat, sub, com)
+        with torch.no_grad():
+            hd = h.detach()
+            gd = _Grid(hd, mat, sub, com.detach())
+            q0 = verts.new_zeros(B, 3)
+            if p == 0:
+                # Start with the lowest supported point on the surface.
+                lowest = torch.where(gd.mask.bool(), hd, torch.full_like(hd, float("inf"))).amin((1, 2))
+                q0[:, 0] = torch.where(torch.isfinite(lowest), -lowest, torch.zeros_like(lowest))
+            pd = _detached(params)
+            qs, it, conv = _newton(gd, pd, weight.detach(), q0, max_iter, tol)
+            iters += it
+            J = gd.jacobian(qs, pd)
+            eye = torch.eye(3, dtype=J.dtype, device=J.device)
+            Jinv = torch.linalg.inv(J - 1e-9 * weight.detach()[:, None, None] * eye)
+        # Implicit-function step: value qs, gradient -J^-1 dR/dtheta.
+        R, _, _ = grid.residual(qs, params, weight)
+        q = qs - (Jinv @ R[..., None])[..., 0]
+        q = q + (qs - q).detach()  # keep the converged value exactly
+        total_q = total_q + q
+        verts = _rotate(verts, com, q) if p < passes - 1 else _shear(verts, com, q)
+    com = mesh_centroid(verts, faces)
+    h = underside_height(verts, faces, mat, sub=sub, covered=True)
+    grid = _Grid(h, mat, sub, com)
+    zero = verts.new_zeros(B, 3)
+    R, f, w = grid.residual(zero, params, weight)
+    foundation = f / grid.area
+    failure = []
+    tilt = total_q[:, 1:].detach()
+    for i in range(B):
+        if not bool(grid.mask[i].any()) or float(f[i].sum()) <= 0:
+            failure.append(FAIL_NO_SUPPORT)
+        elif float(tilt[i].abs().max()) > MAX_TILT_RAD:
+            failure.append(FAIL_TILT)
+        elif float(w[i].max()) > float(params.thickness_m):
+            failure.append(FAIL_BOTTOM)
+        elif float((R[i].detach().abs() / weight[i].detach()).max()) > 1e-3:
+            failure.append(FAIL_NOT_CONVERGED)
+        else:
+            failure.append("")
+    bad = torch.tensor([bool(x) for x in failure], device=verts.device)
+    foundation = torch.where(bad[:, None, None], torch.zeros_like(foundation), foundation)
+    h_cell = mat.pitch_row_m / sub
+    w_cell = mat.pitch_col_m / sub
+    spread = gaussian_spread(foundation, params.spread_m / h_cell, params.spread_m / w_cell)
+    pressure = F.avg_pool2d(spread[:, None], sub)[:, 0]
+    return PressureResult(
+        pressure_pa=pressure, foundation_pa=foundation, vertices=verts, shift_m=total_q[:, 0],
+        tilt_rad=total_q[:, 1:], force_n=f.sum((1, 2)), max_compression_m=w.amax((1, 2)),
+        iterations=iters, failure=failure, sub=sub,
+    )
+
+
+def _detached(params: MattressParams) -> MattressParams:
+    changes = {}
+    for f in dataclasses.fields(params):
+        v = getattr(params, f.name)
+        if isinstance(v, torch.Tensor):
+            changes[f.name] = v.detach()
+    return dataclasses.replace(params, **changes) if changes else params
+
+
+__all__ = [
+    "FAIL_BOTTOM", "FAIL_NOT_CONVERGED", "FAIL_NO_SUPPORT", "FAIL_TILT", "PressureResult",
+    "gaussian_spread", "mesh_centroid", "simulate_pressure",
+]

@@ -1,0 +1,104 @@
+"""Parameters of the simulated bed: mattress foundation, mat and cover coupling, sensor, and
+sim #1's contact damping and friction. One frozen dataclass, saved and loaded as JSON (the
+parameter file `pressurepose calibrate` writes and `simulate` / `generate` read).
+
+Units are SI except the sensor law, which maps mat-layer compression in mm to mmHg as the
+BT3510 readings are in mmHg. Fields may hold torch tensors instead of floats when gradients
+with respect to the parameters are wanted (sim #2 is differentiable in them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+
+GRAVITY_M_S2 = 9.81
+MMHG_PA = 133.322
+
+
+@dataclasses.dataclass(frozen=True)
+class MattressParams:
+    """The bed model shared by sim #1 and sim #2 (docs/physics.md).
+
+    Foundation law (per unit area of the mattress top, w = local compression in m):
+        p(w) = k1 w + k3 w^3            [Pa]
+    Lateral coupling: the mat and cover spread the foundation's load over neighbouring
+    taxels with a Gaussian of standard deviation `spread_m` (force and centre of pressure
+    are preserved). Sensor: the mat layer compresses d = p / mat_stiffness (mm) and a taxel
+    reads c0 + c1 d + c2 d^2 mmHg for d > 0 (the seed's quadratic taxel law), clipped to
+    [0, 100]; `noise_mmhg` adds Gaussian noise on the loaded taxels.
+    """
+
+    k1_pa_per_m: float = 2.0e4
+    k3_pa_per_m3: float = 3.0e7
+    spread_m: float = 0.008
+    thickness_m: float = 0.15
+    mat_stiffness_pa_per_mm: float = MMHG_PA  # 1 mmHg compresses the mat layer 1 mm by default
+    c0_mmhg: float = 0.0
+    c1_mmhg_per_mm: float = 1.0
+    c2_mmhg_per_mm2: float = 0.0
+    noise_mmhg: float = 0.0
+    # sim #1 contact: damping time constant (s) of the foundation, friction coefficient.
+    damping_s: float = 0.05
+    friction: float = 0.5
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            try:
+                v = float(value.detach().reshape(-1)[0]) if hasattr(value, "detach") else float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"MattressParams.{f.name} must be a number, got {value!r}") from None
+            if not math.isfinite(v):
+                raise ValueError(f"MattressParams.{f.name} must be finite, got {v}")
+            if f.name not in ("c0_mmhg",) and v < 0:
+                raise ValueError(f"MattressParams.{f.name} must be >= 0, got {v}")
+        for name in ("k1_pa_per_m", "thickness_m", "mat_stiffness_pa_per_mm"):
+            if float(getattr(self, name)) <= 0:
+                raise ValueError(f"MattressParams.{name} must be > 0, got {getattr(self, name)}")
+
+    def replace(self, **changes) -> "MattressParams":
+        return dataclasses.replace(self, **changes)
+
+    def foundation_pressure(self, w):
+        """p(w) in Pa for compression w (m, >= 0); works on floats and tensors."""
+        return self.k1_pa_per_m * w + self.k3_pa_per_m3 * w**3
+
+    def foundation_stiffness(self, w):
+        """dp/dw (Pa/m)."""
+        return self.k1_pa_per_m + 3.0 * self.k3_pa_per_m3 * w**2
+
+    def to_dict(self) -> dict:
+        return {f.name: float(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    def save(self, path: str | os.PathLike) -> None:
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps({"format": "pressurepose.mattress/1", "params": self.to_dict()}, indent=2) + "\n")
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "MattressParams":
+        path = Path(path)
+        try:
+            doc = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ValueError(f"mattress parameter file {path} does not exist") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"mattress parameter file {path} is not readable JSON ({exc}); "
+                             "write one with `pressurepose calibrate` or MattressParams.save") from None
+        if not isinstance(doc, dict) or doc.get("format") != "pressurepose.mattress/1" or not isinstance(doc.get("params"), dict):
+            raise ValueError(f"{path} is not a pressurepose mattress parameter file "
+                             "(expected {'format': 'pressurepose.mattress/1', 'params': {...}})")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(doc["params"]) - known)
+        if unknown:
+            raise ValueError(f"{path}: unknown mattress parameters {', '.join(unknown)}; "
+                             f"valid ones: {', '.join(sorted(known))}")
+        return cls(**doc["params"])
+
+
+__all__ = ["GRAVITY_M_S2", "MMHG_PA", "MattressParams"]
