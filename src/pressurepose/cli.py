@@ -15,6 +15,7 @@ import tyro
 
 from pressurepose.demo import DemoConfig
 from pressurepose.sampling.run import SampleConfig
+from pressurepose.sim.run import SimulateConfig
 
 
 def demo(cfg: DemoConfig) -> None:
@@ -53,7 +54,20 @@ def sample(cfg: SampleConfig) -> None:
           + ", ".join(p.name for p in paths.values()))
 
 
-COMMANDS = {"demo": demo, "sample": sample, "cache": cache}
+def simulate(cfg: SimulateConfig) -> None:
+    """Simulate one sample: initial pose, settling (sim #1), pressure (sim #2), sensor and
+    label maps; writes sample.npz, simulate.json and simulate.png."""
+    from pressurepose.sim.run import run_simulate
+
+    paths = run_simulate(cfg)
+    record = json.loads(paths["record"].read_text())
+    print(f"{record['mass_kg']} kg: contact {record['contact_area_m2']} m^2, mean "
+          f"{record['mean_contact_pressure_mmhg']} mmHg, peak {record['peak_pressure_mmhg']} mmHg, "
+          f"sim #1 {record['timing_ms']['sim1']} ms ({record['settle_steps']} steps), "
+          f"sim #2 {record['timing_ms']['sim2']} ms -> {cfg.out}")
+
+
+COMMANDS = {"demo": demo, "sample": sample, "simulate": simulate, "cache": cache}
 
 
 def main(argv: list[str] | None = None) -> int:

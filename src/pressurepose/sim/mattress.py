@@ -32,12 +32,14 @@ class MattressParams:
     [0, 100]; `noise_mmhg` adds Gaussian noise on the loaded taxels.
     """
 
+    # Defaults: a foam hospital mattress giving PmatData-like supine images before calibration
+    # (docs/physics.md: benchmarks/sim_realism.py, contact 0.30-0.45 m^2, mean 11-20 mmHg).
     k1_pa_per_m: float = 2.0e4
-    k3_pa_per_m3: float = 3.0e7
+    k3_pa_per_m3: float = 6.0e7
     spread_m: float = 0.008
     thickness_m: float = 0.15
     mat_stiffness_pa_per_mm: float = MMHG_PA  # 1 mmHg compresses the mat layer 1 mm by default
-    c0_mmhg: float = 0.0
+    c0_mmhg: float = -1.0  # taxels below ~1 mmHg read 0, as a real mat's threshold does
     c1_mmhg_per_mm: float = 1.0
     c2_mmhg_per_mm2: float = 0.0
     noise_mmhg: float = 0.0

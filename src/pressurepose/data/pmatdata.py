@@ -1,0 +1,99 @@
+"""PmatData (PhysioNet) experiment II: real BT3510 frames, read and normalised.
+
+Files hold 64 lines of 27 integers, raw uncalibrated units, row 0 at the FOOT end (README in
+../shared/data/pmatdata). `read_frame` returns our convention (row 0 at the head). The raw
+units are not pressures: `normalise` subtracts the frame's empty-taxel level, zeroes taxels
+within `threshold` raw units of it (sensor noise), and scales the frame so its summed force
+equals the subject's weight (sum p A = m g, with the dataset's A = 0.0286^2 m^2), in mmHg.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA
+
+ROWS, COLS = 64, 27
+PMAT_TAXEL_AREA_M2 = 0.0286**2
+
+
+def read_frame(path: str | Path) -> np.ndarray:
+    """(64, 27) float raw readings, row 0 at the head end."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ValueError(f"no PmatData frame at {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not a readable PmatData text frame ({exc})") from None
+    rows = [line.split() for line in text.strip().splitlines() if line.strip()]
+    if len(rows) != ROWS or any(len(r) != COLS for r in rows):
+        raise ValueError(f"{path}: expected {ROWS} lines of {COLS} numbers, got {len(rows)} lines")
+    try:
+        raw = np.array(rows, dtype=np.float64)
+    except ValueError:
+        raise ValueError(f"{path}: non-numeric values in a PmatData frame") from None
+    if not np.isfinite(raw).all() or (raw < 0).any():
+        raise ValueError(f"{path}: readings must be finite and >= 0")
+    return raw[::-1].copy()
+
+
+def empty_level(raw: np.ndarray) -> float:
+    """Reading of an unloaded taxel: the median of the frame's lower half."""
+    v = np.sort(raw.ravel())
+    return float(np.median(v[: v.size // 2]))
+
+
+def normalise(raw: np.ndarray, mass_kg: float, threshold: float = 10.0) -> np.ndarray:
+    """Raw frame -> pressure in mmHg whose summed force equals m g (see module doc)."""
+    if not mass_kg > 0:
+        raise ValueError(f"mass_kg must be > 0, got {mass_kg}")
+    p = raw - empty_level(raw)
+    p[p <= threshold] = 0.0
+    total = p.sum() * PMAT_TAXEL_AREA_M2
+    if total <= 0:
+        raise ValueError("frame has no loaded taxels")
+    return p * (mass_kg * GRAVITY_M_S2 / total) / MMHG_PA
+
+
+@dataclasses.dataclass(frozen=True)
+class PmatRecord:
+    path: Path
+    subject: int
+    mattress: str
+    group: str
+    index: int
+    posture: str
+    bed_incline_deg: float
+    height_cm: float
+    weight_kg: float
+
+
+def load_index(root: str | Path) -> list[PmatRecord]:
+    """Rows of PmatData's index.csv (paths made absolute)."""
+    root = Path(root)
+    path = root / "index.csv"
+    if not path.is_file():
+        raise ValueError(f"no index.csv in {root}; point at the pmatdata folder")
+    out = []
+    with path.open() as fh:
+        for row in csv.DictReader(fh):
+            out.append(PmatRecord(
+                path=root / row["file"], subject=int(row["subject"]), mattress=row["mattress"], group=row["group"],
+                index=int(row["index"]), posture=row["posture"], bed_incline_deg=float(row["bed_incline_deg"] or 0),
+                height_cm=float(row["height_cm"]), weight_kg=float(row["weight_kg"])))
+    return out
+
+
+def frame_stats(p_mmhg: np.ndarray, taxel_area_m2: float = PMAT_TAXEL_AREA_M2) -> dict[str, float]:
+    """Contact area (m^2), mean contact pressure and peak (mmHg) of one image."""
+    loaded = p_mmhg > 0
+    return {
+        "area_m2": float(loaded.sum() * taxel_area_m2),
+        "mean_mmhg": float(p_mmhg[loaded].mean()) if loaded.any() else 0.0,
+        "peak_mmhg": float(p_mmhg.max()),
+    }

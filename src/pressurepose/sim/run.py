@@ -1,0 +1,193 @@
+"""One sample through the whole generator: initial pose -> sim #1 -> sim #2 -> sensor, labels.
+
+`simulate_poses` is the pipeline `pressurepose simulate` (and dataset generation) runs;
+`run_simulate` is the CLI's quick look at one sample: sample.npz (no pickles), simulate.json
+and simulate.png (pressure image, depth map, the body at rest).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from pressurepose.body.model import BodyModel
+from pressurepose.body.params import BodyParams
+from pressurepose.mat import MatSpec
+from pressurepose.sim.mattress import MattressParams
+
+
+@dataclasses.dataclass
+class SimulatedSamples:
+    """B samples after both simulations. Rejected samples carry a reason and zero images."""
+
+    params: BodyParams             # resting pose (sim #1, then sim #2's shift and tilt on the root)
+    vertices: torch.Tensor         # (B, V, 3) mesh at rest, mat frame
+    joints: torch.Tensor           # (B, 24, 3) J24 at rest, mat frame
+    pressure_mmhg: torch.Tensor    # (B, 64, 27) sensor reading
+    depth_mm: torch.Tensor         # (B, 64, 27) Q
+    contact: torch.Tensor          # (B, 64, 27) C
+    mass_kg: torch.Tensor          # (B,)
+    reason: list[str]              # "" = accepted
+    settle_steps: np.ndarray
+    settle_ms: np.ndarray
+    press_ms: float                # sim #2 wall time for the batch
+    sink_m: np.ndarray             # sim #2 deepest compression
+
+
+def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
+                   mat: MatSpec | None = None, seed: int = 0) -> SimulatedSamples:
+    """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses."""
+    from pressurepose.body.kinematics import pose_in_mat
+    from pressurepose.sim.foundation import simulate_pressure
+    from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
+    from pressurepose.sim.settle import settle
+
+    mattress = mattress or MattressParams()
+    mat = mat or MatSpec()
+    model64 = model if model.dtype == torch.float64 else model.to(torch.float64)
+    settled = settle(model64, params, mattress, mat)
+    rest = settled.params
+    out = model64(rest)
+    mass = model64.measure(rest.shape).mass_kg
+    t0 = time.perf_counter()
+    pressed = simulate_pressure(out.vertices, out.faces, mass, mattress, mat)
+    press_ms = (time.perf_counter() - t0) * 1e3
+    gen = torch.Generator().manual_seed(seed)
+    reading = taxel_reading(sensing_area(pressed.pressure_pa, mat).detach(), mattress, mat, generator=gen)
+    depth, contact = label_maps(pressed.vertices.detach(), out.faces, mat)
+    reason = [r1 or (f"sim #2: {r2}" if r2 else "") for r1, r2 in zip(settled.reason, pressed.failure)]
+    reason = [r if not r or r.startswith("sim #2") else f"sim #1: {r}" for r in reason]
+    bad = torch.tensor([bool(r) for r in reason])
+    reading = torch.where(bad[:, None, None], torch.zeros_like(reading), reading)
+    # Fold sim #2's rigid shift and tilt into the root so parameters reproduce the mesh.
+    shifted = _apply_rest_to_root(rest, out.joints, pressed)
+    _, joints = pose_in_mat(_rest_joints(model64, rest.shape), shifted)
+    return SimulatedSamples(
+        params=shifted, vertices=pressed.vertices.detach(), joints=joints, pressure_mmhg=reading,
+        depth_mm=depth, contact=contact, mass_kg=mass, reason=reason, settle_steps=settled.steps,
+        settle_ms=settled.wall_ms, press_ms=press_ms, sink_m=pressed.max_compression_m.detach().numpy(),
+    )
+
+
+def _rest_joints(model, shape):
+    from pressurepose.body.kinematics import rest_joints
+
+    return rest_joints(model, shape)
+
+
+def _apply_rest_to_root(params: BodyParams, joints: torch.Tensor, pressed) -> BodyParams:
+    """Sim #2 moved the rigid mesh by dz and a small tilt (heights only, first order); the
+    same first-order motion of the pelvis gives the root translation; the tilt (< a few
+    degrees) is applied to the root rotation as the exact rotation it linearises."""
+    from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+    from pressurepose.body.params import R_SUPINE
+
+    dz = pressed.shift_m.detach()
+    a, b = pressed.tilt_rad[:, 0].detach(), pressed.tilt_rad[:, 1].detach()
+    com = (pressed.vertices.detach().mean(1))  # lever arms are tiny; COM ~ mean vertex is enough here
+    pelvis = params.root_translation.clone()
+    pelvis[:, 2] = pelvis[:, 2] + dz + a * (pelvis[:, 1] - com[:, 1]) - b * (pelvis[:, 0] - com[:, 0])
+    zeros = torch.zeros_like(a)
+    tilt = axis_angle_to_matrix(torch.stack([a, zeros, zeros], -1))
+    tilt = axis_angle_to_matrix(torch.stack([zeros, b, zeros], -1)) @ tilt
+    R_aa = axis_angle_to_matrix(params.root_rotation)
+    root = matrix_to_axis_angle(tilt @ R_aa)
+    return params.replace(root_rotation=root, root_translation=pelvis)
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulateConfig:
+    """Simulate one sample of a partition: both simulations, the image and a figure."""
+
+    out: Path = Path("out/simulate")
+    """Output folder (created)."""
+    partition: str = "supine"
+    """general, supine, hands_behind_head, prone_hands_up, crossed_legs or straight_limbs."""
+    gender: Literal["female", "male"] = "female"
+    over_bed: bool = False
+    seed: int = 0
+    index: int = 0
+    """Sample index: the sample is a function of (seed, partition, gender, over_bed, index)."""
+    params: Path | None = None
+    """Mattress/sensor parameter file (JSON from `pressurepose calibrate`); default: built-in."""
+    backend: Literal["anny", "smpl"] = "anny"
+    smpl_dir: Path | None = None
+
+
+def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
+    from pressurepose.body import load_body_model
+    from pressurepose.sampling.partitions import SamplingConfig
+    from pressurepose.sampling.sampler import PoseSampler
+
+    if cfg.index < 0:
+        raise ValueError(f"index must be >= 0, got {cfg.index}")
+    mattress = MattressParams.load(cfg.params) if cfg.params is not None else MattressParams()
+    options = {"model_dir": cfg.smpl_dir} if cfg.backend == "smpl" else {}
+    model = load_body_model(cfg.backend, dtype=torch.float64, **options)
+    sampling = SamplingConfig(partition=cfg.partition, gender=cfg.gender, over_bed=cfg.over_bed, seed=cfg.seed)
+    t0 = time.perf_counter()
+    initial = PoseSampler(model, sampling).sample([cfg.index])
+    t1 = time.perf_counter()
+    sim = simulate_poses(model, initial.params, mattress, seed=cfg.seed * 1_000_003 + cfg.index)
+    t2 = time.perf_counter()
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    reason = sim.reason[0]
+    p = sim.pressure_mmhg[0].numpy()
+    mat = MatSpec()
+    record = {
+        "command": "simulate",
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "mattress": mattress.to_dict(),
+        "status": "rejected" if reason else "ok",
+        "reason": reason,
+        "mass_kg": round(float(sim.mass_kg[0]), 3),
+        "settle_steps": int(sim.settle_steps[0]),
+        "timing_ms": {"sample": round((t1 - t0) * 1e3, 1), "sim1": round(float(sim.settle_ms[0]), 1),
+                      "sim2": round(sim.press_ms, 1), "total": round((t2 - t0) * 1e3, 1)},
+        "contact_area_m2": round(float((p > 0).sum() * mat.taxel_area_m2), 4),
+        "mean_contact_pressure_mmhg": round(float(p[p > 0].mean()) if (p > 0).any() else 0.0, 2),
+        "peak_pressure_mmhg": round(float(p.max()), 2),
+        "sink_mm": round(float(sim.sink_m[0]) * 1e3, 1),
+    }
+    paths = {}
+    arrays = {
+        "pressure_mmhg": p.astype(np.float32), "depth_mm": sim.depth_mm[0].numpy().astype(np.float32),
+        "contact": sim.contact[0].numpy().astype(np.uint8), "shape": sim.params.shape[0].numpy(),
+        "root_rotation": sim.params.root_rotation[0].numpy(), "root_translation": sim.params.root_translation[0].numpy(),
+        "pose": sim.params.pose[0].numpy(), "joints": sim.joints[0].numpy(), "mass_kg": sim.mass_kg[:1].numpy(),
+    }
+    if not reason:
+        paths["sample"] = _atomic(cfg.out / "sample.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
+        from pressurepose.viz.simulation import plot_sample
+
+        title = (f"{cfg.partition}, {cfg.gender}, index {cfg.index}: {record['mass_kg']} kg, "
+                 f"area {record['contact_area_m2']} m^2, mean {record['mean_contact_pressure_mmhg']} mmHg, "
+                 f"peak {record['peak_pressure_mmhg']} mmHg")
+        paths["figure"] = plot_sample(cfg.out / "simulate.png", p, arrays["depth_mm"], sim.vertices[0].numpy(), title)
+    record["files"] = {k: v.name for k, v in paths.items()}
+    paths["record"] = _atomic(cfg.out / "simulate.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
+    if reason:
+        raise ValueError(f"sample {cfg.index} of {cfg.partition}/{cfg.gender} was rejected ({reason}); "
+                         f"the generator skips such samples - try another --index (details in {paths['record']})")
+    return paths
+
+
+def _atomic(path: Path, write) -> Path:
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+__all__ = ["SimulateConfig", "SimulatedSamples", "run_simulate", "simulate_poses"]

@@ -1,0 +1,214 @@
+"""Physics: sim #2 (foundation), sensor, label maps, sim #1 (MuJoCo) - physical invariants."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pressurepose.body.capsules import home_pose
+from pressurepose.body.params import BodyParams
+from pressurepose.maps import EMPTY_HEIGHT_M, contact_map, depth_map, underside_height
+from pressurepose.mat import MatSpec
+from pressurepose.sim.foundation import FAIL_NO_SUPPORT, mesh_centroid, simulate_pressure
+from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA, MattressParams
+from pressurepose.sim.objects import capsule_mesh, settle_capsule
+from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
+
+MAT = MatSpec()
+D = torch.float64
+
+
+@pytest.fixture(scope="module")
+def supine(anny64):
+    """Two supine bodies (male, female) in the home pose, above the middle of the mat."""
+    shape = anny64.default_shape(2)
+    shape[1, 0] = 1.0
+    p = BodyParams.zeros(2, shape).replace(
+        pose=home_pose(2, dtype=D),
+        root_translation=torch.tensor([[0.85, 0.37, 0.15]] * 2, dtype=D))
+    out = anny64(p)
+    return out.vertices, out.faces, anny64.measure(shape).mass_kg
+
+
+@pytest.fixture(scope="module")
+def rest(supine):
+    v, f, m = supine
+    return simulate_pressure(v, f, m)
+
+
+def test_force_balance_and_moments(supine, rest):
+    v, f, m = supine
+    assert rest.failure == ["", ""]
+    image = sensing_area(rest.pressure_pa)
+    force = image.sum((1, 2)) * MAT.taxel_area_m2
+    weight = m * GRAVITY_M_S2
+    assert torch.allclose(force, weight, rtol=0.01)
+    # Moments: the centre of pressure lies under the centre of mass.
+    com = mesh_centroid(rest.vertices, f)
+    centres = torch.from_numpy(MAT.taxel_centres_m(covered=True)).to(D)
+    p = rest.pressure_pa
+    cop = (p[..., None] * centres).sum((1, 2)) / p.sum((1, 2))[:, None]
+    assert (cop - com[:, :2]).abs().max() < 2e-3
+
+
+def test_pressure_nonnegative_and_zero_away_from_contact(rest):
+    p = rest.pressure_pa
+    assert torch.isfinite(p).all() and (p >= 0).all()
+    contact = (rest.foundation_pa > 0).to(D)[:, None]
+    # The spread reaches 3 sigma; beyond it (plus a taxel) there is no pressure.
+    reach = math.ceil(3 * MattressParams().spread_m / (MAT.pitch_col_m / rest.sub)) + rest.sub
+    near = torch.nn.functional.max_pool2d(contact, 2 * reach + 1, stride=1, padding=reach)
+    near = torch.nn.functional.max_pool2d(near, rest.sub)[:, 0] > 0  # per taxel
+    assert (p[~near] == 0).all()
+    assert (p[near] > 0).any()
+
+
+def test_mirrored_body_gives_mirrored_image(supine):
+    v, f, m = supine
+    width = MAT.sensing_width_m
+    mirrored = v.clone()
+    mirrored[..., 1] = width - mirrored[..., 1]
+    a = simulate_pressure(v[:1], f, m[:1]).pressure_pa
+    b = simulate_pressure(mirrored[:1], f.flip(-1), m[:1]).pressure_pa
+    assert torch.allclose(a, b.flip(-1), atol=1e-6 * float(a.max()))
+
+
+def _capsule(mass, length=0.3, radius=0.06, **kw):
+    v, f = capsule_mesh(length, radius, centre=(0.9, 0.37, radius + 0.01))
+    return simulate_pressure(v[None], f, torch.tensor([mass], dtype=D), **kw)
+
+
+def test_heavier_sinks_deeper_and_stiffer_is_smaller():
+    light, heavy = _capsule(5.0), _capsule(10.0)
+    assert heavy.max_compression_m > light.max_compression_m > 0
+    soft = _capsule(8.0)
+    stiff = _capsule(8.0, params=MattressParams(k1_pa_per_m=8e4))
+    assert (stiff.foundation_pa > 0).sum() < (soft.foundation_pa > 0).sum()
+    assert stiff.max_compression_m < soft.max_compression_m
+
+
+def test_capsule_force_equals_weight_exactly():
+    for mass in (1.3, 4.5, 18.0):
+        res = _capsule(mass)
+        assert res.failure == [""]
+        assert math.isclose(float(res.pressure_pa.sum()) * MAT.taxel_area_m2, mass * GRAVITY_M_S2, rel_tol=1e-3)
+
+
+def test_gradients_flow_to_vertices_mass_and_parameters():
+    v, f = capsule_mesh(0.3, 0.06, centre=(0.9, 0.37, 0.07), n_around=16, n_cap=4, n_along=8)
+    v = v[None].clone().requires_grad_(True)
+    mass = torch.tensor([8.0], dtype=D, requires_grad=True)
+    k1 = torch.tensor(2.0e4, dtype=D, requires_grad=True)
+    res = simulate_pressure(v, f, mass, params=MattressParams(k1_pa_per_m=k1))
+    depth = res.max_compression_m.sum()
+    gv, gm, gk = torch.autograd.grad(depth, (v, mass, k1))
+    assert torch.isfinite(gv).all() and gv.abs().sum() > 0
+    # Finite differences of the rest depth in the mass and the stiffness (both smooth there).
+    h = 1e-4
+    for value, grad, make in ((8.0, gm, lambda x: _capsule_depth(v.detach(), f, x, 2.0e4)),
+                              (2.0e4, gk, lambda x: _capsule_depth(v.detach(), f, 8.0, x))):
+        fd = (make(value * (1 + h)) - make(value * (1 - h))) / (2 * h * value)
+        assert math.isclose(float(grad), fd, rel_tol=0.05), (float(grad), fd)
+
+
+def _capsule_depth(v, f, mass, k1):
+    res = simulate_pressure(v, f, torch.tensor([mass], dtype=D), params=MattressParams(k1_pa_per_m=k1))
+    return float(res.max_compression_m)
+
+
+def test_bad_inputs_are_clear():
+    v, f = capsule_mesh(0.3, 0.06, centre=(0.9, 0.37, 0.07))
+    with pytest.raises(ValueError, match="NaN"):
+        bad = v.clone()
+        bad[0, 0] = float("nan")
+        simulate_pressure(bad[None], f, torch.tensor([5.0], dtype=D))
+    with pytest.raises(ValueError, match="mass"):
+        simulate_pressure(v[None], f, torch.tensor([0.0], dtype=D))
+    off, _ = capsule_mesh(0.3, 0.06, centre=(5.0, 5.0, 0.07))
+    res = simulate_pressure(off[None], f, torch.tensor([5.0], dtype=D))
+    assert res.failure == [FAIL_NO_SUPPORT]
+    assert torch.isfinite(res.pressure_pa).all() and (res.pressure_pa == 0).all()
+
+
+def test_sensor_law_saturation_and_noise():
+    params = MattressParams(c0_mmhg=-2.0, c1_mmhg_per_mm=1.5, c2_mmhg_per_mm2=0.01)
+    p = torch.tensor([[[0.0, 10 * MMHG_PA, 50 * MMHG_PA, 500 * MMHG_PA]]], dtype=D)
+    r = taxel_reading(p, params)
+    d = p / params.mat_stiffness_pa_per_mm
+    expected = (-2.0 + 1.5 * d + 0.01 * d**2).clamp(0, 100)
+    expected[..., 0] = 0.0
+    assert torch.allclose(r, expected)
+    assert float(r[..., 3]) == 100.0
+    noisy = params.replace(noise_mmhg=2.0)
+    g1, g2 = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    a, b = taxel_reading(p, noisy, generator=g1), taxel_reading(p, noisy, generator=g2)
+    assert torch.equal(a, b) and not torch.equal(a, r) and float(a[..., 0]) == 0.0
+    with pytest.raises(ValueError, match=">= 0"):
+        taxel_reading(-p - 1.0)
+    with pytest.raises(ValueError, match="NaN"):
+        taxel_reading(p * float("nan"))
+
+
+def test_depth_and_contact_maps_of_a_capsule():
+    r = 0.05
+    v, f = capsule_mesh(0.4, r, centre=(0.9, 0.37, r - 0.02), n_around=64, n_along=40)
+    q, c = label_maps(v[None], f)
+    assert q.shape == (1, 64, 27)
+    # The lowest point is 2 cm below the top; taxels far from the capsule are empty.
+    assert math.isclose(float(q.min()), -20.0, abs_tol=0.5)
+    assert float(q.max()) == EMPTY_HEIGHT_M * 1000
+    assert torch.equal(c, (q < 0).to(q.dtype))
+    # Taxels along the axis: contact; across it the contact band is about 2 sqrt(2 r d - d^2).
+    row = int(0.9 / MAT.pitch_row_m)
+    band = float(c[0, row].sum()) * MAT.pitch_col_m
+    assert abs(band - 2 * math.sqrt(2 * r * 0.02 - 0.02**2)) < 2 * MAT.pitch_col_m
+
+
+def test_depth_map_is_differentiable():
+    v, f = capsule_mesh(0.2, 0.05, centre=(0.9, 0.37, 0.03), n_around=12, n_cap=3, n_along=6)
+    # Jitter breaks the exact ties of a symmetric mesh (where the minimum has no derivative).
+    v = v + 1e-4 * torch.randn(v.shape, generator=torch.Generator().manual_seed(0), dtype=D)
+    v = v[None].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: depth_map(x, f, MAT).clamp(max=0), (v,), eps=1e-7, atol=1e-4)
+
+
+def test_underside_patches_holes_only_between_filled_cells():
+    h = torch.full((1, 5, 5), EMPTY_HEIGHT_M, dtype=D)
+    h[0, 1:4, 1:4] = -0.01
+    h[0, 2, 2] = EMPTY_HEIGHT_M
+    from pressurepose.maps import patch_holes
+
+    out = patch_holes(h)
+    assert float(out[0, 2, 2]) == pytest.approx(-0.01)
+    assert float(out[0, 0, 0]) == EMPTY_HEIGHT_M and float(out[0, 0, 2]) == EMPTY_HEIGHT_M
+
+
+def test_mattress_params_round_trip_and_bad_files(tmp_path):
+    p = MattressParams(k1_pa_per_m=3.0e4, spread_m=0.01)
+    path = tmp_path / "bed.json"
+    p.save(path)
+    assert MattressParams.load(path) == p
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not readable"):
+        MattressParams.load(tmp_path / "bad.json")
+    (tmp_path / "unknown.json").write_text(json.dumps({"format": "pressurepose.mattress/1", "params": {"k9": 1}}))
+    with pytest.raises(ValueError, match="unknown mattress parameters k9"):
+        MattressParams.load(tmp_path / "unknown.json")
+    with pytest.raises(ValueError, match="does not exist"):
+        MattressParams.load(tmp_path / "missing.json")
+    with pytest.raises(ValueError, match="k1_pa_per_m"):
+        MattressParams(k1_pa_per_m=-1.0)
+    with pytest.raises(ValueError, match="finite"):
+        MattressParams(spread_m=float("nan"))
+
+
+@pytest.mark.parametrize("length,radius,mass", [(0.2, 0.05, 1.3), (0.2, 0.05, 9.1), (0.4, 0.06, 4.5), (0.4, 0.06, 18.0)])
+def test_sim1_and_sim2_sink_alike(length, radius, mass):
+    v, f = capsule_mesh(length, radius, centre=(0.9, 0.37, radius + 0.01))
+    sim2 = float(simulate_pressure(v[None], f, torch.tensor([mass], dtype=D)).max_compression_m)
+    sim1 = settle_capsule(length, radius, mass)["sink_m"]
+    assert abs(sim1 - sim2) / sim2 < 0.10, (sim1, sim2)
