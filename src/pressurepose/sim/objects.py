@@ -77,6 +77,7 @@ def settle_capsule(length_m: float, radius_m: float, mass_kg: float, xy=(0.9, 0.
     inertia = m.body_inertia[1:2].min(1).copy()
     settled, wmax, step = False, 0.0, 0
     for step in range(max_steps):
+        mujoco.mj_step1(m, d)  # current kinematics before the forces (see settle.py)
         R = d.xmat[1].reshape(3, 3)
         a = d.xpos[1] + R @ np.array([-length_m / 2, 0, 0])
         b = d.xpos[1] + R @ np.array([length_m / 2, 0, 0])
@@ -87,7 +88,7 @@ def settle_capsule(length_m: float, radius_m: float, mass_kg: float, xy=(0.9, 0.
             cap, arm, vel, force, wmax, _, _ = out
             d.xfrc_applied[1, :3] = force.sum(0)
             d.xfrc_applied[1, 3:] = np.cross(arm, force).sum(0)
-        mujoco.mj_step(m, d)
+        mujoco.mj_step2(m, d)
         if step > 50 and np.abs(d.qvel).max() < 1e-3:
             settled = True
             break

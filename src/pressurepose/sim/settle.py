@@ -53,11 +53,12 @@ REASON_OFF_BED = "body outside the bed"
 SETTLE_REASONS = (REASON_TIMEOUT, REASON_NONFINITE, REASON_SANK, REASON_FELL, REASON_ENERGY, REASON_OFF_BED)
 
 PELVIS = CAPSULE_NAMES.index("pelvis")
+V_STICK = 0.02  # m/s: below this sliding speed Coulomb friction becomes a (stiff) damper
 
 
 @dataclasses.dataclass(frozen=True)
 class SettleConfig:
-    timestep_s: float = 0.0103 / 2
+    timestep_s: float = 0.0103  # the seed's DART step
     max_steps: int = 2000
     zero_velocity_every_s: float = 4 * 0.0103  # the seed's 4 DART steps
     speed_tol_m_s: float = 0.05
@@ -95,8 +96,26 @@ def _fmt(v) -> str:
     return " ".join(f"{float(x):.9g}" for x in np.ravel(v))
 
 
-def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tuple[int, int]] = ()) -> str:
-    """MJCF of capsule body `i` of `body` in its T-pose (body axes), free root."""
+def _walls(mat: MatSpec, top_m: float = -0.03, depth_m: float = 1.0, thick_m: float = 0.2) -> str:
+    """The mattress's sides as MuJoCo boxes (the top is the foundation law): a limb hanging
+    over the edge rests against the side instead of swinging in under the mattress top."""
+    (x0, x1), (y0, y1) = mat.mattress_bounds_m
+    hz = (depth_m + top_m) / 2  # the walls reach from -depth_m up to top_m
+    zc = top_m - hz
+    boxes = [
+        (x0 - thick_m / 2, (y0 + y1) / 2, thick_m / 2, (y1 - y0) / 2 + thick_m),
+        (x1 + thick_m / 2, (y0 + y1) / 2, thick_m / 2, (y1 - y0) / 2 + thick_m),
+        ((x0 + x1) / 2, y0 - thick_m / 2, (x1 - x0) / 2, thick_m / 2),
+        ((x0 + x1) / 2, y1 + thick_m / 2, (x1 - x0) / 2, thick_m / 2),
+    ]
+    return "\n".join(f'    <geom name="side{k}" type="box" pos="{cx:.6g} {cy:.6g} {zc:.6g}" size="{hx:.6g} {hy:.6g} {hz:.6g}" '
+                     f'contype="1" conaffinity="0"/>' for k, (cx, cy, hx, hy) in enumerate(boxes))
+
+
+def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tuple[int, int]] = (),
+               mat: MatSpec | None = None) -> str:
+    """MJCF of capsule body `i` of `body` in its T-pose (body axes), free root; with `mat`,
+    the mattress sides as walls."""
     caps = body.capsules
     rest = caps.rest[i].double().numpy()
     start, end = caps.start[i].double().numpy(), caps.end[i].double().numpy()
@@ -149,8 +168,9 @@ def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tupl
   <option timestep="{config.timestep_s:.9g}" integrator="implicitfast" gravity="0 0 {-GRAVITY_M_S2}">
     <flag energy="enable"/>
   </option>
-  <default><geom contype="0" conaffinity="0"/></default>
+  <default><geom contype="0" conaffinity="1"/></default>
   <worldbody>
+{_walls(mat) if mat is not None else ""}
 {body_xml(0, "    ")}
   </worldbody>
   <contact>
@@ -247,15 +267,12 @@ class CapsuleFoundation:
         arm = point - xipos[cap]
         vel = v + np.cross(om, point - com)
         C = a.shape[0]
-        # Explicit dampers and regularised friction must stay stable at the time step: each
-        # capsule's summed damping is capped at half its mass (and its smallest inertia, for
-        # the lever arms) per step - the fastest decay an explicit step can represent.
+        # The damper is taken implicitly per capsule (backward Euler: c -> c / (1 + c dt / m),
+        # with the smallest inertia for the lever arms), so light capsules stay stable.
         c = self.nu * (self.k1 + 3.0 * self.k3 * w**2) * self.area
         c_lin = np.bincount(cap, c, minlength=C)
         c_rot = np.bincount(cap, c * (arm**2).sum(1), minlength=C)
-        limit = 0.5 / dt
-        scale = np.minimum(1.0, np.minimum(limit * mass / np.maximum(c_lin, 1e-12),
-                                           limit * inertia / np.maximum(c_rot, 1e-12)))
+        scale = 1.0 / (1.0 + dt * np.maximum(c_lin / mass, c_rot / inertia))
         fn = np.maximum((self.k1 * w + self.k3 * w**3) * self.area - scale[cap] * c * vel[:, 2], 0.0)
         force = np.zeros((fn.shape[0], 3))
         force[:, 2] = fn
@@ -287,7 +304,7 @@ class _Episode:
         import mujoco
 
         self.mj, self.config, self.mattress = mujoco, config, mattress
-        m = self.model = mujoco.MjModel.from_xml_string(build_mjcf(body, i, config, initial_pairs(body, i, params)))
+        m = self.model = mujoco.MjModel.from_xml_string(build_mjcf(body, i, config, initial_pairs(body, i, params), mat))
         d = self.data = mujoco.MjData(m)
         pose = params.pose[i].double()
         home = body.home_pose[i].double()
@@ -326,7 +343,6 @@ class _Episode:
         self.mass = float(m.body_subtreemass[0])
         self.cap_mass = m.body_mass[self.body_ids].copy()
         self.cap_inertia = m.body_inertia[self.body_ids].min(1).copy()
-        self.anchor = np.full((len(CAPSULE_NAMES), 2), np.nan)
         self.bounds = mat.mattress_bounds_m
 
     def ends(self) -> tuple[np.ndarray, np.ndarray]:
@@ -342,8 +358,8 @@ class _Episode:
         return cv[:, 3:] + np.cross(cv[:, :3], d.xipos[self.body_ids] - d.subtree_com[0])
 
     def push(self) -> tuple[float, bool, float]:
-        """Set xfrc_applied from the mattress; returns (max compression, pelvis in contact,
-        mattress elastic energy)."""
+        """Set xfrc_applied from the mattress; returns (max compression, pelvis in contact or
+        the weight carried, mattress elastic energy)."""
         d = self.data
         d.xfrc_applied[:] = 0.0
         a, b = self.ends()
@@ -362,38 +378,31 @@ class _Episode:
             ft[:, 3 + k] = np.bincount(cap, torque[:, k], minlength=C)
         self._friction(cap, arm, vel, force[:, 2], ft)
         d.xfrc_applied[self.body_ids] = ft
-        return wmax, pelvis, energy
+        # "Touching" also when the mattress already carries the body (side-lying bodies rest
+        # on shoulder and hip while the crosswise pelvis capsule stands upright).
+        carried = float(ft[:, 2].sum()) >= 0.9 * self.mass * GRAVITY_M_S2
+        return wmax, pelvis or carried, energy
 
     def _friction(self, cap, arm, vel, fn, ft) -> None:
-        """Stick-slip Coulomb friction per capsule, at its centre of pressure: a tangential
-        spring to an anchor that slides once the spring force exceeds mu x the normal force
-        (so resting limbs stick, as on a real sheet). Spring and damper are set from each
-        capsule's mass and inertia and the time step so the explicit step stays stable."""
+        """Coulomb friction per capsule at its centre of pressure, regularised below
+        V_STICK as a damper, and that damper taken implicitly (backward Euler on the capsule's
+        effective mass at the point): it may stop a capsule within a step but never reverse
+        it, so the explicit step stays stable for the lightest hand."""
         C = ft.shape[0]
         Fn = np.bincount(cap, fn, minlength=C)
         touching = Fn > 1e-9
-        self.anchor[~touching] = np.nan
         if not touching.any():
             return
         w = fn / np.maximum(Fn[cap], 1e-12)
         arm_c = np.stack([np.bincount(cap, w * arm[:, k], minlength=C) for k in range(3)], 1)
         vel_c = np.stack([np.bincount(cap, w * vel[:, k], minlength=C) for k in range(2)], 1)
-        pos_c = arm_c[:, :2] + self.data.xipos[self.body_ids][:, :2]
-        new = touching & np.isnan(self.anchor[:, 0])
-        self.anchor[new] = pos_c[new]
         dt = self.config.timestep_s
-        lever2 = np.maximum((arm_c**2).sum(1), 1e-6)
-        m_eff = np.minimum(self.cap_mass, self.cap_inertia / lever2)
-        k_t = 0.02 * m_eff / dt**2
-        c_t = 0.8 * m_eff / dt
-        f = -k_t[:, None] * (pos_c - self.anchor) - c_t[:, None] * vel_c
-        limit = self.mattress.friction * Fn
-        norm = np.sqrt((f**2).sum(1))
-        slip = touching & (norm > limit)
-        f[slip] *= (limit[slip] / norm[slip])[:, None]
-        # Sliding: the anchor follows so the spring alone carries the limited force.
-        self.anchor[slip] = pos_c[slip] + f[slip] / k_t[slip, None]
-        f[~touching] = 0.0
+        m_eff = 1.0 / (1.0 / self.cap_mass + (arm_c**2).sum(1) / self.cap_inertia)
+        c = self.mattress.friction * Fn / V_STICK
+        c_eff = c / (1.0 + 2.0 * c * dt / m_eff)  # at most half the one-step stopping damper
+        speed = np.sqrt((vel_c**2).sum(1))
+        mag = np.minimum(self.mattress.friction * Fn, c_eff * speed)
+        f = -vel_c * (mag / np.maximum(speed, 1e-12))[:, None]
         force = np.concatenate([f, np.zeros((C, 1))], 1)
         ft[:, :3] += force
         ft[:, 3:] += np.cross(arm_c, force)
@@ -414,22 +423,28 @@ class _Episode:
         touched_at = -1
         every = max(1, round(cfg.zero_velocity_every_s / cfg.timestep_s))
         for step in range(cfg.max_steps):
-            wmax, pelvis, e_mat = self.push()
-            if touched_at < 0 and pelvis:
-                touched_at = step
-            mj.mj_step(m, d)
-            out["steps"] = step + 1
+            # Kinematics and velocities of the current state first (mj_step1), then the
+            # mattress forces from them, then integration (mj_step2): forces from a stale
+            # state would lag a step and pump energy into stiff contacts.
+            mj.mj_step1(m, d)
             if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
                 out["reason"] = REASON_NONFINITE
                 break
-            if touched_at < 0 and (step + 1) % every == 0:
-                d.qvel[:] = 0.0
-                mj.mj_forward(m, d)
             v = self.capsule_velocities()
             speed = float(np.sqrt((v**2).sum(1)).max())
             accel = float(np.sqrt(((v - prev_v) ** 2).sum(1)).max() / cfg.timestep_s)
             prev_v = v
+            if (touched_at >= 0 and step - touched_at >= cfg.min_steps_after_touch
+                    and speed < cfg.speed_tol_m_s and accel < cfg.accel_tol_m_s2):
+                break
+            wmax, pelvis, e_mat = self.push()
+            if touched_at < 0 and pelvis:
+                touched_at = step
             out.update(max_speed=speed, max_accel=accel, sink=wmax)
+            mj.mj_step2(m, d)
+            out["steps"] = step + 1
+            if touched_at < 0 and (step + 1) % every == 0:
+                d.qvel[:] = 0.0
             energy = float(d.energy[0] + d.energy[1]) + e_mat
             if touched_at >= 0:
                 # After the last velocity reset the system is passive: energy can only fall.
@@ -442,9 +457,6 @@ class _Episode:
                 break
             if d.subtree_com[0][2] < -float(self.mattress.thickness_m):
                 out["reason"] = REASON_FELL
-                break
-            if (touched_at >= 0 and step - touched_at >= cfg.min_steps_after_touch
-                    and speed < cfg.speed_tol_m_s and accel < cfg.accel_tol_m_s2):
                 break
         else:
             out["reason"] = REASON_TIMEOUT
