@@ -85,3 +85,24 @@ def test_load_poses_refuses_missing_and_corrupt_files(tmp_path):
     bad.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="not a readable poses file"):
         load_poses(bad)
+
+
+def test_simulate_writes_image_labels_and_figure(tmp_path):
+    out = tmp_path / "sim"
+    assert main(["simulate", "--out", str(out), "--partition", "supine", "--gender", "male", "--index", "1"]) == 0
+    record = json.loads((out / "simulate.json").read_text())
+    assert record["status"] == "ok" and record["reason"] == ""
+    with np.load(out / "sample.npz", allow_pickle=False) as data:
+        p, q, c = data["pressure_mmhg"], data["depth_mm"], data["contact"]
+        assert p.shape == q.shape == c.shape == (64, 27)
+        assert (p >= 0).all() and (p <= 100).all() and p.sum() > 0
+        assert ((q < 0) == (c == 1)).all()
+    assert (out / "simulate.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert 0.1 < record["contact_area_m2"] < 0.6
+
+
+def test_simulate_bad_parameter_file_exits_2(tmp_path):
+    bad = tmp_path / "bed.json"
+    bad.write_text("not json")
+    r = run("simulate", "--out", str(tmp_path / "s"), "--params", str(bad))
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "not readable JSON" in r.stderr

@@ -212,3 +212,81 @@ def test_sim1_and_sim2_sink_alike(length, radius, mass):
     sim2 = float(simulate_pressure(v[None], f, torch.tensor([mass], dtype=D)).max_compression_m)
     sim1 = settle_capsule(length, radius, mass)["sink_m"]
     assert abs(sim1 - sim2) / sim2 < 0.10, (sim1, sim2)
+
+
+# --- sim #1 (MuJoCo) ------------------------------------------------------------------------
+from pressurepose.sampling.partitions import PARTITIONS, SamplingConfig  # noqa: E402
+from pressurepose.sampling.sampler import PoseSampler  # noqa: E402
+from pressurepose.sim.settle import REASON_OFF_BED, SettleConfig, build_mjcf, settle  # noqa: E402
+
+
+def _initial(model, partition, gender="male", indices=(0, 1)):
+    over = partition in ("hands_behind_head", "prone_hands_up")
+    cfg = SamplingConfig(partition=partition, gender=gender, over_bed=over, seed=0)
+    return PoseSampler(model, cfg).sample(list(indices)).params
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("partition", sorted(PARTITIONS))
+def test_sim1_settles_typical_poses_of_every_partition(anny64, partition):
+    params = _initial(anny64, partition, indices=(0, 1, 3))
+    res = settle(anny64, params)
+    for name in ("root_rotation", "root_translation", "pose"):
+        assert torch.isfinite(getattr(res.params, name)).all()
+    assert np.isfinite(res.sink_m).all() and (res.steps <= SettleConfig().max_steps).all()
+    assert res.ok.sum() >= 2, res.reason
+    for i in np.flatnonzero(res.ok):
+        # At rest on the mattress: slow, touching, not sunk through.
+        assert res.max_speed[i] < 0.05 and res.max_accel[i] < 0.5
+        assert 0.0 < res.sink_m[i] < MattressParams().thickness_m
+        assert res.touch_step[i] >= 0
+    # The pelvis stays over the bed and ends near the mattress top.
+    z = res.params.root_translation[torch.from_numpy(res.ok), 2]
+    assert (z > -0.1).all() and (z < 0.4).all()
+
+
+def test_sim1_is_deterministic_and_batch_independent(anny64):
+    params = _initial(anny64, "supine", indices=(1, 2))
+    a = settle(anny64, params, batch=2)
+    b = settle(anny64, params, batch=1)
+    assert a.reason == b.reason and (a.steps == b.steps).all()
+    assert torch.equal(a.params.pose, b.params.pose) and torch.equal(a.params.root_translation, b.params.root_translation)
+
+
+def test_sim1_rejects_bodies_off_the_bed_and_bad_input(anny64):
+    params = _initial(anny64, "supine", indices=(0,))
+    off = params.replace(root_translation=params.root_translation + torch.tensor([[5.0, 0.0, 0.0]], dtype=D))
+    res = settle(anny64, off)
+    assert res.reason == [REASON_OFF_BED] and not res.ok[0]
+    bad = params.replace(pose=params.pose * float("nan"))
+    with pytest.raises(ValueError, match="NaN"):
+        settle(anny64, bad)
+
+
+def test_mjcf_has_the_capsule_chain(anny64):
+    import mujoco
+
+    from pressurepose.body.capsules import build_capsule_body
+
+    params = _initial(anny64, "supine", indices=(0,))
+    body = build_capsule_body(anny64, params.shape)
+    model = mujoco.MjModel.from_xml_string(build_mjcf(body, 0, SettleConfig(), mat=MAT))
+    assert model.nv == 55  # free root 6 + 15 ball x 3 + 4 hinges
+    assert math.isclose(float(model.body_subtreemass[0]), float(body.mass_kg.sum()), rel_tol=1e-9)
+    hinge = mujoco.mjtJoint.mjJNT_HINGE
+    assert int((model.jnt_type == hinge).sum()) == 4
+    assert model.jnt_stiffness.max() > 0 and (model.dof_damping >= 0).all()
+
+
+@pytest.mark.slow
+def test_sim2_matches_an_explicit_dynamic_simulation():
+    from pressurepose.sim.reference import dynamic_reference, image_correlation
+
+    v, f = capsule_mesh(0.4, 0.06, centre=(0.9, 0.37, 0.07))
+    v[:, 2] += 0.05 * (v[:, 0] - 0.9)  # tilted: the solver must find the pitch
+    ref = dynamic_reference(v, f, 9.1)
+    quasi = simulate_pressure(v[None], f, torch.tensor([9.1], dtype=D))
+    assert ref.at_rest
+    assert image_correlation(ref.pressure_pa, quasi.pressure_pa[0]) >= 0.95
+    force = float(quasi.pressure_pa.sum()) * MAT.taxel_area_m2
+    assert abs(ref.force_n - force) / force < 0.02

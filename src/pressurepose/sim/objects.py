@@ -56,7 +56,7 @@ def capsule_mesh(length_m: float, radius_m: float, centre=(0.0, 0.0, 0.0), n_aro
 
 def settle_capsule(length_m: float, radius_m: float, mass_kg: float, xy=(0.9, 0.37),
                    params: MattressParams | None = None, mat: MatSpec | None = None,
-                   timestep_s: float = 0.0103 / 2, max_steps: int = 4000, grid_sub: int = 1) -> dict:
+                   timestep_s: float = 0.0103, max_steps: int = 3000, grid_sub: int = 1) -> dict:
     """Drop a horizontal rigid capsule (axis along the bed) onto sim #1's mattress and let it
     rest. Returns {"sink_m": deepest compression, "z_m": axis height, "steps", "settled"}."""
     import mujoco
@@ -82,12 +82,12 @@ def settle_capsule(length_m: float, radius_m: float, mass_kg: float, xy=(0.9, 0.
         a = d.xpos[1] + R @ np.array([-length_m / 2, 0, 0])
         b = d.xpos[1] + R @ np.array([length_m / 2, 0, 0])
         d.xfrc_applied[:] = 0
-        out = found.apply(a[None], b[None], np.array([radius_m]), d.cvel[1:2], d.subtree_com[0],
-                          d.xipos[1:2], mass, inertia, timestep_s, -1)
-        if out is not None:
-            cap, arm, vel, force, wmax, _, _ = out
-            d.xfrc_applied[1, :3] = force.sum(0)
-            d.xfrc_applied[1, 3:] = np.cross(arm, force).sum(0)
+        res = found.forces(a[None], b[None], np.array([radius_m]), d.cvel[1:2], d.subtree_com[0:1],
+                           d.xipos[1:2], mass, inertia, np.zeros(1, dtype=np.int64), timestep_s)
+        if res is not None:
+            ft, _, w, _ = res
+            wmax = float(w.max())
+            d.xfrc_applied[1] = ft[0]
         mujoco.mj_step2(m, d)
         if step > 50 and np.abs(d.qvel).max() < 1e-3:
             settled = True

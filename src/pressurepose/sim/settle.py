@@ -190,94 +190,138 @@ class CapsuleFoundation:
         self.x0, self.y0 = -mat.border_head_foot_m, -mat.border_side_m
         self.nr, self.nc = mat.covered_rows * sub, mat.covered_cols * sub
         self.area = self.hx * self.hy
-        self.wr = int(math.ceil(max_extent_m / self.hx)) + 2
-        self.wc = int(math.ceil(max_extent_m / self.hy)) + 2
         self.k1, self.k3 = float(params.k1_pa_per_m), float(params.k3_pa_per_m3)
         self.nu, self.mu = float(params.damping_s), float(params.friction)
-        self._ar = np.arange(self.wr)
-        self._ac = np.arange(self.wc)
 
     def underside(self, a: np.ndarray, b: np.ndarray, r: np.ndarray):
-        """Per capsule (C,) a window of nodes: global flat index (C, wr, wc) (-1 outside the
-        grid), node x, y and the capsule's lowest surface height there (inf where none)."""
+        """The nodes under C capsules (axis ends a, b (C, 3), radii r (C,)), each capsule's own
+        footprint window, flattened: (capsule index, grid node index (-1 off the grid), node
+        x, node y, the capsule's lowest surface height over the node (inf where none))."""
         lo = np.minimum(a[:, :2], b[:, :2]) - r[:, None]
         hi = np.maximum(a[:, :2], b[:, :2]) + r[:, None]
         i0 = np.floor((lo[:, 0] - self.x0) / self.hx).astype(np.int64)
         j0 = np.floor((lo[:, 1] - self.y0) / self.hy).astype(np.int64)
-        # One window for all capsules: the largest current footprint.
-        wr = min(self.wr, int((np.floor((hi[:, 0] - self.x0) / self.hx) - i0).max()) + 1)
-        wc = min(self.wc, int((np.floor((hi[:, 1] - self.y0) / self.hy) - j0).max()) + 1)
-        ii = i0[:, None, None] + np.arange(wr)[None, :, None]
-        jj = j0[:, None, None] + np.arange(wc)[None, None, :]
-        ii, jj = np.broadcast_arrays(ii, jj)
+        nr = np.floor((hi[:, 0] - self.x0) / self.hx).astype(np.int64) - i0 + 1
+        nc = np.floor((hi[:, 1] - self.y0) / self.hy).astype(np.int64) - j0 + 1
+        size = nr * nc
+        cap = np.repeat(np.arange(a.shape[0]), size)
+        start = np.repeat(np.cumsum(size) - size, size)
+        k = np.arange(cap.shape[0]) - start
+        ii = i0[cap] + k // nc[cap]
+        jj = j0[cap] + k % nc[cap]
         x = self.x0 + (ii + 0.5) * self.hx
         y = self.y0 + (jj + 0.5) * self.hy
         inside = (ii >= 0) & (ii < self.nr) & (jj >= 0) & (jj < self.nc)
         flat = np.where(inside, ii * self.nc + jj, -1)
+        ax, ay, az = a[cap, 0], a[cap, 1], a[cap, 2]
+        rc2 = r[cap] ** 2
         # End spheres.
         z = np.full(x.shape, np.inf)
-        for e in (a, b):
-            d2 = (x - e[:, 0, None, None]) ** 2 + (y - e[:, 1, None, None]) ** 2
-            r2 = r[:, None, None] ** 2
-            zs = e[:, 2, None, None] - np.sqrt(np.maximum(r2 - d2, 0.0))
-            z = np.where(d2 <= r2, np.minimum(z, zs), z)
+        for ex, ey, ez in ((ax, ay, az), (b[cap, 0], b[cap, 1], b[cap, 2])):
+            d2 = (x - ex) ** 2 + (y - ey) ** 2
+            z = np.where(d2 <= rc2, np.minimum(z, ez - np.sqrt(np.maximum(rc2 - d2, 0.0))), z)
         # Cylinder: lower root of |perp(p - a)|^2 = r^2 on the vertical line through the node.
         axis = b - a
-        L = np.linalg.norm(axis, axis=1)
+        L = np.sqrt((axis**2).sum(1))
         u = axis / np.maximum(L, 1e-12)[:, None]
-        d0x = x - a[:, 0, None, None]
-        d0y = y - a[:, 1, None, None]
-        d0z = -a[:, 2, None, None]
-        ux, uy, uz = (u[:, k, None, None] for k in range(3))
+        ux, uy, uz = u[cap, 0], u[cap, 1], u[cap, 2]
+        d0x, d0y, d0z = x - ax, y - ay, -az
         du = d0x * ux + d0y * uy + d0z * uz
         A = 1.0 - uz**2
         Bq = 2.0 * (d0z - du * uz)
-        Cq = d0x**2 + d0y**2 + d0z**2 - du**2 - r[:, None, None] ** 2
+        Cq = d0x**2 + d0y**2 + d0z**2 - du**2 - rc2
         disc = Bq**2 - 4 * A * Cq
         ok = (A > 1e-9) & (disc >= 0)
         zc = (-Bq - np.sqrt(np.maximum(disc, 0.0))) / (2 * np.where(ok, A, 1.0))
         t = du + zc * uz
-        ok &= (t >= 0) & (t <= L[:, None, None])
+        ok &= (t >= 0) & (t <= L[cap])
         z = np.where(ok, np.minimum(z, zc), z)
-        return flat, x, y, z
+        return cap, flat, x, y, z
 
-    def apply(self, a, b, r, body_vel, com, xipos, mass, inertia, dt: float, pelvis: int):
-        """Mattress forces on capsules with axis ends a, b (C, 3) and radii r (C,).
+    def forces(self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float):
+        """Mattress forces on C capsules (of one or several bodies, stepped together).
 
-        body_vel: (C, 6) angular and linear velocity of each capsule's body, the linear part
-        at the point `com` (3,) (MuJoCo's cvel convention); returns per-capsule force and
-        torque about `xipos` are assembled by the caller from (cap, point, force)."""
+        a, b: (C, 3) axis ends; r: (C,); body_vel: (C, 6) angular and linear velocity of
+        each capsule's body, the linear part at the point com (C, 3) (MuJoCo's cvel);
+        xipos, mass, inertia (smallest principal moment): (C, 3), (C,), (C,); offset: (C,)
+        node-index offset of each capsule's body (bodies do not share nodes).
+        Returns (C, 6) force and torque about xipos, and per loaded node its capsule,
+        compression and elastic energy - or None when nothing touches."""
+        C = a.shape[0]
         active = np.flatnonzero(np.minimum(a[:, 2], b[:, 2]) - r < 0.0)
         if active.size == 0:
             return None
-        flat, x, y, z = self.underside(a[active], b[active], r[active])
+        # Only the part of the axis lower than r can reach below the mattress top: clip the
+        # capsule to it (exact for every point below z = 0; smaller node windows).
+        aa, bb, rr = a[active], b[active], r[active]
+        dz = bb[:, 2] - aa[:, 2]
+        safe = np.where(np.abs(dz) > 1e-12, dz, 1.0)
+        t_cut = np.clip((rr - aa[:, 2]) / safe, 0.0, 1.0)
+        t0 = np.where(dz < -1e-12, t_cut, 0.0)
+        t1 = np.where(dz > 1e-12, t_cut, 1.0)
+        axis = bb - aa
+        aa, bb = aa + t0[:, None] * axis, aa + t1[:, None] * axis
+        local, flat, x, y, z = self.underside(aa, bb, rr)
         valid = (flat >= 0) & (z < 0.0)
         if not valid.any():
             return None
-        cap = np.broadcast_to(active[:, None, None], z.shape)[valid]
-        idx, zz = flat[valid], z[valid]
-        px, py = x[valid], y[valid]
+        cap = active[local[valid]]
+        idx = flat[valid] + offset[cap]
+        zz, px, py = z[valid], x[valid], y[valid]
         # The lowest capsule over a node is the one the foam pushes on.
         order = np.lexsort((zz, idx))
         keep = order[np.r_[True, idx[order][1:] != idx[order][:-1]]]
         cap, zz, px, py = cap[keep], zz[keep], px[keep], py[keep]
         w = -zz
-        point = np.stack([px, py, zz], 1)
+        rel = np.stack([px, py, zz], 1) - com[cap]
         om, v = body_vel[cap, :3], body_vel[cap, 3:]
-        arm = point - xipos[cap]
-        vel = v + np.cross(om, point - com)
-        C = a.shape[0]
+        vel = v + _cross(om, rel)
+        arm = rel + (com - xipos)[cap]
         # The damper is taken implicitly per capsule (backward Euler: c -> c / (1 + c dt / m),
         # with the smallest inertia for the lever arms), so light capsules stay stable.
         c = self.nu * (self.k1 + 3.0 * self.k3 * w**2) * self.area
+        arm2 = (arm**2).sum(1)
         c_lin = np.bincount(cap, c, minlength=C)
-        c_rot = np.bincount(cap, c * (arm**2).sum(1), minlength=C)
+        c_rot = np.bincount(cap, c * arm2, minlength=C)
         scale = 1.0 / (1.0 + dt * np.maximum(c_lin / mass, c_rot / inertia))
         fn = np.maximum((self.k1 * w + self.k3 * w**3) * self.area - scale[cap] * c * vel[:, 2], 0.0)
-        force = np.zeros((fn.shape[0], 3))
-        force[:, 2] = fn
-        energy = float((self.k1 * w**2 / 2 + self.k3 * w**4 / 4).sum() * self.area)
-        return cap, arm, vel, force, float(w.max()), bool((cap == pelvis).any()), energy
+        out = np.zeros((C, 6))
+        out[:, 2] = np.bincount(cap, fn, minlength=C)
+        out[:, 3] = np.bincount(cap, arm[:, 1] * fn, minlength=C)
+        out[:, 4] = np.bincount(cap, -arm[:, 0] * fn, minlength=C)
+        self._friction(out, cap, arm, vel, fn, mass, inertia, dt)
+        energy = (self.k1 * w**2 / 2 + self.k3 * w**4 / 4) * self.area
+        return out, cap, w, energy
+
+    def _friction(self, out, cap, arm, vel, fn, mass, inertia, dt) -> None:
+        """Coulomb friction per capsule at its centre of pressure, regularised below V_STICK
+        as a damper taken implicitly on the capsule's effective mass at that point (at most
+        half the damper that would stop it within one step): it never reverses a capsule,
+        so the explicit step stays stable for the lightest hand."""
+        C = out.shape[0]
+        Fn = out[:, 2]
+        touching = Fn > 1e-9
+        if not touching.any():
+            return
+        wgt = fn / np.maximum(Fn[cap], 1e-12)
+        arm_c = np.stack([np.bincount(cap, wgt * arm[:, k], minlength=C) for k in range(3)], 1)
+        vel_c = np.stack([np.bincount(cap, wgt * vel[:, k], minlength=C) for k in range(2)], 1)
+        m_eff = 1.0 / (1.0 / mass + (arm_c**2).sum(1) / inertia)
+        c = self.mu * Fn / V_STICK
+        c_eff = c / (1.0 + 2.0 * c * dt / m_eff)
+        speed = np.sqrt((vel_c**2).sum(1))
+        mag = np.minimum(self.mu * Fn, c_eff * speed)
+        f = np.zeros((C, 3))
+        f[:, :2] = -vel_c * (mag / np.maximum(speed, 1e-12))[:, None]
+        out[:, :3] += f
+        out[:, 3:] += _cross(arm_c, f)
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (N, 3) arrays (np.cross is slow on small arrays)."""
+    return np.stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1],
+                     u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+                     u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]], 1)
 
 
 def _quat(R: torch.Tensor) -> np.ndarray:
@@ -338,8 +382,8 @@ class _Episode:
         d.qpos[2] += config.drop_height_m - float((np.minimum(a[:, 2], b[:, 2]) - self.radius).min())
         d.qvel[:] = 0.0
         mujoco.mj_forward(m, d)
-        extent = float(np.max(np.linalg.norm(self.loc_b - self.loc_a, axis=1) + 2 * self.radius))
-        self.foundation = CapsuleFoundation(mat, mattress, config.grid_sub, extent)
+        self.extent = float(np.max(np.linalg.norm(self.loc_b - self.loc_a, axis=1) + 2 * self.radius))
+        self.mat = mat
         self.mass = float(m.body_subtreemass[0])
         self.cap_mass = m.body_mass[self.body_ids].copy()
         self.cap_inertia = m.body_inertia[self.body_ids].min(1).copy()
@@ -355,114 +399,7 @@ class _Episode:
         """(C, 3) linear velocity of each capsule's centre of mass."""
         d = self.data
         cv = d.cvel[self.body_ids]
-        return cv[:, 3:] + np.cross(cv[:, :3], d.xipos[self.body_ids] - d.subtree_com[0])
-
-    def push(self) -> tuple[float, bool, float]:
-        """Set xfrc_applied from the mattress; returns (max compression, pelvis in contact or
-        the weight carried, mattress elastic energy)."""
-        d = self.data
-        d.xfrc_applied[:] = 0.0
-        a, b = self.ends()
-        out = self.foundation.apply(a, b, self.radius, d.cvel[self.body_ids], d.subtree_com[0],
-                                    d.xipos[self.body_ids], self.cap_mass, self.cap_inertia,
-                                    self.config.timestep_s, PELVIS)
-        if out is None:
-            return 0.0, False, 0.0
-        cap, arm, vel, force, wmax, pelvis, energy = out
-        C = len(self.body_ids)
-        ft = np.zeros((C, 6))
-        for k in range(3):
-            ft[:, k] = np.bincount(cap, force[:, k], minlength=C)
-        torque = np.cross(arm, force)
-        for k in range(3):
-            ft[:, 3 + k] = np.bincount(cap, torque[:, k], minlength=C)
-        self._friction(cap, arm, vel, force[:, 2], ft)
-        d.xfrc_applied[self.body_ids] = ft
-        # "Touching" also when the mattress already carries the body (side-lying bodies rest
-        # on shoulder and hip while the crosswise pelvis capsule stands upright).
-        carried = float(ft[:, 2].sum()) >= 0.9 * self.mass * GRAVITY_M_S2
-        return wmax, pelvis or carried, energy
-
-    def _friction(self, cap, arm, vel, fn, ft) -> None:
-        """Coulomb friction per capsule at its centre of pressure, regularised below
-        V_STICK as a damper, and that damper taken implicitly (backward Euler on the capsule's
-        effective mass at the point): it may stop a capsule within a step but never reverse
-        it, so the explicit step stays stable for the lightest hand."""
-        C = ft.shape[0]
-        Fn = np.bincount(cap, fn, minlength=C)
-        touching = Fn > 1e-9
-        if not touching.any():
-            return
-        w = fn / np.maximum(Fn[cap], 1e-12)
-        arm_c = np.stack([np.bincount(cap, w * arm[:, k], minlength=C) for k in range(3)], 1)
-        vel_c = np.stack([np.bincount(cap, w * vel[:, k], minlength=C) for k in range(2)], 1)
-        dt = self.config.timestep_s
-        m_eff = 1.0 / (1.0 / self.cap_mass + (arm_c**2).sum(1) / self.cap_inertia)
-        c = self.mattress.friction * Fn / V_STICK
-        c_eff = c / (1.0 + 2.0 * c * dt / m_eff)  # at most half the one-step stopping damper
-        speed = np.sqrt((vel_c**2).sum(1))
-        mag = np.minimum(self.mattress.friction * Fn, c_eff * speed)
-        f = -vel_c * (mag / np.maximum(speed, 1e-12))[:, None]
-        force = np.concatenate([f, np.zeros((C, 1))], 1)
-        ft[:, :3] += force
-        ft[:, 3:] += np.cross(arm_c, force)
-
-    def run(self) -> dict:
-        mj, m, d, cfg = self.mj, self.model, self.data, self.config
-        t0 = time.perf_counter()
-        (xr, xr1), (yr, yr1) = self.bounds
-        out = dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0)
-        if not (xr <= d.qpos[0] <= xr1 and yr <= d.qpos[1] <= yr1):
-            out["reason"] = REASON_OFF_BED
-            out["wall_ms"] = (time.perf_counter() - t0) * 1e3
-            return out
-        weight = self.mass * GRAVITY_M_S2
-        tol_energy = 1.0 + 0.05 * weight * (cfg.drop_height_m + 0.05)
-        e_ref = None
-        prev_v = self.capsule_velocities()
-        touched_at = -1
-        every = max(1, round(cfg.zero_velocity_every_s / cfg.timestep_s))
-        for step in range(cfg.max_steps):
-            # Kinematics and velocities of the current state first (mj_step1), then the
-            # mattress forces from them, then integration (mj_step2): forces from a stale
-            # state would lag a step and pump energy into stiff contacts.
-            mj.mj_step1(m, d)
-            if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
-                out["reason"] = REASON_NONFINITE
-                break
-            v = self.capsule_velocities()
-            speed = float(np.sqrt((v**2).sum(1)).max())
-            accel = float(np.sqrt(((v - prev_v) ** 2).sum(1)).max() / cfg.timestep_s)
-            prev_v = v
-            if (touched_at >= 0 and step - touched_at >= cfg.min_steps_after_touch
-                    and speed < cfg.speed_tol_m_s and accel < cfg.accel_tol_m_s2):
-                break
-            wmax, pelvis, e_mat = self.push()
-            if touched_at < 0 and pelvis:
-                touched_at = step
-            out.update(max_speed=speed, max_accel=accel, sink=wmax)
-            mj.mj_step2(m, d)
-            out["steps"] = step + 1
-            if touched_at < 0 and (step + 1) % every == 0:
-                d.qvel[:] = 0.0
-            energy = float(d.energy[0] + d.energy[1]) + e_mat
-            if touched_at >= 0:
-                # After the last velocity reset the system is passive: energy can only fall.
-                e_ref = energy if e_ref is None else min(e_ref, energy) if step - touched_at < 2 else e_ref
-                if energy > e_ref + tol_energy:
-                    out["reason"] = REASON_ENERGY
-                    break
-            if wmax > float(self.mattress.thickness_m):
-                out["reason"] = REASON_SANK
-                break
-            if d.subtree_com[0][2] < -float(self.mattress.thickness_m):
-                out["reason"] = REASON_FELL
-                break
-        else:
-            out["reason"] = REASON_TIMEOUT
-        out["touch_step"] = touched_at
-        out["wall_ms"] = (time.perf_counter() - t0) * 1e3
-        return out
+        return cv[:, 3:] + _cross(cv[:, :3], d.xipos[self.body_ids] - d.subtree_com[0])
 
     def resting_params(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(root_rotation (3,), root_translation (3,), pose (23, 3)) from the MuJoCo state."""
@@ -478,6 +415,119 @@ class _Episode:
         return root_rot, q[0:3].clone(), pose
 
 
+def _run_batch(eps: list[_Episode], config: SettleConfig, mattress: MattressParams) -> list[dict]:
+    """Step several episodes in lockstep: MuJoCo steps each body, one vectorised call computes
+    the mattress forces for all of them (the per-step Python cost is shared)."""
+    import mujoco as mj
+
+    E, C = len(eps), len(CAPSULE_NAMES)
+    dt = config.timestep_s
+    found = CapsuleFoundation(eps[0].mat, mattress, config.grid_sub, max(ep.extent for ep in eps))
+    n_nodes = found.nr * found.nc
+    every = max(1, round(config.zero_velocity_every_s / dt))
+    out = [dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0, wall_ms=0.0)
+           for _ in eps]
+    t0 = time.perf_counter()
+    running = []
+    for k, ep in enumerate(eps):
+        (xr, xr1), (yr, yr1) = ep.bounds
+        if not (xr <= ep.data.qpos[0] <= xr1 and yr <= ep.data.qpos[1] <= yr1):
+            out[k]["reason"] = REASON_OFF_BED
+        else:
+            running.append(k)
+    radius = np.concatenate([ep.radius for ep in eps])
+    mass = np.concatenate([ep.cap_mass for ep in eps])
+    inertia = np.concatenate([ep.cap_inertia for ep in eps])
+    weight = np.array([ep.mass * GRAVITY_M_S2 for ep in eps])
+    tol_energy = 1.0 + 0.05 * weight * (config.drop_height_m + 0.05)
+    e_ref = np.full(E, np.nan)
+    touched = np.full(E, -1)
+    prev_v = [None] * E
+    thickness = float(mattress.thickness_m)
+    for step in range(config.max_steps):
+        if not running:
+            break
+        alive = []
+        for k in running:
+            ep = eps[k]
+            mj.mj_step1(ep.model, ep.data)
+            d = ep.data
+            if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
+                out[k]["reason"] = REASON_NONFINITE
+                continue
+            v = ep.capsule_velocities()
+            if prev_v[k] is not None:
+                out[k]["max_speed"] = float(np.sqrt((v**2).sum(1)).max())
+                out[k]["max_accel"] = float(np.sqrt(((v - prev_v[k]) ** 2).sum(1)).max() / dt)
+            prev_v[k] = v
+            if (touched[k] >= 0 and step - touched[k] >= config.min_steps_after_touch
+                    and out[k]["max_speed"] < config.speed_tol_m_s and out[k]["max_accel"] < config.accel_tol_m_s2):
+                continue  # at rest
+            alive.append(k)
+        running = alive
+        if not running:
+            break
+        # One force evaluation for every running body.
+        idx = np.array(running)
+        ends = [eps[k].ends() for k in running]
+        a = np.concatenate([e[0] for e in ends])
+        b = np.concatenate([e[1] for e in ends])
+        sel = (idx[:, None] * C + np.arange(C)[None]).ravel()
+        vel = np.concatenate([eps[k].data.cvel[eps[k].body_ids] for k in running])
+        com = np.repeat(np.stack([eps[k].data.subtree_com[0] for k in running]), C, axis=0)
+        xipos = np.concatenate([eps[k].data.xipos[eps[k].body_ids] for k in running])
+        offset = np.repeat(np.arange(len(running)) * n_nodes, C)
+        res = found.forces(a, b, radius[sel], vel, com, xipos, mass[sel], inertia[sel], offset, dt)
+        n = len(running)
+        if res is None:
+            ft = np.zeros((n * C, 6))
+            wmax = np.zeros(n)
+            e_mat = np.zeros(n)
+            pelvis = np.zeros(n, dtype=bool)
+        else:
+            ft, cap, w, energy = res
+            body_of = cap // C
+            wmax = np.zeros(n)
+            np.maximum.at(wmax, body_of, w)
+            e_mat = np.bincount(body_of, energy, minlength=n)
+            pelvis = np.bincount(body_of, cap % C == PELVIS, minlength=n) > 0
+        carried = ft[:, 2].reshape(n, C).sum(1) >= 0.9 * weight[idx]
+        alive = []
+        for j, k in enumerate(running):
+            ep, d, o = eps[k], eps[k].data, out[k]
+            if touched[k] < 0 and (pelvis[j] or carried[j]):
+                touched[k] = step
+            d.xfrc_applied[ep.body_ids] = ft[j * C:(j + 1) * C]
+            energy = float(d.energy[0] + d.energy[1]) + float(e_mat[j])
+            mj.mj_step2(ep.model, d)
+            o["steps"] = step + 1
+            o["sink"] = float(wmax[j])
+            if touched[k] < 0 and (step + 1) % every == 0:
+                d.qvel[:] = 0.0
+            if touched[k] >= 0:
+                # After the last velocity reset the system is passive: energy can only fall.
+                if np.isnan(e_ref[k]) or step - touched[k] < 2:
+                    e_ref[k] = energy if np.isnan(e_ref[k]) else min(e_ref[k], energy)
+                elif energy > e_ref[k] + tol_energy[k]:
+                    o["reason"] = REASON_ENERGY
+                    continue
+            if wmax[j] > thickness:
+                o["reason"] = REASON_SANK
+                continue
+            if d.subtree_com[0][2] < -thickness:
+                o["reason"] = REASON_FELL
+                continue
+            alive.append(k)
+        running = alive
+    for k in running:
+        out[k]["reason"] = REASON_TIMEOUT
+    wall = (time.perf_counter() - t0) * 1e3 / max(E, 1)
+    for k in range(E):
+        out[k]["touch_step"] = int(touched[k])
+        out[k]["wall_ms"] = wall
+    return out
+
+
 def _quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     q = q / q.norm()
     return axis_angle_to_matrix(quaternion_to_axis_angle(q))
@@ -485,8 +535,9 @@ def _quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
 
 def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
            mat: MatSpec | None = None, config: SettleConfig | None = None,
-           body: CapsuleBody | None = None) -> SettleResult:
-    """Settle B initial poses (BodyParams, mat frame) onto the mattress, one MuJoCo run each.
+           body: CapsuleBody | None = None, batch: int = 16) -> SettleResult:
+    """Settle B initial poses (BodyParams, mat frame) onto the mattress: one MuJoCo model per
+    body, `batch` of them stepped together (results do not depend on `batch`).
 
     `body` (the capsulised bodies of params.shape) is built when not given. Returns the
     resting poses and per-sample statistics; unsettled samples are flagged, never NaN.
@@ -509,14 +560,19 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
     pose = params.pose.clone()
     stats = {k: np.zeros(B) for k in ("steps", "touch_step", "max_speed", "max_accel", "sink", "wall_ms")}
     reasons = []
-    for i in range(B):
-        ep = _Episode(body, i, params, mattress, mat, config)
-        out = ep.run()
-        reasons.append(out["reason"])
-        for k in stats:
-            stats[k][i] = out[k]
-        if out["reason"] != REASON_NONFINITE:
-            root_rot[i], root_t[i], pose[i] = ep.resting_params()
+    for lo in range(0, B, batch):
+        t_build = time.perf_counter()
+        eps = [_Episode(body, i, params, mattress, mat, config) for i in range(lo, min(B, lo + batch))]
+        build_ms = (time.perf_counter() - t_build) * 1e3 / len(eps)
+        outs = _run_batch(eps, config, mattress)
+        for j, (ep, o) in enumerate(zip(eps, outs)):
+            i = lo + j
+            reasons.append(o["reason"])
+            o["wall_ms"] += build_ms
+            for k in stats:
+                stats[k][i] = o[k]
+            if o["reason"] != REASON_NONFINITE:
+                root_rot[i], root_t[i], pose[i] = ep.resting_params()
     return SettleResult(
         params=params.replace(root_rotation=root_rot, root_translation=root_t, pose=pose),
         ok=np.array([not r for r in reasons]), reason=reasons, steps=stats["steps"].astype(int),
