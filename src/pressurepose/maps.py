@@ -72,9 +72,14 @@ def underside_height(vertices: torch.Tensor, faces: torch.Tensor | None, mat: Ma
     Cells with no body above them hold EMPTY_HEIGHT_M; heights are capped there too.
     """
     _check_vertices(vertices)
+    return heights_from_points(surface_points(vertices, faces), mat, sub, covered, patch)
+
+
+def heights_from_points(pts: torch.Tensor, mat: MatSpec, sub: int = 1, covered: bool = True,
+                        patch: bool = True) -> torch.Tensor:
+    """`underside_height` of a point cloud (B, N, 3) (e.g. from `surface_points`)."""
     if sub < 1:
         raise ValueError(f"sub must be a positive int, got {sub}")
-    pts = surface_points(vertices, faces)
     B = pts.shape[0]
     nr, nc = grid_shape(mat, sub, covered)
     x0, y0 = grid_origin(mat, covered)
@@ -127,6 +132,6 @@ def contact_map(depth_mm: torch.Tensor) -> torch.Tensor:
 
 
 __all__ = [
-    "EMPTY_HEIGHT_M", "cell_centres", "contact_map", "depth_map", "grid_origin", "grid_shape",
+    "EMPTY_HEIGHT_M", "cell_centres", "contact_map", "depth_map", "grid_origin", "grid_shape", "heights_from_points",
     "patch_holes", "surface_points", "underside_height",
 ]

@@ -33,7 +33,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, underside_height
+from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, heights_from_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
@@ -44,6 +44,7 @@ FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
 
 MAX_TILT_RAD = 0.35
+SMALL_TILT_RAD = 0.02  # below it one pass is enough (the linearised rest is rigid to 2e-4)
 
 
 @dataclasses.dataclass
@@ -69,10 +70,17 @@ class PressureResult:
 def mesh_centroid(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """(B, 3) centre of the enclosed volume (uniform density) of closed meshes, by signed
     tetrahedra; orientation-independent (a mirrored mesh gives the mirrored centroid)."""
+    return _centroid_and_points(vertices, faces)[0]
+
+
+def _centroid_and_points(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The volume centroid (B, 3) and the surface points of maps.surface_points (vertices and
+    triangle centroids), from one gather of the triangle corners."""
     v0, v1, v2 = vertices[:, faces[:, 0]], vertices[:, faces[:, 1]], vertices[:, faces[:, 2]]
-    vol = (v0 * torch.cross(v1, v2, dim=-1)).sum(-1) / 6.0  # (B, F)
-    c = (v0 + v1 + v2) / 4.0
-    return (vol[..., None] * c).sum(1) / vol.sum(1)[:, None]
+    tri_sum = v0 + v1 + v2
+    vol = (v0 * torch.linalg.cross(v1, v2, dim=-1)).sum(-1)  # 6 x signed volume (B, F)
+    centroid = (vol[..., None] * tri_sum).sum(1) / (4.0 * vol.sum(1)[:, None])
+    return centroid, torch.cat([vertices, tri_sum / 3.0], 1)
 
 
 def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tensor:
@@ -95,63 +103,120 @@ def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tens
 
 
 class _Grid:
-    """Cell geometry relative to each body's centre of mass."""
+    """The cells under a body (packed: only cells with body above them), their geometry
+    relative to the body's centre of mass."""
 
     def __init__(self, h, mat, sub, com):
+        B = h.shape[0]
+        self.shape = h.shape
         X, Y = cell_centres(mat, sub, covered=True, dtype=h.dtype, device=h.device)
-        self.h = h
-        self.dx = X[None] - com[:, 0, None, None]
-        self.dy = Y[None] - com[:, 1, None, None]
-        self.mask = (h < EMPTY_HEIGHT_M).to(h.dtype)
+        flat = h.reshape(B, -1)
+        valid = flat < EMPTY_HEIGHT_M
+        K = max(int(valid.sum(1).max()), 1)
+        self.index = torch.argsort((~valid).to(torch.int8), dim=1, stable=True)[:, :K]
+        self.h = flat.gather(1, self.index)
+        self.mask = valid.gather(1, self.index).to(h.dtype)
+        self.dx = X.reshape(-1)[self.index] - com[:, 0, None]
+        self.dy = Y.reshape(-1)[self.index] - com[:, 1, None]
         self.area = mat.pitch_row_m * mat.pitch_col_m / sub**2
 
     def compression(self, q):
-        hq = self.h + q[:, 0, None, None] + q[:, 1, None, None] * self.dy - q[:, 2, None, None] * self.dx
+        hq = self.h + q[:, 0, None] + q[:, 1, None] * self.dy - q[:, 2, None] * self.dx
         return torch.relu(-hq) * self.mask
 
     def residual(self, q, params, weight):
-        """(B, 3): force - weight, roll moment, pitch moment (N, N m); and the cell forces."""
+        """(B, 3): force - weight, roll moment, pitch moment (N, N m); and the cell forces
+        and compressions (packed)."""
         w = self.compression(q)
         f = params.foundation_pressure(w) * self.area
-        R = torch.stack([f.sum((1, 2)) - weight, (f * self.dy).sum((1, 2)), (f * self.dx).sum((1, 2))], -1)
+        R = torch.stack([f.sum(1) - weight, (f * self.dy).sum(1), (f * self.dx).sum(1)], -1)
         return R, f, w
 
     def jacobian(self, q, params):
         w = self.compression(q)
         k = params.foundation_stiffness(w) * self.area * (w > 0).to(w.dtype)
-        g = [torch.ones_like(self.dx), self.dy, self.dx]
-        dw = [-torch.ones_like(self.dx), -self.dy, self.dx]
-        J = torch.stack([torch.stack([(k * gi * dj).sum((1, 2)) for dj in dw], -1) for gi in g], -2)
-        return J
+        one = torch.ones_like(self.dx)
+        g = torch.stack([one, self.dy, self.dx], -1)
+        dw = torch.stack([-one, -self.dy, self.dx], -1)
+        return torch.einsum("bk,bki,bkj->bij", k, g, dw)
+
+    def unpack(self, values):
+        """Packed (B, K) -> the full (B, rows, cols) grid (zeros elsewhere)."""
+        out = values.new_zeros(self.shape[0], self.shape[1] * self.shape[2])
+        return out.scatter(1, self.index, values * self.mask).view(self.shape)
+
+
+def _merit(R, weight):
+    """Scalar residual size per sample: force in weights, moments in weight x 10 cm."""
+    return (R[:, 0].abs() + (R[:, 1].abs() + R[:, 2].abs()) / 0.1) / weight
 
 
 def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
-    """Solve grid.residual(q) = 0 from q0 without gradients. Returns q, iterations, converged."""
+    """Solve grid.residual(q) = 0 from q0 without gradients. Returns q, iterations, converged.
+
+    Phase 1 finds the depth that carries the weight with the tilt held (a safeguarded 1-D
+    Newton on the monotone force; bisection once bracketed), phase 2 runs Newton on all three
+    unknowns with backtracking on the residual, so thin contact patches (nearly singular
+    tilt rows) cannot throw the body around."""
     B = q0.shape[0]
     q = q0.clone()
     iters = torch.zeros(B, dtype=torch.long, device=q.device)
-    done = torch.zeros(B, dtype=torch.bool, device=q.device)
-    scale = torch.stack([weight, weight, weight], -1)  # moments relative to weight x 1 m
-    step_max = torch.tensor([0.02, 0.03, 0.03], dtype=q.dtype, device=q.device)
-    eye = torch.eye(3, dtype=q.dtype, device=q.device)
+    # Nothing of the body over the mattress: no support to find (reported by the caller).
+    dead = ~grid.mask.bool().flatten(1).any(1)
+    thick = float(params.thickness_m)
+    # Phase 1: depth. The force falls as dz grows (shallower): F < W at dz puts the root
+    # below dz (upper bound ub), F > W above it (lower bound lb).
+    ub = torch.full_like(q[:, 0], float("inf"))
+    lb = torch.full_like(q[:, 0], -float("inf"))
+    done = dead.clone()
     for _ in range(max_iter):
         R, _, _ = grid.residual(q, params, weight)
-        done = done | ((R.abs() / scale).amax(-1) < tol)
+        done = done | (R[:, 0].abs() < 1e-3 * weight)
         if bool(done.all()):
             break
         J = grid.jacobian(q, params)
-        # Regularise: with few cells in contact the tilt rows are nearly singular.
-        reg = 1e-6 * weight[:, None, None] * eye + 1e-3 * J.diagonal(dim1=-2, dim2=-1).abs().amax(-1)[:, None, None] * eye
+        short = R[:, 0] < 0
+        ub = torch.where(short, torch.minimum(ub, q[:, 0]), ub)
+        lb = torch.where(~short, torch.maximum(lb, q[:, 0]), lb)
+        slope = J[:, 0, 0]
+        d_newton = torch.where(slope < 0, -R[:, 0] / torch.where(slope < 0, slope, -torch.ones_like(slope)),
+                               torch.full_like(slope, -0.02)).clamp(-0.02, 0.02)
+        cand = q[:, 0] + d_newton
+        bracketed = torch.isfinite(ub) & torch.isfinite(lb)
+        cand = torch.where(bracketed & ((cand >= ub) | (cand <= lb)), (ub + lb) / 2, cand)
+        q[:, 0] = torch.where(done, q[:, 0], cand)
+        iters = iters + (~done).long()
+        done = done | (q[:, 0] < q0[:, 0] - 2 * thick)
+    # Phase 2: depth, roll and pitch.
+    step_max = torch.tensor([0.02, 0.05, 0.05], dtype=q.dtype, device=q.device)
+    eye = torch.eye(3, dtype=q.dtype, device=q.device)
+    R, _, _ = grid.residual(q, params, weight)
+    merit = _merit(R, weight)
+    done = dead | ((R.abs() / weight[:, None]).amax(-1) < tol)
+    for _ in range(max_iter):
+        if bool(done.all()):
+            break
+        J = grid.jacobian(q, params)
+        diag = J.diagonal(dim1=-2, dim2=-1).abs()
+        reg = (1e-9 * weight[:, None] + 1e-6 * diag.amax(-1, keepdim=True)) [..., None] * eye
         step = torch.linalg.solve(J - reg, -R[..., None])[..., 0]
-        # Out of contact, or (nearly) no force yet: push down by the largest step.
-        no_contact = R[:, 0] < -0.999 * weight
-        step[no_contact] = torch.stack([-step_max[0], torch.zeros_like(step_max[0]), torch.zeros_like(step_max[0])])
         step = torch.maximum(torch.minimum(step, step_max), -step_max)
         step = torch.where(done[:, None], torch.zeros_like(step), step)
-        q = q + step
+        # Backtracking: halve the step until the residual shrinks (at most 6 times).
+        t = torch.ones(B, dtype=q.dtype, device=q.device)
+        for _ in range(6):
+            R_new, _, _ = grid.residual(q + t[:, None] * step, params, weight)
+            better = _merit(R_new, weight) < merit
+            if bool((better | done).all()):
+                break
+            t = torch.where(better | done, t, t / 2)
+        q = q + t[:, None] * step
+        R, _, _ = grid.residual(q, params, weight)
+        merit = _merit(R, weight)
         iters = iters + (~done).long()
-    R, _, _ = grid.residual(q, params, weight)
-    done = done | ((R.abs() / scale).amax(-1) < tol)
+        done = done | ((R.abs() / weight[:, None]).amax(-1) < tol)
+        # Hopeless samples stop early (the caller reports them): tipped over.
+        done = done | (q[:, 1:].abs() > MAX_TILT_RAD).any(1)
     return q, iters, done
 
 
@@ -204,8 +269,8 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
     iters = torch.zeros(B, dtype=torch.long, device=vertices.device)
     verts = vertices
     for p in range(passes):
-        com = mesh_centroid(verts, faces)
-        h = underside_height(verts, faces, mat, sub=sub, covered=True)
+        com, points = _centroid_and_points(verts, faces)
+        h = heights_from_points(points, mat, sub=sub, covered=True)
         grid = _Grid(h, mat, sub, com)
         with torch.no_grad():
             hd = h.detach()
@@ -213,7 +278,7 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
             q0 = verts.new_zeros(B, 3)
             if p == 0:
                 # Start with the lowest supported point on the surface.
-                lowest = torch.where(gd.mask.bool(), hd, torch.full_like(hd, float("inf"))).amin((1, 2))
+                lowest = torch.where(gd.mask.bool(), gd.h, torch.full_like(gd.h, float("inf"))).amin(1)
                 q0[:, 0] = torch.where(torch.isfinite(lowest), -lowest, torch.zeros_like(lowest))
             pd = _detached(params)
             qs, it, conv = _newton(gd, pd, weight.detach(), q0, max_iter, tol)
@@ -226,17 +291,21 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
         q = qs - (Jinv @ R[..., None])[..., 0]
         q = q + (qs - q).detach()  # keep the converged value exactly
         total_q = total_q + q
-        verts = _rotate(verts, com, q) if p < passes - 1 else _shear(verts, com, q)
-    com = mesh_centroid(verts, faces)
-    h = underside_height(verts, faces, mat, sub=sub, covered=True)
-    grid = _Grid(h, mat, sub, com)
-    zero = verts.new_zeros(B, 3)
-    R, f, w = grid.residual(zero, params, weight)
+        if p < passes - 1 and float(qs[:, 1:].abs().max()) > SMALL_TILT_RAD:
+            verts = _rotate(verts, com, q)
+        else:
+            # Small tilt (or the last pass): heights only, rigid to O(angle^2); the cells do
+            # not move, so this pass's grid at q is exactly the rest.
+            verts = _shear(verts, com, q)
+            break
+    R, f_packed, w_packed = grid.residual(q, params, weight)
+    f, w = grid.unpack(f_packed), grid.unpack(w_packed)
     foundation = f / grid.area
     failure = []
     tilt = total_q[:, 1:].detach()
+    has_cells = grid.mask.bool().any(1)
     for i in range(B):
-        if not bool(grid.mask[i].any()) or float(f[i].sum()) <= 0:
+        if not bool(has_cells[i]) or float(f[i].sum()) <= 0:
             failure.append(FAIL_NO_SUPPORT)
         elif float(tilt[i].abs().max()) > MAX_TILT_RAD:
             failure.append(FAIL_TILT)

@@ -36,8 +36,8 @@ class ReferenceResult:
 def dynamic_reference(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: float,
                       params: MattressParams | None = None, mat: MatSpec | None = None, sub: int = 2,
                       dt: float = 1e-3, max_steps: int = 60_000, node_mass_kg: float = 0.05,
-                      contact_stiffness: float = 5.0e3, tol_speed: float = 2e-5,
-                      body_damping: float = 10.0, refresh: int = 5) -> ReferenceResult:
+                      contact_stiffness: float = 5.0e3, tol_speed: float = 1e-3,
+                      body_damping: float = 20.0, refresh: int = 5) -> ReferenceResult:
     """Drop one rigid mesh (V, 3) (float64, mat frame) onto the node grid and run to rest."""
     params = params or MattressParams()
     mat = mat or MatSpec()
@@ -49,7 +49,7 @@ def dynamic_reference(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: floa
     d = v0 - com0
     Ix = mass_kg * float((d[:, 1] ** 2 + d[:, 2] ** 2).mean())
     Iy = mass_kg * float((d[:, 0] ** 2 + d[:, 2] ** 2).mean())
-    k1, k3, nu = float(params.k1_pa_per_m), float(params.k3_pa_per_m3), 0.02
+    k1, k3, nu = float(params.k1_pa_per_m), float(params.k3_pa_per_m3), 0.05
     # Start with the lowest point on the mattress top.
     z = -float(underside_height(v0[None], faces, mat, sub=sub).min())
     a = b = 0.0
@@ -91,8 +91,10 @@ def dynamic_reference(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: floa
         a += dt * va
         b += dt * vb
         if steps % 200 == 0:
-            still = max(abs(vz), abs(va), abs(vb)) < tol_speed and float(wd.abs().max()) < tol_speed
-            if still and abs(Fz - weight) < 1e-3 * weight:
+            # At rest: the body still and carried (the nodes keep a tiny jitter from the
+            # periodic re-rasterisation, which does not move the body).
+            still = max(abs(vz), abs(va), abs(vb)) < tol_speed
+            if still and abs(Fz - weight) < 5e-3 * weight:
                 at_rest = True
                 break
     spring = (k1 * torch.relu(w) + k3 * torch.relu(w) ** 3)
