@@ -22,6 +22,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 demo: $(STAMP)
 	$(BIN)/pressurepose demo --out out/demo
 	$(BIN)/pressurepose sample --out out/demo/sample --n 96 --partition general
+	$(BIN)/pressurepose simulate --out out/demo/simulate --partition supine --gender male --index 3
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
@@ -29,6 +30,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/body.py
 	$(BIN)/python benchmarks/sampling.py
+	$(BIN)/python benchmarks/sim.py
 
 clean-venv:
 	rm -rf $(VENV)
