@@ -88,7 +88,7 @@ def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tens
     grid only within 3 sigma of its edge). sigma may be a float or a 0-d tensor."""
     out = p[:, None]
     for dim, sigma in ((2, sigma_cells_r), (3, sigma_cells_c)):
-        s = float(sigma)
+        s = float(sigma.detach()) if isinstance(sigma, torch.Tensor) else float(sigma)
         if s <= 1e-6:
             continue
         radius = max(1, int(math.ceil(3.0 * s)))
@@ -163,7 +163,7 @@ def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
     iters = torch.zeros(B, dtype=torch.long, device=q.device)
     # Nothing of the body over the mattress: no support to find (reported by the caller).
     dead = ~grid.mask.bool().flatten(1).any(1)
-    thick = float(params.thickness_m)
+    thick = float(_detached(params).thickness_m)
     # Phase 1: depth. The force falls as dz grows (shallower): F < W at dz puts the root
     # below dz (upper bound ub), F > W above it (lower bound lb).
     ub = torch.full_like(q[:, 0], float("inf"))
@@ -304,14 +304,16 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
     failure = []
     tilt = total_q[:, 1:].detach()
     has_cells = grid.mask.bool().any(1)
+    f_d, w_d, R_d = f.detach(), w.detach(), R.detach()
+    thick_m = float(_detached(params).thickness_m)
     for i in range(B):
-        if not bool(has_cells[i]) or float(f[i].sum()) <= 0:
+        if not bool(has_cells[i]) or float(f_d[i].sum()) <= 0:
             failure.append(FAIL_NO_SUPPORT)
         elif float(tilt[i].abs().max()) > MAX_TILT_RAD:
             failure.append(FAIL_TILT)
-        elif float(w[i].max()) > float(params.thickness_m):
+        elif float(w_d[i].max()) > thick_m:
             failure.append(FAIL_BOTTOM)
-        elif float((R[i].detach().abs() / weight[i].detach()).max()) > 1e-3:
+        elif float((R_d[i].abs() / weight[i].detach()).max()) > 1e-3:
             failure.append(FAIL_NOT_CONVERGED)
         else:
             failure.append("")

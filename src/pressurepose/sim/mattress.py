@@ -51,7 +51,7 @@ class MattressParams:
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             try:
-                v = float(value.detach().reshape(-1)[0]) if hasattr(value, "detach") else float(value)
+                v = _scalar(value)
             except (TypeError, ValueError):
                 raise ValueError(f"MattressParams.{f.name} must be a number, got {value!r}") from None
             if not math.isfinite(v):
@@ -59,7 +59,7 @@ class MattressParams:
             if f.name not in ("c0_mmhg",) and v < 0:
                 raise ValueError(f"MattressParams.{f.name} must be >= 0, got {v}")
         for name in ("k1_pa_per_m", "thickness_m", "mat_stiffness_pa_per_mm"):
-            if float(getattr(self, name)) <= 0:
+            if _scalar(getattr(self, name)) <= 0:
                 raise ValueError(f"MattressParams.{name} must be > 0, got {getattr(self, name)}")
 
     def replace(self, **changes) -> "MattressParams":
@@ -74,7 +74,7 @@ class MattressParams:
         return self.k1_pa_per_m + 3.0 * self.k3_pa_per_m3 * w**2
 
     def to_dict(self) -> dict:
-        return {f.name: float(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        return {f.name: _scalar(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
     def save(self, path: str | os.PathLike) -> None:
         path = Path(path)
@@ -101,6 +101,15 @@ class MattressParams:
             raise ValueError(f"{path}: unknown mattress parameters {', '.join(unknown)}; "
                              f"valid ones: {', '.join(sorted(known))}")
         return cls(**doc["params"])
+
+
+def _scalar(value) -> float:
+    """A float from a number or a one-element tensor (detached, for checks only)."""
+    if hasattr(value, "detach"):
+        if value.numel() != 1:
+            raise ValueError("expected one value")
+        return float(value.detach())
+    return float(value)
 
 
 __all__ = ["GRAVITY_M_S2", "MMHG_PA", "MattressParams"]
