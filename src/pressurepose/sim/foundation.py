@@ -11,11 +11,12 @@ its moments about the centre of mass vanish:
     w_i = max(0, -(h_i + dz + a (y_i - y_c) - b (x_i - x_c)))
 
 with h_i the underside height over cell i (`maps.underside_height`). Newton's method solves it
-(analytic 3 x 3 Jacobian, clamped steps); the tilt is then applied to the mesh as an exact
-rotation and the system solved once more about the new pose, so the small-angle linearisation
-leaves a second-order error only; the last pass applies its small correction in the
-linearised form (heights only, O(angle^2) from rigid), so the rest is exactly the solved one. The mat and cover couple taxels laterally: the recorded
-pressure is the foundation pressure spread by a normalised Gaussian of width `spread_m`,
+(a safeguarded depth search, then Newton with the analytic 3 x 3 Jacobian and backtracking).
+The motion is applied to the mesh as an exact rigid motion; when the tilt exceeds 0.02 rad
+the mesh is rasterised again and the (small) remainder solved about the new pose. The
+pressure returned is the last solve's field, so force and moments balance exactly; the mesh
+moved rigidly differs from it only by the sideways shift of its points (tilt x height, ~1 mm).
+The mat and cover couple taxels laterally: the recorded pressure is the foundation pressure spread by a normalised Gaussian of width `spread_m`,
 which keeps the total force and the centre of pressure. The covered area is simulated; the
 sensing 64 x 27 taxels are recorded.
 
@@ -103,8 +104,10 @@ def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tens
 
 
 class _Grid:
-    """The cells under a body (packed: only cells with body above them), their geometry
-    relative to the body's centre of mass."""
+    """The cells under a body (packed: only cells with body above them) and, per cell, how a
+    small rigid motion q = (dz, roll a, pitch b) about the centre of mass changes the body's
+    height over the cell, c = (1, dy, -dx), and how the cell's force enters the balance,
+    g = (1, dy, dx), with (dx, dy) the cell relative to the centre of mass."""
 
     def __init__(self, h, mat, sub, com):
         B = h.shape[0]
@@ -116,12 +119,15 @@ class _Grid:
         self.index = torch.argsort((~valid).to(torch.int8), dim=1, stable=True)[:, :K]
         self.h = flat.gather(1, self.index)
         self.mask = valid.gather(1, self.index).to(h.dtype)
-        self.dx = X.reshape(-1)[self.index] - com[:, 0, None]
-        self.dy = Y.reshape(-1)[self.index] - com[:, 1, None]
         self.area = mat.pitch_row_m * mat.pitch_col_m / sub**2
+        dx = X.reshape(-1)[self.index] - com[:, 0, None]
+        dy = Y.reshape(-1)[self.index] - com[:, 1, None]
+        one = torch.ones_like(dx)
+        self.c = torch.stack([one, dy, -dx], -1)
+        self.g = torch.stack([one, dy, dx], -1)
 
     def compression(self, q):
-        hq = self.h + q[:, 0, None] + q[:, 1, None] * self.dy - q[:, 2, None] * self.dx
+        hq = self.h + (self.c * q[:, None, :]).sum(-1)
         return torch.relu(-hq) * self.mask
 
     def residual(self, q, params, weight):
@@ -129,16 +135,13 @@ class _Grid:
         and compressions (packed)."""
         w = self.compression(q)
         f = params.foundation_pressure(w) * self.area
-        R = torch.stack([f.sum(1) - weight, (f * self.dy).sum(1), (f * self.dx).sum(1)], -1)
+        R = (f[..., None] * self.g).sum(1) - torch.stack([weight, torch.zeros_like(weight), torch.zeros_like(weight)], -1)
         return R, f, w
 
     def jacobian(self, q, params):
         w = self.compression(q)
         k = params.foundation_stiffness(w) * self.area * (w > 0).to(w.dtype)
-        one = torch.ones_like(self.dx)
-        g = torch.stack([one, self.dy, self.dx], -1)
-        dw = torch.stack([-one, -self.dy, self.dx], -1)
-        return torch.einsum("bk,bki,bkj->bij", k, g, dw)
+        return -torch.einsum("bk,bki,bkj->bij", k, self.g, self.c)
 
     def unpack(self, values):
         """Packed (B, K) -> the full (B, rows, cols) grid (zeros elsewhere)."""
@@ -232,14 +235,6 @@ def _rotate(vertices, com, q):
     return out + torch.stack([zero, zero, q[:, 0]], -1)[:, None]
 
 
-def _shear(vertices, com, q):
-    """The small-angle form of `_rotate`: heights change, points do not move sideways, so the
-    rasterised cells stay those the solve used (non-rigid by O(angle^2))."""
-    d = vertices - com[:, None]
-    dz = q[:, 0, None] + q[:, 1, None] * d[..., 1] - q[:, 2, None] * d[..., 0]
-    return vertices + torch.stack([torch.zeros_like(dz), torch.zeros_like(dz), dz], -1)
-
-
 def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torch.Tensor,
                       params: MattressParams | None = None, mat: MatSpec | None = None,
                       sub: int = 2, max_iter: int = 60, tol: float = 1e-6,
@@ -291,12 +286,11 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
         q = qs - (Jinv @ R[..., None])[..., 0]
         q = q + (qs - q).detach()  # keep the converged value exactly
         total_q = total_q + q
-        if p < passes - 1 and float(qs[:, 1:].abs().max()) > SMALL_TILT_RAD:
-            verts = _rotate(verts, com, q)
-        else:
-            # Small tilt (or the last pass): heights only, rigid to O(angle^2); the cells do
-            # not move, so this pass's grid at q is exactly the rest.
-            verts = _shear(verts, com, q)
+        verts = _rotate(verts, com, q)
+        if p == passes - 1 or float(qs[:, 1:].abs().max()) <= SMALL_TILT_RAD:
+            # The pressure is this pass's solved field (exact balance); the mesh is moved by
+            # the same motion rigidly, which shifts its points sideways by at most
+            # tilt x height (~1 mm), so there is no need to rasterise it again.
             break
     R, f_packed, w_packed = grid.residual(q, params, weight)
     f, w = grid.unpack(f_packed), grid.unpack(w_packed)
