@@ -290,3 +290,64 @@ def test_sim2_matches_an_explicit_dynamic_simulation():
     assert image_correlation(ref.pressure_pa, quasi.pressure_pa[0]) >= 0.95
     force = float(quasi.pressure_pa.sum()) * MAT.taxel_area_m2
     assert abs(ref.force_n - force) / force < 0.02
+
+
+def test_pipeline_parameters_reproduce_the_mesh_at_rest(anny64):
+    from pressurepose.sim.run import simulate_poses
+
+    params = _initial(anny64, "general", indices=(1,))
+    sim = simulate_poses(anny64, params)
+    assert sim.reason == [""]
+    again = anny64(sim.params).vertices
+    assert (again - sim.vertices).abs().max() < 1e-6
+
+
+# --- head of the bed raised -------------------------------------------------------------------
+from pressurepose.sim.bed import BedShape  # noqa: E402
+from pressurepose.sim.foundation import FAIL_SLIDES  # noqa: E402
+
+
+def test_bed_shape_round_trip_and_bad_angles():
+    bed = BedShape(40.0)
+    pts = torch.tensor([[0.2, 0.3, 0.05], [0.45, 0.1, 0.02], [1.2, 0.5, 0.1], [0.3, 0.2, -0.03]], dtype=D)
+    world = bed.to_world(pts, MAT)
+    assert torch.allclose(bed.to_surface(world, MAT), pts, atol=1e-12)
+    assert math.isclose(bed.hinge_x(MAT), 16 * MAT.pitch_row_m)
+    head_point = bed.to_world(torch.tensor([[bed.hinge_x(MAT) - 1.0, 0.0, 0.0]], dtype=D), MAT)[0]
+    assert math.isclose(float(head_point[2]), math.sin(math.radians(40.0)), rel_tol=1e-12)
+    for bad in (-5.0, 95.0, float("nan")):
+        with pytest.raises(ValueError, match="head_angle_deg"):
+            BedShape(bad)
+
+
+@pytest.mark.parametrize("angle", [0.0, 10.0, 20.0])
+def test_raised_bed_normal_force_and_friction_balance_the_weight(angle):
+    bed = BedShape(angle)
+    v, f = capsule_mesh(0.3, 0.06, centre=(0.22, 0.37, 0.065))  # on the head section
+    res = simulate_pressure(bed.to_world(v, MAT)[None], f, torch.tensor([9.0], dtype=D), bed=bed)
+    assert res.failure == [""]
+    normal = float(res.foundation_pa.sum()) * MAT.taxel_area_m2 / res.sub**2
+    phi = math.radians(angle)
+    assert math.isclose(normal, 9.0 * GRAVITY_M_S2 * math.cos(phi), rel_tol=1e-4)
+    assert math.isclose(-float(res.friction_ratio), math.tan(phi), rel_tol=1e-4, abs_tol=1e-9)
+    steep = BedShape(35.0)  # tan 35 deg > the sheet's friction 0.5: it slides
+    res = simulate_pressure(steep.to_world(v, MAT)[None], f, torch.tensor([9.0], dtype=D), bed=steep)
+    assert res.failure == [FAIL_SLIDES] and (res.pressure_pa == 0).all()
+
+
+def test_sim1_and_sim2_rest_a_half_sitting_body_on_a_raised_bed(anny64):
+    from pressurepose.body.joints import J24_NAMES
+    from pressurepose.sim.run import simulate_poses
+
+    bed, phi = BedShape(30.0), math.radians(30.0)
+    pose = home_pose(1, dtype=D)
+    for hip in ("left_hip", "right_hip"):
+        pose[0, J24_NAMES.index(hip) - 1, 0] = -phi
+    params = BodyParams.zeros(1, anny64.default_shape(1)).replace(
+        pose=pose, root_rotation=torch.tensor([[0.0, phi, 0.0]], dtype=D),
+        root_translation=torch.tensor([[bed.hinge_x(MAT) + 0.08, MAT.sensing_width_m / 2, 0.2]], dtype=D))
+    sim = simulate_poses(anny64, params, bed=bed)
+    assert sim.reason == [""]
+    rows = (sim.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
+    assert int(rows.min()) < 16 < int(rows.max())  # loads on both sides of the hinge (row 16)
+    assert (sim.depth_mm[0] < 0).sum() > 50 and torch.equal(sim.contact, (sim.depth_mm < 0).to(sim.contact.dtype))

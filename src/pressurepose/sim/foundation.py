@@ -36,6 +36,7 @@ import torch.nn.functional as F
 
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, heights_from_points
 from pressurepose.mat import MatSpec
+from pressurepose.sim.bed import BedShape
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 # Why a solve can fail (per sample). Empty string: converged.
@@ -43,6 +44,7 @@ FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it
 FAIL_TILT = "unstable: the centre of mass lies outside the support (tilt beyond limit)"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
+FAIL_SLIDES = "slides: the raised bed needs more friction than the sheet has"
 
 MAX_TILT_RAD = 0.35
 SMALL_TILT_RAD = 0.02  # below it one pass is enough (the linearised rest is rigid to 2e-4)
@@ -62,6 +64,9 @@ class PressureResult:
     iterations: torch.Tensor       # (B,) Newton iterations (both passes)
     failure: list[str]             # (B,) "" when at rest, else the reason
     sub: int
+    friction_ratio: torch.Tensor | None = None  # (B,) tangential / normal force the bed needs (0 when flat)
+    rotation: torch.Tensor | None = None  # (B, 3, 3) and translation (B, 3): vertices_out = R v_in + t
+    translation: torch.Tensor | None = None
 
     @property
     def ok(self) -> torch.Tensor:
@@ -104,15 +109,20 @@ def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tens
 
 
 class _Grid:
-    """The cells under a body (packed: only cells with body above them) and, per cell, how a
-    small rigid motion q = (dz, roll a, pitch b) about the centre of mass changes the body's
-    height over the cell, c = (1, dy, -dx), and how the cell's force enters the balance,
-    g = (1, dy, dx), with (dx, dy) the cell relative to the centre of mass."""
+    """The cells under a body (packed: only cells with body above them), with per cell its
+    normal nu, its tangent tau along the bed, its world point r relative to the centre of mass,
+    and how a small rigid motion (dz, roll a, pitch b) changes the body's height along the
+    normal: c = (nu_z, nu_z r_y, nu_x r_z - nu_z r_x) (flat bed: (1, dy, -dx)).
 
-    def __init__(self, h, mat, sub, com):
+    Unknowns q = (dz, a, b, mu): mu is the friction the bed mobilises, a tangential force
+    mu x the normal force at every loaded cell (0 on a flat bed, where nothing pulls the body
+    along the bed). Residual: vertical force - weight, moments about x and y through the
+    centre of mass, force along the bed."""
+
+    def __init__(self, h, mat, sub, com, bed: BedShape | None = None):
         B = h.shape[0]
         self.shape = h.shape
-        X, Y = cell_centres(mat, sub, covered=True, dtype=h.dtype, device=h.device)
+        S, Y = cell_centres(mat, sub, covered=True, dtype=h.dtype, device=h.device)
         flat = h.reshape(B, -1)
         valid = flat < EMPTY_HEIGHT_M
         K = max(int(valid.sum(1).max()), 1)
@@ -120,28 +130,50 @@ class _Grid:
         self.h = flat.gather(1, self.index)
         self.mask = valid.gather(1, self.index).to(h.dtype)
         self.area = mat.pitch_row_m * mat.pitch_col_m / sub**2
-        dx = X.reshape(-1)[self.index] - com[:, 0, None]
-        dy = Y.reshape(-1)[self.index] - com[:, 1, None]
-        one = torch.ones_like(dx)
-        self.c = torch.stack([one, dy, -dx], -1)
-        self.g = torch.stack([one, dy, dx], -1)
+        s_cells, y_cells = S.reshape(-1)[self.index], Y.reshape(-1)[self.index]
+        bed = bed or BedShape()
+        self.nu, self.tau, base = bed.frame_at(s_cells, mat)
+        self.r = base + torch.stack([torch.zeros_like(y_cells), y_cells, torch.zeros_like(y_cells)], -1) - com[:, None]
+        nx, nz = self.nu[..., 0], self.nu[..., 2]
+        self.c = torch.stack([nz, nz * self.r[..., 1], nx * self.r[..., 2] - nz * self.r[..., 0]], -1)
+        # Cell force (Fx, Fz) -> (vertical force, moment x, moment y, force along x): (B, K, 4, 2).
+        zero, one, r = torch.zeros_like(nz), torch.ones_like(nz), self.r
+        M = torch.stack([torch.stack([zero, one], -1), torch.stack([zero, r[..., 1]], -1),
+                         torch.stack([-r[..., 2], r[..., 0]], -1), torch.stack([one, zero], -1)], -2)
+        self.M = M.permute(0, 2, 1, 3).reshape(B, 4, -1)  # (B, 4, K * 2) for one bmm
 
     def compression(self, q):
-        hq = self.h + (self.c * q[:, None, :]).sum(-1)
+        hq = self.h + torch.bmm(self.c, q[:, :3, None])[..., 0]
         return torch.relu(-hq) * self.mask
 
+
     def residual(self, q, params, weight):
-        """(B, 3): force - weight, roll moment, pitch moment (N, N m); and the cell forces
-        and compressions (packed)."""
+        """(B, 4) residual (N, N m, N m, N) and the cell forces and compressions (packed)."""
         w = self.compression(q)
         f = params.foundation_pressure(w) * self.area
-        R = (f[..., None] * self.g).sum(1) - torch.stack([weight, torch.zeros_like(weight), torch.zeros_like(weight)], -1)
+        mu = q[:, 3, None]
+        e = torch.stack([self.nu[..., 0] + mu * self.tau[..., 0], self.nu[..., 2] + mu * self.tau[..., 2]], -1)
+        R = torch.bmm(self.M, (f[..., None] * e).reshape(f.shape[0], -1, 1))[..., 0]
+        R = R - torch.stack([weight, torch.zeros_like(weight), torch.zeros_like(weight), torch.zeros_like(weight)], -1)
         return R, f, w
 
     def jacobian(self, q, params):
         w = self.compression(q)
         k = params.foundation_stiffness(w) * self.area * (w > 0).to(w.dtype)
-        return -torch.einsum("bk,bki,bkj->bij", k, self.g, self.c)
+        f = params.foundation_pressure(w) * self.area
+        mu = q[:, 3, None]
+        e = torch.stack([self.nu[..., 0] + mu * self.tau[..., 0], self.nu[..., 2] + mu * self.tau[..., 2]], -1)
+        # d(cell force)/dq: (B, K, 2, 4); columns dz, a, b through f, mu directly.
+        dF = torch.cat([-(k[..., None, None] * e[..., :, None] * self.c[..., None, :]),
+                        (f[..., None] * self.tau[..., [0, 2]])[..., None]], -1)
+        return torch.bmm(self.M, dF.reshape(dF.shape[0], -1, 4))
+
+    def depth_slope(self, q, params):
+        """d(vertical force)/d(dz) (B,): phase 1 of the solve needs only this."""
+        w = self.compression(q)
+        k = params.foundation_stiffness(w) * self.area * (w > 0).to(w.dtype)
+        ez = self.nu[..., 2] + q[:, 3, None] * self.tau[..., 2]
+        return -(k * self.c[..., 0] * ez).sum(1)
 
     def unpack(self, values):
         """Packed (B, K) -> the full (B, rows, cols) grid (zeros elsewhere)."""
@@ -150,8 +182,8 @@ class _Grid:
 
 
 def _merit(R, weight):
-    """Scalar residual size per sample: force in weights, moments in weight x 10 cm."""
-    return (R[:, 0].abs() + (R[:, 1].abs() + R[:, 2].abs()) / 0.1) / weight
+    """Scalar residual size per sample: forces in weights, moments in weight x 10 cm."""
+    return (R[:, 0].abs() + R[:, 3].abs() + (R[:, 1].abs() + R[:, 2].abs()) / 0.1) / weight
 
 
 def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
@@ -177,11 +209,10 @@ def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
         done = done | (R[:, 0].abs() < 1e-3 * weight)
         if bool(done.all()):
             break
-        J = grid.jacobian(q, params)
+        slope = grid.depth_slope(q, params)
         short = R[:, 0] < 0
         ub = torch.where(short, torch.minimum(ub, q[:, 0]), ub)
         lb = torch.where(~short, torch.maximum(lb, q[:, 0]), lb)
-        slope = J[:, 0, 0]
         d_newton = torch.where(slope < 0, -R[:, 0] / torch.where(slope < 0, slope, -torch.ones_like(slope)),
                                torch.full_like(slope, -0.02)).clamp(-0.02, 0.02)
         cand = q[:, 0] + d_newton
@@ -190,9 +221,9 @@ def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
         q[:, 0] = torch.where(done, q[:, 0], cand)
         iters = iters + (~done).long()
         done = done | (q[:, 0] < q0[:, 0] - 2 * thick)
-    # Phase 2: depth, roll and pitch.
-    step_max = torch.tensor([0.02, 0.05, 0.05], dtype=q.dtype, device=q.device)
-    eye = torch.eye(3, dtype=q.dtype, device=q.device)
+    # Phase 2: depth, roll, pitch and the friction ratio.
+    step_max = torch.tensor([0.02, 0.05, 0.05, 0.5], dtype=q.dtype, device=q.device)
+    eye = torch.eye(4, dtype=q.dtype, device=q.device)
     R, _, _ = grid.residual(q, params, weight)
     merit = _merit(R, weight)
     done = dead | ((R.abs() / weight[:, None]).amax(-1) < tol)
@@ -219,26 +250,26 @@ def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
         iters = iters + (~done).long()
         done = done | ((R.abs() / weight[:, None]).amax(-1) < tol)
         # Hopeless samples stop early (the caller reports them): tipped over.
-        done = done | (q[:, 1:].abs() > MAX_TILT_RAD).any(1)
+        done = done | (q[:, 1:3].abs() > MAX_TILT_RAD).any(1)
     return q, iters, done
 
 
-def _rotate(vertices, com, q):
-    """Apply shift dz and the exact rotation Ry(b) Rx(a) about the COM."""
+def _motion(com, q):
+    """The rigid motion of `_rotate` as (R (B, 3, 3), t (B, 3)): v -> R v + t."""
     a, b = q[:, 1], q[:, 2]
     ca, sa, cb, sb = torch.cos(a), torch.sin(a), torch.cos(b), torch.sin(b)
     one, zero = torch.ones_like(a), torch.zeros_like(a)
     Rx = torch.stack([one, zero, zero, zero, ca, -sa, zero, sa, ca], -1).view(-1, 3, 3)
     Ry = torch.stack([cb, zero, sb, zero, one, zero, -sb, zero, cb], -1).view(-1, 3, 3)
     R = Ry @ Rx
-    out = (vertices - com[:, None]) @ R.transpose(1, 2) + com[:, None]
-    return out + torch.stack([zero, zero, q[:, 0]], -1)[:, None]
+    t = com - (R @ com[..., None])[..., 0] + torch.stack([zero, zero, q[:, 0]], -1)
+    return R, t
 
 
 def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torch.Tensor,
                       params: MattressParams | None = None, mat: MatSpec | None = None,
                       sub: int = 2, max_iter: int = 60, tol: float = 1e-6,
-                      passes: int = 2) -> PressureResult:
+                      passes: int = 2, bed: BedShape | None = None) -> PressureResult:
     """Rest the rigid meshes (B, V, 3) (mat frame, m; faces (F, 3)) of mass (B,) kg on the
     mattress and return the pressure on the covered grid (Pa) and the mesh at rest.
 
@@ -261,16 +292,22 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
     weight = mass_kg * GRAVITY_M_S2
     B = vertices.shape[0]
     total_q = vertices.new_zeros(B, 3)
+    mu = vertices.new_zeros(B)
+    R_acc = torch.eye(3, dtype=vertices.dtype, device=vertices.device).expand(B, 3, 3)
+    t_acc = vertices.new_zeros(B, 3)
     iters = torch.zeros(B, dtype=torch.long, device=vertices.device)
     verts = vertices
     for p in range(passes):
         com, points = _centroid_and_points(verts, faces)
+        if bed is not None and not bed.flat:
+            points = bed.to_surface(points, mat)
         h = heights_from_points(points, mat, sub=sub, covered=True)
-        grid = _Grid(h, mat, sub, com)
+        grid = _Grid(h, mat, sub, com, bed)
         with torch.no_grad():
             hd = h.detach()
-            gd = _Grid(hd, mat, sub, com.detach())
-            q0 = verts.new_zeros(B, 3)
+            gd = _Grid(hd, mat, sub, com.detach(), bed)
+            q0 = verts.new_zeros(B, 4)
+            q0[:, 3] = mu.detach()
             if p == 0:
                 # Start with the lowest supported point on the surface.
                 lowest = torch.where(gd.mask.bool(), gd.h, torch.full_like(gd.h, float("inf"))).amin(1)
@@ -279,15 +316,18 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
             qs, it, conv = _newton(gd, pd, weight.detach(), q0, max_iter, tol)
             iters += it
             J = gd.jacobian(qs, pd)
-            eye = torch.eye(3, dtype=J.dtype, device=J.device)
+            eye = torch.eye(4, dtype=J.dtype, device=J.device)
             Jinv = torch.linalg.inv(J - 1e-9 * weight.detach()[:, None, None] * eye)
         # Implicit-function step: value qs, gradient -J^-1 dR/dtheta.
         R, _, _ = grid.residual(qs, params, weight)
         q = qs - (Jinv @ R[..., None])[..., 0]
         q = q + (qs - q).detach()  # keep the converged value exactly
-        total_q = total_q + q
-        verts = _rotate(verts, com, q)
-        if p == passes - 1 or float(qs[:, 1:].abs().max()) <= SMALL_TILT_RAD:
+        total_q = total_q + q[:, :3]
+        mu = q[:, 3]
+        R_p, t_p = _motion(com, q)
+        verts = verts @ R_p.transpose(1, 2) + t_p[:, None]
+        R_acc, t_acc = R_p @ R_acc, (R_p @ t_acc[..., None])[..., 0] + t_p
+        if p == passes - 1 or float(qs[:, 1:3].abs().max()) <= SMALL_TILT_RAD:
             # The pressure is this pass's solved field (exact balance); the mesh is moved by
             # the same motion rigidly, which shifts its points sideways by at most
             # tilt x height (~1 mm), so there is no need to rasterise it again.
@@ -307,6 +347,8 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
             failure.append(FAIL_TILT)
         elif float(w_d[i].max()) > thick_m:
             failure.append(FAIL_BOTTOM)
+        elif abs(float(mu[i].detach())) > float(_detached(params).friction):
+            failure.append(FAIL_SLIDES)
         elif float((R_d[i].abs() / weight[i].detach()).max()) > 1e-3:
             failure.append(FAIL_NOT_CONVERGED)
         else:
@@ -320,7 +362,7 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
     return PressureResult(
         pressure_pa=pressure, foundation_pa=foundation, vertices=verts, shift_m=total_q[:, 0],
         tilt_rad=total_q[:, 1:], force_n=f.sum((1, 2)), max_compression_m=w.amax((1, 2)),
-        iterations=iters, failure=failure, sub=sub,
+        iterations=iters, failure=failure, sub=sub, friction_ratio=mu, rotation=R_acc, translation=t_acc,
     )
 
 
@@ -334,6 +376,6 @@ def _detached(params: MattressParams) -> MattressParams:
 
 
 __all__ = [
-    "FAIL_BOTTOM", "FAIL_NOT_CONVERGED", "FAIL_NO_SUPPORT", "FAIL_TILT", "PressureResult",
+    "FAIL_BOTTOM", "FAIL_NOT_CONVERGED", "FAIL_NO_SUPPORT", "FAIL_SLIDES", "FAIL_TILT", "PressureResult",
     "gaussian_spread", "mesh_centroid", "simulate_pressure",
 ]

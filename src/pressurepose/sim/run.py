@@ -20,6 +20,7 @@ import torch
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
+from pressurepose.sim.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
 
 
@@ -42,8 +43,9 @@ class SimulatedSamples:
 
 
 def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
-                   mat: MatSpec | None = None, seed: int = 0) -> SimulatedSamples:
-    """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses."""
+                   mat: MatSpec | None = None, seed: int = 0, bed: BedShape | None = None) -> SimulatedSamples:
+    """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses (on a flat
+    bed, or a bent one: `bed`)."""
     from pressurepose.body.kinematics import pose_in_mat
     from pressurepose.sim.foundation import simulate_pressure
     from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
@@ -52,16 +54,16 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
     model64 = model if model.dtype == torch.float64 else model.to(torch.float64)
-    settled = settle(model64, params, mattress, mat)
+    settled = settle(model64, params, mattress, mat, bed=bed)
     rest = settled.params
     out = model64(rest)
     mass = model64.measure(rest.shape).mass_kg
     t0 = time.perf_counter()
-    pressed = simulate_pressure(out.vertices, out.faces, mass, mattress, mat)
+    pressed = simulate_pressure(out.vertices, out.faces, mass, mattress, mat, bed=bed)
     press_ms = (time.perf_counter() - t0) * 1e3
     gen = torch.Generator().manual_seed(seed)
     reading = taxel_reading(sensing_area(pressed.pressure_pa, mat).detach(), mattress, mat, generator=gen)
-    depth, contact = label_maps(pressed.vertices.detach(), out.faces, mat)
+    depth, contact = label_maps(pressed.vertices.detach(), out.faces, mat, bed)
     reason = [r1 or (f"sim #2: {r2}" if r2 else "") for r1, r2 in zip(settled.reason, pressed.failure)]
     reason = [r if not r or r.startswith("sim #2") else f"sim #1: {r}" for r in reason]
     bad = torch.tensor([bool(r) for r in reason])
@@ -83,22 +85,13 @@ def _rest_joints(model, shape):
 
 
 def _apply_rest_to_root(params: BodyParams, joints: torch.Tensor, pressed) -> BodyParams:
-    """Sim #2 moved the rigid mesh by dz and a small tilt (heights only, first order); the
-    same first-order motion of the pelvis gives the root translation; the tilt (< a few
-    degrees) is applied to the root rotation as the exact rotation it linearises."""
+    """Sim #2 moved the rigid mesh by v -> R v + t; the same motion of the root (rotation on
+    top of the supine reference, pelvis position) makes the parameters reproduce the mesh."""
     from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-    from pressurepose.body.params import R_SUPINE
 
-    dz = pressed.shift_m.detach()
-    a, b = pressed.tilt_rad[:, 0].detach(), pressed.tilt_rad[:, 1].detach()
-    com = (pressed.vertices.detach().mean(1))  # lever arms are tiny; COM ~ mean vertex is enough here
-    pelvis = params.root_translation.clone()
-    pelvis[:, 2] = pelvis[:, 2] + dz + a * (pelvis[:, 1] - com[:, 1]) - b * (pelvis[:, 0] - com[:, 0])
-    zeros = torch.zeros_like(a)
-    tilt = axis_angle_to_matrix(torch.stack([a, zeros, zeros], -1))
-    tilt = axis_angle_to_matrix(torch.stack([zeros, b, zeros], -1)) @ tilt
-    R_aa = axis_angle_to_matrix(params.root_rotation)
-    root = matrix_to_axis_angle(tilt @ R_aa)
+    R, t = pressed.rotation.detach(), pressed.translation.detach()
+    root = matrix_to_axis_angle(R @ axis_angle_to_matrix(params.root_rotation))
+    pelvis = (R @ params.root_translation[..., None])[..., 0] + t
     return params.replace(root_rotation=root, root_translation=pelvis)
 
 
@@ -117,6 +110,9 @@ class SimulateConfig:
     """Sample index: the sample is a function of (seed, partition, gender, over_bed, index)."""
     params: Path | None = None
     """Mattress/sensor parameter file (JSON from `pressurepose calibrate`); default: built-in."""
+    head_angle_deg: float = 0.0
+    """Raise the head of the bed (0-70 degrees, hinge at sensing row 48 from the foot). Use a
+    pose that fits a raised bed (sampling has no half-sitting partition yet)."""
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: Path | None = None
 
@@ -135,7 +131,8 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
     t0 = time.perf_counter()
     initial = PoseSampler(model, sampling).sample([cfg.index])
     t1 = time.perf_counter()
-    sim = simulate_poses(model, initial.params, mattress, seed=cfg.seed * 1_000_003 + cfg.index)
+    bed = BedShape(cfg.head_angle_deg)
+    sim = simulate_poses(model, initial.params, mattress, seed=cfg.seed * 1_000_003 + cfg.index, bed=bed)
     t2 = time.perf_counter()
     cfg.out.mkdir(parents=True, exist_ok=True)
     reason = sim.reason[0]

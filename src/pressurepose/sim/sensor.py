@@ -16,6 +16,7 @@ import torch
 
 from pressurepose.maps import contact_map, depth_map
 from pressurepose.mat import MatSpec
+from pressurepose.sim.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
 
 
@@ -49,10 +50,14 @@ def sensing_area(covered: torch.Tensor, mat: MatSpec | None = None) -> torch.Ten
     return covered[..., rs, cs]
 
 
-def label_maps(vertices: torch.Tensor, faces: torch.Tensor, mat: MatSpec | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Depth map Q (mm, (B, rows, cols)) and contact map C of meshes at rest (mat frame)."""
+def label_maps(vertices: torch.Tensor, faces: torch.Tensor, mat: MatSpec | None = None,
+               bed: BedShape | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth map Q (mm, (B, rows, cols)) and contact map C of meshes at rest (world frame).
+    On a bent bed, heights are measured along the mattress normal in surface coordinates
+    (the mat follows the mattress)."""
     mat = mat or MatSpec()
+    if bed is not None and not bed.flat:
+        vertices = bed.to_surface(vertices, mat)
     q = depth_map(vertices, faces, mat)
     return q, contact_map(q)
 

@@ -42,6 +42,7 @@ from pressurepose.body.rotations import (
     axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_quaternion, quaternion_to_axis_angle,
 )
 from pressurepose.mat import MatSpec
+from pressurepose.sim.bed import BedShape
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 REASON_TIMEOUT = "did not settle within the step limit"
@@ -96,24 +97,35 @@ def _fmt(v) -> str:
     return " ".join(f"{float(x):.9g}" for x in np.ravel(v))
 
 
-def _walls(mat: MatSpec, top_m: float = -0.03, depth_m: float = 1.0, thick_m: float = 0.2) -> str:
+def _walls(mat: MatSpec, bed: BedShape | None = None, top_m: float = -0.03, depth_m: float = 1.0,
+           thick_m: float = 0.2) -> str:
     """The mattress's sides as MuJoCo boxes (the top is the foundation law): a limb hanging
-    over the edge rests against the side instead of swinging in under the mattress top."""
+    over the edge rests against the side instead of swinging in under the mattress top. On a
+    bent bed each section has its own side walls (and end wall), in the section's frame."""
+    bed = bed or BedShape()
     (x0, x1), (y0, y1) = mat.mattress_bounds_m
-    hz = (depth_m + top_m) / 2  # the walls reach from -depth_m up to top_m
+    hinge = np.array([bed.hinge_x(mat), 0.0, 0.0])
+    hz = (depth_m + top_m) / 2  # the walls reach from -depth_m up to top_m (section frame)
     zc = top_m - hz
-    boxes = [
-        (x0 - thick_m / 2, (y0 + y1) / 2, thick_m / 2, (y1 - y0) / 2 + thick_m),
-        (x1 + thick_m / 2, (y0 + y1) / 2, thick_m / 2, (y1 - y0) / 2 + thick_m),
-        ((x0 + x1) / 2, y0 - thick_m / 2, (x1 - x0) / 2, thick_m / 2),
-        ((x0 + x1) / 2, y1 + thick_m / 2, (x1 - x0) / 2, thick_m / 2),
-    ]
-    return "\n".join(f'    <geom name="side{k}" type="box" pos="{cx:.6g} {cy:.6g} {zc:.6g}" size="{hx:.6g} {hy:.6g} {hz:.6g}" '
-                     f'contype="1" conaffinity="0"/>' for k, (cx, cy, hx, hy) in enumerate(boxes))
+    lines = []
+    for k, (R, s0, s1) in enumerate(bed.sections(mat)):
+        a, b = max(x0, s0), min(x1, s1)
+        boxes = [((a + b) / 2, y0 - thick_m / 2, (b - a) / 2, thick_m / 2),
+                 ((a + b) / 2, y1 + thick_m / 2, (b - a) / 2, thick_m / 2)]
+        if a == x0:
+            boxes.append((x0 - thick_m / 2, (y0 + y1) / 2, thick_m / 2, (y1 - y0) / 2 + thick_m))
+        if b == x1:
+            boxes.append((x1 + thick_m / 2, (y0 + y1) / 2, thick_m / 2, (y1 - y0) / 2 + thick_m))
+        quat = _quat(torch.from_numpy(R))
+        for j, (cx, cy, hx, hy) in enumerate(boxes):
+            pos = hinge + R @ (np.array([cx, cy, zc]) - hinge)
+            lines.append(f'    <geom name="side{k}_{j}" type="box" pos="{_fmt(pos)}" quat="{_fmt(quat)}" '
+                         f'size="{hx:.6g} {hy:.6g} {hz:.6g}" contype="1" conaffinity="0"/>')
+    return "\n".join(lines)
 
 
 def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tuple[int, int]] = (),
-               mat: MatSpec | None = None) -> str:
+               mat: MatSpec | None = None, bed: BedShape | None = None) -> str:
     """MJCF of capsule body `i` of `body` in its T-pose (body axes), free root; with `mat`,
     the mattress sides as walls."""
     caps = body.capsules
@@ -170,7 +182,7 @@ def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tupl
   </option>
   <default><geom contype="0" conaffinity="1"/></default>
   <worldbody>
-{_walls(mat) if mat is not None else ""}
+{_walls(mat, bed) if mat is not None else ""}
 {body_xml(0, "    ")}
   </worldbody>
   <contact>
@@ -184,8 +196,12 @@ def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tupl
 class CapsuleFoundation:
     """Sim #2's foundation law applied to capsules over a grid (numpy, per step)."""
 
-    def __init__(self, mat: MatSpec, params: MattressParams, sub: int, max_extent_m: float):
+    def __init__(self, mat: MatSpec, params: MattressParams, sub: int, max_extent_m: float = 0.0,
+                 bed: BedShape | None = None):
         self.mat, self.params, self.sub = mat, params, sub
+        self.bed = bed or BedShape()
+        self.hinge = np.array([self.bed.hinge_x(mat), 0.0, 0.0])
+        self._sections = self.bed.sections(mat)
         self.hx, self.hy = mat.pitch_row_m / sub, mat.pitch_col_m / sub
         self.x0, self.y0 = -mat.border_head_foot_m, -mat.border_side_m
         self.nr, self.nc = mat.covered_rows * sub, mat.covered_cols * sub
@@ -193,7 +209,7 @@ class CapsuleFoundation:
         self.k1, self.k3 = float(params.k1_pa_per_m), float(params.k3_pa_per_m3)
         self.nu, self.mu = float(params.damping_s), float(params.friction)
 
-    def underside(self, a: np.ndarray, b: np.ndarray, r: np.ndarray):
+    def underside(self, a: np.ndarray, b: np.ndarray, r: np.ndarray, s_range=(-math.inf, math.inf)):
         """The nodes under C capsules (axis ends a, b (C, 3), radii r (C,)), each capsule's own
         footprint window, flattened: (capsule index, grid node index (-1 off the grid), node
         x, node y, the capsule's lowest surface height over the node (inf where none))."""
@@ -211,7 +227,7 @@ class CapsuleFoundation:
         jj = j0[cap] + k % nc[cap]
         x = self.x0 + (ii + 0.5) * self.hx
         y = self.y0 + (jj + 0.5) * self.hy
-        inside = (ii >= 0) & (ii < self.nr) & (jj >= 0) & (jj < self.nc)
+        inside = (ii >= 0) & (ii < self.nr) & (jj >= 0) & (jj < self.nc) & (x >= s_range[0]) & (x < s_range[1])
         flat = np.where(inside, ii * self.nc + jj, -1)
         ax, ay, az = a[cap, 0], a[cap, 1], a[cap, 2]
         rc2 = r[cap] ** 2
@@ -239,7 +255,30 @@ class CapsuleFoundation:
         return cap, flat, x, y, z
 
     def forces(self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float):
-        """Mattress forces on C capsules (of one or several bodies, stepped together).
+        """Mattress forces on C capsules (of one or several bodies, stepped together), summed
+        over the bed's sections (one when flat): each section is handled in its own frame,
+        where its top is z = 0 (see `_forces_local`)."""
+        if self.bed.flat:
+            return self._forces_local(a, b, r, body_vel, com, xipos, mass, inertia, offset, dt)
+        total, caps, ws, es = None, [], [], []
+        for R, s0, s1 in self._sections:
+            def loc(p):
+                return (p - self.hinge) @ R + self.hinge
+            vel = np.concatenate([body_vel[:, :3] @ R, body_vel[:, 3:] @ R], 1)
+            res = self._forces_local(loc(a), loc(b), r, vel, loc(com), loc(xipos), mass, inertia, offset, dt, (s0, s1))
+            if res is None:
+                continue
+            out, cap, w, energy = res
+            out = np.concatenate([out[:, :3] @ R.T, out[:, 3:] @ R.T], 1)
+            total = out if total is None else total + out
+            caps.append(cap), ws.append(w), es.append(energy)
+        if total is None:
+            return None
+        return total, np.concatenate(caps), np.concatenate(ws), np.concatenate(es)
+
+    def _forces_local(self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float,
+                      s_range=(-math.inf, math.inf)):
+        """Mattress forces on C capsules in a frame where the (section's) top is z = 0.
 
         a, b: (C, 3) axis ends; r: (C,); body_vel: (C, 6) angular and linear velocity of
         each capsule's body, the linear part at the point com (C, 3) (MuJoCo's cvel);
@@ -261,7 +300,7 @@ class CapsuleFoundation:
         t1 = np.where(dz > 1e-12, t_cut, 1.0)
         axis = bb - aa
         aa, bb = aa + t0[:, None] * axis, aa + t1[:, None] * axis
-        local, flat, x, y, z = self.underside(aa, bb, rr)
+        local, flat, x, y, z = self.underside(aa, bb, rr, s_range)
         valid = (flat >= 0) & (z < 0.0)
         if not valid.any():
             return None
@@ -344,11 +383,11 @@ class _Episode:
     """One capsule body in MuJoCo: built, dropped, stepped until it rests or is rejected."""
 
     def __init__(self, body: CapsuleBody, i: int, params: BodyParams, mattress: MattressParams,
-                 mat: MatSpec, config: SettleConfig):
+                 mat: MatSpec, config: SettleConfig, bed: BedShape | None = None):
         import mujoco
 
         self.mj, self.config, self.mattress = mujoco, config, mattress
-        m = self.model = mujoco.MjModel.from_xml_string(build_mjcf(body, i, config, initial_pairs(body, i, params), mat))
+        m = self.model = mujoco.MjModel.from_xml_string(build_mjcf(body, i, config, initial_pairs(body, i, params), mat, bed))
         d = self.data = mujoco.MjData(m)
         pose = params.pose[i].double()
         home = body.home_pose[i].double()
@@ -379,7 +418,13 @@ class _Episode:
         self.loc_a, self.loc_b = np.array(la), np.array(lb)
         mujoco.mj_forward(m, d)
         a, b = self.ends()
-        d.qpos[2] += config.drop_height_m - float((np.minimum(a[:, 2], b[:, 2]) - self.radius).min())
+        self.bed = bed or BedShape()
+        for _ in range(3):  # lift along z until the lowest point is drop_height above the top
+            mujoco.mj_forward(m, d)
+            a, b = self.ends()
+            n = self.bed.to_surface(torch.from_numpy(np.concatenate([a, b])), mat)[:, 2].numpy()
+            low = float((np.minimum(n[: len(a)], n[len(a):]) - self.radius).min())
+            d.qpos[2] += config.drop_height_m - low
         d.qvel[:] = 0.0
         mujoco.mj_forward(m, d)
         self.extent = float(np.max(np.linalg.norm(self.loc_b - self.loc_a, axis=1) + 2 * self.radius))
@@ -388,6 +433,7 @@ class _Episode:
         self.cap_mass = m.body_mass[self.body_ids].copy()
         self.cap_inertia = m.body_inertia[self.body_ids].min(1).copy()
         self.bounds = mat.mattress_bounds_m
+        self.root_surface = self.bed.to_surface(torch.from_numpy(d.qpos[:3].copy()), mat).numpy()
 
     def ends(self) -> tuple[np.ndarray, np.ndarray]:
         d = self.data
@@ -415,14 +461,15 @@ class _Episode:
         return root_rot, q[0:3].clone(), pose
 
 
-def _run_batch(eps: list[_Episode], config: SettleConfig, mattress: MattressParams) -> list[dict]:
+def _run_batch(eps: list[_Episode], config: SettleConfig, mattress: MattressParams,
+               bed: BedShape | None = None) -> list[dict]:
     """Step several episodes in lockstep: MuJoCo steps each body, one vectorised call computes
     the mattress forces for all of them (the per-step Python cost is shared)."""
     import mujoco as mj
 
     E, C = len(eps), len(CAPSULE_NAMES)
     dt = config.timestep_s
-    found = CapsuleFoundation(eps[0].mat, mattress, config.grid_sub, max(ep.extent for ep in eps))
+    found = CapsuleFoundation(eps[0].mat, mattress, config.grid_sub, bed=bed)
     n_nodes = found.nr * found.nc
     every = max(1, round(config.zero_velocity_every_s / dt))
     out = [dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0, wall_ms=0.0)
@@ -431,7 +478,7 @@ def _run_batch(eps: list[_Episode], config: SettleConfig, mattress: MattressPara
     running = []
     for k, ep in enumerate(eps):
         (xr, xr1), (yr, yr1) = ep.bounds
-        if not (xr <= ep.data.qpos[0] <= xr1 and yr <= ep.data.qpos[1] <= yr1):
+        if not (xr <= ep.root_surface[0] <= xr1 and yr <= ep.root_surface[1] <= yr1):
             out[k]["reason"] = REASON_OFF_BED
         else:
             running.append(k)
@@ -535,7 +582,7 @@ def _quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
 
 def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
            mat: MatSpec | None = None, config: SettleConfig | None = None,
-           body: CapsuleBody | None = None, batch: int = 16) -> SettleResult:
+           body: CapsuleBody | None = None, batch: int = 16, bed: BedShape | None = None) -> SettleResult:
     """Settle B initial poses (BodyParams, mat frame) onto the mattress: one MuJoCo model per
     body, `batch` of them stepped together (results do not depend on `batch`).
 
@@ -562,9 +609,9 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
     reasons = []
     for lo in range(0, B, batch):
         t_build = time.perf_counter()
-        eps = [_Episode(body, i, params, mattress, mat, config) for i in range(lo, min(B, lo + batch))]
+        eps = [_Episode(body, i, params, mattress, mat, config, bed) for i in range(lo, min(B, lo + batch))]
         build_ms = (time.perf_counter() - t_build) * 1e3 / len(eps)
-        outs = _run_batch(eps, config, mattress)
+        outs = _run_batch(eps, config, mattress, bed)
         for j, (ep, o) in enumerate(zip(eps, outs)):
             i = lo + j
             reasons.append(o["reason"])
