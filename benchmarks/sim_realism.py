@@ -6,6 +6,8 @@ the sides), run sim #1 + sim #2 + the sensor and compare with the real recording
 as ../shared/data/pmatdata/README.md says (empty level subtracted, noise threshold, summed
 force = weight): contact area, mean contact pressure, peak pressure (medians over subjects),
 and the force profile along the bed. Prints a table, writes a side-by-side figure per posture.
+Then the same for PmatData group F (head of the bed raised 0-60 degrees) against half-sitting
+bodies on the raised bed, with the share of the load on the head section.
 
     .venv/bin/python benchmarks/sim_realism.py [--params bed.json] [--out out/realism]
 """
@@ -24,9 +26,11 @@ import torch
 from pressurepose.body import load_body_model
 from pressurepose.body.capsules import home_pose
 from pressurepose.body.fit_shape import shape_for_height_mass
+from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.params import BodyParams
 from pressurepose.data.pmatdata import PMAT_TAXEL_AREA_M2, frame_stats, load_index, normalise, read_frame
 from pressurepose.mat import MatSpec
+from pressurepose.sim.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.run import simulate_poses
 
@@ -67,6 +71,49 @@ def simulate(subjects, params: MattressParams, mat: MatSpec):
     return out, h, m
 
 
+def sitting_params(shape, bed: BedShape, mat: MatSpec) -> BodyParams:
+    """Half-sitting on a raised bed: the home pose with the trunk pitched up by the bed angle
+    and the hips flexed by it (legs flat on the foot section), pelvis just past the hinge."""
+    B, phi = shape.shape[0], bed.angle_rad
+    pose = home_pose(B)
+    for hip in ("left_hip", "right_hip"):
+        pose[:, J24_NAMES.index(hip) - 1, 0] = -phi
+    return BodyParams.zeros(B, shape).replace(
+        pose=pose, root_rotation=torch.tensor([[0.0, phi, 0.0]] * B, dtype=torch.float64),
+        root_translation=torch.tensor([[bed.hinge_x(mat) + 0.08, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64))
+
+
+def raised_bed(root: Path, threshold: float, params: MattressParams, mat: MatSpec) -> None:
+    """PmatData group F (supine, head of the bed at 0-60 degrees) against half-sitting bodies."""
+    recs = [r for r in load_index(root) if r.group == "F"]
+    subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
+    model = load_body_model("anny", dtype=torch.float64)
+    shape, _, _ = shape_for_height_mass(model, torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64),
+                                        torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64))
+    print("\nhead of the bed raised (PmatData group F vs simulated half-sitting):")
+    print("| angle | source | contact area (m^2) | mean (mmHg) | peak (mmHg) | load on head section |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for angle in sorted({r.bed_incline_deg for r in recs}):
+        bed = BedShape(angle)
+        hinge_row = mat.rows - bed.hinge_row_from_foot
+        for mattress in ("air", "sponge"):
+            frames = [normalise(read_frame(r.path), r.weight_kg, threshold) for r in recs
+                      if r.bed_incline_deg == angle and r.mattress == mattress]
+            st = summary(frames, PMAT_TAXEL_AREA_M2)
+            head = float(np.median([f[:hinge_row].sum() / f.sum() for f in frames]))
+            print(f"| {angle:.0f} | PmatData {mattress} | {st['area_m2']:.3f} | {st['mean_mmhg']:.1f} | {st['peak_mmhg']:.0f} | {head:.0%} |")
+        sim = simulate_poses(model, sitting_params(shape, bed, mat), params, mat, bed=bed)
+        ok = [i for i, r in enumerate(sim.reason) if not r]
+        frames = [sim.pressure_mmhg[i].numpy() for i in ok]
+        if frames:
+            st = summary(frames, mat.taxel_area_m2)
+            head = float(np.median([f[:hinge_row].sum() / f.sum() for f in frames]))
+            print(f"| {angle:.0f} | simulated ({len(ok)}/{len(sim.reason)}) | {st['area_m2']:.3f} | {st['mean_mmhg']:.1f} "
+                  f"| {st['peak_mmhg']:.0f} | {head:.0%} |")
+        else:
+            print(f"| {angle:.0f} | simulated (0/{len(sim.reason)}) | - | - | - | - |  {sorted(set(sim.reason))}")
+
+
 def summary(frames, area):
     st = [frame_stats(f, area) for f in frames]
     return {k: float(np.median([s[k] for s in st])) for k in ("area_m2", "mean_mmhg", "peak_mmhg")}
@@ -104,6 +151,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     _figure(args.out, real, sims, mat)
     print(f"figures in {args.out}")
+    raised_bed(args.pmatdata, args.threshold, params, mat)
 
 
 def _figure(out: Path, real, sims, mat: MatSpec) -> None:
