@@ -82,9 +82,13 @@ def mesh_centroid(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 def _centroid_and_points(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The volume centroid (B, 3) and the surface points of maps.surface_points (vertices and
     triangle centroids), from one gather of the triangle corners."""
-    v0, v1, v2 = vertices[:, faces[:, 0]], vertices[:, faces[:, 1]], vertices[:, faces[:, 2]]
-    tri_sum = v0 + v1 + v2
-    vol = (v0 * torch.linalg.cross(v1, v2, dim=-1)).sum(-1)  # 6 x signed volume (B, F)
+    tri = vertices.index_select(1, faces.reshape(-1)).view(vertices.shape[0], -1, 3, 3)
+    v0, v1, v2 = tri.unbind(2)
+    tri_sum = tri.sum(2)
+    # 6 x signed volume (B, F): v0 . (v1 x v2), written out (faster than linalg.cross here)
+    vol = (v0[..., 0] * (v1[..., 1] * v2[..., 2] - v1[..., 2] * v2[..., 1])
+           + v0[..., 1] * (v1[..., 2] * v2[..., 0] - v1[..., 0] * v2[..., 2])
+           + v0[..., 2] * (v1[..., 0] * v2[..., 1] - v1[..., 1] * v2[..., 0]))
     centroid = (vol[..., None] * tri_sum).sum(1) / (4.0 * vol.sum(1)[:, None])
     return centroid, torch.cat([vertices, tri_sum / 3.0], 1)
 
@@ -136,11 +140,16 @@ class _Grid:
         self.r = base + torch.stack([torch.zeros_like(y_cells), y_cells, torch.zeros_like(y_cells)], -1) - com[:, None]
         nx, nz = self.nu[..., 0], self.nu[..., 2]
         self.c = torch.stack([nz, nz * self.r[..., 1], nx * self.r[..., 2] - nz * self.r[..., 0]], -1)
-        # Cell force (Fx, Fz) -> (vertical force, moment x, moment y, force along x): (B, K, 4, 2).
-        zero, one, r = torch.zeros_like(nz), torch.ones_like(nz), self.r
-        M = torch.stack([torch.stack([zero, one], -1), torch.stack([zero, r[..., 1]], -1),
-                         torch.stack([-r[..., 2], r[..., 0]], -1), torch.stack([one, zero], -1)], -2)
-        self.M = M.permute(0, 2, 1, 3).reshape(B, 4, -1)  # (B, 4, K * 2) for one bmm
+        # A cell force F (in the xz plane) enters the balance as (F_z, r_y F_z, r_x F_z - r_z F_x,
+        # F_x). With F = f (nu + mu tau): balance = f (N + mu T), N and T per cell, stored
+        # transposed (B, 4, K) so residual and Jacobian are batched matrix products.
+        r = self.r
+
+        def rows(vx, vz):
+            return torch.stack([vz, r[..., 1] * vz, r[..., 0] * vz - r[..., 2] * vx, vx], 1)
+
+        self.NT = rows(self.nu[..., 0], self.nu[..., 2]).contiguous()
+        self.TT = rows(self.tau[..., 0], self.tau[..., 2]).contiguous()
 
     def compression(self, q):
         hq = self.h + torch.bmm(self.c, q[:, :3, None])[..., 0]
@@ -151,9 +160,7 @@ class _Grid:
         """(B, 4) residual (N, N m, N m, N) and the cell forces and compressions (packed)."""
         w = self.compression(q)
         f = params.foundation_pressure(w) * self.area
-        mu = q[:, 3, None]
-        e = torch.stack([self.nu[..., 0] + mu * self.tau[..., 0], self.nu[..., 2] + mu * self.tau[..., 2]], -1)
-        R = torch.bmm(self.M, (f[..., None] * e).reshape(f.shape[0], -1, 1))[..., 0]
+        R = torch.bmm(self.NT + q[:, 3, None, None] * self.TT, f[..., None])[..., 0]
         R = R - torch.stack([weight, torch.zeros_like(weight), torch.zeros_like(weight), torch.zeros_like(weight)], -1)
         return R, f, w
 
@@ -161,12 +168,10 @@ class _Grid:
         w = self.compression(q)
         k = params.foundation_stiffness(w) * self.area * (w > 0).to(w.dtype)
         f = params.foundation_pressure(w) * self.area
-        mu = q[:, 3, None]
-        e = torch.stack([self.nu[..., 0] + mu * self.tau[..., 0], self.nu[..., 2] + mu * self.tau[..., 2]], -1)
-        # d(cell force)/dq: (B, K, 2, 4); columns dz, a, b through f, mu directly.
-        dF = torch.cat([-(k[..., None, None] * e[..., :, None] * self.c[..., None, :]),
-                        (f[..., None] * self.tau[..., [0, 2]])[..., None]], -1)
-        return torch.bmm(self.M, dF.reshape(dF.shape[0], -1, 4))
+        A = self.NT + q[:, 3, None, None] * self.TT
+        J_motion = -torch.bmm(A, k[..., None] * self.c)         # through f
+        J_mu = torch.bmm(self.TT, f[..., None])                 # mu directly
+        return torch.cat([J_motion, J_mu], -1)
 
     def depth_slope(self, q, params):
         """d(vertical force)/d(dz) (B,): phase 1 of the solve needs only this."""
@@ -297,10 +302,10 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
     t_acc = vertices.new_zeros(B, 3)
     iters = torch.zeros(B, dtype=torch.long, device=vertices.device)
     verts = vertices
+    # Centroid and surface points once; later passes move them with the mesh (rigid motion).
+    com, world_points = _centroid_and_points(verts, faces)
     for p in range(passes):
-        com, points = _centroid_and_points(verts, faces)
-        if bed is not None and not bed.flat:
-            points = bed.to_surface(points, mat)
+        points = bed.to_surface(world_points, mat) if bed is not None and not bed.flat else world_points
         h = heights_from_points(points, mat, sub=sub, covered=True)
         grid = _Grid(h, mat, sub, com, bed)
         with torch.no_grad():
@@ -326,12 +331,15 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
         mu = q[:, 3]
         R_p, t_p = _motion(com, q)
         verts = verts @ R_p.transpose(1, 2) + t_p[:, None]
+        world_points = world_points @ R_p.transpose(1, 2) + t_p[:, None]
+        com_next = (R_p @ com[..., None])[..., 0] + t_p
         R_acc, t_acc = R_p @ R_acc, (R_p @ t_acc[..., None])[..., 0] + t_p
         if p == passes - 1 or float(qs[:, 1:3].abs().max()) <= SMALL_TILT_RAD:
             # The pressure is this pass's solved field (exact balance); the mesh is moved by
             # the same motion rigidly, which shifts its points sideways by at most
             # tilt x height (~1 mm), so there is no need to rasterise it again.
             break
+        com = com_next
     R, f_packed, w_packed = grid.residual(q, params, weight)
     f, w = grid.unpack(f_packed), grid.unpack(w_packed)
     foundation = f / grid.area
