@@ -139,6 +139,70 @@ def test_fitted_capsules_wrap_their_vertices(anny64, two_bodies):
     assert ((volume / mesh - 1).abs() < 0.15).all()
 
 
+def _reference_fit(model, shape):
+    """The capsule fit written plainly on the whole skinned T-pose mesh (fit_capsules builds
+    each capsule's vertices part by part from the linear mesh instead)."""
+    vertices = model.rest_vertices(shape)  # pelvis at the origin
+    rest = rest_joints(model, shape)
+    labels = model.part_labels
+    out = []
+    for spec in CAPSULES:
+        mask = torch.zeros_like(labels, dtype=torch.bool)
+        for part in spec.parts:
+            mask |= labels == part
+        v = vertices[:, mask]
+        if spec.crosswise:
+            a0 = v.mean(1)
+            u = torch.tensor([1.0, 0.0, 0.0], dtype=v.dtype).expand_as(a0)
+            t = v[..., 0] - a0[:, None, 0]
+            t_lo, t_hi = t.amin(1), t.amax(1)
+            band_lo, band_hi = t_lo + 0.25 * (t_hi - t_lo), t_hi - 0.25 * (t_hi - t_lo)
+        else:
+            a0 = rest[:, spec.joint]
+            direction = rest[:, spec.joint] - rest[:, J24_NAMES.index("neck")] if spec.name == "head" else \
+                rest[:, spec.child] - rest[:, spec.joint]
+            u = direction / direction.norm(dim=-1, keepdim=True)
+            t = ((v - a0[:, None]) * u[:, None]).sum(-1)
+            t_lo = t.amin(1) if spec.extend_start else torch.zeros_like(t[:, 0])
+            t_hi = t.amax(1) if (spec.extend_end or spec.child is None) else direction.norm(dim=-1)
+            band_lo, band_hi = t_lo + 0.2 * (t_hi - t_lo), t_hi - 0.2 * (t_hi - t_lo)
+        dist = (v - (a0[:, None] + t[..., None] * u[:, None])).norm(dim=-1)
+        band = (t >= band_lo[:, None]) & (t <= band_hi[:, None])
+        band |= ~band.any(1, keepdim=True)
+        r = torch.where(band, dist, torch.nan).nanmedian(1).values
+        if spec.crosswise:
+            half = ((t_hi - t_lo) / 2 - r).clamp_min(0)
+            mid = a0 + ((t_hi + t_lo) / 2)[:, None] * u
+            s, e = mid - half[:, None] * u, mid + half[:, None] * u
+        else:
+            lo = torch.minimum(t_lo + r, torch.zeros_like(r)) if spec.extend_start else t_lo
+            hi = torch.maximum((t_hi - r) if (spec.extend_end or spec.child is None) else t_hi, lo)
+            s, e = a0 + lo[:, None] * u, a0 + hi[:, None] * u
+        out.append((s, e, r))
+    return torch.stack([o[0] for o in out], 1), torch.stack([o[1] for o in out], 1), torch.stack([o[2] for o in out], 1)
+
+
+def test_part_by_part_fit_equals_the_whole_mesh_fit(anny64):
+    g = torch.Generator().manual_seed(3)
+    shape = torch.rand(5, anny64.shape_dim, generator=g, dtype=D)
+    caps = fit_capsules(anny64, shape)
+    start, end, radius = _reference_fit(anny64, shape)
+    for got, want in ((caps.start, start), (caps.end, end), (caps.radius, radius)):
+        torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+    torch.testing.assert_close(caps.rest, rest_joints(anny64, shape), atol=1e-12, rtol=0)
+    # the same bodies fitted alone: batch-independent up to float round-off
+    one = fit_capsules(anny64, shape[3:4])
+    torch.testing.assert_close(one.radius, caps.radius[3:4], atol=1e-13, rtol=0)
+    # and differentiable in the shape, with the same gradient
+    grads = []
+    for fit in (lambda s: (lambda c: (c.start, c.end, c.radius))(fit_capsules(anny64, s)), lambda s: _reference_fit(anny64, s)):
+        s = shape[:2].clone().requires_grad_()
+        a, b, r = fit(s)
+        (a.sum() + 2 * b.sum() + 3 * r.sum()).backward()
+        grads.append(s.grad)
+    torch.testing.assert_close(grads[0], grads[1], atol=1e-9, rtol=1e-9)
+
+
 def test_fitted_capsules_are_mirror_symmetric_for_a_symmetric_body(anny64, two_bodies):
     _, caps = two_bodies
     flip = torch.tensor([-1.0, 1.0, 1.0], dtype=D)

@@ -1,5 +1,7 @@
 import dataclasses
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -176,6 +178,73 @@ def test_straight_limbs_have_straight_knees_and_elbows(anny):
         for s in ("left", "right"):
             assert (poses.params.pose[:, J(f"{s}_{n}") - 1] == 0).all()
     np.testing.assert_array_equal(limb_cells(poses), poses.cells)
+
+
+@pytest.mark.slow
+def test_straight_limbs_over_the_bed_always_yield_a_sample(anny):
+    # seed 0, male, index 73 used to give up: a straight arm held out sideways (cells 3-5)
+    # leaves the mattress or crosses the torso for nearly every body and root.
+    (x0, x1), (y0, y1) = MatSpec().mattress_bounds_m
+    for gender in ("female", "male"):
+        cfg = SamplingConfig(partition="straight_limbs", gender=gender, over_bed=True)
+        poses = PoseSampler(anny, cfg).sample(range(200))
+        assert poses.batch_size == 200
+        assert not np.isin(poses.cells[:, 2:], (3, 4, 5)).any()
+        assert (poses.cells[:, :2] == 3).all()
+        np.testing.assert_array_equal(limb_cells(poses), poses.cells)
+        for n in ("knee", "elbow"):
+            for side in ("left", "right"):
+                assert (poses.params.pose[:, J(f"{side}_{n}") - 1] == 0).all()
+        limbs = [J(f"{s}_{n}") for s in ("left", "right") for n in ("knee", "ankle", "foot", "elbow", "wrist", "hand")]
+        xy = poses.joints[:, limbs, :2]
+        assert ((xy[..., 0] > x0) & (xy[..., 0] < x1) & (xy[..., 1] > y0) & (xy[..., 1] < y1)).all()
+        assert_collision_free(anny, poses, PARTITIONS["straight_limbs"].checked_capsules)
+
+
+def test_determinism_over_the_bed(anny):
+    # Over the bed most draws are rejected: several rounds are tested at once and the
+    # generator is wound back to the winner's round - invisible in the samples.
+    cfg = SamplingConfig(partition="general", gender="male", over_bed=True, seed=3)
+    batch = PoseSampler(anny, cfg).sample(range(10))
+    for i in (2, 7):
+        alone = PoseSampler(anny, cfg).sample([i])
+        for field in ("shape", "root_rotation", "root_translation", "pose"):
+            torch.testing.assert_close(getattr(alone.params, field)[0], getattr(batch.params, field)[i], rtol=0, atol=0)
+        assert {k: int(v[0]) for k, v in alone.rejections.items()} == {k: int(v[i]) for k, v in batch.rejections.items()}
+
+
+def test_the_float32_screen_drops_no_valid_draw(anny, monkeypatch):
+    # With the screen let through every draw, only the exact tests decide: same samples.
+    configs = [SamplingConfig(partition=p, gender=g, over_bed=o, seed=5) for p, g, o in
+               (("general", "male", True), ("crossed_legs", "female", True), ("hands_behind_head", "male", True))]
+    screened = [PoseSampler(anny, cfg).sample(range(4)) for cfg in configs]
+
+    def everything(self, ctx, pending, limb, u):
+        P, M = u.shape[:2]
+        return torch.arange(P).repeat_interleave(M), torch.arange(M).repeat(P)
+
+    monkeypatch.setattr(PoseSampler, "_screen", everything)
+    for cfg, want in zip(configs, screened):
+        got = PoseSampler(anny, cfg).sample(range(4))
+        torch.testing.assert_close(got.params.pose, want.params.pose, rtol=0, atol=0)
+        assert all((got.rejections[k] == want.rejections[k]).all() for k in want.rejections)
+
+
+def test_sampling_first_leaves_the_body_model_differentiable():
+    # A fresh process: libraries that cache tensors on first use (roma) must not end up with
+    # inference tensors from the sampler's inference mode.
+    code = (
+        "import torch\n"
+        "from pressurepose.body import load_body_model\n"
+        "from pressurepose.body.capsules import fit_capsules\n"
+        "from pressurepose.sampling import PoseSampler, SamplingConfig\n"
+        "m = load_body_model('anny', dtype=torch.float64)\n"
+        "PoseSampler(m, SamplingConfig(partition='supine')).sample([0])\n"
+        "s = m.default_shape(1).requires_grad_()\n"
+        "fit_capsules(m, s).radius.sum().backward()\n"
+        "assert torch.isfinite(s.grad).all()\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
 
 
 def test_hands_behind_head_and_prone_hands_up(anny):

@@ -24,7 +24,7 @@ import logging
 import torch
 
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
-from pressurepose.body.model import BodyModel, part_weights_onto_j24
+from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
 from pressurepose.cache import cache_dir, file_lock
 
@@ -273,8 +273,9 @@ class AnnyBody(BodyModel):
         order = sk.inverse_order
         return torch.cat(rot, 1)[:, order], torch.cat(heads, 1)[:, order]
 
-    def _body_frame(self, shape, pose, with_vertices):
-        sk = self.full if with_vertices else self.light
+    def _skeleton_pass(self, shape, pose, sk):
+        """Blendshape coefficients, rest bone heads, rest -> reference rotations A, posed
+        accumulated rotations and heads (Anny axes) and the J24 joints (SMPL body axes)."""
         coeffs = self._coefficients(shape)
         rest_heads, rest_R = self._rest_skeleton(coeffs, sk)
         A, offsets = self._reference_offsets(rest_heads, rest_R, sk)
@@ -282,13 +283,33 @@ class AnnyBody(BodyModel):
         rot, heads = self._forward_kinematics(offsets, self._local_rotations(pose, G, sk), sk)
         C = self.c_smpl_to_anny
         joints = torch.einsum("jk,bkx->bjx", self.joint_regressor[:, sk.bones], heads) @ C
+        return coeffs, rest_heads, A, rot, heads, joints
+
+    def _body_frame(self, shape, pose, with_vertices):
+        sk = self.full if with_vertices else self.light
+        coeffs, rest_heads, A, rot, heads, joints = self._skeleton_pass(shape, pose, sk)
         if not with_vertices:
             return None, joints
         # Skinning transforms x -> T x + t mapping rest to posed: T = rot A, t = head - T h.
         T = rot @ A
         t = heads - (T @ rest_heads[..., None])[..., 0]
         rest_vertices = self.anny.get_rest_vertices(coeffs)
-        return sparse_linear_blend_skinning(rest_vertices, self.skin_matrix, T, t) @ C, joints
+        return sparse_linear_blend_skinning(rest_vertices, self.skin_matrix, T, t) @ self.c_smpl_to_anny, joints
+
+    def linear_mesh(self) -> LinearMesh:
+        return LinearMesh(template=self.anny.template_vertices, blendshapes=self.anny.blendshapes,
+                          skinning=self.skin_matrix)
+
+    def _zero_pose_skinning(self, shape: torch.Tensor) -> ZeroPoseSkinning:
+        sk = self.full
+        pose = shape.new_zeros(shape.shape[0], NUM_JOINTS - 1, 3)
+        coeffs, rest_heads, A, rot, heads, joints = self._skeleton_pass(shape, pose, sk)
+        T = rot @ A
+        t = heads - (T @ rest_heads[..., None])[..., 0]
+        # Into SMPL's body axes (v_smpl = C^T v_anny; C permutes and negates axes: exact).
+        Ct = self.c_smpl_to_anny.T
+        return ZeroPoseSkinning(coeffs=coeffs, transforms=Ct @ T, translations=t @ self.c_smpl_to_anny,
+                                joints=joints)
 
     def native_rest_pose(self, shape: torch.Tensor) -> torch.Tensor:
         """(B, 23, 3) pose that reproduces Anny's own reference (A-)pose for these shapes.

@@ -26,6 +26,28 @@ class BodyMeasurements:
     mass_kg: torch.Tensor    # (B,) volume x BODY_DENSITY_KG_M3
 
 
+@dataclasses.dataclass(frozen=True)
+class LinearMesh:
+    """A backend's rest mesh, linear in per-shape coefficients c (B, A):
+    x = template + c @ blendshapes, skinned with the fixed sparse weights (V, K) over K bones."""
+
+    template: torch.Tensor     # (V, 3)
+    blendshapes: torch.Tensor  # (A, V, 3)
+    skinning: torch.Tensor     # (V, K) sparse, rows sum to 1 (to float32 precision)
+
+
+@dataclasses.dataclass(frozen=True)
+class ZeroPoseSkinning:
+    """The zero-pose (T-pose) mesh of B shapes as linear blend skinning of the LinearMesh:
+    vertex v of body b = sum_k W[v, k] (transforms[b, k] x[b, v] + translations[b, k]), in
+    SMPL's body axes (the pelvis not yet at the origin)."""
+
+    coeffs: torch.Tensor        # (B, A)
+    transforms: torch.Tensor    # (B, K, 3, 3)
+    translations: torch.Tensor  # (B, K, 3)
+    joints: torch.Tensor        # (B, 24, 3) J24, same axes and origin as the vertices
+
+
 class BodyModel(torch.nn.Module, abc.ABC):
     """Batched, differentiable body model (float32 or float64, CPU or CUDA).
 
@@ -68,6 +90,16 @@ class BodyModel(torch.nn.Module, abc.ABC):
 
     def validate_shape(self, shape: torch.Tensor) -> None:
         """Backend-specific range checks on (B, S) shape parameters (ValueError)."""
+
+    # --- optional fast path for per-shape fits on the T-pose mesh (capsules) --------------
+    def linear_mesh(self) -> LinearMesh | None:
+        """The rest mesh's linear structure, or None when the backend does not expose it
+        (then `_zero_pose_skinning` is not used and fits skin the whole mesh)."""
+        return None
+
+    def _zero_pose_skinning(self, shape: torch.Tensor) -> ZeroPoseSkinning:
+        """Per-shape coefficients and bone transforms of the T-pose (only with `linear_mesh`)."""
+        raise NotImplementedError
 
     # --- shared ---------------------------------------------------------------------------
     def _check(self, params: BodyParams) -> None:

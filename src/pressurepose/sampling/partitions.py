@@ -40,6 +40,7 @@ class Partition:
     shift_y: tuple[float, float] = (-0.2, 0.2)  # pelvis across the bed
     leg_cells: tuple[int, ...] = tuple(range(LEG_CELLS))
     arm_cells: tuple[int, ...] = tuple(range(ARM_CELLS))
+    over_bed_arm_cells: tuple[int, ...] | None = None  # arm cells over the bed (None: arm_cells)
     hands_behind_head: bool = False
     crossed_legs: bool = False
     straight_limbs: bool = False
@@ -65,8 +66,14 @@ def _partitions() -> dict[str, Partition]:
                   roll=(0.0, 0.0), leg_cells=(1, 2, 3), crossed_legs=True),
         # A straight leg held within 10 cm of the hip's height ends more than 3/4 of its length
         # below the hip (hip abduction <= 38.6 deg), so only the last leg cell is reachable.
+        # Over the bed, a straight arm held out sideways - cells 3 to 5, wrist between A/2
+        # toward the feet and A/4 toward the head of the shoulder, so >= 0.87 A across the body -
+        # has its hand off the mattress when it points outward and crosses the torso when it
+        # points inward, for most bodies and roots (docs/sampling.md: reached for 9-13% of male
+        # and 21-62% of female body and root draws): those cells are not drawn there.
         Partition("straight_limbs", "supine, knees and elbows straight, even arm space",
-                  roll=(0.0, 0.0), leg_cells=(LEG_CELLS - 1,), straight_limbs=True),
+                  roll=(0.0, 0.0), leg_cells=(LEG_CELLS - 1,), straight_limbs=True,
+                  over_bed_arm_cells=(0, 1, 2, 6, 7)),
     ]
     return {p.name: p for p in parts}
 
@@ -93,7 +100,9 @@ class SamplingConfig:
         seed: dataset seed; a sample is a function of (seed, partition, gender, over_bed, index).
         max_failures: failed pose attempts (a limb that cannot reach its cell, or a self
             collision) before the shape and root are drawn again (seed: 20).
-        max_shapes: shapes tried per sample before giving up with an error.
+        max_shapes: shapes tried per sample before giving up with an error (50: the hardest
+            partition, straight limbs over the bed, needed 14 shape resamples for 2 male samples
+            in 2,048, and that count's tail falls ~2x per extra shape; more is stopped).
         max_limb_draws: joint-angle draws per limb and attempt before it counts as a failure.
     """
 
@@ -102,7 +111,7 @@ class SamplingConfig:
     over_bed: bool = False
     seed: int = 0
     max_failures: int = 20
-    max_shapes: int = 20
+    max_shapes: int = 50
     max_limb_draws: int = 16384
 
     def __post_init__(self) -> None:
@@ -122,3 +131,10 @@ class SamplingConfig:
     @property
     def spec(self) -> Partition:
         return get_partition(self.partition)
+
+
+def limb_cells(partition: Partition, over_bed: bool) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """(leg cells, arm cells) a partition draws from, with or without the bed outline."""
+    arms = partition.over_bed_arm_cells if (over_bed and partition.over_bed_arm_cells is not None) \
+        else partition.arm_cells
+    return partition.leg_cells, arms

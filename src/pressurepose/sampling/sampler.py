@@ -15,8 +15,12 @@ so a sample is the same whether it is drawn alone or in a batch of any size: the
 geometry is fitted in float64 and rounded to 1 nm, so batched round-off cannot change a
 decision or a recorded number.
 
-Speed: all samples of a batch advance together - shapes, capsules and the limb forward
-kinematics of every candidate draw are batched tensors.
+Speed: all samples of a batch advance together. Capsules are fitted for all new shapes at
+once (body/capsules.py). Each limb's draws are tested in windows of several rounds: a float32
+screen of every draw that is looser than the real conditions (it never drops a draw they
+accept), the exact float64 tests for the few survivors, then self-collisions in draw order;
+the generator is wound back to the end of the winning round, so windows change nothing but
+the speed.
 """
 
 from __future__ import annotations
@@ -35,9 +39,10 @@ from pressurepose.body.kinematics import forward_kinematics
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
-from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from pressurepose.mat import MatSpec
-from pressurepose.sampling.partitions import HEIGHT_TOLERANCE_M, LEG_CELLS, Partition, SamplingConfig
+from pressurepose.sampling.partitions import (
+    ARM_CELLS, HEIGHT_TOLERANCE_M, LEG_CELLS, Partition, SamplingConfig, limb_cells,
+)
 from pressurepose.sampling.shapes import draw_shape, shape_bounds
 
 _J = J24_NAMES.index
@@ -132,29 +137,69 @@ def limb_pose(limb: _Limb, angles: torch.Tensor) -> torch.Tensor:
     return torch.stack([total / 3, total * (2 / 3), elbow], -2)
 
 
+def _rotation_matrix(aa: torch.Tensor) -> torch.Tensor:
+    """(N, 3) rotation vectors -> (N, 3, 3): I + a K + b K^2 with K^2 = k k^T - |k|^2 I,
+    a = sin(t)/t, b = (1 - cos t)/t^2 from the half angle (stable at t -> 0)."""
+    theta2 = (aa * aa).sum(-1)
+    half = theta2.clamp_min(torch.finfo(aa.dtype).tiny).sqrt() * 0.5
+    sinc = torch.sin(half) / half
+    a, b = sinc * torch.cos(half), 0.5 * sinc * sinc
+    x, y, z = aa.unbind(-1)
+    zero = torch.zeros_like(x)
+    K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).view(-1, 3, 3)
+    eye = torch.eye(3, dtype=aa.dtype)
+    return eye + a[:, None, None] * K + b[:, None, None] * (aa[:, :, None] * aa[:, None, :] - theta2[:, None, None] * eye)
+
+
 def _rotating_joints(limb: _Limb) -> tuple[int, ...]:
     return limb.chain[:2] if limb.name.endswith("leg") else limb.chain[:3]
 
 
-def _chain_fk(limb: _Limb, rest: torch.Tensor, rot_local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """World rotations (..., n, 3, 3) and positions (..., n, 3) of a limb's chain joints in body
-    axes, for local rotations (..., r, 3, 3) of its rotating joints, the rest of the body at
-    zero pose (the limb's root hangs off an unrotated pelvis or spine).
+# --- limb geometry, elementwise ---------------------------------------------------------------
+# A vector is a tuple of three tensors (x, y, z) of one broadcast shape: every operation is
+# elementwise on contiguous arrays, so each draw's numbers depend on its own inputs only.
+Vec = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
-    rest: (..., 24, 3) rest joints, broadcast against the leading dims."""
-    lead = rot_local.shape[:-3]
-    n_rot = rot_local.shape[-3]
-    chain = limb.chain
-    pos = [rest[..., chain[0], :].expand(lead + (3,))]
-    R = rot_local[..., 0, :, :]
-    rots = [R]
-    for i in range(1, len(chain)):
-        offset = rest[..., chain[i], :] - rest[..., chain[i - 1], :]
-        pos.append(pos[-1] + (R @ offset.expand(lead + (3,))[..., None])[..., 0])
-        if i < n_rot:
-            R = R @ rot_local[..., i, :, :]
-        rots.append(R)
-    return torch.stack(rots, -3), torch.stack(pos, -2)
+
+def _rodrigues(k: Vec):
+    """Rotation vectors k -> what `_rotate` needs: R(k) v = v + a (k x v) + b (k (k.v) - |k|^2 v),
+    a = sin(t)/t, b = (1 - cos t)/t^2, written with the half angle (stable at t -> 0)."""
+    theta2 = k[0] * k[0] + k[1] * k[1] + k[2] * k[2]
+    half = theta2.clamp_min(torch.finfo(theta2.dtype).tiny).sqrt() * 0.5
+    sinc = torch.sin(half) / half
+    return k, theta2, sinc * torch.cos(half), 0.5 * sinc * sinc
+
+
+def _rotate(rod, v: Vec) -> Vec:
+    k, theta2, a, b = rod
+    dot = k[0] * v[0] + k[1] * v[1] + k[2] * v[2]
+    cross = (k[1] * v[2] - k[2] * v[1], k[2] * v[0] - k[0] * v[2], k[0] * v[1] - k[1] * v[0])
+    return tuple(v[i] + a * cross[i] + b * (k[i] * dot - theta2 * v[i]) for i in range(3))
+
+
+def _apply_hinge(limb: _Limb, angle: torch.Tensor, v: Vec) -> Vec:
+    """v turned by the knee (about x) or elbow (about y) angle."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    if limb.name.endswith("leg"):  # about x
+        return (v[0], c * v[1] - s * v[2], s * v[1] + c * v[2])
+    return (c * v[0] + s * v[2], v[1], c * v[2] - s * v[0])  # about y
+
+
+def _add(a: Vec, b: Vec) -> Vec:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def _dot(a: Vec, b: Vec) -> torch.Tensor:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cols(x: torch.Tensor) -> Vec:
+    """(..., 3) -> three (..., 1) column tensors (broadcast against (..., M) draws)."""
+    return tuple(x[..., i:i + 1] for i in range(3))
+
+
+def _split(x: torch.Tensor) -> Vec:
+    return tuple(x[..., i] for i in range(3))
 
 
 @dataclasses.dataclass
@@ -194,23 +239,67 @@ class _State:
     rest: torch.Tensor | None = None   # (24, 3) T-pose joints, body axes
     caps: tuple | None = None          # capsule start (20, 3), end (20, 3), radius (20,) at rest
     root_aa: torch.Tensor | None = None
-    R_root: torch.Tensor | None = None  # body axes -> mat frame
-    R_roll: torch.Tensor | None = None  # body axes -> mat frame axes, roll only (no yaw)
+    frame: torch.Tensor | None = None  # (4, 3): bed 'along' and 'up' axes (roll only), mat x and y axes, in body axes
+    shift: torch.Tensor | None = None  # pelvis (x, y, 0) in the mat frame
+    lengths: tuple[float, float] = (0.0, 0.0)  # leg (hip-knee-ankle), arm (shoulder-elbow-wrist)
     unreachable: str | None = None     # a limb whose conditions had no solution in a whole budget
     failed_limb: str | None = None     # the limb that failed the last attempt
     blocked: dict = dataclasses.field(default_factory=dict)  # limb -> shapes it blocked since its last cell
-    shift: torch.Tensor | None = None  # pelvis (x, y, 0) in the mat frame
-    leg_length: float = 0.0
-    arm_length: float = 0.0
-    # The current attempt: accepted limb draws, their chain joints, all capsules placed so far.
-    chains: dict = dataclasses.field(default_factory=dict)
-    placed: tuple | None = None
+    given_up: dict = dataclasses.field(default_factory=dict)  # limb -> cells it was redrawn away from
+    placed: tuple | None = None        # capsule start, end (20, 3) of the accepted pose
+
+
+class _Attempt:
+    """The samples of one pose attempt as stacked tensors (row r = states[r])."""
+
+    def __init__(self, states: list[_State]) -> None:
+        self.states = states
+        self.rest = torch.stack([st.rest for st in states])            # (P, 24, 3)
+        self.start0 = torch.stack([st.caps[0] for st in states])       # (P, 20, 3) at rest
+        self.end0 = torch.stack([st.caps[1] for st in states])
+        self.radius = torch.stack([st.caps[2] for st in states])       # (P, 20)
+        self.a = self.start0.clone()  # placed so far (spine at zero: torso at rest)
+        self.b = self.end0.clone()
+        self.frame = torch.stack([st.frame for st in states])          # (P, 4, 3)
+        self.shift = torch.stack([st.shift for st in states])          # (P, 3)
+        self.lengths = torch.tensor([st.lengths for st in states], dtype=torch.float64)  # (P, 2)
+        self.cells = torch.from_numpy(np.stack([st.cells for st in states]))  # (P, 4)
+        self.left_ankle_x = torch.zeros(len(states), dtype=torch.float64)
 
 
 def sample_key(config: SamplingConfig, index: int) -> list[int]:
     """The entropy a sample's generator is seeded from."""
     return [int(config.seed), zlib.crc32(config.partition.encode()), int(config.gender == "female"),
             int(config.over_bed), int(index)]
+
+
+def root_axis_angle(roll: float, yaw: float) -> np.ndarray:
+    """Axis-angle (3,) of Rz(yaw) Rx(roll) (roll about the bed's long axis, then yaw in the bed
+    plane), from the quaternion product in scalar float64 arithmetic (bit-identical whatever
+    else is computed alongside)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    w, v = cy * cr, np.array([cy * sr, sy * sr, sy * cr])
+    if w < 0:
+        w, v = -w, -v
+    n = math.sqrt(float(v @ v))
+    if n < 1e-12:
+        return 2.0 * v / w
+    return v * (2.0 * math.atan2(n, w) / n)
+
+
+# Rows of the per-sample frame: body axes -> bed 'along' (toward the foot) and 'up' after the
+# roll only, and the mat's x and y axes after roll and yaw.
+_ALONG, _UP, _MAT_X, _MAT_Y = range(4)
+# The float32 screen of every draw is looser than the exact tests by this much (its round-off
+# is < 1e-6 m), so it never drops a draw they would accept: samples stay exact and
+# batch-independent.
+PREFILTER_MARGIN_M = 1e-4
+# Elements per temporary of the screen: samples x draws chunks that stay in the CPU cache.
+_SCREEN_ELEMENTS = 1 << 16
+# Draws tested at once (pending samples x rounds of a window): ~4 ms of work, so that the fixed
+# cost of a window (~3 ms of small tensor operations) stays a small share.
+_WINDOW_DRAWS = 1 << 16
 
 
 class PoseSampler:
@@ -236,6 +325,7 @@ class PoseSampler:
                 f"load the {config.gender} SMPL model or the neutral one"
             )
         self.shape_low, self.shape_high = shape_bounds(model.name, config.gender, model.shape_names)
+        self.leg_cells, self.arm_cells = limb_cells(self.part, config.over_bed)
         self.limits = JointLimits.default(torch.float64)
         self.limbs = _limbs(self.limits)
         self.pairs = collision_pairs(self.part.checked_capsules)
@@ -253,6 +343,7 @@ class PoseSampler:
             placed |= set(mine)
         (self.x_lo, self.x_hi), (self.y_lo, self.y_hi) = self.mat.mattress_bounds_m
         self.centre = np.array([(self.x_lo + self.x_hi) / 2, (self.y_lo + self.y_hi) / 2])
+        self._round_ends = _draw_schedule(config.max_limb_draws)
 
     # --- public -------------------------------------------------------------------------
     def sample(self, indices) -> InitialPoses:
@@ -263,13 +354,21 @@ class PoseSampler:
         if min(indices) < 0:
             raise ValueError("sample indices must be >= 0")
         states = [self._new_state(i) for i in indices]
+        self._advance(states)
+        return self._collect(states)
+
+    def _advance(self, states: list[_State]) -> None:
+        """Attempts until every sample has a pose (or one gives up: UnreachableConstraints)."""
         pending = list(states)
         while pending:
             for st in pending:
                 if st.shape is None:
                     self._draw_shape_and_root(st)
             self._prepare(pending)
-            self._draw_limbs(pending)
+            # Inference mode: less overhead per tensor operation. Only here: libraries that
+            # cache tensors (roma, in the capsule fit) must not cache inference tensors.
+            with torch.inference_mode():
+                self._draw_limbs(pending)
             still = []
             for st in pending:
                 if len(st.angles) == len(LIMBS):
@@ -281,8 +380,13 @@ class PoseSampler:
                     # gets a new cell.
                     st.blocked[last] = st.blocked.get(last, 0) + 1
                     if st.blocked[last] >= CELL_REDRAW_AFTER:
-                        cells = self.part.leg_cells if last.endswith("leg") else self.part.arm_cells
-                        st.cells[LIMBS.index(last)] = st.rng.choice(np.array(cells))
+                        # A new cell, not one that already blocked this limb (unless all did).
+                        slot = LIMBS.index(last)
+                        given_up = st.given_up.setdefault(last, set())
+                        given_up.add(int(st.cells[slot]))
+                        cells = self.leg_cells if last.endswith("leg") else self.arm_cells
+                        left = [c for c in cells if c not in given_up] or list(cells)
+                        st.cells[slot] = st.rng.choice(np.array(left))
                         st.blocked[last] = 0
                         st.counts["cell_redraws"] += 1
                     st.shapes += 1
@@ -301,13 +405,12 @@ class PoseSampler:
                     st.unreachable = None
                 still.append(st)
             pending = still
-        return self._collect(states)
 
     # --- steps --------------------------------------------------------------------------
     def _new_state(self, index: int) -> _State:
         rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(sample_key(self.config, index))))
-        legs = rng.choice(np.array(self.part.leg_cells), size=2)
-        arms = rng.choice(np.array(self.part.arm_cells), size=2)
+        legs = rng.choice(np.array(self.leg_cells), size=2)
+        arms = rng.choice(np.array(self.arm_cells), size=2)
         return _State(index=index, rng=rng, cells=np.concatenate([legs, arms]))
 
     def _draw_shape_and_root(self, st: _State) -> None:
@@ -330,168 +433,329 @@ class PoseSampler:
         # a sample depend on the batch it was drawn in.
         q = lambda x: (x.cpu() / GEOMETRY_QUANTUM_M).round() * GEOMETRY_QUANTUM_M  # noqa: E731
         rest, start, end, radius = q(caps.rest), q(caps.start), q(caps.end), q(caps.radius)
+        root = np.stack([st.root for st in need])
+        root_aa = torch.from_numpy(np.stack([root_axis_angle(r[0], r[1]) for r in root]))
+        zeros = np.zeros(len(need))
+        R_roll = root_matrix(torch.from_numpy(np.stack([root[:, 0], zeros, zeros], -1)))  # body -> bed axes
+        R_root = root_matrix(root_aa)  # body axes -> mat frame
+        frame = torch.stack([R_roll[:, 0], R_roll[:, 2], R_root[:, 0], R_root[:, 1]], 1)
+        shift = torch.from_numpy(np.stack([self.centre[0] + root[:, 2], self.centre[1] + root[:, 3], zeros], -1))
+        def seg(a, b):  # written out: the same bits whatever the batch
+            d = rest[:, a] - rest[:, b]
+            return (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]).sqrt()
+
+        leg = seg(_J("left_hip"), _J("left_knee")) + seg(_J("left_knee"), _J("left_ankle"))
+        arm = seg(_J("left_shoulder"), _J("left_elbow")) + seg(_J("left_elbow"), _J("left_wrist"))
         for i, st in enumerate(need):
             st.rest = rest[i]
             st.caps = (start[i], end[i], radius[i])
-            roll, yaw = float(st.root[0]), float(st.root[1])
-            # Roll about the bed's long axis, then yaw in the bed plane.
-            Rx, Rz = axis_angle_to_matrix(torch.tensor([[roll, 0.0, 0.0], [0.0, 0.0, yaw]], dtype=torch.float64))
-            st.root_aa = matrix_to_axis_angle(Rz @ Rx)
-            st.R_root = root_matrix(st.root_aa[None])[0]  # body axes -> mat frame
-            st.R_roll = root_matrix(torch.tensor([[roll, 0.0, 0.0]], dtype=torch.float64))[0]
-            st.shift = torch.tensor([self.centre[0] + st.root[2], self.centre[1] + st.root[3], 0.0], dtype=torch.float64)
-            lengths = lambda a, b, c: float((rest[i, a] - rest[i, b]).norm() + (rest[i, b] - rest[i, c]).norm())  # noqa: E731
-            st.leg_length = lengths(_J("left_hip"), _J("left_knee"), _J("left_ankle"))
-            st.arm_length = lengths(_J("left_shoulder"), _J("left_elbow"), _J("left_wrist"))
+            st.root_aa = root_aa[i]
+            st.frame = frame[i]
+            st.shift = shift[i]
+            st.lengths = (float(leg[i]), float(arm[i]))
 
     def _fit_model(self) -> BodyModel:
         """The body model in float64 on the CPU (a copy if the given one is not)."""
         if getattr(self, "_model64", None) is None:
             m = self.model
-            self._model64 = m if (m.dtype == torch.float64 and m.device.type == "cpu") else \
-                copy.deepcopy(m).to(dtype=torch.float64, device="cpu")
+            with torch.inference_mode(False):  # a plain model, whatever mode we are called in
+                self._model64 = m if (m.dtype == torch.float64 and m.device.type == "cpu") else \
+                    copy.deepcopy(m).to(dtype=torch.float64, device="cpu")
         return self._model64
 
     def _draw_limbs(self, states: list[_State]) -> None:
         """One pose attempt: limbs in a fixed order, each drawn until it reaches its cell
         without touching what is already placed (torso, head, earlier limbs)."""
         for st in states:
-            st.angles, st.chains = {}, {}
-            st.placed = (st.caps[0].clone(), st.caps[1].clone())  # spine at zero: torso at rest
-        active = list(states)
+            st.angles = {}
+        batch = _Attempt(states)
+        rows = torch.arange(len(states))
         for name in LIMBS:
-            active = self._rounds(active, self.limbs[name])
+            rows = self._rounds(batch, rows, self.limbs[name])
+        for r in rows.tolist():
+            batch.states[r].placed = (batch.a[r], batch.b[r])
 
-    def _rounds(self, states: list[_State], limb: _Limb) -> list[_State]:
-        """Draw angles for `limb` until each sample has a draw that meets every condition;
-        returns the samples that got one (the others have failed this attempt).
+    def _rounds(self, batch: _Attempt, rows: torch.Tensor, limb: _Limb) -> torch.Tensor:
+        """Draw angles for `limb` until each sample (attempt rows `rows`) has a draw that meets
+        every condition; returns the rows that got one (the others have failed this attempt).
 
         Draws come in rounds of growing size (64, 128, ... 4096) up to `max_limb_draws`, so
         common cells cost one small round and rare ones (a foot near the buttocks) still get
-        thousands of tries; a sample's draws follow a fixed schedule, hence determinism."""
-        pending, placed_ok = list(states), []
-        reachable = set()
-        drawn = 0
-        size = FIRST_ROUND
-        while pending and drawn < self.config.max_limb_draws:
-            M = min(size, self.config.max_limb_draws - drawn)
-            drawn += M
-            size = min(2 * size, LARGEST_ROUND)
-            angles = torch.tensor(np.stack([st.rng.uniform(limb.low, limb.high, size=(M, limb.low.shape[0]))
-                                            for st in pending]))  # (P, M, 4)
-            if self.part.straight_limbs:
-                angles[..., 3] = 0.0
-            geometric, rot, pos = self._limb_geometry(pending, limb, angles)
-            free, ends = self._limb_collisions(pending, limb, geometric, rot, pos)
-            good = geometric & free
-            reachable.update(id(st) for p, st in enumerate(pending) if geometric[p].any())
-            has = good.any(1)
-            pick = good.int().argmax(1)
-            still = []
-            for p, st in enumerate(pending):
-                k = int(pick[p]) if has[p] else M
-                st.counts["limb_draws_rejected"] += int((~geometric[p, :k]).sum())
-                st.counts["collisions"] += int((geometric[p, :k] & ~free[p, :k]).sum())
-                if has[p]:
-                    st.angles[limb.name] = angles[p, k]
-                    st.chains[limb.name] = pos[p, k]
-                    st.placed = ends[(p, k)]
-                    placed_ok.append(st)
-                else:
-                    still.append(st)
-            pending = still
-        for st in pending:  # budget exhausted: this attempt fails
+        thousands of tries; the first draw that passes everything wins, and the sample's
+        generator has then used up exactly the rounds up to the winner's. For speed, several
+        rounds are drawn and tested at once (a window: few pending samples, many rounds) and
+        the generator is wound back to the end of the winner's round: the outcome is the same
+        as drawing round by round. Each draw is first screened by a cheap float32 test that
+        is looser than the real conditions by PREFILTER_MARGIN_M (so it never drops a draw
+        they accept); survivors are tested exactly (float64), then for self-collisions."""
+        pending, done = rows, []
+        reachable = torch.zeros(len(batch.states), dtype=torch.bool)
+        ctx = self._limb_context(batch, limb)
+        ends = self._round_ends
+        start, j = 0, 0
+        while pending.numel() and j < len(ends):
+            # A window: the rounds from `start` on that keep pending x draws within
+            # _WINDOW_DRAWS (at least one round), so few pending samples take few windows.
+            P = pending.numel()
+            while j + 1 < len(ends) and P * (ends[j + 1] - start) <= _WINDOW_DRAWS:
+                j += 1
+            stop = int(ends[j])
+            W = stop - start
+            step = max(1, _WINDOW_DRAWS // W)
+            won = [self._window(batch, ctx, pending[lo:lo + step], limb, start, W, reachable, done)
+                   for lo in range(0, P, step)]
+            pending = pending[~torch.cat(won)]
+            start, j = stop, j + 1
+        for r in pending.tolist():  # budget exhausted: this attempt fails
+            st = batch.states[r]
             st.counts["limb_failures"] += 1
             st.failed_limb = limb.name
             # No draw met even the cell and bed conditions: other limbs cannot help (unless
             # the condition depends on them, as crossing does), only a new shape and root.
-            if id(st) not in reachable and not (self.part.crossed_legs and limb.name == "right_leg"):
+            if not reachable[r] and not (self.part.crossed_legs and limb.name == "right_leg"):
                 st.unreachable = limb.name
-        return placed_ok
+        return torch.cat(done).sort().values if done else rows[:0]
 
-    def _limb_geometry(self, states: list[_State], limb: _Limb, angles: torch.Tensor):
-        """For (P, M, 4) draws: whether each meets the cell, height, bed and crossing
-        conditions (P, M), and the chain joints' world rotations and positions in body axes."""
-        rest = torch.stack([st.rest for st in states])[:, None]        # (P, 1, 24, 3)
-        rot, pos = _chain_fk(limb, rest, axis_angle_to_matrix(limb_pose(limb, angles)))
-        # Cells and heights in the bed's axes after the roll only: "along" is the body's long
-        # axis and z the height above the bed, whatever the yaw (a yawed body keeps its cells).
-        R = torch.stack([st.R_roll for st in states])[:, None, None]    # (P, 1, 1, 3, 3)
-        bed = (R @ pos[..., None])[..., 0]
-        ci = {j: i for i, j in enumerate(limb.chain)}
-        prox, dist = bed[:, :, ci[limb.proximal]], bed[:, :, ci[limb.distal]]
-        ok = (dist[..., 2] - prox[..., 2]).abs() <= HEIGHT_TOLERANCE_M
-        along = dist[..., 0] - prox[..., 0]  # toward the foot
-        cell = torch.tensor([st.cells[LIMBS.index(limb.name)] for st in states])[:, None]
-        if limb.name.endswith("leg"):
-            L = torch.tensor([st.leg_length for st in states], dtype=torch.float64)[:, None]
-            ok &= (along >= 0) & (_leg_cell(along, L) == cell)
+    def _window(self, batch, ctx, pending, limb, start, W, reachable, done) -> torch.Tensor:
+        """Draws start .. start + W (whole rounds) of each pending row; returns which rows
+        found a winner."""
+        P = pending.numel()
+        ends = self._round_ends
+        states = [batch.states[r] for r in pending.tolist()]
+        one_round = int(np.searchsorted(ends, start, side="right")) == int(np.searchsorted(ends, start + W - 1, side="right"))
+        saved = None if one_round else [st.rng.bit_generator.state for st in states]
+        u = np.empty((P, W, limb.low.shape[0]))
+        for p, st in enumerate(states):
+            st.rng.random(out=u[p])
+        u = torch.from_numpy(u)
+        # 1. Screen every draw (float32, conservative).
+        p_idx, k_idx = self._screen(ctx, pending, limb, u)
+        # 2. The survivors exactly: cell, height, partition conditions, bed outline. Their
+        # angles low + span * random = rng.uniform(low, high), bit for bit.
+        angles = torch.from_numpy(limb.low) + torch.from_numpy(limb.high - limb.low) * u[p_idx, k_idx]
+        if self.part.straight_limbs:
+            angles[:, 3] = 0.0
+        rows_s = pending[p_idx]
+        geo, pos, caps_ab = self._limb_survivors(ctx, rows_s, limb, angles)
+        p_idx, k_idx, rows_s, pos, angles = p_idx[geo], k_idx[geo], rows_s[geo], pos[geo], angles[geo]
+        caps_ab = (caps_ab[0][geo], caps_ab[1][geo])
+        # 3. Self-collision, in draw order: each sample's first 4 geometric draws, then (for
+        # the samples without a free one yet) the next 32, 256, ... until one is free.
+        reachable[rows_s] = True
+        first = torch.full((P,), W, dtype=torch.long)
+        if p_idx.numel():
+            count = torch.bincount(p_idx, minlength=P)
+            rank = torch.arange(p_idx.numel()) - (count.cumsum(0) - count)[p_idx]  # within its sample
+            lo, width, top = 0, 4, int(rank.max())
+            while lo <= top:
+                sel = ((rank >= lo) & (rank < lo + width) & (first[p_idx] == W)).nonzero()[:, 0]
+                if sel.numel():
+                    free = self._collision_free(batch, rows_s[sel], limb, (caps_ab[0][sel], caps_ab[1][sel]))
+                    first.scatter_reduce_(0, p_idx[sel][free], k_idx[sel][free], "amin")
+                lo, width = lo + width, 8 * width
+        before = k_idx < first[p_idx]  # geometric draws before the winner: all collided
+        collided = torch.bincount(p_idx[before], minlength=P)
+        rejected = first - collided
+        for st, rej, col in zip(states, rejected.tolist(), collided.tolist()):
+            st.counts["limb_draws_rejected"] += rej
+            st.counts["collisions"] += col
+        won = first < W
+        if won.any():
+            win = (k_idx == first[p_idx]).nonzero()[:, 0]  # one survivor per winning sample
+            r = rows_s[win]
+            caps = self._limb_capsules[limb.name]
+            batch.a[r[:, None], caps] = caps_ab[0][win]
+            batch.b[r[:, None], caps] = caps_ab[1][win]
+            if limb.name == "left_leg":
+                batch.left_ankle_x[r] = pos[win, -2, 0]
+            for rr, pp, kk, ang in zip(r.tolist(), p_idx[win].tolist(), k_idx[win].tolist(), angles[win]):
+                st = batch.states[rr]
+                st.angles[limb.name] = ang
+                # Wind the generator back to the end of the winner's round.
+                used = int(ends[np.searchsorted(ends, start + kk, side="right")]) - start
+                if used < W:  # (never in a one-round window)
+                    st.rng.bit_generator.state = saved[pp]
+                    st.rng.random(used * limb.low.shape[0])
+            done.append(r)
+        return won
+
+    def _limb_context(self, batch: _Attempt, limb: _Limb) -> dict:
+        """Per-row constants of the attempt for one limb (every row; windows index them)."""
+        m = PREFILTER_MARGIN_M
+        f32 = torch.float32
+        leg = limb.name.endswith("leg")
+        slot = LIMBS.index(limb.name)
+        chain = list(limb.chain)
+        rest = batch.rest
+        offsets = rest[:, chain[1:]] - rest[:, chain[:-1]]  # (R, n - 1, 3)
+        # 'along' bounds of each row's target cell (outer cells open-ended).
+        cell = batch.cells[:, slot].to(torch.float64)
+        inf = torch.full_like(cell, math.inf)
+        if leg:
+            q = batch.lengths[:, 0] / LEG_CELLS
+            lo, hi = cell * q, torch.where(cell == LEG_CELLS - 1, inf, (cell + 1) * q)
+            lo = lo.clamp_min(0.0)  # the ankle may not lie above its hip
+        else:  # rise = -along in [(3 - cell) A/4, (4 - cell) A/4)
+            q = batch.lengths[:, 1] / 4
+            lo = torch.where(cell == 0, -inf, (cell - 4) * q)
+            hi = torch.where(cell == ARM_CELLS - 1, inf, (cell - 3) * q)
+        caps = self._limb_capsules[limb.name]
+        rj = rest[:, [CAPSULES[k].joint for k in caps]]
+        ci = {j: i for i, j in enumerate(chain)}
+        # Screen (float32, loosened by the margin).
+        reach_off = (offsets[:, 0], offsets[:, 1]) if leg else (offsets[:, 1], offsets[:, 2])
+        ctx = dict(
+            o1=reach_off[0].to(f32), o2=reach_off[1].to(f32), frame32=batch.frame.to(f32),
+            lo32=(lo - m).to(f32), hi32=(hi + m).to(f32), prox32=rest[:, limb.proximal].to(f32),
+            shift32=batch.shift.to(f32),
+            # bed-outline slack: the margin (legs), or the collar's reach per radian (arms)
+            slack32=(torch.full_like(cell, m) if leg else offsets[:, 0].norm(dim=-1) / 3).to(f32),
+            left_ankle32=(batch.left_ankle_x - m).to(f32),
+            # Exact tests (float64).
+            offsets=offsets, root=rest[:, chain[0]], frame=batch.frame, shift=batch.shift,
+            cell=batch.cells[:, slot], length=batch.lengths[:, 0 if leg else 1],
+            left_ankle=batch.left_ankle_x,
+            local=torch.cat([batch.start0[:, caps] - rj, batch.end0[:, caps] - rj], 1),  # (R, 2c, 3)
+            cap_joints=[ci[CAPSULES[k].joint] for k in caps] * 2,
+            over_bed=[ci[j] for j in limb.over_bed], distal=ci[limb.distal], proximal=ci[limb.proximal],
+        )
+        return ctx
+
+    def _screen(self, ctx: dict, pending: torch.Tensor, limb: _Limb, u: torch.Tensor):
+        """(p, k) of the draws that may meet the conditions, from the uniform numbers u (P, M, 4)
+        the angles are made of: first the distal joint's cell and height above the bed (bed
+        axes after the roll) for every draw, then for those left crossing and, over the bed,
+        the distal joint's position - all loosened by PREFILTER_MARGIN_M (float32 round-off is
+        < 1e-6 m), and for arms by how far the collar's third of the rotation can move the
+        shoulder (at most |angle| / 3 x the collar-shoulder distance)."""
+        P, M = u.shape[:2]
+        leg = limb.name.endswith("leg")
+        m = PREFILTER_MARGIN_M
+        f32 = torch.float32
+        low = torch.from_numpy(limb.low).to(f32)
+        span = torch.from_numpy(limb.high - limb.low).to(f32)
+        ps, ks = [], []
+        step = max(1, _SCREEN_ELEMENTS // M)
+        for lo in range(0, P, step):
+            rows = pending[lo:lo + step]
+            x = u[lo:lo + step].permute(2, 0, 1).to(f32, memory_format=torch.contiguous_format)  # (4, p, M)
+            rot = _rodrigues(tuple(low[i] + span[i] * x[i] for i in range(3)))
+            o2 = _cols(ctx["o2"][rows])
+            if not self.part.straight_limbs:
+                o2 = _apply_hinge(limb, low[3] + span[3] * x[3], o2)
+            reach = _rotate(rot, _add(_cols(ctx["o1"][rows]), o2))
+            frame = ctx["frame32"][rows]
+            up = _dot(reach, _cols(frame[:, _UP]))
+            along = _dot(reach, _cols(frame[:, _ALONG]))
+            ok = up.abs() <= HEIGHT_TOLERANCE_M + m
+            ok &= (along >= ctx["lo32"][rows, None]) & (along < ctx["hi32"][rows, None])
+            if not leg and self.part.hands_behind_head:
+                ok &= up <= m  # no higher than the shoulder
+            idx = ok.nonzero()
+            p, k = idx[:, 0], idx[:, 1]
+            crossed = leg and self.part.crossed_legs
+            if crossed or self.config.over_bed:
+                # The same draws' distal joint, for those left.
+                r = rows[p]
+                dist = _add(_split(ctx["prox32"][r]), tuple(c.expand(ok.shape)[p, k] for c in reach))
+                keep = torch.ones_like(p, dtype=torch.bool)
+                if crossed:
+                    if limb.side == "left":
+                        keep &= dist[0] < m
+                    else:
+                        keep &= dist[0] > ctx["left_ankle32"][r]
+                if self.config.over_bed:
+                    slack = ctx["slack32"][r]
+                    if not leg:
+                        slack = slack * rot[1][p, k].sqrt() + m
+                    fr, shift = ctx["frame32"][r], ctx["shift32"][r]
+                    wx = _dot(_split(fr[:, _MAT_X]), dist) + shift[:, 0]
+                    wy = _dot(_split(fr[:, _MAT_Y]), dist) + shift[:, 1]
+                    keep &= (wx > self.x_lo - slack) & (wx < self.x_hi + slack)
+                    keep &= (wy > self.y_lo - slack) & (wy < self.y_hi + slack)
+                p, k = p[keep], k[keep]
+            ps.append(p + lo)
+            ks.append(k)
+        return torch.cat(ps), torch.cat(ks)
+
+    def _limb_survivors(self, ctx: dict, rows: torch.Tensor, limb: _Limb, angles: torch.Tensor):
+        """For N draws (rows (N,), angles (N, 4)) that passed the screen: whether they meet
+        every condition (N,) - cell, height, the partition's conditions, the bed outline - the
+        chain joints' positions (N, n, 3) in body axes and the limb's capsule end points
+        ((N, c, 3), (N, c, 3))."""
+        leg = limb.name.endswith("leg")
+        c, s = torch.cos(angles[:, 3]), torch.sin(angles[:, 3])
+        one, zero = torch.ones_like(c), torch.zeros_like(c)
+        if leg:  # knee about x
+            hinge = torch.stack([one, zero, zero, zero, c, -s, zero, s, c], -1).view(-1, 3, 3)
+        else:  # elbow about y
+            hinge = torch.stack([c, zero, s, zero, one, zero, -s, zero, c], -1).view(-1, 3, 3)
+        R = _rotation_matrix(angles[:, :3])
+        lower = R @ hinge
+        # World rotation of each chain joint (and the capsule riding it).
+        if leg:  # hip, knee, ankle, foot
+            rots = torch.stack([R, lower, lower, lower], 1)
+        else:  # collar (1/3 of the rotation), shoulder, elbow, wrist, hand
+            rots = torch.stack([_rotation_matrix(angles[:, :3] / 3), R, lower, lower, lower], 1)
+        steps = (rots[:, :-1] @ ctx["offsets"][rows, ..., None])[..., 0]
+        pos = torch.cat([ctx["root"][rows, None], steps], 1).cumsum(1)  # (N, n, 3)
+        # Cell and height in the bed's axes after the roll only: 'along' is the body's long
+        # axis and 'up' the height above the bed, whatever the yaw (a yawed body keeps its cells).
+        frame = ctx["frame"][rows]
+        dist, prox = pos[:, ctx["distal"]], pos[:, ctx["proximal"]]
+        reach = dist - prox
+        up = (reach * frame[:, _UP]).sum(-1)
+        along = (reach * frame[:, _ALONG]).sum(-1)  # toward the foot
+        ok = up.abs() <= HEIGHT_TOLERANCE_M
+        cell, length = ctx["cell"][rows], ctx["length"][rows]
+        if leg:
+            ok &= (along >= 0) & (_leg_cell(along, length) == cell)
             if self.part.crossed_legs:
                 # Feet crossed: the left ankle lies on the right of the right ankle (body x =
                 # the subject's left). The left leg, drawn first, crosses the midline; the
                 # right ankle must then stay on its left.
-                if limb.side == "left":
-                    ok &= pos[:, :, ci[limb.distal], 0] < 0
-                else:
-                    left_ankle = torch.stack([st.chains["left_leg"][2, 0] for st in states])[:, None]
-                    ok &= left_ankle < pos[:, :, ci[limb.distal], 0]
+                ok &= (dist[:, 0] < 0) if limb.side == "left" else (ctx["left_ankle"][rows] < dist[:, 0])
         else:
-            A = torch.tensor([st.arm_length for st in states], dtype=torch.float64)[:, None]
-            ok &= _arm_cell(-along, A) == cell
+            ok &= _arm_cell(-along, length) == cell
             if self.part.hands_behind_head:
                 # Behind the head: the wrist between the midline and its shoulder, no higher
                 # than the shoulder (it lies under the head).
-                ok &= pos[:, :, ci[limb.distal], 0].abs() < pos[:, :, ci[limb.proximal], 0].abs()
-                ok &= dist[..., 2] <= prox[..., 2]
+                ok &= (dist[:, 0].abs() < prox[:, 0].abs()) & (up <= 0)
         if self.config.over_bed:
-            shift = torch.stack([st.shift for st in states])[:, None, None]
-            R_root = torch.stack([st.R_root for st in states])[:, None, None]
-            idx = [ci[j] for j in limb.over_bed]
-            world = (R_root @ pos[:, :, idx, :, None])[..., 0] + shift
-            x, y = world[..., 0], world[..., 1]
+            bed = pos[:, ctx["over_bed"]]  # (N, k, 3)
+            shift = ctx["shift"][rows]
+            x = (bed * frame[:, None, _MAT_X]).sum(-1) + shift[:, None, 0]
+            y = (bed * frame[:, None, _MAT_Y]).sum(-1) + shift[:, None, 1]
             ok &= ((x > self.x_lo) & (x < self.x_hi) & (y > self.y_lo) & (y < self.y_hi)).all(-1)
-        return ok, rot, pos
+        # Capsule end points: joint position + the joint's rotation of the rest offset.
+        cj = ctx["cap_joints"]
+        ab = (rots[:, cj] @ ctx["local"][rows, ..., None])[..., 0] + pos[:, cj]
+        c2 = len(cj) // 2
+        return ok, pos, (ab[:, :c2], ab[:, c2:])
 
-    def _limb_collisions(self, states, limb, candidates, rot, pos):
-        """Self-collision test of the draws flagged in `candidates` (P, M): whether each is
-        free of the capsules already placed (P, M; True where not tested), and the placed
-        capsule end points {(p, k): ((20, 3), (20, 3))} with the draw put in."""
-        free = torch.ones_like(candidates)
-        idx = candidates.nonzero()
-        if idx.numel() == 0:
-            return free, {}
-        p, k = idx[:, 0], idx[:, 1]
-        ci = {j: i for i, j in enumerate(limb.chain)}
-        caps = self._limb_capsules[limb.name]
-        jr = [ci[CAPSULES[c].joint] for c in caps]
-        rest = torch.stack([st.rest for st in states])[p][:, [CAPSULES[c].joint for c in caps]]  # (N, c, 3)
-        start0 = torch.stack([st.caps[0] for st in states])[p]        # (N, 20, 3)
-        end0 = torch.stack([st.caps[1] for st in states])[p]
-        Rj, pj = rot[p, k][:, jr], pos[p, k][:, jr]                   # (N, c, 3, 3), (N, c, 3)
-        a = torch.stack([st.placed[0] for st in states])[p].clone()
-        b = torch.stack([st.placed[1] for st in states])[p].clone()
-        a[:, caps] = (Rj @ (start0[:, caps] - rest)[..., None])[..., 0] + pj
-        b[:, caps] = (Rj @ (end0[:, caps] - rest)[..., None])[..., 0] + pj
+    def _collision_free(self, batch: _Attempt, rows: torch.Tensor, limb: _Limb, ends) -> torch.Tensor:
+        """(N,) whether each draw's capsules clear the capsules already placed (checked pairs)."""
         pairs = self._limb_pairs[limb.name]
-        if pairs.numel():
-            radius = torch.stack([st.caps[2] for st in states])[p]
-            free[p, k] = (capsule_clearance(a, b, radius, pairs) >= 0).all(-1)
-        ends = {(int(pi), int(ki)): (a[n], b[n]) for n, (pi, ki) in enumerate(zip(p, k))}
-        return free, ends
+        if rows.numel() == 0 or pairs.numel() == 0:
+            return torch.ones(rows.shape[0], dtype=torch.bool)
+        caps = self._limb_capsules[limb.name]
+        a, b = batch.a[rows], batch.b[rows]
+        a[:, caps], b[:, caps] = ends
+        return (capsule_clearance(a, b, batch.radius[rows], pairs) >= 0).all(-1)
 
     def _collect(self, states: list[_State]) -> InitialPoses:
         pose = torch.zeros(len(states), NUM_POSE_JOINTS, 3, dtype=torch.float64)
-        for p, st in enumerate(states):
-            for name in LIMBS:
-                lb = self.limbs[name]
-                for j, aa in zip(_rotating_joints(lb), limb_pose(lb, st.angles[name])):
-                    pose[p, j - 1] = aa
+        for name in LIMBS:
+            lb = self.limbs[name]
+            aa = limb_pose(lb, torch.stack([st.angles[name] for st in states]))  # (B, r, 3)
+            for i, j in enumerate(_rotating_joints(lb)):
+                pose[:, j - 1] = aa[:, i]
         shape = torch.tensor(np.stack([st.shape for st in states]), dtype=torch.float64)
         root_aa = torch.stack([st.root_aa for st in states])
         R = root_matrix(root_aa)
         # Pelvis height: the lowest capsule surface touches the undeformed mattress top.
-        # (Element-wise products, not a batched matmul: the result must not depend on the
-        # batch size, to the last bit.)
+        # (Element-wise products, not a batched matmul, then rounded to 1 nm: the result
+        # must not depend on the batch size, to the last bit.)
         up = R[:, None, 2, :]  # the mat's z axis in body coordinates
         za = (torch.stack([st.placed[0] for st in states]) * up).sum(-1)
         zb = (torch.stack([st.placed[1] for st in states]) * up).sum(-1)
@@ -513,6 +777,17 @@ class PoseSampler:
         )
 
 
+def _draw_schedule(budget: int) -> np.ndarray:
+    """Cumulative draw counts at the end of each round: 64, 128, ..., 4096, 4096, ... up to
+    `budget`."""
+    ends, drawn, size = [], 0, FIRST_ROUND
+    while drawn < budget:
+        drawn += min(size, budget - drawn)
+        size = min(2 * size, LARGEST_ROUND)
+        ends.append(drawn)
+    return np.array(ends)
+
+
 def _leg_cell(drop: torch.Tensor, L: torch.Tensor) -> torch.Tensor:
     """Leg cell 0..3 of an ankle `drop` below the hip (>= 0) in quarters of the leg length."""
     return (drop / (L / LEG_CELLS)).floor().clamp(0, LEG_CELLS - 1).long()
@@ -523,4 +798,3 @@ def _arm_cell(rise: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
     3 = [0, A/4), 4 = [-A/4, 0), 7 = below -3A/4."""
     q = (rise / (A / 4)).floor().clamp(-4, 3).long()  # -4..3
     return 3 - q
-
