@@ -27,7 +27,7 @@ from pressurepose.sampling.sampler import PoseSampler
 from pressurepose.sim.foundation import simulate_pressure
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
-from pressurepose.sim.settle import settle
+from pressurepose.sim.settle import SIM_VOLUME_POINTS, settle
 
 SEED_PER_DAY = 35_000
 
@@ -50,7 +50,7 @@ def main() -> None:
         initial = concat(parts).params
         n = initial.batch_size
         t0 = time.perf_counter()
-        body = build_capsule_body(model, initial.shape)
+        body = build_capsule_body(model, initial.shape, volume_points=SIM_VOLUME_POINTS)
         t1 = time.perf_counter()
         res = settle(model, initial, params, mat, body=body, batch=args.batch)
         t2 = time.perf_counter()

@@ -351,3 +351,10 @@ def test_sim1_and_sim2_rest_a_half_sitting_body_on_a_raised_bed(anny64):
     rows = (sim.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
     assert int(rows.min()) < 16 < int(rows.max())  # loads on both sides of the hinge (row 16)
     assert (sim.depth_mm[0] < 0).sum() > 50 and torch.equal(sim.contact, (sim.depth_mm < 0).to(sim.contact.dtype))
+
+
+def test_simulation_never_converts_the_callers_model(anny32):
+    from pressurepose.sim.settle import as_float64
+
+    copy64 = as_float64(anny32)
+    assert anny32.dtype == torch.float32 and copy64.dtype == torch.float64

@@ -53,7 +53,9 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
 
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
-    model64 = model if model.dtype == torch.float64 else model.to(torch.float64)
+    from pressurepose.sim.settle import as_float64
+
+    model64 = as_float64(model)
     settled = settle(model64, params, mattress, mat, bed=bed)
     rest = settled.params
     out = model64(rest)
