@@ -72,7 +72,7 @@ def settle_capsule(length_m: float, radius_m: float, mass_kg: float, xy=(0.9, 0.
     m = mujoco.MjModel.from_xml_string(xml)
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
-    found = CapsuleFoundation(mat, params, grid_sub, length_m + 2 * radius_m)
+    found = CapsuleFoundation(mat, params, grid_sub)
     mass = m.body_mass[1:2].copy()
     inertia = m.body_inertia[1:2].min(1).copy()
     settled, wmax, step = False, 0.0, 0

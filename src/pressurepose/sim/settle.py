@@ -11,8 +11,10 @@ capsules (seed eq. 17's role - both simulations push back on a body the same way
 node of the covered grid, the compression w of the lowest capsule surface point below the
 mattress top gives the force (k1 w + k3 w^3) A upwards, plus a damper (time constant
 `damping_s` x the local stiffness) and regularised Coulomb friction (`friction`), applied to
-that capsule at that point through `xfrc_applied`. MuJoCo's soft contacts would make the
-sinking depend on the number of contacts (DESIGN.md); this does not.
+that capsule at that point through `xfrc_applied` (on a raised bed, per bed section in its own
+frame). MuJoCo's soft contacts would make the sinking depend on the number of contacts
+(DESIGN.md); this does not. The mattress's sides are MuJoCo boxes, so limbs hanging over the
+edge rest against them. Forces come from the current state (between mj_step1 and mj_step2).
 
 Procedure (seed A.2): the body starts with its lowest capsule point `drop_height_m` above the
 mattress; all velocities are zeroed every 4 steps until the buttocks (pelvis) capsule touches;
@@ -197,8 +199,7 @@ def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tupl
 class CapsuleFoundation:
     """Sim #2's foundation law applied to capsules over a grid (numpy, per step)."""
 
-    def __init__(self, mat: MatSpec, params: MattressParams, sub: int, max_extent_m: float = 0.0,
-                 bed: BedShape | None = None):
+    def __init__(self, mat: MatSpec, params: MattressParams, sub: int = 1, bed: BedShape | None = None):
         self.mat, self.params, self.sub = mat, params, sub
         self.bed = bed or BedShape()
         self.hinge = np.array([self.bed.hinge_x(mat), 0.0, 0.0])
@@ -428,7 +429,6 @@ class _Episode:
             d.qpos[2] += config.drop_height_m - low
         d.qvel[:] = 0.0
         mujoco.mj_forward(m, d)
-        self.extent = float(np.max(np.linalg.norm(self.loc_b - self.loc_a, axis=1) + 2 * self.radius))
         self.mat = mat
         self.mass = float(m.body_subtreemass[0])
         self.cap_mass = m.body_mass[self.body_ids].copy()
