@@ -154,6 +154,7 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
         "mean_contact_pressure_mmhg": round(float(p[p > 0].mean()) if (p > 0).any() else 0.0, 2),
         "peak_pressure_mmhg": round(float(p.max()), 2),
         "sink_mm": round(float(sim.sink_m[0]) * 1e3, 1),
+        "head_angle_deg": cfg.head_angle_deg,
     }
     paths = {}
     arrays = {
@@ -169,7 +170,14 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
         title = (f"{cfg.partition}, {cfg.gender}, index {cfg.index}: {record['mass_kg']} kg, "
                  f"area {record['contact_area_m2']} m^2, mean {record['mean_contact_pressure_mmhg']} mmHg, "
                  f"peak {record['peak_pressure_mmhg']} mmHg")
-        paths["figure"] = plot_sample(cfg.out / "simulate.png", p, arrays["depth_mm"], sim.vertices[0].numpy(), title)
+        profile = None
+        if not bed.flat:
+            (x0, x1), _ = mat.mattress_bounds_m
+            s_pts = torch.tensor([[x0, 0.0, 0.0], [bed.hinge_x(mat), 0.0, 0.0], [x1, 0.0, 0.0]], dtype=torch.float64)
+            profile = bed.to_world(s_pts, mat)[:, [0, 2]].numpy()
+            title += f", head of the bed {cfg.head_angle_deg:g} deg"
+        paths["figure"] = plot_sample(cfg.out / "simulate.png", p, arrays["depth_mm"], sim.vertices[0].numpy(),
+                                      title, bed_profile=profile)
     record["files"] = {k: v.name for k, v in paths.items()}
     paths["record"] = _atomic(cfg.out / "simulate.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
     if reason:

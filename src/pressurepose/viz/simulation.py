@@ -8,9 +8,10 @@ import numpy as np
 
 
 def plot_sample(path: Path, pressure_mmhg: np.ndarray, depth_mm: np.ndarray, vertices: np.ndarray,
-                title: str = "", max_pressure: float = 100.0) -> Path:
+                title: str = "", max_pressure: float = 100.0, bed_profile: np.ndarray | None = None) -> Path:
     """Write a PNG with the (64, 27) pressure image (mmHg), the depth map Q (mm) with the
-    contact outline, and side and top views of the mesh at rest (mat frame, m)."""
+    contact outline, and side and top views of the mesh at rest (mat frame, m); `bed_profile`
+    (n, 2): the mattress top's (x, z) along the bed when it is not flat."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -31,10 +32,13 @@ def plot_sample(path: Path, pressure_mmhg: np.ndarray, depth_mm: np.ndarray, ver
     step = max(1, len(vertices) // 6000)
     v = vertices[::step]
     axes[2].scatter(v[:, 0], v[:, 2] * 100, s=0.3, c=v[:, 1], cmap="coolwarm")
-    axes[2].axhline(0.0, color="k", lw=0.8)
+    if bed_profile is None:
+        axes[2].axhline(0.0, color="k", lw=0.8)
+    else:  # (n, 2) x, z of the mattress top along the bed (raised head section)
+        axes[2].plot(bed_profile[:, 0], bed_profile[:, 1] * 100, color="k", lw=0.8)
     axes[2].set_xlabel("x along the bed (m)")
     axes[2].set_ylabel("height (cm)")
-    axes[2].set_title("at rest, side view (z = 0: mattress top)")
+    axes[2].set_title("at rest, side view (black: mattress top)")
     axes[3].scatter(v[:, 1], v[:, 0], s=0.3, c=v[:, 2], cmap="viridis")
     axes[3].invert_yaxis()
     axes[3].set_aspect("equal")
