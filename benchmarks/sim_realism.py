@@ -26,11 +26,10 @@ import torch
 from pressurepose.body import load_body_model
 from pressurepose.body.capsules import home_pose
 from pressurepose.body.fit_shape import shape_for_height_mass
-from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.params import BodyParams
 from pressurepose.data.pmatdata import PMAT_TAXEL_AREA_M2, frame_stats, load_index, normalise, read_frame
 from pressurepose.mat import MatSpec
-from pressurepose.sim.bed import BedShape
+from pressurepose.sim.bed import BedShape, half_sitting_params
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.run import simulate_poses
 
@@ -71,18 +70,6 @@ def simulate(subjects, params: MattressParams, mat: MatSpec):
     return out, h, m
 
 
-def sitting_params(shape, bed: BedShape, mat: MatSpec) -> BodyParams:
-    """Half-sitting on a raised bed: the home pose with the trunk pitched up by the bed angle
-    and the hips flexed by it (legs flat on the foot section), pelvis just past the hinge."""
-    B, phi = shape.shape[0], bed.angle_rad
-    pose = home_pose(B)
-    for hip in ("left_hip", "right_hip"):
-        pose[:, J24_NAMES.index(hip) - 1, 0] = -phi
-    return BodyParams.zeros(B, shape).replace(
-        pose=pose, root_rotation=torch.tensor([[0.0, phi, 0.0]] * B, dtype=torch.float64),
-        root_translation=torch.tensor([[bed.hinge_x(mat) + 0.08, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64))
-
-
 def raised_bed(root: Path, threshold: float, params: MattressParams, mat: MatSpec) -> None:
     """PmatData group F (supine, head of the bed at 0-60 degrees) against half-sitting bodies."""
     recs = [r for r in load_index(root) if r.group == "F"]
@@ -102,7 +89,7 @@ def raised_bed(root: Path, threshold: float, params: MattressParams, mat: MatSpe
             st = summary(frames, PMAT_TAXEL_AREA_M2)
             head = float(np.median([f[:hinge_row].sum() / f.sum() for f in frames]))
             print(f"| {angle:.0f} | PmatData {mattress} | {st['area_m2']:.3f} | {st['mean_mmhg']:.1f} | {st['peak_mmhg']:.0f} | {head:.0%} |")
-        sim = simulate_poses(model, sitting_params(shape, bed, mat), params, mat, bed=bed)
+        sim = simulate_poses(model, half_sitting_params(shape, bed, mat), params, mat, bed=bed)
         ok = [i for i, r in enumerate(sim.reason) if not r]
         frames = [sim.pressure_mmhg[i].numpy() for i in ok]
         if frames:

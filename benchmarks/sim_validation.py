@@ -42,7 +42,7 @@ def cases(model):
     mass = model.measure(shape).mass_kg
     out.append(("supine male, home pose", body.vertices[0], body.faces, float(mass[0])))
     out.append(("supine female, home pose", body.vertices[1], body.faces, float(mass[1])))
-    for partition, roll in (("general", None), ("prone_hands_up", None)):
+    for partition in ("general", "prone_hands_up"):
         init = PoseSampler(model, SamplingConfig(partition=partition, gender="male", seed=0,
                                                  over_bed=partition == "prone_hands_up")).sample([3]).params
         rest = settle(model, init)

@@ -11,7 +11,7 @@ import torch
 
 from pressurepose.body.capsules import home_pose
 from pressurepose.body.params import BodyParams
-from pressurepose.maps import EMPTY_HEIGHT_M, contact_map, depth_map, underside_height
+from pressurepose.maps import EMPTY_HEIGHT_M, depth_map
 from pressurepose.mat import MatSpec
 from pressurepose.sim.foundation import FAIL_NO_SUPPORT, mesh_centroid, simulate_pressure
 from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA, MattressParams
@@ -336,17 +336,11 @@ def test_raised_bed_normal_force_and_friction_balance_the_weight(angle):
 
 
 def test_sim1_and_sim2_rest_a_half_sitting_body_on_a_raised_bed(anny64):
-    from pressurepose.body.joints import J24_NAMES
+    from pressurepose.sim.bed import half_sitting_params
     from pressurepose.sim.run import simulate_poses
 
-    bed, phi = BedShape(30.0), math.radians(30.0)
-    pose = home_pose(1, dtype=D)
-    for hip in ("left_hip", "right_hip"):
-        pose[0, J24_NAMES.index(hip) - 1, 0] = -phi
-    params = BodyParams.zeros(1, anny64.default_shape(1)).replace(
-        pose=pose, root_rotation=torch.tensor([[0.0, phi, 0.0]], dtype=D),
-        root_translation=torch.tensor([[bed.hinge_x(MAT) + 0.08, MAT.sensing_width_m / 2, 0.2]], dtype=D))
-    sim = simulate_poses(anny64, params, bed=bed)
+    bed = BedShape(30.0)
+    sim = simulate_poses(anny64, half_sitting_params(anny64.default_shape(1), bed, MAT), bed=bed)
     assert sim.reason == [""]
     rows = (sim.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
     assert int(rows.min()) < 16 < int(rows.max())  # loads on both sides of the hinge (row 16)

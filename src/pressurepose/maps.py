@@ -49,12 +49,15 @@ def cell_centres(mat: MatSpec, sub: int = 1, covered: bool = True, dtype=torch.f
     return torch.meshgrid(x, y, indexing="ij")
 
 
-def surface_points(vertices: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
-    """(B, V [+ F], 3): the vertices and, with faces (F, 3), each triangle's centroid."""
+def surface_points(vertices: torch.Tensor, faces: torch.Tensor | None,
+                   corners: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, V [+ F], 3): the vertices and, with faces (F, 3), each triangle's centroid.
+    `corners` (B, F, 3, 3): the triangles' corners when the caller has gathered them already."""
     if faces is None:
         return vertices
-    centroids = vertices[:, faces].mean(2)
-    return torch.cat([vertices, centroids], 1)
+    if corners is None:
+        corners = vertices[:, faces]
+    return torch.cat([vertices, corners.mean(2)], 1)
 
 
 def _check_vertices(vertices: torch.Tensor) -> None:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import time
 from pathlib import Path
 from typing import Literal
@@ -23,6 +22,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from pressurepose.files import atomic_write
 from pressurepose.sampling.partitions import SamplingConfig
 from pressurepose.sampling.sampler import REJECTION_KEYS, InitialPoses, PoseSampler
 
@@ -94,14 +94,14 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
         "joints": poses.joints.numpy(), "index": poses.index, "cells": poses.cells, "root_draw": poses.root_draw,
     }
     arrays.update({f"rejections_{k}": v for k, v in poses.rejections.items()})
-    npz = _atomic(cfg.out / "poses.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
+    npz = atomic_write(cfg.out / "poses.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
 
     from pressurepose.mat import MatSpec
     from pressurepose.viz.sampling import plot_bodies, plot_cells, posed_vertices
 
     title = f"{cfg.partition}, {cfg.gender}, over_bed={cfg.over_bed}: {cfg.n} samples"
     paths = {"poses": npz}
-    paths["cells"] = _atomic(cfg.out / "cells.png", lambda tmp: plot_cells(
+    paths["cells"] = atomic_write(cfg.out / "cells.png", lambda tmp: plot_cells(
         poses.joints.numpy(), poses.root_draw, poses.cells, tmp, title=f"{title} - distal joints over the cells"))
     k = min(cfg.figures, cfg.n)
     if k > 0:
@@ -109,7 +109,7 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
                                     ("shape", "root_rotation", "root_translation", "pose")})
         labels = [f"#{i} cells {c.tolist()}" for i, c in zip(poses.index[:k], poses.cells[:k])]
         vertices = posed_vertices(model, sub)
-        paths["bodies"] = _atomic(cfg.out / "bodies.png", lambda tmp: plot_bodies(vertices, MatSpec(), tmp, labels))
+        paths["bodies"] = atomic_write(cfg.out / "bodies.png", lambda tmp: plot_bodies(vertices, MatSpec(), tmp, labels))
 
     from pressurepose import __version__
     from pressurepose.sampling.shapes import shape_bounds
@@ -132,7 +132,7 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
         "rejections_total": {k: int(v.sum()) for k, v in poses.rejections.items()},
         "files": {k: p.name for k, p in paths.items()},
     }
-    paths["config"] = _atomic(cfg.out / "config.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
+    paths["config"] = atomic_write(cfg.out / "config.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
     log.info("%d poses in %.1f s (%.0f/s)", cfg.n, seconds, cfg.n / seconds)
     return paths
 
@@ -163,15 +163,3 @@ def load_poses(path: str | Path) -> dict[str, np.ndarray]:
             return {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError) as exc:
         raise ValueError(f"{path} is not a readable poses file ({exc}); write it again with `pressurepose sample`") from None
-
-
-def _atomic(path: Path, write) -> Path:
-    """Write through `write(tmp_path)` to a temporary name in the same folder, then rename."""
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path

@@ -34,7 +34,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, heights_from_points
+from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, heights_from_points, surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.bed import BedShape
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
@@ -84,13 +84,13 @@ def _centroid_and_points(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[t
     triangle centroids), from one gather of the triangle corners."""
     tri = vertices.index_select(1, faces.reshape(-1)).view(vertices.shape[0], -1, 3, 3)
     v0, v1, v2 = tri.unbind(2)
-    tri_sum = tri.sum(2)
+    tri_sum = v0 + v1 + v2
     # 6 x signed volume (B, F): v0 . (v1 x v2), written out (faster than linalg.cross here)
     vol = (v0[..., 0] * (v1[..., 1] * v2[..., 2] - v1[..., 2] * v2[..., 1])
            + v0[..., 1] * (v1[..., 2] * v2[..., 0] - v1[..., 0] * v2[..., 2])
            + v0[..., 2] * (v1[..., 0] * v2[..., 1] - v1[..., 1] * v2[..., 0]))
     centroid = (vol[..., None] * tri_sum).sum(1) / (4.0 * vol.sum(1)[:, None])
-    return centroid, torch.cat([vertices, tri_sum / 3.0], 1)
+    return centroid, surface_points(vertices, faces, corners=tri)
 
 
 def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tensor:
@@ -318,7 +318,7 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
                 lowest = torch.where(gd.mask.bool(), gd.h, torch.full_like(gd.h, float("inf"))).amin(1)
                 q0[:, 0] = torch.where(torch.isfinite(lowest), -lowest, torch.zeros_like(lowest))
             pd = _detached(params)
-            qs, it, conv = _newton(gd, pd, weight.detach(), q0, max_iter, tol)
+            qs, it, _ = _newton(gd, pd, weight.detach(), q0, max_iter, tol)
             iters += it
             J = gd.jacobian(qs, pd)
             eye = torch.eye(4, dtype=J.dtype, device=J.device)

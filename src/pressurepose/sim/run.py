@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 from pathlib import Path
 from typing import Literal
@@ -19,6 +18,7 @@ import torch
 
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams
+from pressurepose.files import atomic_write
 from pressurepose.mat import MatSpec
 from pressurepose.sim.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
@@ -46,15 +46,12 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
                    mat: MatSpec | None = None, seed: int = 0, bed: BedShape | None = None) -> SimulatedSamples:
     """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses (on a flat
     bed, or a bent one: `bed`)."""
-    from pressurepose.body.kinematics import pose_in_mat
     from pressurepose.sim.foundation import simulate_pressure
     from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
-    from pressurepose.sim.settle import settle
+    from pressurepose.sim.settle import as_float64, settle
 
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
-    from pressurepose.sim.settle import as_float64
-
     model64 = as_float64(model)
     settled = settle(model64, params, mattress, mat, bed=bed)
     rest = settled.params
@@ -66,13 +63,15 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     gen = torch.Generator().manual_seed(seed)
     reading = taxel_reading(sensing_area(pressed.pressure_pa, mat).detach(), mattress, mat, generator=gen)
     depth, contact = label_maps(pressed.vertices.detach(), out.faces, mat, bed)
-    reason = [r1 or (f"sim #2: {r2}" if r2 else "") for r1, r2 in zip(settled.reason, pressed.failure)]
-    reason = [r if not r or r.startswith("sim #2") else f"sim #1: {r}" for r in reason]
+    reason = [f"sim #1: {r1}" if r1 else (f"sim #2: {r2}" if r2 else "")
+              for r1, r2 in zip(settled.reason, pressed.failure)]
     bad = torch.tensor([bool(r) for r in reason])
     reading = torch.where(bad[:, None, None], torch.zeros_like(reading), reading)
-    # Fold sim #2's rigid shift and tilt into the root so parameters reproduce the mesh.
-    shifted = _apply_rest_to_root(rest, out.joints, pressed)
-    _, joints = pose_in_mat(_rest_joints(model64, rest.shape), shifted)
+    # Fold sim #2's rigid motion into the root so parameters reproduce the mesh; the joints
+    # ride the same motion.
+    shifted = _apply_rest_to_root(rest, pressed)
+    R, t = pressed.rotation.detach(), pressed.translation.detach()
+    joints = out.joints @ R.transpose(1, 2) + t[:, None]
     return SimulatedSamples(
         params=shifted, vertices=pressed.vertices.detach(), joints=joints, pressure_mmhg=reading,
         depth_mm=depth, contact=contact, mass_kg=mass, reason=reason, settle_steps=settled.steps,
@@ -80,13 +79,7 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     )
 
 
-def _rest_joints(model, shape):
-    from pressurepose.body.kinematics import rest_joints
-
-    return rest_joints(model, shape)
-
-
-def _apply_rest_to_root(params: BodyParams, joints: torch.Tensor, pressed) -> BodyParams:
+def _apply_rest_to_root(params: BodyParams, pressed) -> BodyParams:
     """Sim #2 moved the rigid mesh by v -> R v + t; the same motion of the root (rotation on
     top of the supine reference, pelvis position) makes the parameters reproduce the mesh."""
     from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -164,7 +157,7 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
         "pose": sim.params.pose[0].numpy(), "joints": sim.joints[0].numpy(), "mass_kg": sim.mass_kg[:1].numpy(),
     }
     if not reason:
-        paths["sample"] = _atomic(cfg.out / "sample.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
+        paths["sample"] = atomic_write(cfg.out / "sample.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
         from pressurepose.viz.simulation import plot_sample
 
         title = (f"{cfg.partition}, {cfg.gender}, index {cfg.index}: {record['mass_kg']} kg, "
@@ -179,22 +172,12 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
         paths["figure"] = plot_sample(cfg.out / "simulate.png", p, arrays["depth_mm"], sim.vertices[0].numpy(),
                                       title, bed_profile=profile)
     record["files"] = {k: v.name for k, v in paths.items()}
-    paths["record"] = _atomic(cfg.out / "simulate.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
+    paths["record"] = atomic_write(cfg.out / "simulate.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
     if reason:
         raise ValueError(f"sample {cfg.index} of {cfg.partition}/{cfg.gender} was rejected ({reason}); "
                          f"the generator skips such samples - try another --index (details in {paths['record']})")
     return paths
 
-
-def _atomic(path: Path, write) -> Path:
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
 
 
 __all__ = ["SimulateConfig", "SimulatedSamples", "run_simulate", "simulate_poses"]

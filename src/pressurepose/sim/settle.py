@@ -200,7 +200,6 @@ class CapsuleFoundation:
     """Sim #2's foundation law applied to capsules over a grid (numpy, per step)."""
 
     def __init__(self, mat: MatSpec, params: MattressParams, sub: int = 1, bed: BedShape | None = None):
-        self.mat, self.params, self.sub = mat, params, sub
         self.bed = bed or BedShape()
         self.hinge = np.array([self.bed.hinge_x(mat), 0.0, 0.0])
         self._sections = self.bed.sections(mat)
@@ -264,10 +263,10 @@ class CapsuleFoundation:
             return self._forces_local(a, b, r, body_vel, com, xipos, mass, inertia, offset, dt)
         total, caps, ws, es = None, [], [], []
         for R, s0, s1 in self._sections:
-            def loc(p):
-                return (p - self.hinge) @ R + self.hinge
+            # Positions into the section's frame about the hinge; velocities just rotate.
+            a_l, b_l, com_l, xi_l = ((p - self.hinge) @ R + self.hinge for p in (a, b, com, xipos))
             vel = np.concatenate([body_vel[:, :3] @ R, body_vel[:, 3:] @ R], 1)
-            res = self._forces_local(loc(a), loc(b), r, vel, loc(com), loc(xipos), mass, inertia, offset, dt, (s0, s1))
+            res = self._forces_local(a_l, b_l, r, vel, com_l, xi_l, mass, inertia, offset, dt, (s0, s1))
             if res is None:
                 continue
             out, cap, w, energy = res
@@ -418,15 +417,17 @@ class _Episode:
             la.append(m.geom_pos[g] - half * R.reshape(3, 3)[:, 2])
             lb.append(m.geom_pos[g] + half * R.reshape(3, 3)[:, 2])
         self.loc_a, self.loc_b = np.array(la), np.array(lb)
-        mujoco.mj_forward(m, d)
-        a, b = self.ends()
         self.bed = bed or BedShape()
-        for _ in range(3):  # lift along z until the lowest point is drop_height above the top
+        # Lift along z until the lowest point is drop_height above the top (one step when flat;
+        # on a raised bed, lifting changes the normal height by cos(angle), so repeat).
+        for _ in range(3):
             mujoco.mj_forward(m, d)
             a, b = self.ends()
             n = self.bed.to_surface(torch.from_numpy(np.concatenate([a, b])), mat)[:, 2].numpy()
-            low = float((np.minimum(n[: len(a)], n[len(a):]) - self.radius).min())
-            d.qpos[2] += config.drop_height_m - low
+            lift = config.drop_height_m - float((np.minimum(n[: len(a)], n[len(a):]) - self.radius).min())
+            d.qpos[2] += lift
+            if abs(lift) < 1e-9:
+                break
         d.qvel[:] = 0.0
         mujoco.mj_forward(m, d)
         self.mat = mat
