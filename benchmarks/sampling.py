@@ -19,13 +19,15 @@ from pressurepose.body import load_body_model
 from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig, UnreachableConstraints
 
 
-def bench_sampling(n: int, threads: int) -> None:
+def bench_sampling(n: int, threads: int, partitions: list[str] | None = None) -> None:
     torch.set_num_threads(threads)
     model = load_body_model("anny", dtype=torch.float32)
     print(f"accepted initial poses per second ({threads} thread(s), {n} samples, batch {min(n, 256)}, Anny)")
     print(f"{'partition':<18} {'over_bed':<8} {'poses/s':>8} {'draws rej.':>10} {'collisions':>10} "
-          f"{'limb fail':>9} {'new shape':>9} {'new cell':>8}")
+          f"{'limb fail':>9} {'new shape':>9} {'new cell':>8} {'sit-up rej.':>11}")
     for name, part in PARTITIONS.items():
+        if partitions and name not in partitions:
+            continue
         for over_bed in part.over_bed_choices:
             sampler = PoseSampler(model, SamplingConfig(partition=name, gender="male", over_bed=over_bed))
             sampler.sample([10**6])  # warm-up (and the float64 copy of the model)
@@ -39,7 +41,7 @@ def bench_sampling(n: int, threads: int) -> None:
             rej = {k: np.concatenate([o.rejections[k] for o in out]).mean() for k in out[0].rejections}
             print(f"{name:<18} {str(over_bed):<8} {n / dt:8.0f} {rej['limb_draws_rejected']:10.0f} "
                   f"{rej['collisions']:10.1f} {rej['limb_failures']:9.2f} {rej['shape_resamples']:9.2f} "
-                  f"{rej['cell_redraws']:8.3f}")
+                  f"{rej['cell_redraws']:8.3f} {rej['sit_up_rejections']:11.2f}")
 
 
 def bench_shapes(n: int) -> None:
@@ -89,6 +91,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=1024, help="samples per partition")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--partitions", nargs="*", help="only these partitions (default: all)")
     ap.add_argument("--shapes", action="store_true")
     ap.add_argument("--capsules", action="store_true")
     args = ap.parse_args()
@@ -97,4 +100,4 @@ if __name__ == "__main__":
     elif args.capsules:
         bench_capsules()
     else:
-        bench_sampling(args.n, args.threads)
+        bench_sampling(args.n, args.threads, args.partitions)

@@ -29,7 +29,8 @@ from pressurepose.body.fit_shape import shape_for_height_mass
 from pressurepose.body.params import BodyParams
 from pressurepose.data.pmatdata import PMAT_TAXEL_AREA_M2, frame_stats, load_index, normalise, read_frame
 from pressurepose.mat import MatSpec
-from pressurepose.sim.bed import BedShape, half_sitting_params
+from pressurepose.bed import BedShape
+from pressurepose.sampling.sitting import half_sitting_params
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.run import simulate_poses
 
@@ -89,7 +90,7 @@ def raised_bed(root: Path, threshold: float, params: MattressParams, mat: MatSpe
             st = summary(frames, PMAT_TAXEL_AREA_M2)
             head = float(np.median([f[:hinge_row].sum() / f.sum() for f in frames]))
             print(f"| {angle:.0f} | PmatData {mattress} | {st['area_m2']:.3f} | {st['mean_mmhg']:.1f} | {st['peak_mmhg']:.0f} | {head:.0%} |")
-        sim = simulate_poses(model, half_sitting_params(shape, bed, mat), params, mat, bed=bed)
+        sim = simulate_poses(model, half_sitting_params(model, shape, bed, mat), params, mat, bed=bed)
         ok = [i for i, r in enumerate(sim.reason) if not r]
         frames = [sim.pressure_mmhg[i].numpy() for i in ok]
         if frames:

@@ -50,7 +50,8 @@ def test_sample_writes_poses_and_figures(tmp_path):
     np.testing.assert_array_equal(arrays["index"], np.arange(12))
     assert set(k for k in arrays if k.startswith("rejections_")) == {
         "rejections_limb_draws_rejected", "rejections_limb_failures", "rejections_collisions",
-        "rejections_shape_resamples", "rejections_cell_redraws"}
+        "rejections_shape_resamples", "rejections_cell_redraws", "rejections_sit_up_rejections"}
+    np.testing.assert_array_equal(arrays["head_angle_deg"], np.zeros(12))  # flat bed
     record = json.loads((out / "config.json").read_text())
     assert record["sampling"]["partition"] == "supine" and record["count"] == 12
     assert sum(record["cell_counts"]["left_leg"]) == 12
@@ -106,3 +107,15 @@ def test_simulate_bad_parameter_file_exits_2(tmp_path):
     bad.write_text("not json")
     r = run("simulate", "--out", str(tmp_path / "s"), "--params", str(bad))
     assert r.returncode == 2 and "Traceback" not in r.stderr and "not readable JSON" in r.stderr
+
+
+def test_simulate_half_sitting_uses_the_samples_bed_and_refuses_another(tmp_path):
+    out = tmp_path / "sit"
+    assert main(["simulate", "--out", str(out), "--partition", "half_sitting", "--gender", "male", "--index", "0"]) == 0
+    record = json.loads((out / "simulate.json").read_text())
+    angle = record["head_angle_deg"]
+    assert record["status"] == "ok" and angle in (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
+    other = 10.0 if angle != 10.0 else 20.0
+    r = run("simulate", "--out", str(tmp_path / "s2"), "--partition", "half_sitting", "--index", "0",
+            "--gender", "male", "--head-angle-deg", str(other))
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "leave out --head-angle-deg" in r.stderr

@@ -89,7 +89,7 @@ def test_unknown_partition_lists_the_valid_ones():
     with pytest.raises(ValueError, match="max_limb_draws"):
         SamplingConfig(max_limb_draws=0)
     assert set(PARTITIONS) == {"general", "supine", "hands_behind_head", "prone_hands_up", "crossed_legs",
-                               "straight_limbs"}
+                               "straight_limbs", "half_sitting"}
     assert get_partition("supine").roll == (0.0, 0.0)
 
 
@@ -140,7 +140,8 @@ def test_records_partition_rejections_and_rests_on_the_mat(anny):
     poses = draw(anny, 40, partition="supine", gender="female", over_bed=True)
     assert poses.config.partition == "supine" and poses.config.over_bed
     assert set(poses.rejections) == {"limb_draws_rejected", "limb_failures", "collisions", "shape_resamples",
-                                     "cell_redraws"}
+                                     "cell_redraws", "sit_up_rejections"}
+    assert (poses.rejections["sit_up_rejections"] == 0).all()  # a flat partition never sits up
     assert sum(int(v.sum()) for v in poses.rejections.values()) > 0
     anny._check(poses.params.to(anny.dtype))  # valid BodyParams for the model
     # shapes from the female box

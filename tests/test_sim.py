@@ -229,20 +229,26 @@ def _initial(model, partition, gender="male", indices=(0, 1)):
 @pytest.mark.slow
 @pytest.mark.parametrize("partition", sorted(PARTITIONS))
 def test_sim1_settles_typical_poses_of_every_partition(anny64, partition):
-    params = _initial(anny64, partition, indices=(0, 1, 3))
-    res = settle(anny64, params)
-    for name in ("root_rotation", "root_translation", "pose"):
-        assert torch.isfinite(getattr(res.params, name)).all()
-    assert np.isfinite(res.sink_m).all() and (res.steps <= SettleConfig().max_steps).all()
-    assert res.ok.sum() >= 2, res.reason
-    for i in np.flatnonzero(res.ok):
-        # At rest on the mattress: slow, touching, not sunk through.
-        assert res.max_speed[i] < 0.05 and res.max_accel[i] < 0.5
-        assert 0.0 < res.sink_m[i] < MattressParams().thickness_m
-        assert res.touch_step[i] >= 0
-    # The pelvis stays over the bed and ends near the mattress top.
-    z = res.params.root_translation[torch.from_numpy(res.ok), 2]
-    assert (z > -0.1).all() and (z < 0.4).all()
+    over = partition in ("hands_behind_head", "prone_hands_up")
+    poses = PoseSampler(anny64, SamplingConfig(partition=partition, gender="male", over_bed=over)).sample([0, 1, 3])
+    ok = 0
+    for bed in set(poses.beds()):  # the half_sitting partition's samples rest on raised beds
+        rows = [i for i, b in enumerate(poses.beds()) if b == bed]
+        params = BodyParams(**{f: getattr(poses.params, f)[rows] for f in ("shape", "root_rotation", "root_translation", "pose")})
+        res = settle(anny64, params, bed=bed)
+        for name in ("root_rotation", "root_translation", "pose"):
+            assert torch.isfinite(getattr(res.params, name)).all()
+        assert np.isfinite(res.sink_m).all() and (res.steps <= SettleConfig().max_steps).all()
+        ok += int(res.ok.sum())
+        for i in np.flatnonzero(res.ok):
+            # At rest on the mattress: slow, touching, not sunk through.
+            assert res.max_speed[i] < 0.05 and res.max_accel[i] < 0.5
+            assert 0.0 < res.sink_m[i] < MattressParams().thickness_m
+            assert res.touch_step[i] >= 0
+        # The pelvis stays over the bed and ends near the mattress top.
+        z = res.params.root_translation[torch.from_numpy(res.ok), 2]
+        assert (z > -0.1).all() and (z < 0.4).all()
+    assert ok >= 2
 
 
 def test_sim1_is_deterministic_and_batch_independent(anny64):
@@ -303,7 +309,7 @@ def test_pipeline_parameters_reproduce_the_mesh_at_rest(anny64):
 
 
 # --- head of the bed raised -------------------------------------------------------------------
-from pressurepose.sim.bed import BedShape  # noqa: E402
+from pressurepose.bed import BedShape  # noqa: E402
 from pressurepose.sim.foundation import FAIL_SLIDES  # noqa: E402
 
 
@@ -336,11 +342,11 @@ def test_raised_bed_normal_force_and_friction_balance_the_weight(angle):
 
 
 def test_sim1_and_sim2_rest_a_half_sitting_body_on_a_raised_bed(anny64):
-    from pressurepose.sim.bed import half_sitting_params
+    from pressurepose.sampling.sitting import half_sitting_params
     from pressurepose.sim.run import simulate_poses
 
     bed = BedShape(30.0)
-    sim = simulate_poses(anny64, half_sitting_params(anny64.default_shape(1), bed, MAT), bed=bed)
+    sim = simulate_poses(anny64, half_sitting_params(anny64, anny64.default_shape(1), bed, MAT), bed=bed)
     assert sim.reason == [""]
     rows = (sim.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
     assert int(rows.min()) < 16 < int(rows.max())  # loads on both sides of the hinge (row 16)

@@ -49,6 +49,15 @@ class Partition:
     checked_capsules: tuple[str, ...] = tuple(
         f"{s}_{p}" for s in ("left", "right") for p in ("hand", "forearm", "foot", "calf"))
     over_bed_choices: tuple[bool, ...] = (False, True)  # Table 4 rows that exist
+    # Head-of-bed angles (deg) drawn per sample; (0,) = the flat bed. On a raised bed the body
+    # is sat up after its limbs are drawn (sampling.sitting), and shift_x places the midpoint
+    # of the hip joints relative to the hinge (positive: toward the foot) instead of the pelvis
+    # relative to the mattress centre.
+    head_angles_deg: tuple[float, ...] = (0.0,)
+
+    @property
+    def raised(self) -> bool:
+        return any(a > 0 for a in self.head_angles_deg)
 
 
 def _partitions() -> dict[str, Partition]:
@@ -74,6 +83,15 @@ def _partitions() -> dict[str, Partition]:
         Partition("straight_limbs", "supine, knees and elbows straight, even arm space",
                   roll=(0.0, 0.0), leg_cells=(LEG_CELLS - 1,), straight_limbs=True,
                   over_bed_arm_cells=(0, 1, 2, 6, 7)),
+        # Beyond Table 4 (seed A.2: sitting poses on a bent bed). PmatData group F's subjects
+        # rest with the buttocks 6-19 taxel rows (0.17-0.54 m) foot-ward of the hinge at
+        # angles of 0-60 deg in steps of 10; the yaw stays small, as a sitting person's.
+        Partition("half_sitting", "supine, half-sitting in a bed with the head section raised 10-60 deg, "
+                  "even leg and arm space", roll=(0.0, 0.0), yaw=(-math.pi / 18, math.pi / 18),
+                  shift_x=(0.1, 0.4), shift_y=(-0.15, 0.15), head_angles_deg=(10.0, 20.0, 30.0, 40.0, 50.0, 60.0),
+                  # Over the bed, a hand raised above the head (arm cells 0, 1) passes the
+                  # head end of the short raised section (0.52 m of mattress above the hinge).
+                  over_bed_arm_cells=(2, 3, 4, 5, 6, 7)),
     ]
     return {p.name: p for p in parts}
 

@@ -38,7 +38,8 @@ class SampleConfig:
     n: int = 200
     """Number of initial poses."""
     partition: str = "general"
-    """general, supine, hands_behind_head, prone_hands_up, crossed_legs or straight_limbs."""
+    """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs or
+    half_sitting (head of the bed raised 10-60 deg)."""
     gender: Literal["female", "male"] = "female"
     """Gender of the sampled bodies."""
     over_bed: bool = False
@@ -92,6 +93,7 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
         "shape": poses.params.shape.numpy(), "root_rotation": poses.params.root_rotation.numpy(),
         "root_translation": poses.params.root_translation.numpy(), "pose": poses.params.pose.numpy(),
         "joints": poses.joints.numpy(), "index": poses.index, "cells": poses.cells, "root_draw": poses.root_draw,
+        "head_angle_deg": poses.head_angle_deg,
     }
     arrays.update({f"rejections_{k}": v for k, v in poses.rejections.items()})
     npz = atomic_write(cfg.out / "poses.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
@@ -148,6 +150,7 @@ def concat(parts: list[InitialPoses]) -> InitialPoses:
         params=params, joints=torch.cat([p.joints for p in parts]),
         index=np.concatenate([p.index for p in parts]), cells=np.concatenate([p.cells for p in parts]),
         root_draw=np.concatenate([p.root_draw for p in parts]),
+        head_angle_deg=np.concatenate([p.head_angle_deg for p in parts]),
         rejections={k: np.concatenate([p.rejections[k] for p in parts]) for k in REJECTION_KEYS},
         config=first.config, backend=first.backend,
     )

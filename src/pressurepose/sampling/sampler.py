@@ -21,6 +21,16 @@ screen of every draw that is looser than the real conditions (it never drops a d
 accept), the exact float64 tests for the few survivors, then self-collisions in draw order;
 the generator is wound back to the end of the winning round, so windows change nothing but
 the speed.
+
+Raised bed (the half_sitting partition): each sample also draws the head-of-bed angle (once,
+with its cells); with each shape and root comes the pitch at which that trunk rests on both
+bed sections (`sampling.sitting.trunk_pitch`). Limbs are drawn in the trunk's frame as
+usual, but the legs' cells, heights and bed outline are measured in the bed's frame turned
+back by the pitch, so they hold for the legs on the flat foot section after the body is
+turned up rigidly (`sit_up`: joint angles, limits and self-collisions unchanged). The sat-up
+pose is then checked for what turning can change: the over-bed rule in the bed's surface
+coordinates, and that the trunk, not a hand or a heel, rests on the bed (within
+SEAT_TOLERANCE_M); a failure counts as a failed attempt (`sit_up_rejections`).
 """
 
 from __future__ import annotations
@@ -33,9 +43,10 @@ import zlib
 import numpy as np
 import torch
 
-from pressurepose.body.capsules import CAPSULES, capsule_clearance, collision_pairs, fit_capsules
+from pressurepose.bed import BedShape
+from pressurepose.body.capsules import CAPSULES, Capsules, capsule_clearance, collision_pairs, fit_capsules
 from pressurepose.body.joints import J24_NAMES, NUM_POSE_JOINTS
-from pressurepose.body.kinematics import forward_kinematics
+from pressurepose.body.kinematics import forward_kinematics, pose_in_mat
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
@@ -44,6 +55,7 @@ from pressurepose.sampling.partitions import (
     ARM_CELLS, HEIGHT_TOLERANCE_M, LEG_CELLS, Partition, SamplingConfig, limb_cells,
 )
 from pressurepose.sampling.shapes import draw_shape, shape_bounds
+from pressurepose.sampling.sitting import HIP_JOINTS, fold_params, pitch_matrix, sit_up, trunk_pitch
 
 _J = J24_NAMES.index
 _D = math.pi / 180
@@ -59,7 +71,12 @@ FIRST_ROUND, LARGEST_ROUND = 64, 4096  # joint-angle draws per round, per limb a
 
 LIMBS = ("left_leg", "right_leg", "left_arm", "right_arm")  # the order limbs are drawn in
 _TORSO_JOINTS = tuple(_J(n) for n in ("pelvis", "spine1", "spine2", "spine3", "neck", "head"))
-REJECTION_KEYS = ("limb_draws_rejected", "limb_failures", "collisions", "shape_resamples", "cell_redraws")
+REJECTION_KEYS = ("limb_draws_rejected", "limb_failures", "collisions", "shape_resamples", "cell_redraws",
+                  "sit_up_rejections")
+# Sitting up on a raised bed: the trunk must rest on the bed, not be propped up by a hand or a
+# heel by more than a lying body may be (its distal joints lie up to HEIGHT_TOLERANCE_M below
+# their proximal joints); sim #1 lets it down.
+SEAT_TOLERANCE_M = HEIGHT_TOLERANCE_M
 # A limb whose cell had no solution for this many shapes gets a new cell: over the bed, a cell
 # can lie off the mattress for nearly every body (a straight arm held out sideways); the seed
 # clips such cells, the original redrew them.
@@ -211,6 +228,7 @@ class InitialPoses:
     index: np.ndarray                  # (B,) sample index within (seed, partition, gender, over_bed)
     cells: np.ndarray                  # (B, 4) target cell of left leg, right leg, left arm, right arm
     root_draw: np.ndarray              # (B, 4) drawn roll, yaw (rad), shift along, across (m)
+    head_angle_deg: np.ndarray         # (B,) head-of-bed angle the pose rests on (0: flat bed)
     rejections: dict[str, np.ndarray]  # REJECTION_KEYS -> (B,) counts
     config: SamplingConfig
     backend: str
@@ -218,6 +236,10 @@ class InitialPoses:
     @property
     def batch_size(self) -> int:
         return int(self.index.shape[0])
+
+    def beds(self) -> list[BedShape]:
+        """The bed each sample rests on (what sim #1 and sim #2 must be given)."""
+        return [BedShape(float(a)) for a in self.head_angle_deg]
 
 
 class UnreachableConstraints(ValueError):
@@ -247,6 +269,11 @@ class _State:
     blocked: dict = dataclasses.field(default_factory=dict)  # limb -> shapes it blocked since its last cell
     given_up: dict = dataclasses.field(default_factory=dict)  # limb -> cells it was redrawn away from
     placed: tuple | None = None        # capsule start, end (20, 3) of the accepted pose
+    head_angle: float = 0.0            # head-of-bed angle (deg), drawn with the cells
+    pitch: torch.Tensor | None = None  # (1,) rad the trunk turns up by on a raised bed
+    leg_frame: torch.Tensor | None = None  # (4, 3) `frame` for the legs (turned back by the pitch)
+    leg_shift: torch.Tensor | None = None  # (3,) `shift` for the legs (the pelvis once turned)
+    sat: BodyParams | None = None      # the sat-up pose on a raised bed (batch of 1)
 
 
 class _Attempt:
@@ -262,6 +289,8 @@ class _Attempt:
         self.b = self.end0.clone()
         self.frame = torch.stack([st.frame for st in states])          # (P, 4, 3)
         self.shift = torch.stack([st.shift for st in states])          # (P, 3)
+        self.leg_frame = torch.stack([st.leg_frame for st in states])  # (P, 4, 3)
+        self.leg_shift = torch.stack([st.leg_shift for st in states])  # (P, 3)
         self.lengths = torch.tensor([st.lengths for st in states], dtype=torch.float64)  # (P, 2)
         self.cells = torch.from_numpy(np.stack([st.cells for st in states]))  # (P, 4)
         self.left_ankle_x = torch.zeros(len(states), dtype=torch.float64)
@@ -369,17 +398,19 @@ class PoseSampler:
             # cache tensors (roma, in the capsule fit) must not cache inference tensors.
             with torch.inference_mode():
                 self._draw_limbs(pending)
+                if self.part.raised:
+                    self._sit_up([st for st in pending if len(st.angles) == len(LIMBS)])
             still = []
             for st in pending:
                 if len(st.angles) == len(LIMBS):
                     continue
                 st.failures += 1
-                last = st.failed_limb
+                last = st.failed_limb  # None: the pose failed when sat up
                 if st.failures > self.config.max_failures or st.unreachable is not None:
                     # This shape is given up; a limb that blocked CELL_REDRAW_AFTER shapes
                     # gets a new cell.
                     st.blocked[last] = st.blocked.get(last, 0) + 1
-                    if st.blocked[last] >= CELL_REDRAW_AFTER:
+                    if last is not None and st.blocked[last] >= CELL_REDRAW_AFTER:
                         # A new cell, not one that already blocked this limb (unless all did).
                         slot = LIMBS.index(last)
                         given_up = st.given_up.setdefault(last, set())
@@ -398,7 +429,8 @@ class PoseSampler:
                             f"after {self.config.max_shapes} shapes x {self.config.max_failures + 1} attempts; "
                             f"its constraints are unreachable with these settings "
                             f"(raise max_shapes or max_limb_draws, or use another partition); "
-                            f"last blocked: {last} in cell {st.cells[LIMBS.index(last)]}"
+                            + (f"last blocked: {last} in cell {st.cells[LIMBS.index(last)]}" if last is not None
+                               else "the last pose failed when sat up on the raised bed")
                         )
                     st.shape = None
                     st.failures = 0
@@ -411,7 +443,10 @@ class PoseSampler:
         rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(sample_key(self.config, index))))
         legs = rng.choice(np.array(self.leg_cells), size=2)
         arms = rng.choice(np.array(self.arm_cells), size=2)
-        return _State(index=index, rng=rng, cells=np.concatenate([legs, arms]))
+        st = _State(index=index, rng=rng, cells=np.concatenate([legs, arms]))
+        if self.part.raised:  # once per sample, like the cells (flat partitions draw nothing more)
+            st.head_angle = float(rng.choice(np.array(self.part.head_angles_deg)))
+        return st
 
     def _draw_shape_and_root(self, st: _State) -> None:
         st.shape = draw_shape(st.rng, self.shape_low, self.shape_high)
@@ -440,6 +475,9 @@ class PoseSampler:
         R_root = root_matrix(root_aa)  # body axes -> mat frame
         frame = torch.stack([R_roll[:, 0], R_roll[:, 2], R_root[:, 0], R_root[:, 1]], 1)
         shift = torch.from_numpy(np.stack([self.centre[0] + root[:, 2], self.centre[1] + root[:, 3], zeros], -1))
+        if self.part.raised:  # shift_x places the hips' midpoint relative to the hinge
+            hips = (R_root @ rest[:, list(HIP_JOINTS)].mean(1)[..., None])[..., 0]
+            shift[:, 0] = BedShape().hinge_x(self.mat) + torch.from_numpy(root[:, 2]) - hips[:, 0]
         def seg(a, b):  # written out: the same bits whatever the batch
             d = rest[:, a] - rest[:, b]
             return (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]).sqrt()
@@ -452,7 +490,23 @@ class PoseSampler:
             st.root_aa = root_aa[i]
             st.frame = frame[i]
             st.shift = shift[i]
+            st.leg_frame, st.leg_shift = frame[i], shift[i]
+            if self.part.raised:
+                self._pitch(st, root_aa[i:i + 1])
             st.lengths = (float(leg[i]), float(arm[i]))
+
+    def _pitch(self, st: _State, root_aa: torch.Tensor) -> None:
+        """The pitch this trunk sits up by on its bed, and the legs' frame and pelvis turned
+        back by it (one sample at a time: never batch-dependent)."""
+        caps = Capsules(st.caps[0][None], st.caps[1][None], st.caps[2][None], st.rest[None])
+        lying = BodyParams(shape=torch.from_numpy(st.shape)[None], root_rotation=root_aa,
+                           root_translation=st.shift[None].clone(),
+                           pose=torch.zeros(1, NUM_POSE_JOINTS, 3, dtype=torch.float64))
+        st.pitch = trunk_pitch(caps, lying, BedShape(st.head_angle), self.mat)
+        # A body-axes vector v of the turned body points along Q v in the lying frame, so the
+        # bed axes f seen from the lying frame are Q^T f: rows f^T Q.
+        st.leg_frame = st.frame @ pitch_matrix(root_aa, st.pitch)[0]
+        st.leg_shift = fold_params(lying, caps.rest, st.pitch, keep_thighs=False).root_translation[0]
 
     def _fit_model(self) -> BodyModel:
         """The body model in float64 on the CPU (a copy if the given one is not)."""
@@ -604,15 +658,17 @@ class PoseSampler:
         ci = {j: i for i, j in enumerate(chain)}
         # Screen (float32, loosened by the margin).
         reach_off = (offsets[:, 0], offsets[:, 1]) if leg else (offsets[:, 1], offsets[:, 2])
+        # Legs are measured against the bed as they will lie once a raised-bed body sits up.
+        frame, shift = (batch.leg_frame, batch.leg_shift) if leg else (batch.frame, batch.shift)
         ctx = dict(
-            o1=reach_off[0].to(f32), o2=reach_off[1].to(f32), frame32=batch.frame.to(f32),
+            o1=reach_off[0].to(f32), o2=reach_off[1].to(f32), frame32=frame.to(f32),
             lo32=(lo - m).to(f32), hi32=(hi + m).to(f32), prox32=rest[:, limb.proximal].to(f32),
-            shift32=batch.shift.to(f32),
+            shift32=shift.to(f32),
             # bed-outline slack: the margin (legs), or the collar's reach per radian (arms)
             slack32=(torch.full_like(cell, m) if leg else offsets[:, 0].norm(dim=-1) / 3).to(f32),
             left_ankle32=(batch.left_ankle_x - m).to(f32),
             # Exact tests (float64).
-            offsets=offsets, root=rest[:, chain[0]], frame=batch.frame, shift=batch.shift,
+            offsets=offsets, root=rest[:, chain[0]], frame=frame, shift=shift,
             cell=batch.cells[:, slot], length=batch.lengths[:, 0 if leg else 1],
             left_ankle=batch.left_ankle_x,
             local=torch.cat([batch.start0[:, caps] - rj, batch.end0[:, caps] - rj], 1),  # (R, 2c, 3)
@@ -743,13 +799,43 @@ class PoseSampler:
         a[:, caps], b[:, caps] = ends
         return (capsule_clearance(a, b, batch.radius[rows], pairs) >= 0).all(-1)
 
-    def _collect(self, states: list[_State]) -> InitialPoses:
+    def _pose(self, states: list[_State]) -> torch.Tensor:
+        """(B, 23, 3) pose of the drawn limb angles (torso at rest)."""
         pose = torch.zeros(len(states), NUM_POSE_JOINTS, 3, dtype=torch.float64)
         for name in LIMBS:
             lb = self.limbs[name]
             aa = limb_pose(lb, torch.stack([st.angles[name] for st in states]))  # (B, r, 3)
             for i, j in enumerate(_rotating_joints(lb)):
                 pose[:, j - 1] = aa[:, i]
+        return pose
+
+    def _sit_up(self, states: list[_State]) -> None:
+        """Turn each fully drawn pose up onto its raised bed and check what turning changes; a
+        pose that fails loses its limbs (a failed attempt). One sample at a time: its numbers
+        then never depend on the batch."""
+        (x_lo, x_hi), (y_lo, y_hi) = self.mat.mattress_bounds_m
+        over_bed = sorted({j for lb in self.limbs.values() for j in lb.over_bed})
+        for st in states:
+            bed = BedShape(st.head_angle)
+            caps = Capsules(st.caps[0][None], st.caps[1][None], st.caps[2][None], st.rest[None])
+            lying = BodyParams(shape=torch.from_numpy(st.shape)[None], root_rotation=st.root_aa[None],
+                               root_translation=st.shift[None].clone(), pose=self._pose([st]))
+            sat, seat = sit_up(caps, lying, bed, self.mat, pitch=st.pitch, keep_thighs=False)
+            ok = float(seat[0]) <= SEAT_TOLERANCE_M
+            if ok and self.config.over_bed:
+                _, joints = pose_in_mat(caps.rest, sat)
+                s_y = bed.to_surface(joints[0, over_bed], self.mat)
+                ok = bool(((s_y[:, 0] > x_lo) & (s_y[:, 0] < x_hi) & (s_y[:, 1] > y_lo) & (s_y[:, 1] < y_hi)).all())
+            if ok:
+                st.sat = sat
+            else:
+                st.angles = {}
+                st.sat = None
+                st.failed_limb = None
+                st.counts["sit_up_rejections"] += 1
+
+    def _collect(self, states: list[_State]) -> InitialPoses:
+        pose = self._pose(states)
         shape = torch.tensor(np.stack([st.shape for st in states]), dtype=torch.float64)
         root_aa = torch.stack([st.root_aa for st in states])
         R = root_matrix(root_aa)
@@ -763,6 +849,10 @@ class PoseSampler:
         lowest = (torch.minimum(za, zb) - radius).amin(-1)
         trans = torch.stack([st.shift for st in states])
         trans[:, 2] = -(lowest / GEOMETRY_QUANTUM_M).round() * GEOMETRY_QUANTUM_M
+        for i, st in enumerate(states):
+            if st.sat is not None:  # sat up on a raised bed (placed there by sit_up)
+                root_aa[i], trans[i], pose[i] = st.sat.root_rotation[0], st.sat.root_translation[0], st.sat.pose[0]
+        R = root_matrix(root_aa)
         params = BodyParams(shape=shape, root_rotation=root_aa, root_translation=trans, pose=pose)
         _, joints = forward_kinematics(torch.stack([st.rest for st in states]), pose, R)
         return InitialPoses(
@@ -771,6 +861,7 @@ class PoseSampler:
             index=np.array([st.index for st in states], dtype=np.int64),
             cells=np.stack([st.cells for st in states]).astype(np.int64),
             root_draw=np.stack([st.root for st in states]),
+            head_angle_deg=np.array([st.head_angle for st in states], dtype=np.float64),
             rejections={k: np.array([st.counts[k] for st in states], dtype=np.int64) for k in REJECTION_KEYS},
             config=self.config,
             backend=self.model.name,

@@ -36,7 +36,7 @@ import torch.nn.functional as F
 
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, heights_from_points, surface_points
 from pressurepose.mat import MatSpec
-from pressurepose.sim.bed import BedShape
+from pressurepose.bed import BedShape
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 # Why a solve can fail (per sample). Empty string: converged.

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -20,7 +21,7 @@ from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams
 from pressurepose.files import atomic_write
 from pressurepose.mat import MatSpec
-from pressurepose.sim.bed import BedShape
+from pressurepose.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
 
 
@@ -40,18 +41,60 @@ class SimulatedSamples:
     settle_ms: np.ndarray
     press_ms: float                # sim #2 wall time for the batch
     sink_m: np.ndarray             # sim #2 deepest compression
+    head_angle_deg: np.ndarray     # (B,) the bed each sample rests on (0: flat)
 
 
 def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
-                   mat: MatSpec | None = None, seed: int = 0, bed: BedShape | None = None) -> SimulatedSamples:
-    """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses (on a flat
-    bed, or a bent one: `bed`)."""
+                   mat: MatSpec | None = None, seed: int = 0,
+                   bed: BedShape | Sequence[BedShape] | None = None) -> SimulatedSamples:
+    """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses on a flat bed,
+    a bent one (`bed`), or one bed per sample (a sequence of B, e.g. `InitialPoses.beds()`:
+    samples on the same bed are simulated together, results come back in input order)."""
+    mattress = mattress or MattressParams()
+    mat = mat or MatSpec()
+    if bed is None or isinstance(bed, BedShape):
+        return _simulate_one_bed(model, params, mattress, mat, seed, bed or BedShape())
+    beds = list(bed)
+    if len(beds) != params.batch_size or not all(isinstance(b, BedShape) for b in beds):
+        raise ValueError(f"bed must be one BedShape or a sequence of {params.batch_size} (one per sample), "
+                         f"got {len(beds)} items")
+    groups: dict[BedShape, list[int]] = {}
+    for i, b in enumerate(beds):
+        groups.setdefault(b, []).append(i)
+    if len(groups) == 1:
+        return _simulate_one_bed(model, params, mattress, mat, seed, beds[0])
+    parts, order = [], []
+    for k, (b, rows) in enumerate(groups.items()):
+        idx = torch.tensor(rows)
+        sub = BodyParams(**{f: getattr(params, f)[idx] for f in ("shape", "root_rotation", "root_translation", "pose")})
+        parts.append(_simulate_one_bed(model, sub, mattress, mat, seed + 7919 * k, b))
+        order += rows
+    back = torch.from_numpy(np.argsort(np.array(order)))
+    return _concat(parts, back)
+
+
+def _concat(parts: list[SimulatedSamples], back: torch.Tensor) -> SimulatedSamples:
+    """Samples of several bed groups, put back in input order (`back` indexes the
+    concatenation)."""
+    cat_t = lambda name: torch.cat([getattr(p, name) for p in parts])[back]  # noqa: E731
+    cat_n = lambda name: np.concatenate([getattr(p, name) for p in parts])[back.numpy()]  # noqa: E731
+    params = BodyParams(**{f: torch.cat([getattr(p.params, f) for p in parts])[back]
+                           for f in ("shape", "root_rotation", "root_translation", "pose")})
+    reason = [r for p in parts for r in p.reason]
+    return SimulatedSamples(
+        params=params, vertices=cat_t("vertices"), joints=cat_t("joints"), pressure_mmhg=cat_t("pressure_mmhg"),
+        depth_mm=cat_t("depth_mm"), contact=cat_t("contact"), mass_kg=cat_t("mass_kg"),
+        reason=[reason[i] for i in back.tolist()], settle_steps=cat_n("settle_steps"), settle_ms=cat_n("settle_ms"),
+        press_ms=sum(p.press_ms for p in parts), sink_m=cat_n("sink_m"), head_angle_deg=cat_n("head_angle_deg"),
+    )
+
+
+def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressParams, mat: MatSpec,
+                      seed: int, bed: BedShape) -> SimulatedSamples:
     from pressurepose.sim.foundation import simulate_pressure
     from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
     from pressurepose.sim.settle import as_float64, settle
 
-    mattress = mattress or MattressParams()
-    mat = mat or MatSpec()
     model64 = as_float64(model)
     settled = settle(model64, params, mattress, mat, bed=bed)
     rest = settled.params
@@ -76,6 +119,7 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
         params=shifted, vertices=pressed.vertices.detach(), joints=joints, pressure_mmhg=reading,
         depth_mm=depth, contact=contact, mass_kg=mass, reason=reason, settle_steps=settled.steps,
         settle_ms=settled.wall_ms, press_ms=press_ms, sink_m=pressed.max_compression_m.detach().numpy(),
+        head_angle_deg=np.full(params.batch_size, float(bed.head_angle_deg)),
     )
 
 
@@ -97,7 +141,8 @@ class SimulateConfig:
     out: Path = Path("out/simulate")
     """Output folder (created)."""
     partition: str = "supine"
-    """general, supine, hands_behind_head, prone_hands_up, crossed_legs or straight_limbs."""
+    """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs or
+    half_sitting (head of the bed raised 10-60 deg)."""
     gender: Literal["female", "male"] = "female"
     over_bed: bool = False
     seed: int = 0
@@ -105,9 +150,9 @@ class SimulateConfig:
     """Sample index: the sample is a function of (seed, partition, gender, over_bed, index)."""
     params: Path | None = None
     """Mattress/sensor parameter file (JSON from `pressurepose calibrate`); default: built-in."""
-    head_angle_deg: float = 0.0
-    """Raise the head of the bed (0-70 degrees, hinge at sensing row 48 from the foot). Use a
-    pose that fits a raised bed (sampling has no half-sitting partition yet)."""
+    head_angle_deg: float | None = None
+    """Raise the head of the bed (0-70 degrees, hinge at sensing row 48 from the foot).
+    Default: the bed the sample was drawn for (flat, or the half_sitting partition's angle)."""
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: Path | None = None
 
@@ -126,7 +171,12 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
     t0 = time.perf_counter()
     initial = PoseSampler(model, sampling).sample([cfg.index])
     t1 = time.perf_counter()
-    bed = BedShape(cfg.head_angle_deg)
+    bed = initial.beds()[0]
+    if cfg.head_angle_deg is not None:
+        if sampling.spec.raised and cfg.head_angle_deg != bed.head_angle_deg:
+            raise ValueError(f"partition {cfg.partition!r} sits sample {cfg.index} up on a bed raised "
+                             f"{bed.head_angle_deg:g} deg; leave out --head-angle-deg (or pick another index)")
+        bed = BedShape(cfg.head_angle_deg)
     sim = simulate_poses(model, initial.params, mattress, seed=cfg.seed * 1_000_003 + cfg.index, bed=bed)
     t2 = time.perf_counter()
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -147,7 +197,7 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
         "mean_contact_pressure_mmhg": round(float(p[p > 0].mean()) if (p > 0).any() else 0.0, 2),
         "peak_pressure_mmhg": round(float(p.max()), 2),
         "sink_mm": round(float(sim.sink_m[0]) * 1e3, 1),
-        "head_angle_deg": cfg.head_angle_deg,
+        "head_angle_deg": bed.head_angle_deg,
     }
     paths = {}
     arrays = {
@@ -168,7 +218,7 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
             (x0, x1), _ = mat.mattress_bounds_m
             s_pts = torch.tensor([[x0, 0.0, 0.0], [bed.hinge_x(mat), 0.0, 0.0], [x1, 0.0, 0.0]], dtype=torch.float64)
             profile = bed.to_world(s_pts, mat)[:, [0, 2]].numpy()
-            title += f", head of the bed {cfg.head_angle_deg:g} deg"
+            title += f", head of the bed {bed.head_angle_deg:g} deg"
         paths["figure"] = plot_sample(cfg.out / "simulate.png", p, arrays["depth_mm"], sim.vertices[0].numpy(),
                                       title, bed_profile=profile)
     record["files"] = {k: v.name for k, v in paths.items()}

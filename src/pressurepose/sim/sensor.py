@@ -16,7 +16,7 @@ import torch
 
 from pressurepose.maps import contact_map, depth_map
 from pressurepose.mat import MatSpec
-from pressurepose.sim.bed import BedShape
+from pressurepose.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
 
 

@@ -44,7 +44,7 @@ from pressurepose.body.rotations import (
     axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_quaternion, quaternion_to_axis_angle,
 )
 from pressurepose.mat import MatSpec
-from pressurepose.sim.bed import BedShape
+from pressurepose.bed import BedShape
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 REASON_TIMEOUT = "did not settle within the step limit"

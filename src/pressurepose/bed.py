@@ -96,22 +96,4 @@ class BedShape:
         return torch.where(in_head, head_n, foot_n), torch.where(in_head, head_t, foot_t), world
 
 
-def half_sitting_params(shape: torch.Tensor, bed: BedShape, mat: MatSpec):
-    """BodyParams (float64) of bodies half-sitting on a raised bed, built by hand (sampling
-    has no such partition yet): the home pose with the trunk pitched up by the bed angle and
-    both hips flexed by it (legs along the flat foot section), pelvis 8 cm past the hinge,
-    30 cm up (sim #1 drops it)."""
-    from pressurepose.body.capsules import home_pose
-    from pressurepose.body.joints import J24_NAMES
-    from pressurepose.body.params import BodyParams
-
-    B, phi = shape.shape[0], bed.angle_rad
-    pose = home_pose(B, dtype=torch.float64)
-    for hip in ("left_hip", "right_hip"):
-        pose[:, J24_NAMES.index(hip) - 1, 0] = -phi
-    return BodyParams.zeros(B, shape.double()).replace(
-        pose=pose, root_rotation=torch.tensor([[0.0, phi, 0.0]] * B, dtype=torch.float64),
-        root_translation=torch.tensor([[bed.hinge_x(mat) + 0.08, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64))
-
-
-__all__ = ["BedShape", "MAX_HEAD_ANGLE_DEG", "half_sitting_params"]
+__all__ = ["BedShape", "MAX_HEAD_ANGLE_DEG"]

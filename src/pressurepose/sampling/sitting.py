@@ -1,0 +1,186 @@
+"""Half-sitting on a bed whose head section is raised (seed A.2's sitting poses).
+
+Sitting up pitches the trunk - with the head and both arms - up about the line through the
+hip joints, across the bed (`fold_params`). The sampler draws the whole pose in the trunk's
+frame and turns it rigidly (hip angles unchanged), measuring the legs' cells, heights and bed
+outline in the bed's frame turned back by the pitch, so the legs land on the flat foot
+section as drawn; a pose given lying flat (`half_sitting_params`) keeps its thighs instead
+(each hip rotation conjugated by the pitch). The pitch is not the bed's angle: the
+hips lie 10-40 cm foot-ward of the hinge (PmatData group F: the buttocks load rows 29-42
+counted from the foot, the mat lifts off around rows 44-48, the upper back loads rows 49-56),
+so the stiff trunk rests as a straight board on the buttocks and the upper back, less steep
+than the head section. `trunk_pitch` finds that pitch by bisection: the pitch at which the
+trunk touches the foot section and the head section at once. `bed_lift` then lowers the body
+onto the bent bed exactly (the mattress is the union of the half-spaces under the two
+section planes, so a capsule clears it when both end points clear both planes).
+
+The sampler checks the result again (hip limits, self-collisions, the over-bed rule in
+surface coordinates, and that the trunk - not a hand or a heel - carries the body); sim #1
+then settles it like any other pose.
+"""
+
+from __future__ import annotations
+
+
+import torch
+
+from pressurepose.bed import BedShape
+from pressurepose.body.capsules import CAPSULES, Capsules
+from pressurepose.body.joints import J24_NAMES
+from pressurepose.body.params import BodyParams, root_matrix
+from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from pressurepose.mat import MatSpec
+
+HIP_JOINTS = (J24_NAMES.index("left_hip"), J24_NAMES.index("right_hip"))
+# Capsules that rest on the bed when sitting (none moves with a limb, so the pitch depends on
+# the shape, root and bed only).
+TRUNK_CAPSULES = tuple(i for i, c in enumerate(CAPSULES)
+                       if c.name in ("pelvis", "spine1", "spine2", "spine3", "neck", "head"))
+PITCH_ITERATIONS = 18  # bisection steps: pitch to within 60 deg / 2^18 ~ 0.0002 deg
+
+
+def fold_params(params: BodyParams, rest: torch.Tensor, pitch: torch.Tensor,
+                keep_thighs: bool = True) -> BodyParams:
+    """Sit B bodies up: trunk, head and arms pitched up by `pitch` (B,) rad about the mat's y
+    axis through the midpoint of the hip joints. keep_thighs: the thighs keep their
+    orientation (hip rotations conjugated by the pitch); otherwise the whole body turns
+    rigidly. rest: (B, 24, 3) T-pose joints, pelvis at the origin. float64."""
+    zero = torch.zeros_like(pitch)
+    P = axis_angle_to_matrix(torch.stack([zero, pitch, zero], -1))  # (B, 3, 3) head up for pitch > 0
+    R0 = root_matrix(params.root_rotation)
+    t = params.root_translation
+    c = (R0 @ rest[:, list(HIP_JOINTS)].mean(1)[..., None])[..., 0] + t  # hip midpoint, mat frame
+    root = matrix_to_axis_angle(P @ axis_angle_to_matrix(params.root_rotation))
+    trans = c + (P @ (t - c)[..., None])[..., 0]
+    if not keep_thighs:
+        return params.replace(root_rotation=root, root_translation=trans)
+    Q = R0.transpose(1, 2) @ P @ R0  # the pitch in body axes
+    pose = params.pose.clone()
+    for j in HIP_JOINTS:
+        pose[:, j - 1] = matrix_to_axis_angle(Q.transpose(1, 2) @ axis_angle_to_matrix(params.pose[:, j - 1]))
+    return params.replace(root_rotation=root, root_translation=trans, pose=pose)
+
+
+def _planes(bed: BedShape, mat: MatSpec, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit normals (K, 3) of the bed's section planes and a point (3,) on all of them."""
+    normals = [R[:, 2] for R, _, _ in bed.sections(mat)]
+    hinge = torch.tensor([bed.hinge_x(mat), 0.0, 0.0], dtype=like.dtype, device=like.device)
+    return torch.tensor([list(n) for n in normals], dtype=like.dtype, device=like.device), hinge
+
+
+def capsule_gaps(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, bed: BedShape,
+                 mat: MatSpec) -> torch.Tensor:
+    """(B, C, K) clearance (m) of each capsule (end points (B, C, 3), radius (B, C)) above each
+    section plane of the undeformed mattress top (negative: inside)."""
+    normals, hinge = _planes(bed, mat, start)
+    da = (start - hinge) @ normals.T
+    db = (end - hinge) @ normals.T
+    return torch.minimum(da, db) - radius[..., None]
+
+
+def bed_lift(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, bed: BedShape,
+             mat: MatSpec) -> torch.Tensor:
+    """(B,) vertical shift (m) that makes the lowest capsule surface touch the bed: the mattress
+    fills the half-spaces under the section planes, so every capsule must clear every plane."""
+    normals, _ = _planes(bed, mat, start)
+    gaps = capsule_gaps(start, end, radius, bed, mat)  # (B, C, K)
+    return (-gaps / normals[:, 2]).flatten(1).amax(-1)
+
+
+def trunk_pitch(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec) -> torch.Tensor:
+    """(B,) pitch (rad, 0 .. the bed's angle) at which the sat-up trunk rests on both bed
+    sections at once (bisection); the bed's angle when the trunk cannot reach the foot
+    section that steep, 0 when it does not reach the head section lying flat.
+
+    Sitting up moves the trunk capsules rigidly about the hip midpoint (what `fold_params`
+    does to them), so the search turns their lying end points and never re-poses the body."""
+    B = params.batch_size
+    if bed.flat:
+        return torch.zeros(B, dtype=params.root_translation.dtype)
+    normals, _ = _planes(bed, mat, params.root_translation)
+    trunk = list(TRUNK_CAPSULES)
+    a, b = caps.posed(params.pose, params.root_rotation, params.root_translation)
+    ends = torch.cat([a[:, trunk], b[:, trunk]], 1)  # (B, 2T, 3) lying, mat frame
+    radius = caps.radius[:, trunk].repeat(1, 2)
+    R0 = root_matrix(params.root_rotation)
+    c = (R0 @ caps.rest[:, list(HIP_JOINTS)].mean(1)[..., None])[..., 0] + params.root_translation
+    rel = ends - c[:, None]
+    T = len(trunk)
+
+    def excess(pitch: torch.Tensor) -> torch.Tensor:
+        # > 0: the head section lies lower than the foot section under the trunk (pitch enough).
+        cs, sn = torch.cos(pitch)[:, None], torch.sin(pitch)[:, None]
+        x = c[:, None, 0] + cs * rel[..., 0] + sn * rel[..., 2]  # rotation about y, head up
+        z = c[:, None, 2] - sn * rel[..., 0] + cs * rel[..., 2]
+        pts = torch.stack([x, ends[..., 1], z], -1)
+        a_, b_ = pts[:, :T], pts[:, T:]
+        gaps = capsule_gaps(a_, b_, radius[:, :T], bed, mat).amin(1)  # (B, K): head, foot
+        return gaps[:, 0] / normals[0, 2] - gaps[:, 1]
+
+    lo = torch.zeros(B, dtype=rel.dtype)
+    hi = torch.full((B,), bed.angle_rad, dtype=rel.dtype)
+    f_lo, f_hi = excess(lo), excess(hi)
+    for _ in range(PITCH_ITERATIONS):
+        mid = (lo + hi) / 2
+        up = excess(mid) < 0  # the head section still in the way: pitch more
+        lo, hi = torch.where(up, mid, lo), torch.where(up, hi, mid)
+    pitch = (lo + hi) / 2
+    pitch = torch.where(f_hi < 0, torch.full_like(pitch, bed.angle_rad), pitch)
+    return torch.where(f_lo >= 0, torch.zeros_like(pitch), pitch)
+
+
+def pitch_matrix(root_rotation: torch.Tensor, pitch: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) the sitting pitch in body axes, Q = R0^T P R0: a body-axes vector v of the
+    turned body points where Q v pointed before."""
+    zero = torch.zeros_like(pitch)
+    P = axis_angle_to_matrix(torch.stack([zero, pitch, zero], -1))
+    R0 = root_matrix(root_rotation)
+    return R0.transpose(1, 2) @ P @ R0
+
+
+def sit_up(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec, pitch: torch.Tensor | None = None,
+           keep_thighs: bool = True) -> tuple[BodyParams, torch.Tensor]:
+    """Sit bodies up on a raised bed and lower them onto it.
+
+    caps: their capsules (T-pose); params: the pose in the trunk's frame with the pelvis placed
+    over the bed (its height is ignored); pitch: (B,) rad (default `trunk_pitch`); keep_thighs:
+    see `fold_params`. Returns the sat-up parameters, whose lowest capsule surface touches the
+    bent mattress top, and the trunk's lowest clearance (B,) m above the bed (0 when the trunk
+    carries the body; larger when a limb props it up)."""
+    if pitch is None:
+        pitch = trunk_pitch(caps, params, bed, mat)
+    p = fold_params(params, caps.rest, pitch, keep_thighs)
+    a, b = caps.posed(p.pose, p.root_rotation, p.root_translation)
+    lift = bed_lift(a, b, caps.radius, bed, mat)
+    trans = p.root_translation.clone()
+    trans[:, 2] = trans[:, 2] + lift
+    a, b = a + lift[:, None, None] * a.new_tensor([0.0, 0.0, 1.0]), b + lift[:, None, None] * b.new_tensor([0.0, 0.0, 1.0])
+    trunk = list(TRUNK_CAPSULES)
+    seat = capsule_gaps(a[:, trunk], b[:, trunk], caps.radius[:, trunk], bed, mat).flatten(1).amin(-1)
+    return p.replace(root_translation=trans), seat
+
+
+def half_sitting_params(model, shape: torch.Tensor, bed: BedShape, mat: MatSpec | None = None,
+                        hip_offset_m: float = 0.25) -> BodyParams:
+    """BodyParams (float64) of B bodies in the home pose (legs straight, arms at the sides)
+    half-sitting on a raised bed: hips `hip_offset_m` foot-ward of the hinge, centred across
+    the bed, sat up and lowered onto it as the half_sitting partition does."""
+    from pressurepose.body.capsules import fit_capsules, home_pose
+
+    mat = mat or MatSpec()
+    shape = shape.to(torch.float64)
+    B = shape.shape[0]
+    with torch.no_grad():
+        caps = fit_capsules(model, shape)
+    caps = Capsules(*(x.to(torch.float64).cpu() for x in (caps.start, caps.end, caps.radius, caps.rest)))
+    root = torch.zeros(B, 3, dtype=torch.float64)
+    hips = (root_matrix(root) @ caps.rest[:, list(HIP_JOINTS)].mean(1)[..., None])[..., 0]
+    trans = torch.stack([bed.hinge_x(mat) + hip_offset_m - hips[:, 0],
+                         torch.full((B,), mat.sensing_width_m / 2, dtype=torch.float64) - hips[:, 1],
+                         torch.zeros(B, dtype=torch.float64)], -1)
+    params = BodyParams(shape=shape.cpu(), root_rotation=root, root_translation=trans, pose=home_pose(B))
+    return sit_up(caps, params, bed, mat)[0]
+
+
+__all__ = ["PITCH_ITERATIONS", "TRUNK_CAPSULES", "bed_lift", "capsule_gaps", "fold_params",
+           "half_sitting_params", "pitch_matrix", "sit_up", "trunk_pitch"]

@@ -1,0 +1,219 @@
+"""Half-sitting on a raised bed: the sit-up fold, the placement on the bent bed, the
+half_sitting partition, and simulating samples that rest on different beds."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pressurepose.bed import BedShape
+from pressurepose.body.capsules import Capsules, capsule_clearance, collision_pairs, fit_capsules, home_pose
+from pressurepose.body.joints import J24_NAMES
+from pressurepose.body.kinematics import pose_in_mat
+from pressurepose.body.limits import JointLimits
+from pressurepose.body.params import BodyParams
+from pressurepose.body.rotations import axis_angle_to_matrix
+from pressurepose.mat import MatSpec
+from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig
+from pressurepose.sampling.partitions import HEIGHT_TOLERANCE_M
+from pressurepose.sampling.sampler import SEAT_TOLERANCE_M
+from pressurepose.sampling.sitting import (
+    TRUNK_CAPSULES, bed_lift, capsule_gaps, fold_params, half_sitting_params, trunk_pitch,
+)
+
+J = J24_NAMES.index
+MAT = MatSpec()
+D = torch.float64
+LEGS = [J(f"{s}_{n}") for s in ("left", "right") for n in ("hip", "knee", "ankle", "foot")]
+HIPS = [J("left_hip"), J("right_hip")]
+
+
+@pytest.fixture(scope="module")
+def caps(anny64):
+    c = fit_capsules(anny64, anny64.default_shape(2).to(D))
+    return Capsules(*(x.to(D) for x in (c.start, c.end, c.radius, c.rest)))
+
+
+def lying(caps, yaw=(0.0, 0.2), x=1.0):
+    """Two bodies in the home pose lying on their back, pelvis at mat x, yawed."""
+    root = torch.tensor([[0.0, 0.0, y] for y in yaw], dtype=D)
+    trans = torch.tensor([[x, 0.37, 0.1], [x, 0.40, 0.1]], dtype=D)
+    return BodyParams(shape=torch.zeros(2, 1, dtype=D), root_rotation=root, root_translation=trans, pose=home_pose(2))
+
+
+def pitch_about_y(pitch):
+    zero = torch.zeros_like(pitch)
+    return axis_angle_to_matrix(torch.stack([zero, pitch, zero], -1))
+
+
+def test_fold_keeps_the_thighs_and_turns_the_trunk_about_the_hips(caps):
+    params = lying(caps)
+    pitch = torch.tensor([0.3, 0.7], dtype=D)
+    rot0, pos0 = pose_in_mat(caps.rest, params)
+    rot1, pos1 = pose_in_mat(caps.rest, fold_params(params, caps.rest, pitch))
+    P = pitch_about_y(pitch)
+    c = pos0[:, HIPS].mean(1)
+    trunk = [J(n) for n in ("pelvis", "spine1", "spine2", "spine3", "neck", "head", "left_wrist", "right_hand")]
+    # Trunk, head and arms: turned rigidly about the hip midpoint, head up.
+    expected = c[:, None] + ((pos0[:, trunk] - c[:, None]) @ P.transpose(1, 2))
+    torch.testing.assert_close(pos1[:, trunk], expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(rot1[:, 0], P @ rot0[:, 0], rtol=0, atol=1e-12)
+    assert (pos1[:, J("head"), 2] > pos0[:, J("head"), 2] + 0.2).all()
+    # Legs: same orientation everywhere, so the same shape; unmoved where the hips lie on the
+    # pitch axis (no yaw).
+    torch.testing.assert_close(rot1[:, LEGS], rot0[:, LEGS], rtol=0, atol=1e-12)
+    for leg in (LEGS[:4], LEGS[4:]):
+        torch.testing.assert_close(pos1[:, leg] - pos1[:, leg[:1]], pos0[:, leg] - pos0[:, leg[:1]], rtol=0, atol=1e-12)
+    torch.testing.assert_close(pos1[0, LEGS], pos0[0, LEGS], rtol=0, atol=1e-12)
+
+
+def test_rigid_fold_turns_the_whole_body(caps):
+    params = lying(caps)
+    pitch = torch.tensor([0.5, 0.2], dtype=D)
+    _, pos0 = pose_in_mat(caps.rest, params)
+    folded = fold_params(params, caps.rest, pitch, keep_thighs=False)
+    _, pos1 = pose_in_mat(caps.rest, folded)
+    c = pos0[:, HIPS].mean(1, keepdim=True)
+    torch.testing.assert_close(pos1, c + (pos0 - c) @ pitch_about_y(pitch).transpose(1, 2), rtol=0, atol=1e-12)
+    assert torch.equal(folded.pose, params.pose)
+
+
+def _naive_lowest_gap(a, b, r, bed):
+    """Min over 401 points per capsule axis of (min over section planes of the signed
+    distance) - radius: the mattress is the union of the half-spaces under the planes."""
+    t = torch.linspace(0, 1, 401, dtype=D)[:, None]
+    best = math.inf
+    for k in range(a.shape[0]):
+        pts = a[k] + t * (b[k] - a[k])
+        hinge = torch.tensor([bed.hinge_x(MAT), 0.0, 0.0], dtype=D)
+        d = torch.stack([(pts - hinge) @ torch.as_tensor(R[:, 2], dtype=D) for R, _, _ in bed.sections(MAT)], -1)
+        best = min(best, float(d.amin(-1).amin() - r[k]))
+    return best
+
+
+@pytest.mark.parametrize("angle", [0.0, 30.0, 60.0])
+def test_bed_lift_sets_the_lowest_capsule_on_the_bent_mattress(caps, angle):
+    bed = BedShape(angle)
+    params = fold_params(lying(caps, x=0.75), caps.rest, torch.tensor([0.4, 0.1], dtype=D))
+    a, b = caps.posed(params.pose, params.root_rotation, params.root_translation)
+    lift = bed_lift(a, b, caps.radius, bed, MAT)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=D)
+    for i in range(2):
+        gap = _naive_lowest_gap(a[i] + lift[i] * up, b[i] + lift[i] * up, caps.radius[i], bed)
+        assert abs(gap) < 1e-9, gap
+    if angle == 0.0:
+        torch.testing.assert_close(lift, -(torch.minimum(a[..., 2], b[..., 2]) - caps.radius).amin(-1))
+
+
+def test_trunk_pitch_rests_the_trunk_on_both_sections(caps):
+    bed = BedShape(50.0)
+    trunk = list(TRUNK_CAPSULES)
+    pitches = []
+    for hips_past_hinge in (0.15, 0.3, 0.45):
+        params = lying(caps, yaw=(0.0, 0.0))
+        hip_x = pose_in_mat(caps.rest, params)[1][:, HIPS, 0].mean(1)
+        params = params.replace(root_translation=params.root_translation
+                                + torch.stack([bed.hinge_x(MAT) + hips_past_hinge - hip_x, 0 * hip_x, 0 * hip_x], -1))
+        pitch = trunk_pitch(caps, params, bed, MAT)
+        assert ((pitch > 0) & (pitch < bed.angle_rad)).all()
+        sat = fold_params(params, caps.rest, pitch)
+        a, b = caps.posed(sat.pose, sat.root_rotation, sat.root_translation)
+        a, b, r = a[:, trunk], b[:, trunk], caps.radius[:, trunk]
+        up = bed_lift(a, b, r, bed, MAT)[:, None, None] * torch.tensor([0.0, 0.0, 1.0], dtype=D)
+        gaps = capsule_gaps(a + up, b + up, r, bed, MAT).amin(1)  # (B, 2): head section, foot section
+        assert (gaps.abs() < 1e-4).all(), gaps  # the trunk touches both (bisection tolerance)
+        pitches.append(pitch)
+    # Hips farther down the bed: a flatter trunk.
+    assert (pitches[0] > pitches[1]).all() and (pitches[1] > pitches[2]).all()
+    # A flat bed never pitches.
+    assert (trunk_pitch(caps, lying(caps), BedShape(0.0), MAT) == 0).all()
+
+
+def test_half_sitting_params_keep_the_legs_straight_and_flat(anny64):
+    bed = BedShape(40.0)
+    params = half_sitting_params(anny64, anny64.default_shape(1), bed, MAT)
+    c = fit_capsules(anny64, anny64.default_shape(1).to(D))
+    _, pos = pose_in_mat(c.rest.to(D), params)
+    # The legs lie on the flat foot section as in the home pose lying flat; the hips flex by
+    # the trunk's pitch.
+    flat = BodyParams.zeros(1, anny64.default_shape(1).to(D)).replace(pose=home_pose(1))
+    _, pos_flat = pose_in_mat(c.rest.to(D), flat)
+    torch.testing.assert_close(pos[0, LEGS] - pos[0, LEGS[:1]], pos_flat[0, LEGS] - pos_flat[0, LEGS[:1]],
+                               rtol=0, atol=1e-9)
+    assert float(params.pose[0, J("left_hip") - 1, 0]) < -0.2
+    assert float(pos[0, J("head"), 2]) > 0.25
+
+
+@pytest.fixture(scope="module")
+def sitting(anny32):
+    cfg = SamplingConfig(partition="half_sitting", gender="male", seed=3)
+    return PoseSampler(anny32, cfg).sample(range(24)), cfg
+
+
+def test_half_sitting_partition_sits_on_its_raised_bed(anny32, anny64, sitting):
+    poses, _ = sitting
+    part = PARTITIONS["half_sitting"]
+    assert set(poses.head_angle_deg.tolist()) <= set(part.head_angles_deg) and len(set(poses.head_angle_deg)) >= 3
+    assert [b.head_angle_deg for b in poses.beds()] == poses.head_angle_deg.tolist()
+    assert JointLimits.default(D).contains(poses.params.pose).all()
+    c = fit_capsules(anny64, poses.params.shape)
+    caps = Capsules(*(x.to(D) for x in (c.start, c.end, c.radius, c.rest)))
+    a, b = caps.posed(poses.params.pose, poses.params.root_rotation, poses.params.root_translation)
+    pairs = collision_pairs(part.checked_capsules)
+    assert (capsule_clearance(a, b, caps.radius, pairs) > -1e-6).all()
+    trunk = list(TRUNK_CAPSULES)
+    for i, bed in enumerate(poses.beds()):
+        gaps = capsule_gaps(a[i:i + 1], b[i:i + 1], caps.radius[i:i + 1], bed, MAT)
+        assert abs(float(gaps.amin())) < 1e-6  # resting on the bed, nothing inside it
+        assert float(gaps[:, trunk].amin()) <= SEAT_TOLERANCE_M + 1e-9  # on its trunk
+        # Sitting: the head well above the flat bed; the legs on the foot section within the
+        # seed's 10 cm of their hip's height.
+        j = poses.joints[i]
+        assert float(j[J("head"), 2]) > 0.15
+        for side in ("left", "right"):
+            dz = j[J(f"{side}_ankle"), 2] - j[J(f"{side}_hip"), 2]
+            assert abs(float(dz)) <= HEIGHT_TOLERANCE_M + 1e-6
+            assert float(j[J(f"{side}_ankle"), 0]) > float(j[J(f"{side}_hip"), 0])  # toward the foot
+        assert float(j[HIPS, 0].mean()) > bed.hinge_x(MAT)  # hips past the hinge
+
+
+def test_half_sitting_is_deterministic_and_keeps_flat_partitions_as_they_were(anny32, sitting):
+    poses, cfg = sitting
+    alone = PoseSampler(anny32, cfg).sample([5])
+    for f in ("shape", "root_rotation", "root_translation", "pose"):
+        assert torch.equal(getattr(alone.params, f)[0], getattr(poses.params, f)[5])
+    assert alone.head_angle_deg[0] == poses.head_angle_deg[5]
+    flat = PoseSampler(anny32, SamplingConfig(partition="supine")).sample(range(3))
+    assert (flat.head_angle_deg == 0).all() and all(b.flat for b in flat.beds())
+    assert (flat.rejections["sit_up_rejections"] == 0).all()
+
+
+def test_half_sitting_over_the_bed_keeps_limbs_over_the_mattress(anny32):
+    poses = PoseSampler(anny32, SamplingConfig(partition="half_sitting", gender="female", over_bed=True)).sample(range(6))
+    (x0, x1), (y0, y1) = MAT.mattress_bounds_m
+    ends = [J(f"{s}_{n}") for s in ("left", "right") for n in ("knee", "ankle", "foot", "elbow", "wrist", "hand")]
+    for i, bed in enumerate(poses.beds()):
+        s = bed.to_surface(poses.joints[i, ends], MAT)
+        assert ((s[:, 0] > x0) & (s[:, 0] < x1) & (s[:, 1] > y0) & (s[:, 1] < y1)).all()
+
+
+@pytest.mark.slow
+def test_simulating_samples_on_different_beds_equals_simulating_each_bed(anny64):
+    from pressurepose.sim.run import simulate_poses
+
+    bed_a, bed_b = BedShape(0.0), BedShape(30.0)
+    flat = PoseSampler(anny64, SamplingConfig(partition="supine", gender="male")).sample([1]).params
+    sat = half_sitting_params(anny64, anny64.default_shape(1), bed_b, MAT)
+    both = BodyParams(**{f: torch.cat([getattr(sat, f), getattr(flat, f)]) for f in
+                         ("shape", "root_rotation", "root_translation", "pose")})
+    mixed = simulate_poses(anny64, both, bed=[bed_b, bed_a])
+    alone = simulate_poses(anny64, flat, bed=bed_a)
+    assert mixed.reason == ["", ""]
+    np.testing.assert_array_equal(mixed.head_angle_deg, [30.0, 0.0])
+    torch.testing.assert_close(mixed.pressure_mmhg[1], alone.pressure_mmhg[0], rtol=0, atol=0)
+    torch.testing.assert_close(mixed.params.pose[1], alone.params.pose[0], rtol=0, atol=0)
+    rows = (mixed.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
+    assert int(rows.min()) < 16 < int(rows.max())  # the sitting body loads both sides of the hinge (row 16)
+    with pytest.raises(ValueError, match="one per sample"):
+        simulate_poses(anny64, both, bed=[bed_a])
