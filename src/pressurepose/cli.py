@@ -13,6 +13,7 @@ from pathlib import Path
 
 import tyro
 
+from pressurepose.data.coregister import CoregisterConfig
 from pressurepose.demo import DemoConfig
 from pressurepose.sampling.run import SampleConfig
 from pressurepose.sim.run import SimulateConfig
@@ -67,7 +68,18 @@ def simulate(cfg: SimulateConfig) -> None:
           f"sim #2 {record['timing_ms']['sim2']} ms -> {cfg.out}")
 
 
-COMMANDS = {"demo": demo, "sample": sample, "simulate": simulate, "cache": cache}
+def coregister(cfg: CoregisterConfig) -> None:
+    """Co-register a camera with the mat from clicked corner markers (seed A.6): camera.json
+    (pose), coregister.png and, with --cloud, the point cloud in the mat frame."""
+    from pressurepose.data.coregister import run_coregister
+
+    paths = run_coregister(cfg)
+    record = json.loads(paths["camera"].read_text())
+    print(f"camera at {[round(v, 3) for v in record['camera_position_in_mat_m']]} m in the mat frame, "
+          f"reprojection RMS {record['rms_px']:.2f} px -> {cfg.out}")
+
+
+COMMANDS = {"demo": demo, "sample": sample, "simulate": simulate, "coregister": coregister, "cache": cache}
 
 
 def main(argv: list[str] | None = None) -> int:
