@@ -97,7 +97,7 @@ class SettleResult:
 
 # --- MJCF -----------------------------------------------------------------------------------
 def _fmt(v) -> str:
-    return " ".join(f"{float(x):.9g}" for x in np.ravel(v))
+    return " ".join(f"{x:.9g}" for x in np.ravel(v).tolist())
 
 
 def _walls(mat: MatSpec, bed: BedShape | None = None, top_m: float = -0.03, depth_m: float = 1.0,
@@ -143,22 +143,28 @@ def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tupl
     for c, p in enumerate(CAPSULE_PARENTS):
         children.setdefault(p, []).append(c)
 
+    # All capsules at once: origins, axis ends in the body frame, full inertias.
+    jc = np.array(CAPSULE_JOINTS)
+    pc = np.array(CAPSULE_PARENTS)
+    origin = rest[jc]
+    rel_pos = origin - np.where((pc >= 0)[:, None], rest[jc[np.maximum(pc, 0)]], 0.0)
+    a_all, b_all = start - origin, end - origin
+    axis = b_all - a_all
+    length = np.sqrt((axis**2).sum(1))
+    u = np.where((length > 1e-9)[:, None], axis / np.maximum(length, 1e-12)[:, None], np.array([1.0, 0.0, 0.0]))
+    # Principal axes: capsule axis + two perpendiculars -> full inertia in the body frame.
+    tmp = np.where((np.abs(u[:, 2]) < 0.9)[:, None], np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]))
+    v = _cross(u, tmp)
+    v /= np.sqrt((v**2).sum(1))[:, None]
+    w = _cross(u, v)
+    Rm = np.stack([u, v, w], 2)
+    I_all = np.einsum("cik,ck,cjk->cij", Rm, inertia, Rm)
+    full_all = I_all[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
+
     def body_xml(c: int, indent: str) -> str:
         j = CAPSULE_JOINTS[c]
         p = CAPSULE_PARENTS[c]
-        origin = rest[j]
-        pos = origin - (rest[CAPSULE_JOINTS[p]] if p >= 0 else 0.0)
-        a, b = start[c] - origin, end[c] - origin
-        axis = b - a
-        length = np.linalg.norm(axis)
-        u = axis / length if length > 1e-9 else np.array([1.0, 0.0, 0.0])
-        # Principal axes: capsule axis + two perpendiculars -> full inertia in the body frame.
-        tmp = np.array([0.0, 0.0, 1.0]) if abs(u[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        v = np.cross(u, tmp); v /= np.linalg.norm(v)
-        w = np.cross(u, v)
-        Rm = np.stack([u, v, w], 1)
-        I = Rm @ np.diag(inertia[c]) @ Rm.T
-        full = [I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]]
+        pos, a, b, full = rel_pos[c], a_all[c], b_all[c], full_all[c]
         lines = [f'{indent}<body name="{CAPSULE_NAMES[c]}" pos="{_fmt(pos)}">']
         if p < 0:
             lines.append(f'{indent}  <freejoint name="root"/>')
@@ -169,7 +175,7 @@ def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tupl
             lines.append(f'{indent}  <joint name="j{j}" type="ball" stiffness="{stiff[j - 1]:.9g}" '
                          f'damping="{damp[j - 1]:.9g}"/>')
         lines.append(f'{indent}  <inertial pos="{_fmt((a + b) / 2)}" mass="{mass[c]:.9g}" fullinertia="{_fmt(full)}"/>')
-        if length > 1e-9:
+        if length[c] > 1e-9:
             lines.append(f'{indent}  <geom name="{CAPSULE_NAMES[c]}" type="capsule" size="{radius[c]:.9g}" fromto="{_fmt(np.concatenate([a, b]))}"/>')
         else:
             lines.append(f'{indent}  <geom name="{CAPSULE_NAMES[c]}" type="sphere" size="{radius[c]:.9g}" pos="{_fmt(a)}"/>')
@@ -211,49 +217,80 @@ class CapsuleFoundation:
         self.nu, self.mu = float(params.damping_s), float(params.friction)
 
     def underside(self, a: np.ndarray, b: np.ndarray, r: np.ndarray, s_range=(-math.inf, math.inf)):
-        """The nodes under C capsules (axis ends a, b (C, 3), radii r (C,)), each capsule's own
-        footprint window, flattened: (capsule index, grid node index (-1 off the grid), node
-        x, node y, the capsule's lowest surface height over the node (inf where none))."""
-        lo = np.minimum(a[:, :2], b[:, :2]) - r[:, None]
-        hi = np.maximum(a[:, :2], b[:, :2]) + r[:, None]
-        i0 = np.floor((lo[:, 0] - self.x0) / self.hx).astype(np.int64)
-        j0 = np.floor((lo[:, 1] - self.y0) / self.hy).astype(np.int64)
-        nr = np.floor((hi[:, 0] - self.x0) / self.hx).astype(np.int64) - i0 + 1
-        nc = np.floor((hi[:, 1] - self.y0) / self.hy).astype(np.int64) - j0 + 1
+        """The grid nodes over which C capsules (axis ends a, b (C, 3), radii r (C,)) reach
+        below z = 0, flattened: (capsule index, grid node index, node x, node y, the capsule's
+        lowest surface height over the node (< 0)); a node under two capsules appears twice.
+
+        Each capsule visits the nodes of its own window: the box around its axis widened by
+        the horizontal reach of its part below z = 0 (sqrt(r^2 - h^2) at the axis's lowest
+        height h), clipped to the grid and to s_range. Over a node, the lowest point is the
+        lower root of the infinite cylinder when that root falls between the ends; otherwise
+        it lies on the end sphere on that side (the spheres lie inside the cylinder, so the
+        line meets them after its lower root), or on the lower one for an upright capsule."""
+        C = a.shape[0]
+        h = np.maximum(np.minimum(a[:, 2], b[:, 2]), 0.0)
+        reach = np.sqrt(np.maximum(r * r - h * h, 0.0))
+        lo_x = np.minimum(a[:, 0], b[:, 0]) - reach
+        hi_x = np.maximum(a[:, 0], b[:, 0]) + reach
+        lo_y = np.minimum(a[:, 1], b[:, 1]) - reach
+        hi_y = np.maximum(a[:, 1], b[:, 1]) + reach
+        # Node i's centre is x0 + (i + 1/2) hx: nodes with centres in [lo, hi].
+        i0 = np.maximum(np.ceil((lo_x - self.x0) / self.hx - 0.5), 0).astype(np.int64)
+        i1 = np.minimum(np.floor((hi_x - self.x0) / self.hx - 0.5), self.nr - 1).astype(np.int64)
+        j0 = np.maximum(np.ceil((lo_y - self.y0) / self.hy - 0.5), 0).astype(np.int64)
+        j1 = np.minimum(np.floor((hi_y - self.y0) / self.hy - 0.5), self.nc - 1).astype(np.int64)
+        nr = np.maximum(i1 - i0 + 1, 0)
+        nc = np.maximum(j1 - j0 + 1, 0)
         size = nr * nc
-        cap = np.repeat(np.arange(a.shape[0]), size)
-        start = np.repeat(np.cumsum(size) - size, size)
-        k = np.arange(cap.shape[0]) - start
-        ii = i0[cap] + k // nc[cap]
-        jj = j0[cap] + k % nc[cap]
+        total = int(size.sum())
+        if total == 0:
+            e = np.zeros(0)
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), e, e, e
+        cap = np.repeat(np.arange(C), size)
+        k = np.arange(total) - np.repeat(np.cumsum(size) - size, size)
+        di, dj = np.divmod(k, np.repeat(nc, size))
+        ii = np.repeat(i0, size) + di
+        jj = np.repeat(j0, size) + dj
         x = self.x0 + (ii + 0.5) * self.hx
         y = self.y0 + (jj + 0.5) * self.hy
-        inside = (ii >= 0) & (ii < self.nr) & (jj >= 0) & (jj < self.nc) & (x >= s_range[0]) & (x < s_range[1])
-        flat = np.where(inside, ii * self.nc + jj, -1)
-        ax, ay, az = a[cap, 0], a[cap, 1], a[cap, 2]
-        rc2 = r[cap] ** 2
-        # End spheres.
-        z = np.full(x.shape, np.inf)
-        for ex, ey, ez in ((ax, ay, az), (b[cap, 0], b[cap, 1], b[cap, 2])):
-            d2 = (x - ex) ** 2 + (y - ey) ** 2
-            z = np.where(d2 <= rc2, np.minimum(z, ez - np.sqrt(np.maximum(rc2 - d2, 0.0))), z)
-        # Cylinder: lower root of |perp(p - a)|^2 = r^2 on the vertical line through the node.
+        # Per capsule: axis direction u, length L, A = 1 - uz^2 (the quadratic's leading term).
         axis = b - a
         L = np.sqrt((axis**2).sum(1))
         u = axis / np.maximum(L, 1e-12)[:, None]
-        ux, uy, uz = u[cap, 0], u[cap, 1], u[cap, 2]
-        d0x, d0y, d0z = x - ax, y - ay, -az
-        du = d0x * ux + d0y * uy + d0z * uz
-        A = 1.0 - uz**2
-        Bq = 2.0 * (d0z - du * uz)
-        Cq = d0x**2 + d0y**2 + d0z**2 - du**2 - rc2
-        disc = Bq**2 - 4 * A * Cq
-        ok = (A > 1e-9) & (disc >= 0)
-        zc = (-Bq - np.sqrt(np.maximum(disc, 0.0))) / (2 * np.where(ok, A, 1.0))
+        A = 1.0 - u[:, 2] ** 2
+        upright = A <= 1e-9
+        inv_A = 1.0 / np.where(upright, 1.0, A)
+        ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
+        r2 = r * r
+
+        def per(v):
+            return np.repeat(v, size)
+
+        dx, dy = x - per(ax), y - per(ay)
+        uz = per(u[:, 2])
+        # Lower root z of |(p - a) - ((p - a).u) u|^2 = r^2 on the vertical line through the node.
+        du = dx * per(u[:, 0]) + dy * per(u[:, 1]) - per(az * u[:, 2])
+        beta = -per(az) - du * uz
+        cq = dx * dx + dy * dy + per(az * az - r2) - du * du
+        disc = beta * beta - per(A) * cq
+        zc = (-beta - np.sqrt(np.maximum(disc, 0.0))) * per(inv_A)
         t = du + zc * uz
-        ok &= (t >= 0) & (t <= L[cap])
-        z = np.where(ok, np.minimum(z, zc), z)
-        return cap, flat, x, y, z
+        Lc = per(L)
+        up = per(upright)
+        on_cyl = (disc >= 0.0) & ~up & (t >= 0.0) & (t <= Lc)
+        # End spheres: b where the root lies beyond b, or b is the lower end of an upright one.
+        use_b = np.where(up, per(axis[:, 2] < 0.0), t > Lc)
+        ex = dx - use_b * per(axis[:, 0])
+        ey = dy - use_b * per(axis[:, 1])
+        d2 = ex * ex + ey * ey
+        rc2 = per(r2)
+        sphere = (disc >= 0.0) | up
+        zs = per(az) + use_b * per(axis[:, 2]) - np.sqrt(np.maximum(rc2 - d2, 0.0))
+        z = np.where(on_cyl, zc, np.where(sphere & (d2 <= rc2), zs, np.inf))
+        keep = z < 0.0
+        if math.isfinite(s_range[0]) or math.isfinite(s_range[1]):
+            keep &= (x >= s_range[0]) & (x < s_range[1])
+        return cap[keep], (ii * self.nc + jj)[keep], x[keep], y[keep], z[keep]
 
     def forces(self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float):
         """Mattress forces on C capsules (of one or several bodies, stepped together), summed
@@ -301,39 +338,45 @@ class CapsuleFoundation:
         t1 = np.where(dz > 1e-12, t_cut, 1.0)
         axis = bb - aa
         aa, bb = aa + t0[:, None] * axis, aa + t1[:, None] * axis
-        local, flat, x, y, z = self.underside(aa, bb, rr, s_range)
-        valid = (flat >= 0) & (z < 0.0)
-        if not valid.any():
+        local, flat, px, py, zz = self.underside(aa, bb, rr, s_range)
+        if local.size == 0:
             return None
-        cap = active[local[valid]]
-        idx = flat[valid] + offset[cap]
-        zz, px, py = z[valid], x[valid], y[valid]
-        # The lowest capsule over a node is the one the foam pushes on.
-        order = np.lexsort((zz, idx))
-        keep = order[np.r_[True, idx[order][1:] != idx[order][:-1]]]
+        cap = active[local]
+        idx = flat + offset[cap]
+        # The lowest capsule over a node is the one the foam pushes on (a tie: the first).
+        lowest = np.full(int(offset.max()) + self.nr * self.nc, np.inf)
+        np.minimum.at(lowest, idx, zz)
+        keep = np.flatnonzero(zz == lowest[idx])
+        if np.bincount(idx[keep]).max() > 1:
+            keep = np.sort(keep[np.unique(idx[keep], return_index=True)[1]])
         cap, zz, px, py = cap[keep], zz[keep], px[keep], py[keep]
         w = -zz
-        rel = np.stack([px, py, zz], 1) - com[cap]
-        om, v = body_vel[cap, :3], body_vel[cap, 3:]
-        vel = v + _cross(om, rel)
-        arm = rel + (com - xipos)[cap]
+        # Per node: the lever from com, the body's velocity there, the lever from xipos.
+        bv = body_vel[cap]
+        rx, ry, rz = px - com[cap, 0], py - com[cap, 1], zz - com[cap, 2]
+        vx = bv[:, 3] + bv[:, 1] * rz - bv[:, 2] * ry
+        vy = bv[:, 4] + bv[:, 2] * rx - bv[:, 0] * rz
+        vz = bv[:, 5] + bv[:, 0] * ry - bv[:, 1] * rx
+        shift = (com - xipos)[cap]
+        arm = np.stack([rx + shift[:, 0], ry + shift[:, 1], rz + shift[:, 2]], 1)
         # The damper is taken implicitly per capsule (backward Euler: c -> c / (1 + c dt / m),
         # with the smallest inertia for the lever arms), so light capsules stay stable.
-        c = self.nu * (self.k1 + 3.0 * self.k3 * w**2) * self.area
+        w2 = w * w
+        c = self.nu * (self.k1 + 3.0 * self.k3 * w2) * self.area
         arm2 = (arm**2).sum(1)
         c_lin = np.bincount(cap, c, minlength=C)
         c_rot = np.bincount(cap, c * arm2, minlength=C)
         scale = 1.0 / (1.0 + dt * np.maximum(c_lin / mass, c_rot / inertia))
-        fn = np.maximum((self.k1 * w + self.k3 * w**3) * self.area - scale[cap] * c * vel[:, 2], 0.0)
+        fn = np.maximum((self.k1 + self.k3 * w2) * w * self.area - scale[cap] * c * vz, 0.0)
         out = np.zeros((C, 6))
         out[:, 2] = np.bincount(cap, fn, minlength=C)
         out[:, 3] = np.bincount(cap, arm[:, 1] * fn, minlength=C)
         out[:, 4] = np.bincount(cap, -arm[:, 0] * fn, minlength=C)
-        self._friction(out, cap, arm, vel, fn, mass, inertia, dt)
-        energy = (self.k1 * w**2 / 2 + self.k3 * w**4 / 4) * self.area
+        self._friction(out, cap, arm, vx, vy, fn, mass, inertia, dt)
+        energy = (self.k1 / 2 + self.k3 / 4 * w2) * w2 * self.area
         return out, cap, w, energy
 
-    def _friction(self, out, cap, arm, vel, fn, mass, inertia, dt) -> None:
+    def _friction(self, out, cap, arm, vx, vy, fn, mass, inertia, dt) -> None:
         """Coulomb friction per capsule at its centre of pressure, regularised below V_STICK
         as a damper taken implicitly on the capsule's effective mass at that point (at most
         half the damper that would stop it within one step): it never reverses a capsule,
@@ -345,7 +388,7 @@ class CapsuleFoundation:
             return
         wgt = fn / np.maximum(Fn[cap], 1e-12)
         arm_c = np.stack([np.bincount(cap, wgt * arm[:, k], minlength=C) for k in range(3)], 1)
-        vel_c = np.stack([np.bincount(cap, wgt * vel[:, k], minlength=C) for k in range(2)], 1)
+        vel_c = np.stack([np.bincount(cap, wgt * vx, minlength=C), np.bincount(cap, wgt * vy, minlength=C)], 1)
         m_eff = 1.0 / (1.0 / mass + (arm_c**2).sum(1) / inertia)
         c = self.mu * Fn / V_STICK
         c_eff = c / (1.0 + 2.0 * c * dt / m_eff)
@@ -364,46 +407,63 @@ def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
                      u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]], 1)
 
 
+def _axis_angle_quats(v: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3) -> unit quaternions (N, 4) as (w, x, y, z), w >= 0 (for
+    angles up to pi). Per body in numpy, so a body's numbers never depend on its batch."""
+    theta = np.sqrt((v * v).sum(1))
+    half = theta / 2
+    # sin(theta / 2) / theta, with its series near 0 (where the axis is undefined).
+    small = theta < 1e-6
+    k = np.where(small, 0.5 - theta**2 / 48, np.sin(half) / np.where(small, 1.0, theta))
+    q = np.concatenate([np.cos(half)[:, None], v * k[:, None]], 1)
+    return np.where(q[:, :1] < 0, -q, q)
+
+
 def _quat(R: torch.Tensor) -> np.ndarray:
     return matrix_to_quaternion(R).double().numpy()
 
 
-def initial_pairs(body: CapsuleBody, i: int, params: BodyParams) -> list[tuple[int, int]]:
-    """The sampler's self-collision pairs (distal capsules vs non-adjacent ones) that are
-    apart in the initial pose: MuJoCo keeps them apart while the body settles."""
-    c = body.capsules
-    caps = Capsules(c.start[i : i + 1], c.end[i : i + 1], c.radius[i : i + 1], c.rest[i : i + 1])
-    a, b = caps.posed(params.pose[i : i + 1].to(caps.rest.dtype))
+def initial_pairs(body: CapsuleBody, params: BodyParams) -> list[list[tuple[int, int]]]:
+    """Per body, the sampler's self-collision pairs (distal capsules vs non-adjacent ones)
+    that are apart in the initial pose: MuJoCo keeps them apart while the body settles.
+    (One batched call; a pair is kept when its gap is > 0, so round-off could only matter
+    for a pair exactly touching.)"""
+    caps = body.capsules
+    a, b = caps.posed(params.pose.to(caps.rest.dtype))
     pairs = collision_pairs()
-    d = segment_distance(a[0][pairs[:, 0]], b[0][pairs[:, 0]], a[0][pairs[:, 1]], b[0][pairs[:, 1]])
-    gap = d - caps.radius[0][pairs[:, 0]] - caps.radius[0][pairs[:, 1]]
-    return [(int(p[0]), int(p[1])) for p, g in zip(pairs, gap) if float(g) > 0.0]
+    p0, p1 = pairs[:, 0], pairs[:, 1]
+    d = segment_distance(a[:, p0], b[:, p0], a[:, p1], b[:, p1])
+    gap = (d - caps.radius[:, p0] - caps.radius[:, p1]).numpy()
+    pl = [(int(x), int(y)) for x, y in pairs]
+    return [[pl[k] for k in np.flatnonzero(g > 0.0)] for g in gap]
 
 
 class _Episode:
     """One capsule body in MuJoCo: built, dropped, stepped until it rests or is rejected."""
 
     def __init__(self, body: CapsuleBody, i: int, params: BodyParams, mattress: MattressParams,
-                 mat: MatSpec, config: SettleConfig, bed: BedShape | None = None):
+                 mat: MatSpec, config: SettleConfig, bed: BedShape | None = None,
+                 pairs: list[tuple[int, int]] = ()):
         import mujoco
 
         self.mj, self.config, self.mattress = mujoco, config, mattress
-        m = self.model = mujoco.MjModel.from_xml_string(build_mjcf(body, i, config, initial_pairs(body, i, params), mat, bed))
+        m = self.model = mujoco.MjModel.from_xml_string(build_mjcf(body, i, config, pairs, mat, bed))
         d = self.data = mujoco.MjData(m)
         pose = params.pose[i].double()
-        home = body.home_pose[i].double()
         self.pose_in = pose
+        q_pose = _axis_angle_quats(pose.numpy())
+        q_home = _axis_angle_quats(body.home_pose[i].double().numpy())
+        pose_np, home_np = pose.numpy(), body.home_pose[i].double().numpy()
         self.adr: dict[int, int] = {}
         for j in CAPSULE_JOINTS[1:]:
-            jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"j{j}")
-            adr = self.adr[j] = int(m.jnt_qposadr[jid])
+            adr = self.adr[j] = int(m.jnt_qposadr[m.joint(f"j{j}").id])
             if j in HINGE_JOINTS:
-                axis = torch.tensor(HINGE_JOINTS[j], dtype=torch.float64)
-                d.qpos[adr] = float(pose[j - 1] @ axis)
-                m.qpos_spring[adr] = float(home[j - 1] @ axis)
+                axis = np.array(HINGE_JOINTS[j])
+                d.qpos[adr] = float(pose_np[j - 1] @ axis)
+                m.qpos_spring[adr] = float(home_np[j - 1] @ axis)
             else:
-                d.qpos[adr : adr + 4] = _quat(axis_angle_to_matrix(pose[j - 1]))
-                m.qpos_spring[adr : adr + 4] = _quat(axis_angle_to_matrix(home[j - 1]))
+                d.qpos[adr : adr + 4] = q_pose[j - 1]
+                m.qpos_spring[adr : adr + 4] = q_home[j - 1]
         d.qpos[0:3] = params.root_translation[i].double().numpy()
         d.qpos[3:7] = _quat(root_matrix(params.root_rotation[i : i + 1].double())[0])
         self.body_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in CAPSULE_NAMES])
@@ -430,6 +490,7 @@ class _Episode:
                 break
         d.qvel[:] = 0.0
         mujoco.mj_forward(m, d)
+        self.qpos_init = d.qpos.copy()
         self.mat = mat
         self.mass = float(m.body_subtreemass[0])
         self.cap_mass = m.body_mass[self.body_ids].copy()
@@ -449,85 +510,182 @@ class _Episode:
         cv = d.cvel[self.body_ids]
         return cv[:, 3:] + _cross(cv[:, :3], d.xipos[self.body_ids] - d.subtree_com[0])
 
-    def resting_params(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(root_rotation (3,), root_translation (3,), pose (23, 3)) from the MuJoCo state."""
-        q = torch.from_numpy(self.data.qpos.copy())
+    def resting_params(self, qpos: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(root_rotation (3,), root_translation (3,), pose (23, 3)) from a MuJoCo state."""
+        q = torch.from_numpy(qpos.copy())
         R = _quat_to_matrix(q[3:7])
         root_rot = matrix_to_axis_angle(R @ torch.tensor(R_SUPINE, dtype=torch.float64).T)
         pose = self.pose_in.clone()
+        balls = [(j, adr) for j, adr in self.adr.items() if j not in HINGE_JOINTS]
+        quats = torch.stack([q[adr : adr + 4] for _, adr in balls])
+        vecs = quaternion_to_axis_angle(quats / quats.norm(dim=1, keepdim=True))
+        for (j, _), v in zip(balls, vecs):
+            pose[j - 1] = v
         for j, adr in self.adr.items():
             if j in HINGE_JOINTS:
                 pose[j - 1] = float(q[adr]) * torch.tensor(HINGE_JOINTS[j], dtype=torch.float64)
-            else:
-                pose[j - 1] = quaternion_to_axis_angle(q[adr : adr + 4] / q[adr : adr + 4].norm())
         return root_rot, q[0:3].clone(), pose
 
 
-def _run_batch(eps: list[_Episode], config: SettleConfig, mattress: MattressParams,
-               bed: BedShape | None = None) -> list[dict]:
-    """Step several episodes in lockstep: MuJoCo steps each body, one vectorised call computes
-    the mattress forces for all of them (the per-step Python cost is shared)."""
-    import mujoco as mj
+class _Pool:
+    """Up to P episodes stepped in lockstep in one `mujoco.batch.Batch` (one MjData and model
+    per slot, bit-identical to stepping each alone): MuJoCo steps the running slots in one
+    call, one vectorised call computes the mattress forces of all of them, and a slot whose
+    body settles or is rejected takes the next body from the queue at once, so the per-step
+    Python cost is always shared by P bodies. Each body keeps its own step count, so results
+    do not depend on P or on which slot a body runs in."""
 
+    def __init__(self, eps: list[_Episode], config: SettleConfig, mattress: MattressParams,
+                 bed: BedShape | None, size: int):
+        import mujoco
+        from mujoco import batch as mjbatch
+
+        self.mj, self.eps, self.config = mujoco, eps, config
+        self.P = size
+        self.C = len(CAPSULE_NAMES)
+        self.found = CapsuleFoundation(eps[0].mat, mattress, config.grid_sub, bed=bed)
+        self.n_nodes = self.found.nr * self.found.nc
+        self.body_ids = eps[0].body_ids
+        self.batch = mjbatch.Batch(eps[0].model, size, nthread=1, persistent=True)
+        self.models = [eps[0].model] * size
+        b = self.batch
+        self.qpos, self.qvel, self.xfrc = b.bind("qpos"), b.bind("qvel"), b.bind("xfrc_applied")
+        self.xpos, self.xmat, self.cvel = b.bind("xpos"), b.bind("xmat"), b.bind("cvel")
+        self.xipos, self.com, self.energy = b.bind("xipos"), b.bind("subtree_com"), b.bind("energy")
+        P, C = size, self.C
+        self.ep = np.full(P, -1)                  # episode in each slot (-1: free)
+        self.step = np.zeros(P, dtype=np.int64)   # steps this slot's body has taken
+        self.touched = np.full(P, -1)
+        self.prev_v = np.zeros((P, C, 3))
+        self.e_ref = np.full(P, np.nan)
+        self.speed = np.full(P, np.inf)
+        self.accel = np.full(P, np.inf)
+        self.sink = np.zeros(P)
+        self.radius, self.mass, self.inertia = np.zeros((P, C)), np.ones((P, C)), np.ones((P, C))
+        self.loc_a, self.loc_b = np.zeros((P, C, 3)), np.zeros((P, C, 3))
+        self.weight = np.ones(P)
+        self.stage_vel = mujoco.mjtStage.mjSTAGE_VEL.value
+        self.stage_none = mujoco.mjtStage.mjSTAGE_NONE.value
+
+    def fill(self, slots: np.ndarray, episodes: list[int]) -> None:
+        """Start episodes in free slots: load the model and the initial state, then compute
+        the position and velocity stages (what mj_step1 does)."""
+        for s, k in zip(slots, episodes):
+            ep = self.eps[k]
+            self.models[s] = ep.model
+            self.ep[s] = k
+            self.radius[s], self.mass[s], self.inertia[s] = ep.radius, ep.cap_mass, ep.cap_inertia
+            self.loc_a[s], self.loc_b[s] = ep.loc_a, ep.loc_b
+            self.weight[s] = ep.mass * GRAVITY_M_S2
+        self.batch.set_models(self.models)
+        self.batch.reset(slots, stage=self.stage_none)
+        for s, k in zip(slots, episodes):
+            self.qpos[s] = self.eps[k].qpos_init
+        self.qvel[slots] = 0.0
+        self.xfrc[slots] = 0.0
+        self.step[slots] = 0
+        self.touched[slots] = -1
+        self.e_ref[slots] = np.nan
+        self.speed[slots] = np.inf
+        self.accel[slots] = np.inf
+        self.sink[slots] = 0.0
+        self.batch.forward(slots, stage=self.stage_vel)
+
+
+def _run_batch(eps: list[_Episode], config: SettleConfig, mattress: MattressParams,
+               bed: BedShape | None = None, pool: int = 16) -> list[dict]:
+    """Settle the episodes `pool` at a time (see `_Pool`). Returns per episode its
+    statistics and final state ("qpos", None when non-finite)."""
     E, C = len(eps), len(CAPSULE_NAMES)
     dt = config.timestep_s
-    found = CapsuleFoundation(eps[0].mat, mattress, config.grid_sub, bed=bed)
-    n_nodes = found.nr * found.nc
     every = max(1, round(config.zero_velocity_every_s / dt))
-    out = [dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0, wall_ms=0.0)
-           for _ in eps]
+    thickness = float(mattress.thickness_m)
+    out = [dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0, wall_ms=0.0,
+                qpos=None) for _ in eps]
     t0 = time.perf_counter()
-    running = []
+    queue = []
     for k, ep in enumerate(eps):
         (xr, xr1), (yr, yr1) = ep.bounds
         if not (xr <= ep.root_surface[0] <= xr1 and yr <= ep.root_surface[1] <= yr1):
             out[k]["reason"] = REASON_OFF_BED
+            out[k]["qpos"] = ep.qpos_init.copy()
         else:
-            running.append(k)
-    radius = np.concatenate([ep.radius for ep in eps])
-    mass = np.concatenate([ep.cap_mass for ep in eps])
-    inertia = np.concatenate([ep.cap_inertia for ep in eps])
-    weight = np.array([ep.mass * GRAVITY_M_S2 for ep in eps])
-    tol_energy = 1.0 + 0.05 * weight * (config.drop_height_m + 0.05)
-    e_ref = np.full(E, np.nan)
-    touched = np.full(E, -1)
-    prev_v = [None] * E
-    thickness = float(mattress.thickness_m)
-    for step in range(config.max_steps):
-        if not running:
+            queue.append(k)
+    if queue:
+        p = _Pool(eps, config, mattress, bed, min(pool, len(queue)))
+        _drive(p, queue, out, every, thickness, dt)
+    wall = (time.perf_counter() - t0) * 1e3 / max(E, 1)
+    for o in out:
+        o["wall_ms"] = wall
+    return out
+
+
+def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: float, dt: float) -> None:
+    """The lockstep loop. Per step and running body, in this order (as mj_step1 / forces /
+    mj_step2 of one body): non-finite check; capsule speeds and accelerations; at rest?;
+    mattress forces; touch; step; velocity reset before the touch; energy, sinking and
+    falling checks; step limit."""
+    from mujoco import batch as mjbatch
+
+    config, C, found = p.config, p.C, p.found
+    queue = list(queue)
+    tol_energy = lambda s: 1.0 + 0.05 * p.weight[s] * (config.drop_height_m + 0.05)  # noqa: E731
+
+    def finish(slots, reason, keep_state=True):
+        for s in slots:
+            k = int(p.ep[s])
+            o = out[k]
+            o["reason"] = reason
+            o["steps"] = int(p.step[s])
+            o["touch_step"] = int(p.touched[s])
+            o["max_speed"], o["max_accel"], o["sink"] = float(p.speed[s]), float(p.accel[s]), float(p.sink[s])
+            o["qpos"] = p.qpos[s].copy() if keep_state else None
+            p.ep[s] = -1
+
+    free = np.flatnonzero(p.ep < 0)
+    while True:
+        if len(free) and queue:
+            n = min(len(free), len(queue))
+            p.fill(free[:n], queue[:n])
+            del queue[:n]
+        ids = np.flatnonzero(p.ep >= 0)
+        if not len(ids):
             break
-        alive = []
-        for k in running:
-            ep = eps[k]
-            mj.mj_step1(ep.model, ep.data)
-            d = ep.data
-            if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
-                out[k]["reason"] = REASON_NONFINITE
-                continue
-            v = ep.capsule_velocities()
-            if prev_v[k] is not None:
-                out[k]["max_speed"] = float(np.sqrt((v**2).sum(1)).max())
-                out[k]["max_accel"] = float(np.sqrt(((v - prev_v[k]) ** 2).sum(1)).max() / dt)
-            prev_v[k] = v
-            if (touched[k] >= 0 and step - touched[k] >= config.min_steps_after_touch
-                    and out[k]["max_speed"] < config.speed_tol_m_s and out[k]["max_accel"] < config.accel_tol_m_s2):
-                continue  # at rest
-            alive.append(k)
-        running = alive
-        if not running:
-            break
+        finite = np.isfinite(p.qpos[ids]).all(1) & np.isfinite(p.qvel[ids]).all(1)
+        finish(ids[~finite], REASON_NONFINITE, keep_state=False)
+        ids = ids[finite]
+        cv = p.cvel[ids][:, p.body_ids]                       # (n, C, 6)
+        xipos = p.xipos[ids][:, p.body_ids]                    # (n, C, 3)
+        com = p.com[ids, 0]                                    # (n, 3)
+        rel = xipos - com[:, None]
+        om = cv[..., :3]
+        v = cv[..., 3:] + np.stack([om[..., 1] * rel[..., 2] - om[..., 2] * rel[..., 1],
+                                    om[..., 2] * rel[..., 0] - om[..., 0] * rel[..., 2],
+                                    om[..., 0] * rel[..., 1] - om[..., 1] * rel[..., 0]], -1)
+        has_prev = p.step[ids] > 0
+        speed = np.sqrt((v**2).sum(-1)).max(1)
+        accel = np.sqrt(((v - p.prev_v[ids]) ** 2).sum(-1)).max(1) / dt
+        p.speed[ids] = np.where(has_prev, speed, p.speed[ids])
+        p.accel[ids] = np.where(has_prev, accel, p.accel[ids])
+        p.prev_v[ids] = v
+        t = p.touched[ids]
+        rest = ((t >= 0) & (p.step[ids] - t >= config.min_steps_after_touch)
+                & (p.speed[ids] < config.speed_tol_m_s) & (p.accel[ids] < config.accel_tol_m_s2))
+        finish(ids[rest], "")
+        keep = ~rest
+        ids, cv, xipos, com = ids[keep], cv[keep], xipos[keep], com[keep]
+        n = len(ids)
+        if n == 0:
+            free = np.flatnonzero(p.ep < 0)
+            continue
         # One force evaluation for every running body.
-        idx = np.array(running)
-        ends = [eps[k].ends() for k in running]
-        a = np.concatenate([e[0] for e in ends])
-        b = np.concatenate([e[1] for e in ends])
-        sel = (idx[:, None] * C + np.arange(C)[None]).ravel()
-        vel = np.concatenate([eps[k].data.cvel[eps[k].body_ids] for k in running])
-        com = np.repeat(np.stack([eps[k].data.subtree_com[0] for k in running]), C, axis=0)
-        xipos = np.concatenate([eps[k].data.xipos[eps[k].body_ids] for k in running])
-        offset = np.repeat(np.arange(len(running)) * n_nodes, C)
-        res = found.forces(a, b, radius[sel], vel, com, xipos, mass[sel], inertia[sel], offset, dt)
-        n = len(running)
+        R = p.xmat[ids][:, p.body_ids].reshape(n, C, 3, 3)
+        pos = p.xpos[ids][:, p.body_ids]
+        a = (pos + np.einsum("ncij,ncj->nci", R, p.loc_a[ids])).reshape(-1, 3)
+        b = (pos + np.einsum("ncij,ncj->nci", R, p.loc_b[ids])).reshape(-1, 3)
+        offset = np.repeat(np.arange(n) * p.n_nodes, C)
+        res = found.forces(a, b, p.radius[ids].ravel(), cv.reshape(-1, 6), np.repeat(com, C, axis=0),
+                           xipos.reshape(-1, 3), p.mass[ids].ravel(), p.inertia[ids].ravel(), offset, dt)
         if res is None:
             ft = np.zeros((n * C, 6))
             wmax = np.zeros(n)
@@ -540,41 +698,42 @@ def _run_batch(eps: list[_Episode], config: SettleConfig, mattress: MattressPara
             np.maximum.at(wmax, body_of, w)
             e_mat = np.bincount(body_of, energy, minlength=n)
             pelvis = np.bincount(body_of, cap % C == PELVIS, minlength=n) > 0
-        carried = ft[:, 2].reshape(n, C).sum(1) >= 0.9 * weight[idx]
-        alive = []
-        for j, k in enumerate(running):
-            ep, d, o = eps[k], eps[k].data, out[k]
-            if touched[k] < 0 and (pelvis[j] or carried[j]):
-                touched[k] = step
-            d.xfrc_applied[ep.body_ids] = ft[j * C:(j + 1) * C]
-            energy = float(d.energy[0] + d.energy[1]) + float(e_mat[j])
-            mj.mj_step2(ep.model, d)
-            o["steps"] = step + 1
-            o["sink"] = float(wmax[j])
-            if touched[k] < 0 and (step + 1) % every == 0:
-                d.qvel[:] = 0.0
-            if touched[k] >= 0:
-                # After the last velocity reset the system is passive: energy can only fall.
-                if np.isnan(e_ref[k]) or step - touched[k] < 2:
-                    e_ref[k] = energy if np.isnan(e_ref[k]) else min(e_ref[k], energy)
-                elif energy > e_ref[k] + tol_energy[k]:
-                    o["reason"] = REASON_ENERGY
-                    continue
-            if wmax[j] > thickness:
-                o["reason"] = REASON_SANK
-                continue
-            if d.subtree_com[0][2] < -thickness:
-                o["reason"] = REASON_FELL
-                continue
-            alive.append(k)
-        running = alive
-    for k in running:
-        out[k]["reason"] = REASON_TIMEOUT
-    wall = (time.perf_counter() - t0) * 1e3 / max(E, 1)
-    for k in range(E):
-        out[k]["touch_step"] = int(touched[k])
-        out[k]["wall_ms"] = wall
-    return out
+        carried = ft[:, 2].reshape(n, C).sum(1) >= 0.9 * p.weight[ids]
+        t = p.touched[ids]
+        p.touched[ids] = np.where((t < 0) & (pelvis | carried), p.step[ids], t)
+        xfrc = np.zeros((n, p.xfrc.shape[1], 6))
+        xfrc[:, p.body_ids] = ft.reshape(n, C, 6)
+        p.xfrc[ids] = xfrc
+        energy = p.energy[ids].sum(1) + e_mat
+        com_z = com[:, 2].copy()
+        try:
+            p.batch.step(ids, stage=p.stage_vel)
+        except mjbatch.SimulationError as exc:  # MuJoCo gave up on some bodies
+            bad = np.isin(ids, np.asarray(exc.ids))
+            finish(ids[bad], REASON_NONFINITE, keep_state=False)
+            ids, energy, wmax, com_z = ids[~bad], energy[~bad], wmax[~bad], com_z[~bad]
+        step = p.step[ids]
+        p.sink[ids] = wmax
+        touched = p.touched[ids]
+        reset = (touched < 0) & ((step + 1) % every == 0)
+        if reset.any():
+            p.qvel[ids[reset]] = 0.0
+            p.batch.forward(ids[reset], stage=p.stage_vel)
+        p.step[ids] = step + 1
+        # After the last velocity reset the system is passive: energy can only fall.
+        on = touched >= 0
+        first = on & (np.isnan(p.e_ref[ids]) | (step - touched < 2))
+        e_ref = p.e_ref[ids]
+        grew = on & ~first & (energy > e_ref + tol_energy(ids))
+        p.e_ref[ids] = np.where(first, np.where(np.isnan(e_ref), energy, np.minimum(e_ref, energy)), e_ref)
+        finish(ids[grew], REASON_ENERGY)
+        sank = ~grew & (wmax > thickness)
+        finish(ids[sank], REASON_SANK)
+        fell = ~grew & ~sank & (com_z < -thickness)
+        finish(ids[fell], REASON_FELL)
+        left = ~grew & ~sank & ~fell
+        finish(ids[left & (step + 1 >= config.max_steps)], REASON_TIMEOUT)
+        free = np.flatnonzero(p.ep < 0)
 
 
 def as_float64(model: BodyModel) -> BodyModel:
@@ -618,19 +777,18 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
     pose = params.pose.clone()
     stats = {k: np.zeros(B) for k in ("steps", "touch_step", "max_speed", "max_accel", "sink", "wall_ms")}
     reasons = []
-    for lo in range(0, B, batch):
-        t_build = time.perf_counter()
-        eps = [_Episode(body, i, params, mattress, mat, config, bed) for i in range(lo, min(B, lo + batch))]
-        build_ms = (time.perf_counter() - t_build) * 1e3 / len(eps)
-        outs = _run_batch(eps, config, mattress, bed)
-        for j, (ep, o) in enumerate(zip(eps, outs)):
-            i = lo + j
-            reasons.append(o["reason"])
-            o["wall_ms"] += build_ms
-            for k in stats:
-                stats[k][i] = o[k]
-            if o["reason"] != REASON_NONFINITE:
-                root_rot[i], root_t[i], pose[i] = ep.resting_params()
+    t_build = time.perf_counter()
+    pairs = initial_pairs(body, params)
+    eps = [_Episode(body, i, params, mattress, mat, config, bed, pairs[i]) for i in range(B)]
+    build_ms = (time.perf_counter() - t_build) * 1e3 / max(B, 1)
+    outs = _run_batch(eps, config, mattress, bed, pool=batch)
+    for i, (ep, o) in enumerate(zip(eps, outs)):
+        reasons.append(o["reason"])
+        o["wall_ms"] += build_ms
+        for k in stats:
+            stats[k][i] = o[k]
+        if o["qpos"] is not None:
+            root_rot[i], root_t[i], pose[i] = ep.resting_params(o["qpos"])
     return SettleResult(
         params=params.replace(root_rotation=root_rot, root_translation=root_t, pose=pose),
         ok=np.array([not r for r in reasons]), reason=reasons, steps=stats["steps"].astype(int),
