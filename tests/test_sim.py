@@ -252,11 +252,15 @@ def test_sim1_settles_typical_poses_of_every_partition(anny64, partition):
 
 
 def test_sim1_is_deterministic_and_batch_independent(anny64):
-    params = _initial(anny64, "supine", indices=(1, 2))
+    # batch=2 with 3 bodies: the third starts in whichever slot frees first (slot refill).
+    params = _initial(anny64, "supine", indices=(1, 2, 4))
     a = settle(anny64, params, batch=2)
     b = settle(anny64, params, batch=1)
-    assert a.reason == b.reason and (a.steps == b.steps).all()
+    assert a.reason == b.reason and (a.steps == b.steps).all() and len(set(a.steps)) == 3
     assert torch.equal(a.params.pose, b.params.pose) and torch.equal(a.params.root_translation, b.params.root_translation)
+    # Alone, a body settles exactly as it does among others.
+    c = settle(anny64, params.replace(**{k: getattr(params, k)[2:] for k in ("shape", "root_rotation", "root_translation", "pose")}))
+    assert c.steps[0] == a.steps[2] and torch.equal(c.params.pose[0], a.params.pose[2])
 
 
 def test_sim1_rejects_bodies_off_the_bed_and_bad_input(anny64):
@@ -358,3 +362,56 @@ def test_simulation_never_converts_the_callers_model(anny32):
 
     copy64 = as_float64(anny32)
     assert anny32.dtype == torch.float32 and copy64.dtype == torch.float64
+
+
+def _lowest_point_reference(a, b, r, x, y, n=4001):
+    """Lowest surface point of the capsule (a, b, r) on the vertical line through (x, y), by
+    brute force: the minimum over many axis points of the lowest point of the ball there."""
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    p = a + t * (b - a)
+    d2 = (p[:, 0] - x) ** 2 + (p[:, 1] - y) ** 2
+    inside = d2 <= r * r
+    return float((p[inside, 2] - np.sqrt(r * r - d2[inside])).min()) if inside.any() else math.inf
+
+
+def test_sim1_underside_matches_a_brute_force_search():
+    from pressurepose.sim.settle import CapsuleFoundation
+
+    found = CapsuleFoundation(MAT, MattressParams())
+    rng = np.random.default_rng(3)
+    centre = np.array([0.9, 0.4, 0.0])
+    caps = []
+    for _ in range(12):  # random orientations, partly below the top
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        c = centre + np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(-0.02, 0.05)])
+        half = rng.uniform(0.0, 0.2)
+        caps.append((c - half * u, c + half * u, rng.uniform(0.03, 0.07)))
+    caps.append((centre + [0, 0, 0.01], centre + [0, 0, 0.3], 0.05))   # upright
+    caps.append((centre + [0, 0, 0.3], centre + [0, 0, 0.01], 0.05))   # upright, ends swapped
+    caps.append((centre - [0.2, 0, -0.02], centre + [0.2, 0, 0.02], 0.06))  # horizontal
+    a = np.array([c[0] for c in caps])
+    b = np.array([c[1] for c in caps])
+    r = np.array([c[2] for c in caps])
+    cap, node, x, y, z = found.underside(a, b, r)
+    got = {(int(c), int(k)): float(h) for c, k, h in zip(cap, node, z)}
+    assert (z < 0).all() and len(got) == len(z) > 100
+    checked = 0
+    for c in range(len(caps)):
+        # Every node of the grid near the capsule: inside the returned set exactly when the
+        # brute-force lowest point is below the top (away from round-off at the boundary).
+        xs = found.x0 + (np.arange(found.nr) + 0.5) * found.hx
+        ys = found.y0 + (np.arange(found.nc) + 0.5) * found.hy
+        near_x = np.flatnonzero(np.abs(xs - (a[c, 0] + b[c, 0]) / 2) < 0.35)
+        near_y = np.flatnonzero(np.abs(ys - (a[c, 1] + b[c, 1]) / 2) < 0.35)
+        for i in near_x:
+            for j in near_y:
+                ref = _lowest_point_reference(a[c], b[c], r[c], xs[i], ys[j])
+                key = (c, int(i * found.nc + j))
+                if ref < -1e-5:
+                    assert key in got, (c, i, j, ref)
+                    assert abs(got[key] - ref) < 1e-5, (c, got[key], ref)
+                    checked += 1
+                elif ref > 1e-5:
+                    assert key not in got, (c, i, j, ref)
+    assert checked == len(got) - sum(1 for (c, _), h in got.items() if h > -1e-5)
