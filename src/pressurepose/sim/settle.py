@@ -232,25 +232,36 @@ class CapsuleFoundation:
         reach = np.sqrt(np.maximum(r * r - h * h, 0.0))
         lo_x = np.minimum(a[:, 0], b[:, 0]) - reach
         hi_x = np.maximum(a[:, 0], b[:, 0]) + reach
-        lo_y = np.minimum(a[:, 1], b[:, 1]) - reach
-        hi_y = np.maximum(a[:, 1], b[:, 1]) + reach
-        # Node i's centre is x0 + (i + 1/2) hx: nodes with centres in [lo, hi].
+        # Node i's centre is x0 + (i + 1/2) hx: the rows with centres in [lo_x, hi_x].
         i0 = np.maximum(np.ceil((lo_x - self.x0) / self.hx - 0.5), 0).astype(np.int64)
         i1 = np.minimum(np.floor((hi_x - self.x0) / self.hx - 0.5), self.nr - 1).astype(np.int64)
-        j0 = np.maximum(np.ceil((lo_y - self.y0) / self.hy - 0.5), 0).astype(np.int64)
-        j1 = np.minimum(np.floor((hi_y - self.y0) / self.hy - 0.5), self.nc - 1).astype(np.int64)
         nr = np.maximum(i1 - i0 + 1, 0)
-        nc = np.maximum(j1 - j0 + 1, 0)
-        size = nr * nc
-        total = int(size.sum())
+        # Per (capsule, row): the axis points within `reach` of the row in x span an interval
+        # of t; the footprint on the row lies within `reach` of their y range (exact bound,
+        # and much narrower than the box for a capsule lying diagonally).
+        rc = np.repeat(np.arange(C), nr)
+        row = np.repeat(i0, nr) + np.arange(len(rc)) - np.repeat(np.cumsum(nr) - nr, nr)
+        xr = self.x0 + (row + 0.5) * self.hx
+        ax_, ay_ = a[rc, 0], a[rc, 1]
+        ex, ey, rh = b[rc, 0] - ax_, b[rc, 1] - ay_, reach[rc]
+        along = np.abs(ex) > 1e-12
+        safe = np.where(along, ex, 1.0)
+        t1, t2 = (xr - rh - ax_) / safe, (xr + rh - ax_) / safe
+        tlo = np.where(along, np.clip(np.minimum(t1, t2), 0.0, 1.0), 0.0)
+        thi = np.where(along, np.clip(np.maximum(t1, t2), 0.0, 1.0), 1.0)
+        ylo = ay_ + np.minimum(tlo * ey, thi * ey) - rh
+        yhi = ay_ + np.maximum(tlo * ey, thi * ey) + rh
+        j0 = np.maximum(np.ceil((ylo - self.y0) / self.hy - 0.5), 0).astype(np.int64)
+        j1 = np.minimum(np.floor((yhi - self.y0) / self.hy - 0.5), self.nc - 1).astype(np.int64)
+        ncol = np.maximum(j1 - j0 + 1, 0)
+        size = np.bincount(rc, ncol, minlength=C).astype(np.int64)  # candidates per capsule
+        total = int(ncol.sum())
         if total == 0:
             e = np.zeros(0)
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), e, e, e
-        cap = np.repeat(np.arange(C), size)
-        k = np.arange(total) - np.repeat(np.cumsum(size) - size, size)
-        di, dj = np.divmod(k, np.repeat(nc, size))
-        ii = np.repeat(i0, size) + di
-        jj = np.repeat(j0, size) + dj
+        cap = np.repeat(rc, ncol)
+        ii = np.repeat(row, ncol)
+        jj = np.repeat(j0, ncol) + np.arange(total) - np.repeat(np.cumsum(ncol) - ncol, ncol)
         x = self.x0 + (ii + 0.5) * self.hx
         y = self.y0 + (jj + 0.5) * self.hy
         # Per capsule: axis direction u, length L, A = 1 - uz^2 (the quadratic's leading term).
