@@ -23,6 +23,15 @@ Rejected (with the reason) after `max_steps` steps, on a non-finite state, when 
 through the mattress (compression beyond its thickness), when the body falls off the bed, or
 when the total mechanical energy (kinetic + gravity + joint springs + mattress) grows, which
 an integrator going unstable does and a passive system cannot.
+
+Speed (docs/benchmarks.md): `settle` steps `batch` bodies together, each in its own MjData,
+and a slot takes the next body as soon as its body is done, so the per-step Python cost is
+always shared. The state every step needs is gathered into (P, ...) arrays from views made
+once per body; the foundation forces of all running bodies are one vectorised call that
+visits, per capsule and grid row, only the nodes within the horizontal reach of the capsule's
+part below the top, computes one quadratic root (and one end sphere) per node, and picks the
+lowest capsule per node with a scatter-min. Every body's numbers are its own: results do not
+depend on `batch`, on the slot or on the other bodies (test).
 """
 
 from __future__ import annotations
@@ -35,7 +44,7 @@ import numpy as np
 import torch
 
 from pressurepose.body.capsules import (
-    CAPSULE_JOINTS, CAPSULE_NAMES, CAPSULE_PARENTS, HINGE_JOINTS, CapsuleBody, Capsules, build_capsule_body,
+    CAPSULE_JOINTS, CAPSULE_NAMES, CAPSULE_PARENTS, HINGE_JOINTS, CapsuleBody, build_capsule_body,
     collision_pairs, segment_distance,
 )
 from pressurepose.body.model import BodyModel
@@ -513,12 +522,6 @@ class _Episode:
         R = d.xmat[self.body_ids].reshape(-1, 3, 3)
         p = d.xpos[self.body_ids]
         return p + np.einsum("cij,cj->ci", R, self.loc_a), p + np.einsum("cij,cj->ci", R, self.loc_b)
-
-    def capsule_velocities(self) -> np.ndarray:
-        """(C, 3) linear velocity of each capsule's centre of mass."""
-        d = self.data
-        cv = d.cvel[self.body_ids]
-        return cv[:, 3:] + _cross(cv[:, :3], d.xipos[self.body_ids] - d.subtree_com[0])
 
     def resting_params(self, qpos: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(root_rotation (3,), root_translation (3,), pose (23, 3)) from a MuJoCo state."""
