@@ -550,16 +550,18 @@ class _Pool:
     (`mujoco.batch.Batch` steps the same way in C, but measured ~40% slower per body-step
     here: it loads and saves each simulation's state around every call.)"""
 
-    def __init__(self, eps: list[_Episode], config: SettleConfig, mattress: MattressParams,
+    def __init__(self, make, n: int, mat: MatSpec, config: SettleConfig, mattress: MattressParams,
                  bed: BedShape | None, size: int):
         import mujoco
 
-        self.mj, self.eps, self.config = mujoco, eps, config
+        self.mj, self.config = mujoco, config
+        self.make = make                          # episode index -> _Episode (built when started)
+        self.eps: list[_Episode | None] = [None] * n
         self.P = size
         self.C = len(CAPSULE_NAMES)
-        self.found = CapsuleFoundation(eps[0].mat, mattress, config.grid_sub, bed=bed)
+        self.found = CapsuleFoundation(mat, mattress, config.grid_sub, bed=bed)
         self.n_nodes = self.found.nr * self.found.nc
-        self.body_ids = eps[0].body_ids
+        self.body_ids = None
         P, C = size, self.C
         self.ep = np.full(P, -1)                  # episode in each slot (-1: free)
         self.step = np.zeros(P, dtype=np.int64)   # steps this slot's body has taken
@@ -577,7 +579,7 @@ class _Pool:
         self.slot: list[tuple | None] = [None] * P
 
     def fill(self, slots: np.ndarray, episodes: list[int]) -> None:
-        """Start episodes in free slots (their MjData hold the dropped initial state)."""
+        """Start built episodes in free slots (their MjData hold the dropped initial state)."""
         for s, k in zip(slots, episodes):
             ep = self.eps[k]
             self.ep[s] = k
@@ -595,29 +597,22 @@ class _Pool:
         self.sink[slots] = 0.0
 
 
-def _run_batch(eps: list[_Episode], config: SettleConfig, mattress: MattressParams,
+def _run_batch(make, n: int, mat: MatSpec, config: SettleConfig, mattress: MattressParams,
                bed: BedShape | None = None, pool: int = 16) -> list[dict]:
-    """Settle the episodes `pool` at a time (see `_Pool`). Returns per episode its
-    statistics and final state ("qpos", None when non-finite)."""
-    E = len(eps)
+    """Settle episodes 0..n-1 (`make(k)` builds episode k) `pool` at a time (see `_Pool`);
+    an episode is built when a slot takes it and released when it is done, so memory is
+    bounded by the pool. Returns per episode its statistics and its resting parameters
+    ("rest": (root_rotation, root_translation, pose), None when non-finite)."""
     dt = config.timestep_s
     every = max(1, round(config.zero_velocity_every_s / dt))
     thickness = float(mattress.thickness_m)
     out = [dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0, wall_ms=0.0,
-                qpos=None) for _ in eps]
+                rest=None) for _ in range(n)]
     t0 = time.perf_counter()
-    queue = []
-    for k, ep in enumerate(eps):
-        (xr, xr1), (yr, yr1) = ep.bounds
-        if not (xr <= ep.root_surface[0] <= xr1 and yr <= ep.root_surface[1] <= yr1):
-            out[k]["reason"] = REASON_OFF_BED
-            out[k]["qpos"] = ep.data.qpos.copy()
-        else:
-            queue.append(k)
-    if queue:
-        p = _Pool(eps, config, mattress, bed, min(pool, len(queue)))
-        _drive(p, queue, out, every, thickness, dt)
-    wall = (time.perf_counter() - t0) * 1e3 / max(E, 1)
+    if n:
+        p = _Pool(make, n, mat, config, mattress, bed, min(pool, n))
+        _drive(p, list(range(n)), out, every, thickness, dt)
+    wall = (time.perf_counter() - t0) * 1e3 / max(n, 1)
     for o in out:
         o["wall_ms"] = wall
     return out
@@ -638,22 +633,42 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
     def finish(slots, reason, keep_state=True):
         for s in slots:
             k = int(p.ep[s])
-            o = out[k]
-            if any(eps[k].data.warning[w].number for w in bad_state):
+            ep, o = eps[k], out[k]
+            if any(ep.data.warning[w].number for w in bad_state):
                 reason, keep_state = REASON_NONFINITE, False
             o["reason"] = reason
             o["steps"] = int(p.step[s])
             o["touch_step"] = int(p.touched[s])
             o["max_speed"], o["max_accel"], o["sink"] = float(p.speed[s]), float(p.accel[s]), float(p.sink[s])
-            o["qpos"] = eps[k].data.qpos.copy() if keep_state else None
+            o["rest"] = ep.resting_params(ep.data.qpos) if keep_state else None
             p.ep[s] = -1
+            p.slot[s] = None
+            eps[k] = None  # release the model and data
+
+    def start(count):
+        """Build the next episodes off the queue; those starting off the bed are done at once."""
+        ready = []
+        while queue and len(ready) < count:
+            k = queue.pop(0)
+            ep = eps[k] = p.make(k)
+            (xr, xr1), (yr, yr1) = ep.bounds
+            if not (xr <= ep.root_surface[0] <= xr1 and yr <= ep.root_surface[1] <= yr1):
+                out[k]["reason"] = REASON_OFF_BED
+                out[k]["rest"] = ep.resting_params(ep.data.qpos)
+                eps[k] = None
+                continue
+            if p.body_ids is None:
+                p.body_ids = ep.body_ids
+            ready.append(k)
+        return ready
 
     free = np.arange(p.P)
     while True:
         if len(free) and queue:
-            n = min(len(free), len(queue))
-            p.fill(free[:n], queue[:n])
-            del queue[:n]
+            ready = start(len(free))
+            if ready:
+                p.fill(free[: len(ready)], ready)
+                ids_body = p.body_ids
         ids = np.flatnonzero(p.ep >= 0)
         if not len(ids):
             break
@@ -783,18 +798,15 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
     pose = params.pose.clone()
     stats = {k: np.zeros(B) for k in ("steps", "touch_step", "max_speed", "max_accel", "sink", "wall_ms")}
     reasons = []
-    t_build = time.perf_counter()
-    pairs = initial_pairs(body, params)
-    eps = [_Episode(body, i, params, mattress, mat, config, bed, pairs[i]) for i in range(B)]
-    build_ms = (time.perf_counter() - t_build) * 1e3 / max(B, 1)
-    outs = _run_batch(eps, config, mattress, bed, pool=batch)
-    for i, (ep, o) in enumerate(zip(eps, outs)):
+    pairs = initial_pairs(body, params) if B else []
+    outs = _run_batch(lambda i: _Episode(body, i, params, mattress, mat, config, bed, pairs[i]), B, mat,
+                      config, mattress, bed, pool=batch)
+    for i, o in enumerate(outs):
         reasons.append(o["reason"])
-        o["wall_ms"] += build_ms
         for k in stats:
             stats[k][i] = o[k]
-        if o["qpos"] is not None:
-            root_rot[i], root_t[i], pose[i] = ep.resting_params(o["qpos"])
+        if o["rest"] is not None:
+            root_rot[i], root_t[i], pose[i] = o["rest"]
     return SettleResult(
         params=params.replace(root_rotation=root_rot, root_translation=root_t, pose=pose),
         ok=np.array([not r for r in reasons]), reason=reasons, steps=stats["steps"].astype(int),
