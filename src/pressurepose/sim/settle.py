@@ -67,6 +67,13 @@ SETTLE_REASONS = (REASON_TIMEOUT, REASON_NONFINITE, REASON_SANK, REASON_FELL, RE
 PELVIS = CAPSULE_NAMES.index("pelvis")
 SIM_VOLUME_POINTS = 2048  # capsule volumes for masses: <= 0.3% from 8192 points, a quarter of the cost
 V_STICK = 0.02  # m/s: below this sliding speed Coulomb friction becomes a (stiff) damper
+# Static friction: a tangential spring per capsule and bed section from where the capsule
+# stuck (its force accumulates -k v dt at the centre of pressure), k = STICK_STIFFNESS x the
+# capsule's effective mass / dt^2 (omega dt ~ 0.45: stable in the explicit step), capped at
+# mu N (beyond, the anchor is dragged along: slip). Without it, the damper alone lets any
+# sustained push along the bed creep at F 2 dt / m_eff (a body on a raised head section slid
+# 0.2-0.5 m toward the foot).
+STICK_STIFFNESS = 0.2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -312,19 +319,27 @@ class CapsuleFoundation:
             keep &= (x >= s_range[0]) & (x < s_range[1])
         return cap[keep], (ii * self.nc + jj)[keep], x[keep], y[keep], z[keep]
 
-    def forces(self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float):
+    def forces(self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float, stick=None):
         """Mattress forces on C capsules (of one or several bodies, stepped together), summed
         over the bed's sections (one when flat): each section is handled in its own frame,
-        where its top is z = 0 (see `_forces_local`)."""
+        where its top is z = 0 (see `_forces_local`). stick: (sections, C, 2) static-friction
+        spring forces (section frames), updated in place (None: the damper alone)."""
         if self.bed.flat:
-            return self._forces_local(a, b, r, body_vel, com, xipos, mass, inertia, offset, dt)
+            st = None if stick is None else stick[0]
+            res = self._forces_local(a, b, r, body_vel, com, xipos, mass, inertia, offset, dt, stick=st)
+            if res is None and st is not None:
+                st[:] = 0.0  # nothing touches: every anchor is released
+            return res
         total, caps, ws, es = None, [], [], []
-        for R, s0, s1 in self._sections:
+        for k, (R, s0, s1) in enumerate(self._sections):
             # Positions into the section's frame about the hinge; velocities just rotate.
             a_l, b_l, com_l, xi_l = ((p - self.hinge) @ R + self.hinge for p in (a, b, com, xipos))
             vel = np.concatenate([body_vel[:, :3] @ R, body_vel[:, 3:] @ R], 1)
-            res = self._forces_local(a_l, b_l, r, vel, com_l, xi_l, mass, inertia, offset, dt, (s0, s1))
+            st = None if stick is None else stick[k]
+            res = self._forces_local(a_l, b_l, r, vel, com_l, xi_l, mass, inertia, offset, dt, (s0, s1), st)
             if res is None:
+                if st is not None:
+                    st[:] = 0.0  # nothing touches this section: every anchor is released
                 continue
             out, cap, w, energy = res
             out = np.concatenate([out[:, :3] @ R.T, out[:, 3:] @ R.T], 1)
@@ -335,7 +350,7 @@ class CapsuleFoundation:
         return total, np.concatenate(caps), np.concatenate(ws), np.concatenate(es)
 
     def _forces_local(self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float,
-                      s_range=(-math.inf, math.inf)):
+                      s_range=(-math.inf, math.inf), stick=None):
         """Mattress forces on C capsules in a frame where the (section's) top is z = 0.
 
         a, b: (C, 3) axis ends; r: (C,); body_vel: (C, 6) angular and linear velocity of
@@ -392,18 +407,20 @@ class CapsuleFoundation:
         out[:, 2] = np.bincount(cap, fn, minlength=C)
         out[:, 3] = np.bincount(cap, arm[:, 1] * fn, minlength=C)
         out[:, 4] = np.bincount(cap, -arm[:, 0] * fn, minlength=C)
-        self._friction(out, cap, arm, vx, vy, fn, mass, inertia, dt)
+        self._friction(out, cap, arm, vx, vy, fn, mass, inertia, dt, stick)
         energy = (self.k1 / 2 + self.k3 / 4 * w2) * w2 * self.area
         return out, cap, w, energy
 
-    def _friction(self, out, cap, arm, vx, vy, fn, mass, inertia, dt) -> None:
-        """Coulomb friction per capsule at its centre of pressure, regularised below V_STICK
-        as a damper taken implicitly on the capsule's effective mass at that point (at most
-        half the damper that would stop it within one step): it never reverses a capsule,
-        so the explicit step stays stable for the lightest hand."""
+    def _friction(self, out, cap, arm, vx, vy, fn, mass, inertia, dt, stick=None) -> None:
+        """Coulomb friction per capsule at its centre of pressure: a damper, regularised below
+        V_STICK and taken implicitly on the capsule's effective mass at that point (at most
+        half the damper that would stop it within one step), plus the static-friction spring
+        `stick` (C, 2) (see STICK_STIFFNESS; updated in place), the sum capped at mu N."""
         C = out.shape[0]
         Fn = out[:, 2]
         touching = Fn > 1e-9
+        if stick is not None:
+            stick[~touching] = 0.0  # contact lost: the anchor goes with it
         if not touching.any():
             return
         wgt = fn / np.maximum(Fn[cap], 1e-12)
@@ -413,9 +430,19 @@ class CapsuleFoundation:
         c = self.mu * Fn / V_STICK
         c_eff = c / (1.0 + 2.0 * c * dt / m_eff)
         speed = np.sqrt((vel_c**2).sum(1))
-        mag = np.minimum(self.mu * Fn, c_eff * speed)
+        cap_n = self.mu * Fn
         f = np.zeros((C, 3))
-        f[:, :2] = -vel_c * (mag / np.maximum(speed, 1e-12))[:, None]
+        if stick is None:
+            mag = np.minimum(cap_n, c_eff * speed)
+            f[:, :2] = -vel_c * (mag / np.maximum(speed, 1e-12))[:, None]
+        else:
+            spring = stick - (STICK_STIFFNESS * m_eff / dt)[:, None] * vel_c  # -k v dt, k = kappa m / dt^2
+            norm = np.sqrt((spring**2).sum(1))
+            spring *= np.minimum(1.0, cap_n / np.maximum(norm, 1e-12))[:, None]  # slip drags the anchor
+            stick[:] = np.where(touching[:, None], spring, 0.0)
+            total = stick - c_eff[:, None] * vel_c
+            norm = np.sqrt((total**2).sum(1))
+            f[:, :2] = total * np.minimum(1.0, cap_n / np.maximum(norm, 1e-12))[:, None]
         out[:, :3] += f
         out[:, 3:] += _cross(arm_c, f)
 
@@ -574,6 +601,7 @@ class _Pool:
         self.radius, self.mass, self.inertia = np.zeros((P, C)), np.ones((P, C)), np.ones((P, C))
         self.loc_a, self.loc_b = np.zeros((P, C, 3)), np.zeros((P, C, 3))
         self.weight = np.ones(P)
+        self.stick = np.zeros((len(self.found._sections), P, C, 2))  # static-friction springs
         # Per slot: model, data and views of the MjData arrays read every step (a view made
         # once costs nothing later; MjData's attribute access builds a new one each time).
         self.slot: list[tuple | None] = [None] * P
@@ -595,6 +623,7 @@ class _Pool:
         self.speed[slots] = np.inf
         self.accel[slots] = np.inf
         self.sink[slots] = 0.0
+        self.stick[:, slots] = 0.0
 
 
 def _run_batch(make, n: int, mat: MatSpec, config: SettleConfig, mattress: MattressParams,
@@ -712,8 +741,10 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
         a = (pos + np.einsum("ncij,ncj->nci", R, p.loc_a[ids])).reshape(-1, 3)
         b = (pos + np.einsum("ncij,ncj->nci", R, p.loc_b[ids])).reshape(-1, 3)
         offset = np.repeat(np.arange(n) * p.n_nodes, C)
+        stick = p.stick[:, ids].reshape(-1, n * C, 2)
         res = found.forces(a, b, p.radius[ids].ravel(), cv.reshape(-1, 6), np.repeat(com, C, axis=0),
-                           xipos.reshape(-1, 3), p.mass[ids].ravel(), p.inertia[ids].ravel(), offset, dt)
+                           xipos.reshape(-1, 3), p.mass[ids].ravel(), p.inertia[ids].ravel(), offset, dt, stick)
+        p.stick[:, ids] = stick.reshape(-1, n, C, 2)
         if res is None:
             ft = np.zeros((n * C, 6))
             wmax = np.zeros(n)
