@@ -57,7 +57,10 @@ def surface_points(vertices: torch.Tensor, faces: torch.Tensor | None,
         return vertices
     if corners is None:
         corners = vertices[:, faces]
-    return torch.cat([vertices, corners.mean(2)], 1)
+    # The three corners summed explicitly: mean() over the middle axis of (B, F, 3, 3) is
+    # ~4x slower on the CPU (strided reduction), and this runs in every sim #2 call.
+    centroids = (corners[:, :, 0] + corners[:, :, 1] + corners[:, :, 2]) * (1.0 / 3.0)
+    return torch.cat([vertices, centroids], 1)
 
 
 def _check_vertices(vertices: torch.Tensor) -> None:
