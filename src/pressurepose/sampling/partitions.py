@@ -88,7 +88,7 @@ def _partitions() -> dict[str, Partition]:
         # angles of 0-60 deg in steps of 10; the yaw stays small, as a sitting person's.
         Partition("half_sitting", "supine, half-sitting in a bed with the head section raised 10-60 deg, "
                   "even leg and arm space", roll=(0.0, 0.0), yaw=(-math.pi / 18, math.pi / 18),
-                  shift_x=(0.1, 0.4), shift_y=(-0.15, 0.15), head_angles_deg=(10.0, 20.0, 30.0, 40.0, 50.0, 60.0),
+                  shift_x=(0.05, 0.3), shift_y=(-0.15, 0.15), head_angles_deg=(10.0, 20.0, 30.0, 40.0, 50.0, 60.0),
                   # Over the bed, a hand raised above the head (arm cells 0, 1) passes the
                   # head end of the short raised section (0.52 m of mattress above the hinge).
                   over_bed_arm_cells=(2, 3, 4, 5, 6, 7)),
