@@ -13,6 +13,7 @@ from pathlib import Path
 
 import tyro
 
+from pressurepose.calib.run import CalibrateConfig
 from pressurepose.data.coregister import CoregisterConfig
 from pressurepose.demo import DemoConfig
 from pressurepose.sampling.run import SampleConfig
@@ -79,7 +80,22 @@ def coregister(cfg: CoregisterConfig) -> None:
           f"reprojection RMS {record['rms_px']:.2f} px -> {cfg.out}")
 
 
-COMMANDS = {"demo": demo, "sample": sample, "simulate": simulate, "coregister": coregister, "cache": cache}
+def calibrate(cfg: CalibrateConfig) -> None:
+    """Calibrate mattress, mat and sensor parameters to measurements of rigid objects with
+    CMA-ES (seed A.4); resumable; writes params.json for `simulate --params`."""
+    from pressurepose.calib.run import run_calibrate
+
+    paths = run_calibrate(cfg)
+    record = json.loads(paths["record"].read_text())
+    state = "finished" if record["finished"] else "stopped (resume with the same command)"
+    print(f"{state} after {record['iterations']} generations, {record['evaluations']} evaluations: loss "
+          f"{record['start_loss']:.4g} -> {record['best_loss']:.4g}; parameters -> {paths['params']}")
+
+
+COMMANDS = {
+    "demo": demo, "sample": sample, "simulate": simulate, "calibrate": calibrate, "coregister": coregister,
+    "cache": cache,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,249 @@
+"""`pressurepose calibrate`: fit the bed model to measurements of rigid objects (seed A.4, A.5).
+
+Writes into `out/`: `params.json` (the best parameters as a MattressParams file, which
+`simulate --params` and `generate` read), `cma_state.npz` (the resumable CMA-ES state, after
+every generation), `convergence.png` and `calibrate.json` (config, result, per-object loss
+terms, and the sim #1 / sim #2 sinking check of every object).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import dataclasses
+import hashlib
+import json
+import logging
+import multiprocessing as mp
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pressurepose.calib.cmaes import CMAResult, CMASettings, minimise
+from pressurepose.calib.loss import DEFAULT_FREE, CalibrationLoss, ParamSpace
+from pressurepose.calib.measurements import Measurements, load_measurements
+from pressurepose.files import atomic_write
+from pressurepose.mat import MatSpec
+from pressurepose.sim.mattress import MattressParams
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrateConfig:
+    """Calibrate mattress, mat and sensor parameters with CMA-ES (seed A.4 settings).
+
+    Attributes:
+        measurements: Measurement file (docs/calibration.md: objects, images, compressions).
+        out: Output folder (params.json, cma_state.npz, convergence.png, calibrate.json).
+        start: Parameter file to start from and to take the fixed parameters from (default:
+            the built-in MattressParams).
+        free: MattressParams fields to calibrate.
+        popsize: CMA-ES population size.
+        max_iter: Maximum number of generations.
+        max_fevals: Maximum number of loss evaluations.
+        cmean: Mean learning rate.
+        tolfun: Function tolerance.
+        tolfunhist: Function history tolerance.
+        tolx: X-change tolerance (scaled units).
+        maxstd: Maximum standard deviation (scaled units).
+        tolstagnation: Stagnation tolerance (generations).
+        sigma0: Initial step size (scaled units: fraction of each parameter's typical size).
+        seed: Seed of the CMA-ES normal draws.
+        workers: Processes evaluating candidates in parallel (0 = one per CPU core).
+        margin_m: Each object's loss region: taxels within this distance of its outline.
+        sub: Sim #2 grid cells per taxel side.
+        restart: Ignore an existing state in `out` and start over.
+        stop_after: Stop (resumably) after this many generations in this run (0 = run to the end).
+        coupling_check: Settle every object in sim #1 with the result and compare its sinking
+            depth with sim #2's.
+    """
+
+    measurements: Path
+    out: Path = Path("out/calibrate")
+    start: Path | None = None
+    free: tuple[str, ...] = DEFAULT_FREE
+    popsize: int = 50
+    max_iter: int = 3000
+    max_fevals: int = 100_000_000
+    cmean: float = 0.25
+    tolfun: float = 1e-3
+    tolfunhist: float = 1e-12
+    tolx: float = 5e-4
+    maxstd: float = 4.0
+    tolstagnation: int = 100
+    sigma0: float = 0.3
+    seed: int = 0
+    workers: int = 0
+    margin_m: float = 0.06
+    sub: int = 2
+    restart: bool = False
+    stop_after: int = 0
+    coupling_check: bool = True
+
+    def settings(self) -> CMASettings:
+        return CMASettings(popsize=self.popsize, max_iter=self.max_iter, max_fevals=self.max_fevals,
+                           cmean=self.cmean, tolfun=self.tolfun, tolfunhist=self.tolfunhist, tolx=self.tolx,
+                           maxstd=self.maxstd, tolstagnation=self.tolstagnation, sigma0=self.sigma0, seed=self.seed)
+
+
+# One loss per worker process, built once by the pool initializer (the meshes and regions).
+_WORKER_LOSS: CalibrationLoss | None = None
+
+
+def _init_worker(measurements: Measurements, space: ParamSpace, margin_m: float, sub: int) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    global _WORKER_LOSS
+    _WORKER_LOSS = CalibrationLoss(measurements, space, margin_m, sub=sub)
+
+
+def _worker_eval(x: np.ndarray) -> float:
+    return _WORKER_LOSS(x)
+
+
+class Evaluator:
+    """Evaluates a generation in-process (workers = 1) or on a process pool (spawned, so
+    torch's threads in the parent cannot deadlock a fork)."""
+
+    def __init__(self, loss: CalibrationLoss, workers: int):
+        self.loss = loss
+        self.workers = workers
+        self.pool = None
+        if workers > 1:
+            self.pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                               initargs=(loss.measurements, loss.space, loss.margin_m, loss.sub))
+
+    def __call__(self, X) -> list[float]:
+        if self.pool is None:
+            return [self.loss(x) for x in X]
+        chunk = max(1, len(X) // (self.workers * 2))
+        return list(self.pool.map(_worker_eval, X, chunksize=chunk))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+
+def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> dict[str, Path]:
+    mat = MatSpec()
+    measurements = load_measurements(cfg.measurements, mat)
+    base = MattressParams.load(cfg.start) if cfg.start else MattressParams()
+    space = ParamSpace(tuple(cfg.free), base)
+    settings = cfg.settings()
+    if cfg.workers < 0 or cfg.sub < 1 or cfg.stop_after < 0:
+        raise ValueError("workers and stop_after must be >= 0 and sub >= 1")
+    loss = CalibrationLoss(measurements, space, cfg.margin_m, mat, cfg.sub)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    state = out / "cma_state.npz"
+    if cfg.restart and state.exists():
+        state.unlink()
+    signature = {"free": list(space.free), "base": base.to_dict(), "margin_m": cfg.margin_m, "sub": cfg.sub,
+                 "measurements_sha256": hashlib.sha256(Path(cfg.measurements).read_bytes()).hexdigest()}
+    workers = cfg.workers or (os.cpu_count() or 1)
+    x0 = space.encode(base)
+    t0 = time.perf_counter()
+    evaluator = Evaluator(loss, workers)
+    try:
+        result = _minimise_with_progress(evaluator, x0, settings, state, signature, cfg, progress)
+    finally:
+        evaluator.close()
+    seconds = time.perf_counter() - t0
+    best = space.params(result.best_x)
+    paths = {"params": out / "params.json", "state": state}
+    best.save(paths["params"])
+    paths["plot"] = convergence_plot(result, space, x0, out / "convergence.png")
+    breakdown = loss.breakdown(result.best_x)
+    finished = not (cfg.stop_after and not result.stop)
+    record = {
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "finished": finished, "stop": result.stop, "iterations": result.iterations,
+        "evaluations": result.evaluations, "resumed_from_generation": result.resumed_from,
+        "seconds_this_run": round(seconds, 2), "workers": workers, "best_loss": result.best_f,
+        "start_loss": float(result.history_f[0].min()) if len(result.history_f) else None,
+        "params": best.to_dict(), "start_params": base.to_dict(),
+        "objects": [{"name": o.name, "mass_kg": o.mass_kg, "length_m": o.length_m,
+                     "LF": _num(breakdown.force[i]), "LC": _num(breakdown.contact[i]),
+                     "LQ": _num(breakdown.compression[i])} for i, o in enumerate(loss.sim.objects)],
+    }
+    if cfg.coupling_check and finished:
+        record["coupling"] = coupling_check(loss, best)
+    text = json.dumps(record, indent=2) + "\n"
+    paths["record"] = atomic_write(out / "calibrate.json", lambda tmp: Path(tmp).write_text(text))
+    return paths
+
+
+def _num(v) -> float | None:
+    return None if not np.isfinite(v) else round(float(v), 6)
+
+
+def _minimise_with_progress(evaluator, x0, settings, state, signature, cfg, progress) -> CMAResult:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    columns = (TextColumn("calibrate"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+               TimeElapsedColumn())
+    with Progress(*columns, disable=not progress, transient=False) as bar:
+        task = bar.add_task("cma", total=settings.max_iter, info="")
+
+        def report(it, best_f, sigma):
+            bar.update(task, completed=it, info=f"best {best_f:.4g} sigma {sigma:.3g}")
+
+        return minimise(evaluator, x0, settings, state, signature, resume=not cfg.restart,
+                        stop_after=cfg.stop_after, on_generation=report)
+
+
+def coupling_check(loss: CalibrationLoss, params: MattressParams) -> list[dict]:
+    """Sim #1 (MuJoCo, the foundation law applied to capsules) against sim #2 for every
+    object: each capsule is settled alone at the bed's centre, along the bed (seed eq. 17's
+    role: both simulations must sink an object alike)."""
+    from pressurepose.calib.objects import CalibObject, SceneSimulator
+    from pressurepose.sim.objects import settle_capsule
+
+    mat = loss.mat
+    rows = []
+    for o in loss.sim.objects:
+        centred = CalibObject(o.length_m, o.radius_m, o.mass_kg, 0.9, mat.sensing_width_m / 2, 0.0, o.name)
+        q2 = float(SceneSimulator([[centred]], mat, loss.sub)(params).compression_m[0])
+        s1 = settle_capsule(o.length_m, o.radius_m, o.mass_kg, xy=(0.9, mat.sensing_width_m / 2), params=params,
+                            mat=mat)
+        rows.append({"name": o.name, "sim2_sink_m": round(q2, 6), "sim1_sink_m": round(s1["sink_m"], 6),
+                     "sim1_settled": s1["settled"], "relative_difference": round((s1["sink_m"] - q2) / q2, 4)})
+    return rows
+
+
+def convergence_plot(result: CMAResult, space: ParamSpace, x0: np.ndarray, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    F = result.history_f
+    if len(F):
+        g = np.arange(1, len(F) + 1)
+        axes[0].semilogy(g, np.minimum.accumulate(F.min(1)), label="best so far")
+        axes[0].semilogy(g, np.median(F, 1), label="generation median", alpha=0.7)
+        axes[0].semilogy(g, result.history_sigma, label="sigma", alpha=0.7)
+        ratio = result.history_mean / np.where(x0 == 0, 1.0, x0)
+        for j, name in enumerate(space.free):
+            axes[1].plot(g, ratio[:, j], label=name)
+    axes[0].set_xlabel("generation")
+    axes[0].set_title("loss (eq. 13 + penalties)")
+    axes[0].legend()
+    axes[1].set_xlabel("generation")
+    axes[1].set_title("CMA-ES mean / start value")
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+
+    def write(tmp):
+        fig.savefig(tmp, dpi=80, format="png")
+
+    atomic_write(path, write)
+    plt.close(fig)
+    return path
+
+
+__all__ = ["CalibrateConfig", "coupling_check", "convergence_plot", "run_calibrate"]
