@@ -92,7 +92,7 @@ class CMAResult:
     stop: dict
     history_f: np.ndarray  # (G, popsize) every generation's losses
     history_mean: np.ndarray  # (G, N) the mean after each generation
-    history_sigma: np.ndarray  # (G,)
+    history_std: np.ndarray  # (G,) the largest coordinate standard deviation (sigma x sqrt(C_ii))
     resumed_from: int  # generations replayed from the state file (0 = fresh start)
 
 
@@ -142,7 +142,7 @@ def minimise(evaluate: Callable[[list[np.ndarray]], list[float]], x0: np.ndarray
         X_hist.append(np.asarray(X))
         F_hist.append(F)
         means.append(np.asarray(es.mean, dtype=np.float64).copy())
-        sigmas.append(float(es.sigma))
+        sigmas.append(float(np.max(es.stds)))
         new += 1
         if state_path is not None:
             _save_state(Path(state_path), es, randn, signature, X_hist, F_hist)
@@ -153,7 +153,7 @@ def minimise(evaluate: Callable[[list[np.ndarray]], list[float]], x0: np.ndarray
         best_x=np.asarray(es.best.x, dtype=np.float64), best_f=float(es.best.f), mean=np.asarray(es.mean).copy(),
         sigma=float(es.sigma), iterations=int(es.countiter), evaluations=int(es.countevals), stop=stop,
         history_f=np.array(F_hist).reshape(len(F_hist), -1), history_mean=np.array(means).reshape(len(means), -1),
-        history_sigma=np.array(sigmas), resumed_from=resumed)
+        history_std=np.array(sigmas), resumed_from=resumed)
 
 
 def _save_state(path: Path, es, randn: CountedNormal, signature: dict, X_hist, F_hist) -> None:
@@ -195,7 +195,7 @@ def _replay(es, path: Path, signature: dict):
                              "cma or numpy version?); use --restart to start over")
         es.tell(X, F_all[g].tolist())
         means.append(np.asarray(es.mean, dtype=np.float64).copy())
-        sigmas.append(float(es.sigma))
+        sigmas.append(float(np.max(es.stds)))
     if (int(es.countiter) != int(data["iteration"]) or not np.array_equal(np.asarray(es.mean), data["mean"])
             or float(es.sigma) != float(data["sigma"]) or not np.array_equal(_covariance(es), data["covariance"])):
         raise ValueError(f"{path}: the replayed strategy does not match the stored mean, sigma and covariance; "

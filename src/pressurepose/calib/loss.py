@@ -46,10 +46,12 @@ SCALES = {
     "mat_stiffness_pa_per_mm": 133.322, "c0_mmhg": 1.0, "c1_mmhg_per_mm": 1.0, "c2_mmhg_per_mm2": 0.01,
     "noise_mmhg": 1.0, "damping_s": 0.05, "friction": 0.5,
 }
-# Plausible ranges: outside them the range penalty applies.
+# Plausible ranges: outside them the range penalty applies. c0 > 0 would make every taxel
+# that the load spreading reaches at all (its Gaussian tails run to 3 sigma) read >= c0, so
+# the contact area would follow the truncation of the Gaussian: c0 is a threshold, <= 0.
 RANGES = {
     "k1_pa_per_m": (1.0e3, 2.0e5), "k3_pa_per_m3": (0.0, 2.0e9), "spread_m": (0.0, 0.05),
-    "thickness_m": (0.03, 0.5), "mat_stiffness_pa_per_mm": (1.0, 1.0e4), "c0_mmhg": (-20.0, 20.0),
+    "thickness_m": (0.03, 0.5), "mat_stiffness_pa_per_mm": (1.0, 1.0e4), "c0_mmhg": (-20.0, 0.0),
     "c1_mmhg_per_mm": (0.05, 20.0), "c2_mmhg_per_mm2": (0.0, 1.0), "noise_mmhg": (0.0, 20.0),
     "damping_s": (0.0, 1.0), "friction": (0.0, 2.0),
 }
@@ -95,6 +97,7 @@ class ParamSpace:
 
     free: tuple[str, ...] = DEFAULT_FREE
     base: MattressParams = MattressParams()
+    ranges: tuple[tuple[str, float, float], ...] = ()  # (name, lo, hi) overriding RANGES
 
     def __post_init__(self) -> None:
         known = {f.name for f in dataclasses.fields(MattressParams)}
@@ -127,8 +130,9 @@ class ParamSpace:
         except ValueError:
             return PENALTY, True
         out = 0.0
+        ranges = dict(RANGES, **{n: (lo, hi) for n, lo, hi in self.ranges})
         for n, v in values.items():
-            lo, hi = RANGES[n]
+            lo, hi = ranges[n]
             out += 10.0 * (max(lo - v, 0.0) + max(v - hi, 0.0)) / SCALES[n]
         return out, False
 

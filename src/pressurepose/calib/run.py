@@ -118,7 +118,15 @@ class Evaluator:
 
     def __call__(self, X) -> list[float]:
         if self.pool is None:
-            return [self.loss(x) for x in X]
+            import torch
+
+            # A few capsules per call: extra intra-op threads only add contention.
+            n = torch.get_num_threads()
+            torch.set_num_threads(1)
+            try:
+                return [self.loss(x) for x in X]
+            finally:
+                torch.set_num_threads(n)
         chunk = max(1, len(X) // (self.workers * 2))
         return list(self.pool.map(_worker_eval, X, chunksize=chunk))
 
@@ -155,7 +163,7 @@ def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> dict[str, Path
     best = space.params(result.best_x)
     paths = {"params": out / "params.json", "state": state}
     best.save(paths["params"])
-    paths["plot"] = convergence_plot(result, space, x0, out / "convergence.png")
+    paths["plot"] = convergence_plot(result, space, out / "convergence.png")
     breakdown = loss.breakdown(result.best_x)
     finished = not (cfg.stop_after and not result.stop)
     record = {
@@ -214,7 +222,7 @@ def coupling_check(loss: CalibrationLoss, params: MattressParams) -> list[dict]:
     return rows
 
 
-def convergence_plot(result: CMAResult, space: ParamSpace, x0: np.ndarray, path: Path) -> Path:
+def convergence_plot(result: CMAResult, space: ParamSpace, path: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -226,15 +234,14 @@ def convergence_plot(result: CMAResult, space: ParamSpace, x0: np.ndarray, path:
         g = np.arange(1, len(F) + 1)
         axes[0].semilogy(g, np.minimum.accumulate(F.min(1)), label="best so far")
         axes[0].semilogy(g, np.median(F, 1), label="generation median", alpha=0.7)
-        axes[0].semilogy(g, result.history_sigma, label="sigma", alpha=0.7)
-        ratio = result.history_mean / np.where(x0 == 0, 1.0, x0)
+        axes[0].semilogy(g, result.history_std, label="largest std (scaled units)", alpha=0.7)
         for j, name in enumerate(space.free):
-            axes[1].plot(g, ratio[:, j], label=name)
+            axes[1].plot(g, result.history_mean[:, j], label=name)
     axes[0].set_xlabel("generation")
     axes[0].set_title("loss (eq. 13 + penalties)")
     axes[0].legend()
     axes[1].set_xlabel("generation")
-    axes[1].set_title("CMA-ES mean / start value")
+    axes[1].set_title("CMA-ES mean, scaled (parameter / loss.SCALES)")
     axes[1].legend(fontsize=7)
     fig.tight_layout()
 

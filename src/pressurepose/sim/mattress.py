@@ -32,11 +32,11 @@ class MattressParams:
     [0, 100]; `noise_mmhg` adds Gaussian noise on the loaded taxels.
     """
 
-    # Defaults: a foam hospital mattress giving PmatData-like supine images before calibration
-    # (docs/physics.md: benchmarks/sim_realism.py, contact 0.30-0.45 m^2, mean 11-20 mmHg).
-    k1_pa_per_m: float = 2.0e4
-    k3_pa_per_m3: float = 6.0e7
-    spread_m: float = 0.008
+    # Defaults: k1, k3, spread fitted to PmatData's sponge (foam) mattress, supine subjects
+    # (docs/calibration.md: benchmarks/realism_fit.py; before that fit: 2e4, 6e7, 0.008).
+    k1_pa_per_m: float = 2.77e4
+    k3_pa_per_m3: float = 5.89e7
+    spread_m: float = 0.0235
     thickness_m: float = 0.15
     mat_stiffness_pa_per_mm: float = MMHG_PA  # 1 mmHg compresses the mat layer 1 mm by default
     c0_mmhg: float = -1.0  # taxels below ~1 mmHg read 0, as a real mat's threshold does
