@@ -106,7 +106,9 @@ class ParamHead(torch.nn.Module):
     def forward(self, raw: torch.Tensor, gender: torch.Tensor | None = None) -> BodyParams:
         """raw (B, D) -> BodyParams; gender (B,) in [0, 1] (1 female) replaces Anny's entry."""
         shape_raw, trans_raw, rot_raw, pose_raw = self.layout.split(raw)
-        shape = self.shape_mid + self.shape_half * torch.tanh(shape_raw)
+        low, high = self.shape_mid - self.shape_half, self.shape_mid + self.shape_half
+        # tanh reaches +-1 in float32; the clamp only absorbs the round-off of mid + half.
+        shape = torch.minimum(torch.maximum(self.shape_mid + self.shape_half * torch.tanh(shape_raw), low), high)
         if gender is not None and self.gender_index is not None:
             g = gender.to(shape).reshape(-1, 1)
             shape = torch.cat([shape[:, :self.gender_index], g, shape[:, self.gender_index + 1:]], 1)
