@@ -78,6 +78,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         if mismatch:
             raise ValueError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
     body = netcfg.load_body(device=device)
+    torch.manual_seed(cfg.seed)  # the initial weights
     net = PressureNet(netcfg, body=body)
     if cfg.module == 2:
         mod1 = {k[len("mod1."):]: v for k, v in weights.items() if k.startswith("mod1.")}
