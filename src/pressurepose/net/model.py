@@ -156,29 +156,33 @@ class PressureNet(nn.Module):
         return cnn(upsample2(x) if self.config.arch == "paper" else x)
 
     # --- forward ------------------------------------------------------------------------
-    def estimate(self, raw: torch.Tensor, gender: torch.Tensor | None, mesh: bool) -> Estimate:
-        """Unpack a raw vector (B, D) and pose the body (joints only unless `mesh`)."""
+    def estimate(self, raw: torch.Tensor, gender: torch.Tensor | None, mesh: bool, maps: bool = True) -> Estimate:
+        """Unpack a raw vector (B, D) and pose the body: joints only unless `mesh`; with the
+        mesh, the PMR maps unless `maps` is False."""
         params = self.head(raw, gender)
         if not mesh:
             return Estimate(raw=raw, params=params, joints=self.body.joints(params))
         out = self.body(params)
+        if not maps:
+            return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices)
         maps = reconstruct_maps(out.vertices, out.faces, self.mat)
         return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices,
                         depth_mm=maps.depth_mm, contact=maps.contact)
 
     def forward(self, inputs: NetInputs, augment: bool = False, generator: torch.Generator | None = None,
-                mesh: bool = True) -> list[Estimate]:
-        """[Mod1's estimate] or [Mod1's, Mod2's]. `mesh`: pose the final mesh (Mod1's mesh is
-        always posed when Mod2 follows, since Mod2 reads its maps)."""
+                mesh: bool = True, maps: bool = True) -> list[Estimate]:
+        """[Mod1's estimate] or [Mod1's, Mod2's]. `mesh`: pose the final mesh; `maps`: and
+        reconstruct its PMR maps (Mod1's mesh and maps are always made when Mod2 follows,
+        since Mod2 reads them)."""
         gender = inputs.gender if self.config.gender_input else None
         x = self.channels(inputs, augment, generator)
         with torch.set_grad_enabled(torch.is_grad_enabled() and not self.mod1_frozen):
-            est1 = self.estimate(self._cnn(self.mod1, x), gender, mesh or self.mod2 is not None)
-        if self.mod2 is None:
-            return [est1]
+            if self.mod2 is None:
+                return [self.estimate(self._cnn(self.mod1, x), gender, mesh, maps)]
+            est1 = self.estimate(self._cnn(self.mod1, x), gender, mesh=True)
         x2 = torch.cat([x, reconstruction_channels(est1.depth_mm.detach(), est1.contact.detach())], 1)
         raw2 = est1.raw + self._cnn(self.mod2, x2)
-        return [est1, self.estimate(raw2, gender, mesh=True)]
+        return [est1, self.estimate(raw2, gender, mesh, maps)]
 
 
 __all__ = ["Estimate", "GENDER_UNKNOWN", "NetConfig", "NetInputs", "PressureNet"]

@@ -106,7 +106,7 @@ def run_predict(cfg: PredictConfig) -> dict:
             est, _ = refine(net, inputs, steps=cfg.refine_steps)
         else:
             with torch.inference_mode():
-                est = net(inputs, mesh=True)[-1]
+                est = net(inputs, mesh=True, maps=False)[-1]
         t_net += time.perf_counter() - t0
         with torch.inference_mode():
             measured = net.body.measure(est.params.shape)

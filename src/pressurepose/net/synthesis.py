@@ -61,20 +61,20 @@ def refine(net: PressureNet, inputs: NetInputs, steps: int = 5, lr: float = 0.02
         raise ValueError(f"steps must be >= 0, got {steps}")
     net.eval()
     with torch.no_grad():
-        start = net(inputs, mesh=True)[-1]
+        start = net(inputs, mesh=True, maps=False)[-1]
     gender = inputs.gender if net.config.gender_input else None
     raw = start.raw.detach().clone().requires_grad_(True)
     opt = torch.optim.Adam([raw], lr=lr)
     history = []
     for _ in range(steps):
-        est = net.estimate(raw, gender, mesh=True)
+        est = net.estimate(raw, gender, mesh=True, maps=False)
         loss = synthesis_loss(net, est, inputs.pressure_mmhg, mattress)
         history.append(float(loss))
         opt.zero_grad()
         (loss + prior_weight * (raw - start.raw).square().mean()).backward()
         opt.step()
     with torch.no_grad():
-        est = net.estimate(raw.detach(), gender, mesh=True)
+        est = net.estimate(raw.detach(), gender, mesh=True, maps=False)
         history.append(float(synthesis_loss(net, est, inputs.pressure_mmhg, mattress)))
     return est, history
 
