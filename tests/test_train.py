@@ -132,6 +132,11 @@ def test_mod2_trains_on_a_frozen_mod1(data32, tmp_path):
     assert any(not torch.equal(p, torch.zeros_like(p)) for p in net2.mod2.fc[-1].parameters())
     with pytest.raises(ValueError, match="--mod1"):
         TrainConfig.smoke(module=2)
+    # With the analysis-by-synthesis loss (sim #2 on the estimated meshes).
+    run3 = train(TrainConfig.smoke(out=tmp_path / "m3", module=2, mod1=run1, epochs=1, synthesis_weight=0.1,
+                                   **common), _small(data32, 4))
+    row = _metrics(run3)[0]
+    assert "synthesis" in row and np.isfinite(row["synthesis"]) and row["synthesis"] > 0
 
 
 @pytest.fixture(scope="module")

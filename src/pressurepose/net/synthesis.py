@@ -69,7 +69,7 @@ def refine(net: PressureNet, inputs: NetInputs, steps: int = 5, lr: float = 0.02
     for _ in range(steps):
         est = net.estimate(raw, gender, mesh=True, maps=False)
         loss = synthesis_loss(net, est, inputs.pressure_mmhg, mattress)
-        history.append(float(loss))
+        history.append(float(loss.detach()))
         opt.zero_grad()
         (loss + prior_weight * (raw - start.raw).square().mean()).backward()
         opt.step()
