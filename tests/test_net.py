@@ -228,3 +228,12 @@ def test_refine_starts_from_the_network_and_moves(anny32, samples):
     moved, hist = refine(net, inputs, steps=2, lr=0.05)
     assert len(hist) == 3 and all(math.isfinite(h) for h in hist) and hist[0] == pytest.approx(hist0[0])
     assert not torch.equal(moved.raw, plain.raw) and torch.isfinite(moved.vertices).all()
+
+
+def test_smpl_backend_gives_the_released_output_size(smpl_dir):
+    net = PressureNet(NetConfig(backend="smpl", smpl_dir=str(smpl_dir))).eval()
+    assert net.head.size == 88  # 10 betas + 3 + 6 + 69, as released
+    with torch.no_grad():
+        est = net(NetInputs(_images(2), gender=torch.tensor([0.0, 1.0])))[-1]
+    assert est.joints.shape == (2, 24, 3) and est.vertices.shape[0] == 2
+    assert (est.params.shape.abs() <= 3.0 + 1e-6).all()  # betas inside the sampling bounds
