@@ -8,7 +8,7 @@ paper (seed B.1, REFERENCE.md), input (B, C, 128, 54):
 fast (ours), input (B, C, 64, 27) - no upsampling, which adds no information:
     Conv(C, 32, 5, s2) -> Conv(32, 64, 3, s2) -> Conv(64, 128, 3, s2) -> Conv(128, 128, 3)
     each BatchNorm + SiLU -> (128, 8, 4) -> Linear 256, SiLU, dropout -> Linear
-~1.3 M parameters and ~15 MMAC per image (~37x fewer). The stride-2 stem keeps full-
+~1.3 M parameters and ~12 MMAC per image (~45x fewer). The stride-2 stem keeps full-
 resolution activations (whose memory traffic, not arithmetic, dominated a CPU step) out of
 the network; batch normalisation lets it train at lr 1e-3; the flattened 8 x 4 map keeps
 where things are on the mat. Measured choices: docs/network.md.
