@@ -16,8 +16,10 @@ import tyro
 from pressurepose.calib.run import CalibrateConfig
 from pressurepose.data.coregister import CoregisterConfig
 from pressurepose.demo import DemoConfig
+from pressurepose.net.predict import PredictConfig
 from pressurepose.sampling.run import SampleConfig
 from pressurepose.sim.run import SimulateConfig
+from pressurepose.train.config import TrainConfig
 
 
 def demo(cfg: DemoConfig) -> None:
@@ -92,9 +94,32 @@ def calibrate(cfg: CalibrateConfig) -> None:
           f"{record['start_loss']:.4g} -> {record['best_loss']:.4g}; parameters -> {paths['params']}")
 
 
+def train(cfg: TrainConfig) -> None:
+    """Train PressureNet's Mod1 (--module 1) or Mod2 on a trained Mod1 (--module 2 --mod1 RUN);
+    writes checkpoints, metrics and a plot to --out and resumes a run found there."""
+    from pressurepose.train.loop import train as run_training
+
+    run = run_training(cfg)
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    last = rows[-1] if rows else {}
+    val = f", val MPJPE {last['val_mpjpe_mm']:.1f} mm" if "val_mpjpe_mm" in last else ""
+    print(f"{len(rows)} epochs -> {run}: loss {last.get('loss', float('nan')):.4f}, train MPJPE "
+          f"{last.get('train_mpjpe_mm', float('nan')):.1f} mm{val}")
+
+
+def predict(cfg: PredictConfig) -> None:
+    """Estimate the body from pressure images with a trained network: JSON parameters, .ply
+    meshes and one figure per image in --out."""
+    from pressurepose.net.predict import run_predict
+
+    summary = run_predict(cfg)
+    print(f"{summary['images']} images -> {summary['out']} "
+          f"({summary['network_ms_per_image']:.1f} ms per image for the network and body model)")
+
+
 COMMANDS = {
     "demo": demo, "sample": sample, "simulate": simulate, "calibrate": calibrate, "coregister": coregister,
-    "cache": cache,
+    "cache": cache, "train": train, "predict": predict,
 }
 
 

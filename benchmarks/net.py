@@ -1,0 +1,119 @@
+"""PressureNet speed: training images/s (Mod1, Mod2; paper and fast archs), inference latency
+at batch 1 and throughput at batch 128 (CNN + body model + mesh, what `predict` runs).
+
+    .venv/bin/python benchmarks/net.py [--archs fast paper] [--batch 128] [--steps 3] [--device cpu]
+                                       [--threads N]
+
+Training steps use the real loop's loss (`train.loop.step_loss`) on random pressure images and
+targets of the right shapes (speed does not depend on the values); Mod2 steps include Mod1's
+frozen pass, both meshes, PMR and the PMR losses. Median over `--steps` timed steps after one
+warm-up step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from pressurepose.net import NetConfig, NetInputs, PressureNet
+from pressurepose.net.losses import Targets
+from pressurepose.train.config import TrainConfig
+from pressurepose.train.loop import step_loss
+
+
+def _batch(B: int, device) -> tuple[NetInputs, Targets]:
+    g = torch.Generator().manual_seed(0)
+    p = torch.rand(B, 64, 27, generator=g) * 60 * (torch.rand(B, 64, 27, generator=g) > 0.6)
+    inputs = NetInputs(p.to(device), gender=(torch.rand(B, generator=g) > 0.5).float().to(device))
+    joints = torch.rand(B, 24, 3, generator=g) * torch.tensor([1.8, 0.7, 0.2])
+    shape = torch.rand(B, 6, generator=g) * 0.5 + 0.25
+    depth = torch.randn(B, 64, 27, generator=g) * 30
+    return inputs, Targets(joints.to(device), shape.to(device), depth.to(device), (depth < 0).float().to(device))
+
+
+def _sync(device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _median_time(fn, steps: int, device) -> tuple[float, float]:
+    """(median wall seconds, median CPU seconds of this process) per call."""
+    fn()
+    _sync(device)
+    wall, cpu = [], []
+    for _ in range(steps):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        _sync(device)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return statistics.median(wall), statistics.median(cpu)
+
+
+def train_speed(body, arch: str, module: int, B: int, steps: int, device) -> float:
+    net = PressureNet(NetConfig(arch=arch, modules=module), body=body).to(device)
+    if module == 2:
+        net.freeze_mod1()
+    net.train()
+    opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=1e-5)
+    cfg = TrainConfig(preset="fast", module=module, mod1="x" if module == 2 else None).resolved()
+    inputs, targets = _batch(B, device)
+
+    def step():
+        loss, _, _ = step_loss(net, inputs, targets, cfg, True, None)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    wall, cpu = _median_time(step, steps, device)
+    return B / wall, B / cpu
+
+
+def predict_speed(body, arch: str, module: int, B: int, steps: int, device) -> tuple[float, float]:
+    """Seconds per batch of B: network + body model + mesh (+ PMR for Mod2's input)."""
+    net = PressureNet(NetConfig(arch=arch, modules=module), body=body).to(device).eval()
+    inputs, _ = _batch(B, device)
+
+    def run():
+        with torch.inference_mode():
+            net(inputs, mesh=True, maps=False)
+
+    return _median_time(run, steps, device)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--archs", nargs="+", default=["fast", "paper"])
+    parser.add_argument("--batch", type=int, default=128)
+    parser.add_argument("--steps", type=int, default=3)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    args = parser.parse_args()
+    if args.threads:
+        # On a machine shared with other jobs, OpenMP threads that wait for a descheduled
+        # sibling at every barrier can make 2 threads 10-100x slower than 1.
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    from pressurepose.body import load_body_model
+
+    body = load_body_model("anny", device=device)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {device}, batch {args.batch}")
+    # Wall time suffers from other jobs on a shared machine; CPU time (process time, all
+    # threads) says what the work costs: with 1 thread, CPU-time rates are one dedicated core's.
+    print("| arch | module | training img/s (wall / per CPU-s) | predict batch 1 ms (wall / CPU) "
+          "| predict batch 128 img/s (wall / per CPU-s) |")
+    print("| --- | --- | --- | --- | --- |")
+    for arch in args.archs:
+        for module in (1, 2):
+            ips_w, ips_c = train_speed(body, arch, module, args.batch, args.steps, device)
+            lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device)
+            thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device)
+            print(f"| {arch} | {module} | {ips_w:.1f} / {ips_c:.1f} | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
+                  f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

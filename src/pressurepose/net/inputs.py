@@ -1,0 +1,137 @@
+"""Reading pressure images for `pressurepose predict`, checked before anything runs.
+
+Accepted files (each gives one or more (64, 27) images in mmHg, row 0 at the head end):
+- .npy: a (64, 27) or (N, 64, 27) array of mmHg (loaded without pickles);
+- .npz: an array `pressure_mmhg` shaped as above (e.g. the training .npz format);
+- .parquet: a dataset shard (its `pressure_mmhg` column);
+- .csv / .txt: one frame as PmatData stores it: 64 lines of 27 numbers separated by spaces,
+  commas or semicolons, row 0 at the FOOT end (flipped here). `text_units="raw"` (default)
+  treats the numbers as PmatData's uncalibrated units: the empty-taxel level is removed and
+  the frame scaled to the body's weight (`data.pmatdata.normalise`; the network normalises
+  each image by its sum anyway, so the assumed mass changes only the 100 mmHg clip);
+  `text_units="mmhg"` takes them as mmHg.
+Every image must be finite, >= 0 and not empty; any failure is a ValueError naming the file.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+ROWS, COLS = 64, 27
+SUFFIXES = (".npy", ".npz", ".parquet", ".csv", ".txt")
+
+
+def read_pressure_file(path: str | Path, text_units: Literal["raw", "mmhg"] = "raw",
+                       mass_kg: float = 70.0) -> np.ndarray:
+    """(N, 64, 27) float32 mmHg images of one file (see module doc)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise ValueError(f"{path}: unsupported file type {suffix or '(none)'}; give {', '.join(SUFFIXES)} files")
+    if path.stat().st_size == 0:
+        raise ValueError(f"{path}: the file is empty")
+    if suffix == ".npy":
+        images = _load_npy(path)
+    elif suffix == ".npz":
+        images = _load_npz(path)
+    elif suffix == ".parquet":
+        images = _load_parquet(path)
+    else:
+        images = _load_text(path, text_units, mass_kg)[None]
+    return check_images(images, path)
+
+
+def check_images(images: np.ndarray, path: Path) -> np.ndarray:
+    if images.ndim == 2:
+        images = images[None]
+    if images.ndim != 3 or images.shape[1:] != (ROWS, COLS):
+        raise ValueError(f"{path}: expected a ({ROWS}, {COLS}) pressure image or a stack (N, {ROWS}, {COLS}), "
+                         f"got shape {images.shape}")
+    if images.shape[0] == 0:
+        raise ValueError(f"{path}: holds no images")
+    if not np.issubdtype(images.dtype, np.number) or images.dtype == bool:
+        raise ValueError(f"{path}: not a pressure image (dtype {images.dtype})")
+    images = images.astype(np.float32)
+    bad = ~np.isfinite(images).all((1, 2))
+    if bad.any():
+        raise ValueError(f"{path}: image {int(np.argmax(bad))} contains NaN or infinite values")
+    neg = (images < 0).any((1, 2))
+    if neg.any():
+        raise ValueError(f"{path}: image {int(np.argmax(neg))} has negative pressures (min {images.min():.3g}); "
+                         "readings must be >= 0 mmHg")
+    empty = ~(images > 0).any((1, 2))
+    if empty.any():
+        raise ValueError(f"{path}: image {int(np.argmax(empty))} is empty (no loaded taxel): nobody on the mat")
+    return images
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise ValueError(f"{path}: not a numpy array file without pickles ({exc})") from None
+
+
+def _load_npz(path: Path) -> np.ndarray:
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            if "pressure_mmhg" not in f.files:
+                raise ValueError(f"{path}: no array 'pressure_mmhg' (holds {', '.join(f.files) or 'nothing'})")
+            return f["pressure_mmhg"]
+    except (OSError, EOFError) as exc:
+        raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
+    except ValueError as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
+
+
+def _load_parquet(path: Path) -> np.ndarray:
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise ValueError(f"{path}: reading dataset shards needs pyarrow (pip install pyarrow)") from None
+    try:
+        column = pq.read_table(path, columns=["pressure_mmhg"]).column("pressure_mmhg").combine_chunks()
+    except (OSError, KeyError, pa.ArrowException) as exc:
+        raise ValueError(f"{path}: not a dataset shard with a pressure_mmhg column ({exc})") from None
+    values = column.flatten().to_numpy(zero_copy_only=False) if len(column) else np.zeros(0, np.float32)
+    if values.size != len(column) * ROWS * COLS:
+        raise ValueError(f"{path}: pressure_mmhg rows are not {ROWS} x {COLS} images")
+    return values.reshape(len(column), ROWS, COLS)
+
+
+def _load_text(path: Path, units: str, mass_kg: float) -> np.ndarray:
+    from pressurepose.data.pmatdata import normalise
+
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a text pressure frame ({exc})") from None
+    rows = [re.split(r"[\s,;]+", line.strip()) for line in text.strip().splitlines() if line.strip()]
+    if len(rows) != ROWS or any(len(r) != COLS for r in rows):
+        counts = sorted({len(r) for r in rows})
+        raise ValueError(f"{path}: expected {ROWS} lines of {COLS} numbers (a PmatData frame), got {len(rows)} "
+                         f"lines of {counts} values")
+    try:
+        raw = np.array(rows, dtype=np.float64)[::-1].copy()  # PmatData: row 0 at the foot end
+    except ValueError:
+        raise ValueError(f"{path}: not a pressure frame (non-numeric values)") from None
+    if units == "mmhg" or not np.isfinite(raw).all() or (raw < 0).any() or not (raw > 0).any():
+        return raw  # check_images names the problem
+    if units != "raw":
+        raise ValueError(f"text_units must be 'raw' or 'mmhg', got {units!r}")
+    try:
+        return normalise(raw, mass_kg)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+__all__ = ["SUFFIXES", "check_images", "read_pressure_file"]

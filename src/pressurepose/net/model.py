@@ -1,0 +1,188 @@
+"""PressureNet: pressure image -> body parameters -> J24 joints, mesh and PMR maps (seed B.1-B.2).
+
+Mod1: CNN on the pressure channels -> raw vector -> `ParamHead` -> BodyParams -> body model.
+Mod2: a second CNN of the same arch on the pressure channels plus Mod1's reconstructed maps
+(Q-hat, C-hat) predicts a residual added to Mod1's raw vector; its mesh goes through PMR again
+for the Mod2 losses. With Mod1 frozen (`freeze_mod1`), Mod1 runs without gradients.
+
+The body model is a submodule (so `.to(device)` moves it) but none of its tensors are part of
+`trainable_state()`: a checkpoint holds only the CNNs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import torch
+from torch import nn
+
+from pressurepose.body import BodyParams, load_body_model
+from pressurepose.body.model import BodyModel
+from pressurepose.mat import MatSpec
+from pressurepose.net.cnn import make_cnn
+from pressurepose.net.head import ParamHead
+from pressurepose.net.pmr import reconstruct_maps
+from pressurepose.net.preprocess import (
+    check_pressure, constant_planes, pressure_channels, reconstruction_channels, upsample2,
+)
+
+GENDER_UNKNOWN = 0.5  # Anny's gender phenotype: 0 male, 1 female
+
+
+@dataclasses.dataclass(frozen=True)
+class NetConfig:
+    """What the network is; saved with every checkpoint (config.json)."""
+
+    arch: Literal["paper", "fast"] = "fast"
+    backend: Literal["anny", "smpl"] = "anny"
+    modules: Literal[1, 2] = 1
+    gender_input: bool = True    # gender given as an input (plane + Anny's gender entry)
+    height_weight: bool = False  # height (m) and mass (/100 kg) given as constant planes
+    smpl_dir: str | None = None  # SMPL model folder, backend smpl only
+    dropout: float = 0.1         # the seed's dropout after every tanh (paper) / in the FC head (fast)
+
+    def __post_init__(self) -> None:
+        if self.arch not in ("paper", "fast"):
+            raise ValueError(f"NetConfig.arch must be 'paper' or 'fast', got {self.arch!r}")
+        if self.modules not in (1, 2):
+            raise ValueError(f"NetConfig.modules must be 1 or 2, got {self.modules!r}")
+        if not 0 <= self.dropout < 1:
+            raise ValueError(f"NetConfig.dropout must lie in [0, 1), got {self.dropout}")
+
+    @property
+    def in_channels(self) -> int:
+        return 3 + 2 * self.height_weight + self.gender_input
+
+    def load_body(self, dtype: torch.dtype = torch.float32, device="cpu") -> BodyModel:
+        options = {"model_dir": self.smpl_dir} if self.backend == "smpl" else {}
+        return load_body_model(self.backend, dtype=dtype, device=device, **options)
+
+
+@dataclasses.dataclass(frozen=True)
+class NetInputs:
+    """A batch of network inputs. gender (B,) in [0, 1] (1 female, 0.5 unknown)."""
+
+    pressure_mmhg: torch.Tensor          # (B, 64, 27)
+    gender: torch.Tensor | None = None   # (B,)
+    height_m: torch.Tensor | None = None  # (B,)
+    mass_kg: torch.Tensor | None = None   # (B,)
+
+    @property
+    def batch_size(self) -> int:
+        return self.pressure_mmhg.shape[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """One module's estimate. Mesh and maps only when asked for (Mod1 training needs joints)."""
+
+    raw: torch.Tensor                     # (B, D) before unpacking
+    params: BodyParams
+    joints: torch.Tensor                  # (B, 24, 3) mat frame, m
+    vertices: torch.Tensor | None = None  # (B, V, 3)
+    depth_mm: torch.Tensor | None = None  # (B, 64, 27) Q-hat
+    contact: torch.Tensor | None = None   # (B, 64, 27) C-hat
+
+
+class PressureNet(nn.Module):
+    def __init__(self, config: NetConfig, body: BodyModel | None = None, mat: MatSpec | None = None) -> None:
+        super().__init__()
+        self.config = config
+        self.mat = mat or MatSpec()
+        self.body = body if body is not None else config.load_body()
+        if self.body.name != config.backend:
+            raise ValueError(f"body model is {self.body.name!r} but NetConfig.backend is {config.backend!r}")
+        self.head = ParamHead(config.backend, self.body.shape_names, self.mat)
+        D = self.head.size
+        self.mod1 = make_cnn(config.arch, config.in_channels, D, config.dropout)
+        self.mod2 = make_cnn(config.arch, config.in_channels + 2, D, config.dropout) if config.modules == 2 else None
+        if self.mod2 is not None:  # Mod2 starts as "no correction"
+            last = self.mod2.fc if isinstance(self.mod2.fc, nn.Linear) else self.mod2.fc[-1]
+            with torch.no_grad():
+                last.weight.zero_()
+        self.mod1_frozen = False
+
+    @property
+    def faces(self) -> torch.Tensor:
+        return self.body.faces
+
+    def freeze_mod1(self) -> None:
+        """Train Mod2 on a fixed Mod1 (the seed trained the modules one after the other)."""
+        self.mod1_frozen = True
+        self.mod1.requires_grad_(False)
+
+    def train(self, mode: bool = True) -> "PressureNet":
+        super().train(mode)
+        if self.mod1_frozen:
+            self.mod1.eval()  # no dropout / batch-statistics updates in the frozen module
+        return self
+
+    def trainable_state(self) -> dict[str, torch.Tensor]:
+        """The CNN weights and buffers (not the body model's)."""
+        return {k: v for k, v in self.state_dict().items() if not k.startswith("body.")}
+
+    def load_trainable_state(self, state: dict[str, torch.Tensor]) -> None:
+        missing, unexpected = self.load_state_dict(state, strict=False)
+        missing = [k for k in missing if not k.startswith("body.")]
+        if missing or unexpected:
+            raise ValueError(f"checkpoint does not match the network: missing {missing[:5]}, "
+                             f"unexpected {unexpected[:5]}")
+
+    # --- inputs -------------------------------------------------------------------------
+    def channels(self, inputs: NetInputs, augment: bool = False,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+        """(B, C, 64, 27) Mod1 input channels (before any upsampling)."""
+        check_pressure(inputs.pressure_mmhg)
+        x = pressure_channels(inputs.pressure_mmhg, augment, generator)
+        extra = []
+        if self.config.height_weight:
+            if inputs.height_m is None or inputs.mass_kg is None:
+                raise ValueError("this network takes height and mass as inputs; give height_m and mass_kg")
+            extra += [inputs.height_m.reshape(-1), inputs.mass_kg.reshape(-1) / 100.0]
+        if self.config.gender_input:
+            extra.append(self._gender(inputs))
+        if extra:
+            x = torch.cat([x, constant_planes(torch.stack(extra, 1), x)], 1)
+        return x
+
+    def _gender(self, inputs: NetInputs) -> torch.Tensor:
+        p = inputs.pressure_mmhg
+        if inputs.gender is None:
+            return torch.full((p.shape[0],), GENDER_UNKNOWN, dtype=p.dtype, device=p.device)
+        return inputs.gender.to(p).reshape(-1)
+
+    def _cnn(self, cnn: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        return cnn(upsample2(x) if self.config.arch == "paper" else x)
+
+    # --- forward ------------------------------------------------------------------------
+    def estimate(self, raw: torch.Tensor, gender: torch.Tensor | None, mesh: bool, maps: bool = True) -> Estimate:
+        """Unpack a raw vector (B, D) and pose the body: joints only unless `mesh`; with the
+        mesh, the PMR maps unless `maps` is False."""
+        params = self.head(raw, gender)
+        if not mesh:
+            return Estimate(raw=raw, params=params, joints=self.body.joints(params))
+        out = self.body(params)
+        if not maps:
+            return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices)
+        maps = reconstruct_maps(out.vertices, out.faces, self.mat)
+        return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices,
+                        depth_mm=maps.depth_mm, contact=maps.contact)
+
+    def forward(self, inputs: NetInputs, augment: bool = False, generator: torch.Generator | None = None,
+                mesh: bool = True, maps: bool = True) -> list[Estimate]:
+        """[Mod1's estimate] or [Mod1's, Mod2's]. `mesh`: pose the final mesh; `maps`: and
+        reconstruct its PMR maps (Mod1's mesh and maps are always made when Mod2 follows,
+        since Mod2 reads them)."""
+        gender = inputs.gender if self.config.gender_input else None
+        x = self.channels(inputs, augment, generator)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.mod1_frozen):
+            if self.mod2 is None:
+                return [self.estimate(self._cnn(self.mod1, x), gender, mesh, maps)]
+            est1 = self.estimate(self._cnn(self.mod1, x), gender, mesh=True)
+        x2 = torch.cat([x, reconstruction_channels(est1.depth_mm.detach(), est1.contact.detach())], 1)
+        raw2 = est1.raw + self._cnn(self.mod2, x2)
+        return [est1, self.estimate(raw2, gender, mesh, maps)]
+
+
+__all__ = ["Estimate", "GENDER_UNKNOWN", "NetConfig", "NetInputs", "PressureNet"]

@@ -1,0 +1,170 @@
+"""`pressurepose predict`: pressure images in, body parameters, meshes and figures out.
+
+Every input file is read and checked first (`net.inputs`), so a bad file stops the run
+before anything is written. Images then go through the network in batches; per image
+OUT/<name>.json (parameters by name, J24 joints, height and mass of the estimated shape),
+OUT/<name>.ply (the mesh, mat frame, metres) and OUT/<name>.png (the pressure image with the
+projected skeleton, top and side views of the mesh). <name> is the file's stem, with
+_<index> for files holding several images.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+import tyro
+
+from pressurepose.body.joints import J24_NAMES
+from pressurepose.files import atomic_write
+from pressurepose.net.inputs import read_pressure_file
+from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
+
+GENDERS = {"female": 1.0, "male": 0.0, "unknown": GENDER_UNKNOWN}
+
+
+@dataclasses.dataclass(frozen=True)
+class PredictConfig:
+    """`pressurepose predict --model RUN FILES...`.
+
+    Args:
+        files: pressure images: .npy / .npz (mmHg, (64, 27) or (N, 64, 27)), .parquet dataset
+            shards, .csv / .txt PmatData-like frames (64 lines of 27, row 0 at the foot end).
+        model: a `pressurepose train` run folder (model.safetensors).
+        out: output folder.
+        gender: the subject's gender, if the network takes it (unknown = 0.5 on Anny's scale).
+        height_m: the subject's height, for networks trained with height and mass inputs.
+        mass_kg: the subject's mass: input of such networks, and the scale of raw text frames.
+        text_units: raw (PmatData's uncalibrated units, scaled to mass_kg) or mmhg.
+        batch_size: images per network pass.
+        figures: write one PNG per image.
+        meshes: write one .ply mesh per image.
+        refine_steps: test-time refinement steps through sim #2 (0 = off; ~50 ms per image and step).
+        device: auto (CUDA when present), cpu or cuda.
+    """
+
+    files: tyro.conf.Positional[tuple[Path, ...]] = ()
+    model: Path = Path("out/train")
+    out: Path = Path("out/predict")
+    gender: Literal["female", "male", "unknown"] = "unknown"
+    height_m: float | None = None
+    mass_kg: float | None = None
+    text_units: Literal["raw", "mmhg"] = "raw"
+    batch_size: int = 32
+    figures: bool = True
+    meshes: bool = True
+    refine_steps: int = 0
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+
+
+def read_inputs(cfg: PredictConfig) -> list[tuple[str, np.ndarray]]:
+    """[(name, (64, 27) image)] of every file, all checked (ValueError on the first bad one)."""
+    if not cfg.files:
+        raise ValueError("no input files; give pressure images after the options")
+    items = []
+    for path in cfg.files:
+        images = read_pressure_file(path, cfg.text_units, cfg.mass_kg or 70.0)
+        for k, image in enumerate(images):
+            items.append((path.stem if len(images) == 1 else f"{path.stem}_{k:04d}", image))
+    names = [n for n, _ in items]
+    if len(set(names)) != len(names):
+        raise ValueError("two inputs would write the same output name; give files with different names")
+    return items
+
+
+def run_predict(cfg: PredictConfig) -> dict:
+    """Predict every image; returns a summary (counts, timings, output folder)."""
+    from pressurepose.train.checkpoint import load_network
+    from pressurepose.train.loop import pick_device
+
+    if cfg.batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {cfg.batch_size}")
+    items = read_inputs(cfg)
+    device = pick_device(cfg.device)
+    net, _ = load_network(cfg.model, device)
+    if net.config.height_weight and (cfg.height_m is None or cfg.mass_kg is None):
+        raise ValueError("this network takes height and mass as inputs: give --height-m and --mass-kg")
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_net = 0.0
+    for start in range(0, len(items), cfg.batch_size):
+        chunk = items[start:start + cfg.batch_size]
+        B = len(chunk)
+        pressure = torch.from_numpy(np.stack([im for _, im in chunk])).to(device)
+        full = lambda v: None if v is None else torch.full((B,), float(v), device=device)  # noqa: E731
+        inputs = NetInputs(pressure, gender=full(GENDERS[cfg.gender]), height_m=full(cfg.height_m),
+                           mass_kg=full(cfg.mass_kg))
+        t0 = time.perf_counter()
+        if cfg.refine_steps > 0:
+            from pressurepose.net.synthesis import refine
+
+            est, _ = refine(net, inputs, steps=cfg.refine_steps)
+        else:
+            with torch.inference_mode():
+                est = net(inputs, mesh=True, maps=False)[-1]
+        t_net += time.perf_counter() - t0
+        with torch.inference_mode():
+            measured = net.body.measure(est.params.shape)
+        for i, (name, image) in enumerate(chunk):
+            _write_one(out, name, image, est, measured, i, net, cfg)
+    return {"images": len(items), "out": str(out), "network_ms_per_image": 1000 * t_net / len(items)}
+
+
+def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, net, cfg: PredictConfig) -> None:
+    p = est.params
+    vertices = est.vertices[i].detach().cpu().numpy()
+    joints = est.joints[i].detach().cpu().numpy()
+    record = {
+        "model": str(cfg.model), "backend": net.config.backend,
+        "shape": dict(zip(net.body.shape_names, p.shape[i].tolist())),
+        "root_rotation_axis_angle": p.root_rotation[i].tolist(),
+        "root_translation_m": p.root_translation[i].tolist(),
+        "pose_axis_angle": {n: v for n, v in zip(J24_NAMES[1:], p.pose[i].tolist())},
+        "joints_m": {n: v for n, v in zip(J24_NAMES, joints.tolist())},
+        "height_m": float(measured.height_m[i]), "mass_kg": float(measured.mass_kg[i]),
+    }
+    text = json.dumps(record, indent=1)
+    atomic_write(out / f"{name}.json", lambda tmp: Path(tmp).write_text(text))
+    faces = net.faces.cpu().numpy()
+    if cfg.meshes:
+        atomic_write(out / f"{name}.ply", lambda tmp: write_ply(tmp, vertices, faces))
+    if cfg.figures:
+        from pressurepose.viz.prediction import plot_prediction
+
+        atomic_write(out / f"{name}.png", lambda tmp: plot_prediction(tmp, image, vertices, joints, net.mat, name))
+
+
+def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    """Binary little-endian PLY of a triangle mesh: vertices (V, 3) float32, faces (F, 3)."""
+    vertices = np.ascontiguousarray(vertices, dtype="<f4")
+    tri = np.empty(len(faces), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+    tri["n"] = 3
+    tri["idx"] = faces
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(vertices.tobytes())
+        fh.write(tri.tobytes())
+    return Path(path)
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The (vertices, faces) of a file `write_ply` wrote."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode("ascii").split("\n")
+    nv = int(next(h for h in header if h.startswith("element vertex")).split()[-1])
+    nf = int(next(h for h in header if h.startswith("element face")).split()[-1])
+    vertices = np.frombuffer(data, dtype="<f4", count=nv * 3, offset=end).reshape(nv, 3)
+    tri = np.frombuffer(data, dtype=[("n", "u1"), ("idx", "<i4", (3,))], count=nf, offset=end + nv * 12)
+    return vertices, tri["idx"]
+
+
+__all__ = ["PredictConfig", "read_inputs", "read_ply", "run_predict", "write_ply"]

@@ -1,0 +1,139 @@
+"""Training configuration: one frozen dataclass, presets for the usual runs.
+
+`preset` fills every field left at None: "paper" is the seed's setup (the released CNN, Adam,
+lr 2e-5, weight decay 5e-4, batch 128, 100 epochs - B.3); "fast" is our CPU network, which
+trains at lr 1e-3 thanks to batch normalisation; "smoke" is a two-epoch run on small batches
+to check that everything runs. Explicit fields win over the preset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Literal
+
+PRESETS: dict[str, dict] = {
+    "paper": {"arch": "paper", "epochs": 100, "batch_size": 128, "lr": 2e-5, "weight_decay": 5e-4},
+    "fast": {"arch": "fast", "epochs": 100, "batch_size": 128, "lr": 1e-3, "weight_decay": 5e-4},
+    "smoke": {"arch": "fast", "epochs": 2, "batch_size": 16, "lr": 1e-3, "weight_decay": 5e-4},
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """`pressurepose train`: train Mod1 (or Mod2 on a trained Mod1) and write RUN/.
+
+    Args:
+        data: dataset folder (generated shards with manifest.json, or *.npz files; docs/network.md).
+        out: run folder: config.json, checkpoint.safetensors, model.safetensors, metrics.jsonl,
+            metrics.csv, metrics.png. An existing run there is resumed.
+        module: 1 trains Mod1; 2 trains Mod2 on the frozen Mod1 of the run given by `mod1`.
+        mod1: the Mod1 run folder (module 2 only).
+        preset: fills the fields left unset: paper (seed B.3), fast (CPU network), smoke.
+        arch: paper (the released CNN, 128 x 54 input) or fast (ours, 64 x 27).
+        backend: body model: anny (embedded) or smpl (needs smpl_dir).
+        smpl_dir: folder of the SMPL model file (backend smpl).
+        epochs: total epochs (a resumed run continues up to this).
+        batch_size: images per step.
+        lr: Adam learning rate.
+        weight_decay: Adam weight decay.
+        augment: the seed's calibration noise on training images.
+        gender_input: give the gender as an input (as the original did).
+        height_weight: give height and mass as input planes.
+        dropout: dropout rate (the seed's 0.1).
+        synthesis_weight: Mod2 only: weight of the analysis-by-synthesis loss (sim #2 pressure of
+            the estimated mesh vs the input; 0 = off; slow: ~15 ms a sample).
+        val_fraction: share of the samples held out for per-epoch validation.
+        seed: seeds the split, the order, the augmentation and dropout of every epoch.
+        device: auto (CUDA when present), cpu or cuda.
+        num_workers: DataLoader worker processes.
+        progress: show a progress bar.
+        save_every: epochs between checkpoints, metrics files and plot (the last epoch always).
+    """
+
+    data: Path | None = None
+    out: Path = Path("out/train")
+    module: Literal[1, 2] = 1
+    mod1: Path | None = None
+    preset: Literal["paper", "fast", "smoke"] = "paper"
+    arch: Literal["paper", "fast"] | None = None
+    backend: Literal["anny", "smpl"] = "anny"
+    smpl_dir: str | None = None
+    epochs: int | None = None
+    batch_size: int | None = None
+    lr: float | None = None
+    weight_decay: float | None = None
+    augment: bool = True
+    gender_input: bool = True
+    height_weight: bool = False
+    dropout: float = 0.1
+    synthesis_weight: float = 0.0
+    val_fraction: float = 0.05
+    seed: int = 0
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    num_workers: int = 0
+    progress: bool = True
+    save_every: int = 1
+
+    @classmethod
+    def paper(cls, **changes) -> "TrainConfig":
+        return cls(preset="paper", **changes).resolved()
+
+    @classmethod
+    def fast(cls, **changes) -> "TrainConfig":
+        return cls(preset="fast", **changes).resolved()
+
+    @classmethod
+    def smoke(cls, **changes) -> "TrainConfig":
+        return cls(preset="smoke", **changes).resolved()
+
+    def resolved(self) -> "TrainConfig":
+        """The config with every None filled from the preset, checked."""
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown preset {self.preset!r}; expected one of {', '.join(PRESETS)}")
+        filled = {k: v for k, v in PRESETS[self.preset].items() if getattr(self, k) is None}
+        cfg = dataclasses.replace(self, **filled)
+        cfg._check()
+        return cfg
+
+    def _check(self) -> None:
+        if self.module not in (1, 2):
+            raise ValueError(f"module must be 1 or 2, got {self.module}")
+        if self.module == 2 and self.mod1 is None:
+            raise ValueError("module 2 trains on a trained Mod1: give --mod1 RUN (a `--module 1` run folder)")
+        for name in ("epochs", "batch_size", "save_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0 or self.weight_decay < 0:
+            raise ValueError(f"lr must be > 0 and weight_decay >= 0, got {self.lr}, {self.weight_decay}")
+        if not 0 <= self.val_fraction < 1:
+            raise ValueError(f"val_fraction must lie in [0, 1), got {self.val_fraction}")
+        if self.synthesis_weight < 0 or (self.synthesis_weight > 0 and self.module != 2):
+            raise ValueError("synthesis_weight must be >= 0 and is a Mod2 loss (use it with --module 2)")
+        if self.backend == "smpl" and not self.smpl_dir:
+            raise ValueError("backend smpl needs --smpl-dir (the folder holding your SMPL model file)")
+
+    def to_json(self) -> dict:
+        return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_json(cls, record: dict) -> "TrainConfig":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        kw = {k: v for k, v in record.items() if k in fields}
+        for k in ("data", "out", "mod1"):
+            if kw.get(k) is not None:
+                kw[k] = Path(kw[k])
+        return cls(**kw)
+
+    def save(self, path: Path, net: dict) -> None:
+        from pressurepose.files import atomic_write
+
+        text = json.dumps({"train": self.to_json(), "net": net}, indent=1)
+        atomic_write(Path(path), lambda tmp: Path(tmp).write_text(text))
+
+
+# Fields a resumed run may change without becoming a different run.
+RESUMABLE_CHANGES = ("epochs", "progress", "num_workers", "device", "data", "out", "save_every")
+
+__all__ = ["PRESETS", "RESUMABLE_CHANGES", "TrainConfig"]

@@ -1,0 +1,237 @@
+"""The training loop, top to bottom: data -> network -> loss -> Adam, one checkpoint per epoch.
+
+Every epoch e draws its order, augmentation and dropout from generators seeded by
+(seed, e), so a run resumed from its checkpoint after epoch e equals one never interrupted.
+Writes RUN/config.json first, then after every epoch checkpoint.safetensors, model.safetensors,
+metrics.jsonl + metrics.csv (one row per epoch) and metrics.png - all atomically.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pressurepose.files import atomic_write
+from pressurepose.net.losses import Targets, joint_error_m, module_loss
+from pressurepose.net.model import NetConfig, NetInputs, PressureNet
+from pressurepose.train.checkpoint import (
+    CHECKPOINT_FILE, load_checkpoint, net_config_from_record, read_model, save_checkpoint, save_model,
+)
+from pressurepose.train.config import RESUMABLE_CHANGES, TrainConfig
+from pressurepose.train.data import collate, open_dataset
+
+log = logging.getLogger(__name__)
+METRICS = "metrics.jsonl"
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device cuda asked for, but torch sees no CUDA device; use --device cpu")
+    return torch.device(name)
+
+
+def batch_inputs(batch: dict[str, torch.Tensor], device: torch.device) -> tuple[NetInputs, Targets]:
+    b = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+    inputs = NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
+                       mass_kg=b["mass_kg"])
+    return inputs, Targets(joints=b["joints"], shape=b["shape"], depth_mm=b["depth_mm"], contact=b["contact"])
+
+
+def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainConfig, augment: bool,
+              generator: torch.Generator | None) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
+    """Loss of the module being trained, its parts, and the (B,) joint error of its estimate."""
+    ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
+    est = ests[-1]
+    scale = net.head.shape_scale()
+    if cfg.module == 1:
+        loss, parts = module_loss(est.joints, est.params.shape, targets, scale)
+    else:
+        loss, parts = module_loss(est.joints, est.params.shape, targets, scale, est.depth_mm, est.contact)
+        if cfg.synthesis_weight > 0:
+            from pressurepose.net.synthesis import synthesis_loss
+
+            syn = synthesis_loss(net, est, inputs.pressure_mmhg)
+            parts["synthesis"] = float(syn.detach())
+            loss = loss + cfg.synthesis_weight * syn
+    return loss, parts, joint_error_m(est.joints.detach(), targets.joints)
+
+
+def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
+    netcfg = NetConfig(arch=cfg.arch, backend=cfg.backend, modules=cfg.module, gender_input=cfg.gender_input,
+                       height_weight=cfg.height_weight, smpl_dir=cfg.smpl_dir,
+                       dropout=cfg.dropout)
+    if cfg.module == 2:
+        weights, record = read_model(cfg.mod1)
+        m1 = net_config_from_record(record)
+        if m1.modules != 1:
+            raise ValueError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
+        mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight") if getattr(m1, f) != getattr(netcfg, f)]
+        if mismatch:
+            raise ValueError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
+    body = netcfg.load_body(device=device)
+    torch.manual_seed(cfg.seed)  # the initial weights
+    net = PressureNet(netcfg, body=body)
+    if cfg.module == 2:
+        mod1 = {k[len("mod1."):]: v for k, v in weights.items() if k.startswith("mod1.")}
+        net.mod1.load_state_dict(mod1)
+        net.freeze_mod1()
+    return net.to(device)
+
+
+def _split(n: int, cfg: TrainConfig) -> tuple[list[int], list[int]]:
+    order = np.random.default_rng(cfg.seed).permutation(n)
+    n_val = int(round(cfg.val_fraction * n)) if n >= 20 else 0
+    return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
+
+
+def _check_resume(run: Path, cfg: TrainConfig) -> None:
+    saved = json.loads((run / "config.json").read_text())["train"] if (run / "config.json").is_file() else None
+    if saved is None:
+        return
+    now = cfg.to_json()
+    differ = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
+    if differ:
+        raise ValueError(f"{run} holds a run with different settings ({', '.join(differ)}); "
+                         "resume with the same settings or train into a new --out folder")
+
+
+def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> Path:
+    """Train as configured; returns the run folder. `dataset` replaces `cfg.data` (tests)."""
+    cfg = cfg.resolved()
+    run = Path(cfg.out)
+    if dataset is None:
+        if cfg.data is None:
+            raise ValueError("no training data: give --data DIR")
+        dataset = open_dataset(cfg.data)
+    if len(dataset) == 0:
+        raise ValueError("the training dataset is empty")
+    device = pick_device(cfg.device)
+    run.mkdir(parents=True, exist_ok=True)
+    resuming = (run / CHECKPOINT_FILE).is_file()
+    if resuming:
+        _check_resume(run, cfg)
+    net = build_network(cfg, device)
+    record = {"train": cfg.to_json(), "net": {**net.config.__dict__}}
+    cfg.save(run / "config.json", record["net"])
+    params = [p for p in net.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    start = 0
+    if resuming:
+        start, _ = load_checkpoint(run, net, opt)
+        log.info("resuming %s after epoch %d", run, start)
+    history = [r for r in _read_metrics(run) if r["epoch"] <= start] if resuming else []
+    train_idx, val_idx = _split(len(dataset), cfg)
+    for epoch in range(start + 1, cfg.epochs + 1):
+        row = _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device)
+        history.append(row)
+        if epoch % cfg.save_every == 0 or epoch == cfg.epochs:
+            save_checkpoint(run, net, opt, epoch, record)
+            save_model(run, net, record)
+            _write_metrics(run, history)
+        log.info("epoch %d/%d: loss %.4f, train MPJPE %.1f mm%s, %.0f img/s", epoch, cfg.epochs, row["loss"],
+                 row["train_mpjpe_mm"], f", val MPJPE {row['val_mpjpe_mm']:.1f} mm" if "val_mpjpe_mm" in row else "",
+                 row["images_per_s"])
+    if start >= cfg.epochs:
+        save_model(run, net, record)
+    return run
+
+
+def _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device) -> dict:
+    torch.manual_seed(cfg.seed * 100003 + epoch)  # dropout of this epoch
+    gen = torch.Generator().manual_seed(cfg.seed * 100003 + epoch)
+    order = [train_idx[i] for i in torch.randperm(len(train_idx), generator=gen).tolist()]
+    loader = torch.utils.data.DataLoader(dataset, batch_size=cfg.batch_size, sampler=order, collate_fn=collate,
+                                         num_workers=cfg.num_workers)
+    net.train()
+    totals: dict[str, float] = {}
+    n_seen, err_sum, t0 = 0, 0.0, time.perf_counter()
+    with _progress(cfg.progress, f"epoch {epoch}/{cfg.epochs}", len(loader)) as advance:
+        for batch in loader:
+            inputs, targets = batch_inputs(batch, device)
+            loss, parts, err = step_loss(net, inputs, targets, cfg, cfg.augment, gen)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            B = inputs.batch_size
+            n_seen += B
+            err_sum += float(err.sum())
+            for k, v in {"loss": float(loss.detach()), **parts}.items():
+                totals[k] = totals.get(k, 0.0) + v * B
+            advance(f"loss {float(loss.detach()):.3f}")
+    seconds = time.perf_counter() - t0
+    row = {"epoch": epoch, **{k: v / n_seen for k, v in totals.items()}, "train_mpjpe_mm": 1000 * err_sum / n_seen,
+           "images_per_s": n_seen / seconds, "seconds": seconds}
+    if val_idx:
+        row.update(evaluate(net, torch.utils.data.Subset(dataset, val_idx), cfg, device))
+    return row
+
+
+@torch.no_grad()
+def evaluate(net: PressureNet, dataset, cfg: TrainConfig, device: torch.device) -> dict[str, float]:
+    """Validation loss and MPJPE (mm) of the trained module, no augmentation."""
+    net.eval()
+    loader = torch.utils.data.DataLoader(dataset, batch_size=cfg.batch_size, collate_fn=collate)
+    loss_sum, err_sum, n = 0.0, 0.0, 0
+    for batch in loader:
+        inputs, targets = batch_inputs(batch, device)
+        loss, _, err = step_loss(net, inputs, targets, cfg, False, None)
+        loss_sum += float(loss) * inputs.batch_size
+        err_sum += float(err.sum())
+        n += inputs.batch_size
+    return {"val_loss": loss_sum / n, "val_mpjpe_mm": 1000 * err_sum / n}
+
+
+class _progress:
+    """A rich progress bar (or nothing); the context value advances it by one batch."""
+
+    def __init__(self, enabled: bool, what: str, total: int) -> None:
+        self.enabled, self.what, self.total = enabled, what, total
+
+    def __enter__(self):
+        if not self.enabled:
+            return lambda note="": None
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TimeRemainingColumn(), TextColumn("{task.fields[note]}"), transient=True)
+        self.bar.__enter__()
+        task = self.bar.add_task(self.what, total=self.total, note="")
+        return lambda note="": self.bar.update(task, advance=1, note=note)
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            self.bar.__exit__(*exc)
+        return False
+
+
+def _read_metrics(run: Path) -> list[dict]:
+    path = run / METRICS
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _write_metrics(run: Path, history: list[dict]) -> None:
+    text = "".join(json.dumps(r) + "\n" for r in history)
+    atomic_write(run / METRICS, lambda tmp: Path(tmp).write_text(text))
+    keys = list(dict.fromkeys(k for r in history for k in r))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=keys)
+    writer.writeheader()
+    writer.writerows(history)
+    atomic_write(run / "metrics.csv", lambda tmp: Path(tmp).write_text(buf.getvalue()))
+    from pressurepose.viz.training import plot_metrics
+
+    atomic_write(run / "metrics.png", lambda tmp: plot_metrics(history, tmp))
+
+
+__all__ = ["evaluate", "pick_device", "train"]

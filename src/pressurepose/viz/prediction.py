@@ -1,0 +1,58 @@
+"""One figure per predicted image: the pressure image with the estimated skeleton projected
+onto it, and top and side views of the estimated mesh."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pressurepose.body.joints import J24_PARENTS  # noqa: E402
+from pressurepose.mat import MatSpec  # noqa: E402
+
+
+def _bones(ax, u: np.ndarray, v: np.ndarray, color: str = "crimson") -> None:
+    for j, parent in enumerate(J24_PARENTS):
+        if parent >= 0:
+            ax.plot([u[parent], u[j]], [v[parent], v[j]], "-", color=color, lw=1.5)
+    ax.plot(u, v, "o", color=color, ms=2.5)
+
+
+def plot_prediction(path: str | Path, pressure_mmhg: np.ndarray, vertices: np.ndarray, joints: np.ndarray,
+                    mat: MatSpec, title: str = "") -> Path:
+    """pressure (64, 27) mmHg, vertices (V, 3) and joints (24, 3) in the mat frame (m). PNG."""
+    fig, (ax_p, ax_top, ax_side) = plt.subplots(1, 3, figsize=(11, 5), gridspec_kw={"width_ratios": [1, 1, 1.6]})
+    im = ax_p.imshow(pressure_mmhg, cmap="magma", origin="upper", extent=(0, mat.cols, mat.rows, 0))
+    rc = mat.to_taxel(joints[:, :2])
+    _bones(ax_p, rc[:, 1], rc[:, 0], "cyan")
+    ax_p.set_xlim(0, mat.cols)
+    ax_p.set_ylim(mat.rows, 0)
+    ax_p.set_title("pressure + skeleton")
+    ax_p.set_xlabel("column")
+    ax_p.set_ylabel("row (head end at the top)")
+    fig.colorbar(im, ax=ax_p, shrink=0.6, label="mmHg")
+    v = vertices[:: max(1, len(vertices) // 5000)]
+    ax_top.scatter(v[:, 1], v[:, 0], c=v[:, 2], s=0.5, cmap="viridis")
+    _bones(ax_top, joints[:, 1], joints[:, 0])
+    ax_top.set_xlim(-0.05, mat.sensing_width_m + 0.05)
+    ax_top.set_ylim(mat.sensing_length_m + 0.05, -0.05)
+    ax_top.set_aspect("equal")
+    ax_top.set_title("mesh, top")
+    ax_top.set_xlabel("y (m)")
+    ax_top.set_ylabel("x (m)")
+    ax_side.scatter(v[:, 0], v[:, 2], c=v[:, 2], s=0.5, cmap="viridis")
+    _bones(ax_side, joints[:, 0], joints[:, 2])
+    ax_side.axhline(0.0, color="0.4", lw=1)
+    ax_side.set_aspect("equal")
+    ax_side.set_title("mesh, side (z = 0: mattress top)")
+    ax_side.set_xlabel("x (m), head end on the left")
+    ax_side.set_ylabel("z (m)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(Path(path), dpi=90, format="png")
+    plt.close(fig)
+    return Path(path)

@@ -1,0 +1,226 @@
+"""Training and prediction: data adapters, a 32-sample overfit, checkpoints and resume,
+Mod2 on a frozen Mod1, and the `train` / `predict` commands on good and bad inputs."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pressurepose.cli import main
+from pressurepose.net import NetConfig, NetInputs, PressureNet
+from pressurepose.net.predict import read_ply
+from pressurepose.train.checkpoint import load_network, save_model
+from pressurepose.train.config import TrainConfig
+from pressurepose.train.data import (
+    KEYS, NpzDataset, TensorDictDataset, collate, open_dataset, standardise, synthetic_arrays, write_npz,
+)
+from pressurepose.train.loop import train
+
+
+@pytest.fixture(scope="module")
+def data32(anny64, tmp_path_factory):
+    """32 labelled samples from the generator's pipeline (sampler + sim #2), in a .npz folder."""
+    arrays = synthetic_arrays(36, seed=1, body=anny64)
+    assert len(arrays["pressure_mmhg"]) >= 32
+    arrays = {k: v[:32] for k, v in arrays.items()}
+    folder = tmp_path_factory.mktemp("data32")
+    write_npz(folder / "train.npz", arrays)
+    return folder
+
+
+def _metrics(run):
+    return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_standardise_accepts_shard_names_and_rejects_missing_keys(data32):
+    item = dict(NpzDataset(data32 / "train.npz")[0])
+    shard_like = {**item, "joints_m": item.pop("joints").double(), "gender": "female", "contact": item["contact"].byte()}
+    std = standardise(shard_like)
+    assert set(std) == set(KEYS) and all(v.dtype == torch.float32 for v in std.values())
+    assert float(std["gender"]) == 1.0
+    del shard_like["depth_mm"]
+    with pytest.raises(ValueError, match="depth_mm"):
+        standardise(shard_like)
+    with pytest.raises(ValueError, match="pose"):
+        standardise({**item, "joints": item["pressure_mmhg"][:24, :3], "pose": torch.zeros(24, 3)})
+    batch = collate([NpzDataset(data32 / "train.npz")[i] for i in range(4)])
+    assert batch["pressure_mmhg"].shape == (4, 64, 27) and batch["pose"].shape == (4, 23, 3)
+
+
+def test_npz_dataset_round_trip(data32, tmp_path):
+    ds = open_dataset(data32)
+    assert len(ds) == 32
+    write_npz(tmp_path / "copy.npz", ds.arrays)
+    again = open_dataset(tmp_path / "copy.npz")
+    for k in KEYS:
+        assert torch.equal(again.arrays[k], ds.arrays[k])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="neither"):
+        open_dataset(tmp_path / "empty")
+    np.savez(tmp_path / "bad.npz", pressure_mmhg=np.zeros((2, 64, 27)))
+    with pytest.raises(ValueError, match="lacks arrays"):
+        NpzDataset(tmp_path / "bad.npz")
+
+
+@pytest.mark.slow
+def test_overfit_32_samples(data32, tmp_path):
+    """arch=fast learns 32 samples by heart: the loss falls by more than 90%."""
+    cfg = TrainConfig.smoke(out=tmp_path / "run", epochs=110, batch_size=32, lr=2e-3, augment=False,
+                            dropout=0.0, val_fraction=0.0, progress=False, save_every=1000)
+    train(cfg, NpzDataset(data32 / "train.npz"))
+    rows = _metrics(tmp_path / "run")
+    assert len(rows) == 110
+    first, last = rows[0]["loss"], min(r["loss"] for r in rows[-5:])
+    assert last < 0.1 * first, (first, last)
+    assert rows[-1]["train_mpjpe_mm"] < 0.2 * rows[0]["train_mpjpe_mm"]
+
+
+def _small(data32, n=8):
+    return TensorDictDataset({k: v[:n] for k, v in NpzDataset(data32 / "train.npz").arrays.items()})
+
+
+def test_checkpoint_round_trip(anny32, tmp_path):
+    torch.manual_seed(0)
+    net = PressureNet(NetConfig(arch="fast", modules=2), body=anny32).eval()
+    with torch.no_grad():
+        for p in net.mod2.parameters():
+            p.normal_(0, 0.01)
+    record = {"train": {}, "net": dict(net.config.__dict__)}
+    save_model(tmp_path, net, record)
+    loaded, rec = load_network(tmp_path, body=anny32)
+    assert rec == json.loads(json.dumps(record))
+    p = torch.rand(2, 64, 27) * 40
+    with torch.no_grad():
+        a, b = net(NetInputs(p))[-1], loaded(NetInputs(p))[-1]
+    assert torch.equal(a.raw, b.raw) and torch.equal(a.vertices, b.vertices)
+    # Files are plain safetensors: no pickles anywhere.
+    assert (tmp_path / "model.safetensors").read_bytes()[8:9] == b"{"
+
+
+def test_resume_equals_an_uninterrupted_run(data32, tmp_path):
+    ds = _small(data32)
+    common = dict(batch_size=4, val_fraction=0.0, progress=False, seed=7)
+    train(TrainConfig.smoke(out=tmp_path / "a", epochs=3, **common), ds)
+    train(TrainConfig.smoke(out=tmp_path / "b", epochs=2, **common), ds)
+    assert len(_metrics(tmp_path / "b")) == 2
+    train(TrainConfig.smoke(out=tmp_path / "b", epochs=3, **common), ds)  # resumes after epoch 2
+    rows_a, rows_b = _metrics(tmp_path / "a"), _metrics(tmp_path / "b")
+    assert [r["epoch"] for r in rows_b] == [1, 2, 3]
+    assert rows_a[2]["loss"] == pytest.approx(rows_b[2]["loss"], rel=1e-5)
+    wa, _ = load_network(tmp_path / "a")
+    wb, _ = load_network(tmp_path / "b")
+    for (k, va), vb in zip(wa.trainable_state().items(), wb.trainable_state().values()):
+        assert torch.allclose(va.float(), vb.float(), atol=1e-6), k
+    for name in ("metrics.csv", "metrics.png", "config.json", "checkpoint.safetensors"):
+        assert (tmp_path / "b" / name).is_file()
+    with pytest.raises(ValueError, match="different settings"):
+        train(TrainConfig.smoke(out=tmp_path / "b", epochs=4, lr=1e-2, **{**common}), ds)
+
+
+def test_mod2_trains_on_a_frozen_mod1(data32, tmp_path):
+    ds = _small(data32)
+    common = dict(batch_size=4, val_fraction=0.0, progress=False)
+    run1 = train(TrainConfig.smoke(out=tmp_path / "m1", epochs=1, **common), ds)
+    run2 = train(TrainConfig.smoke(out=tmp_path / "m2", module=2, mod1=run1, epochs=1, **common), ds)
+    row = _metrics(run2)[0]
+    assert {"joints", "shape", "depth", "contact"} <= set(row)
+    net1, _ = load_network(run1)
+    net2, _ = load_network(run2)
+    for k, v in net1.mod1.state_dict().items():
+        assert torch.equal(v, net2.mod1.state_dict()[k]), k
+    assert any(not torch.equal(p, torch.zeros_like(p)) for p in net2.mod2.fc[-1].parameters())
+    with pytest.raises(ValueError, match="--mod1"):
+        TrainConfig.smoke(module=2)
+    # With the analysis-by-synthesis loss (sim #2 on the estimated meshes).
+    run3 = train(TrainConfig.smoke(out=tmp_path / "m3", module=2, mod1=run1, epochs=1, synthesis_weight=0.1,
+                                   **common), _small(data32, 4))
+    row = _metrics(run3)[0]
+    assert "synthesis" in row and np.isfinite(row["synthesis"]) and row["synthesis"] > 0
+
+
+@pytest.fixture(scope="module")
+def trained_run(data32, tmp_path_factory):
+    run = tmp_path_factory.mktemp("run")
+    code = main(["train", "--data", str(data32), "--out", str(run), "--module", "1", "--preset", "smoke",
+                 "--epochs", "1", "--batch-size", "8", "--no-progress"])
+    assert code == 0
+    return run
+
+
+def test_predict_writes_params_meshes_and_figures(trained_run, data32, tmp_path, anny32):
+    images = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:3].numpy()
+    np.save(tmp_path / "one.npy", images[0])
+    np.save(tmp_path / "stack.npy", images)
+    # A PmatData-like frame: raw units, row 0 at the FOOT end, commas.
+    raw = 40 + 30 * images[0][::-1]
+    np.savetxt(tmp_path / "frame.csv", raw, delimiter=",", fmt="%.0f")
+    _shard(tmp_path / "shard.parquet", images[:2])
+    out = tmp_path / "out"
+    files = [str(tmp_path / n) for n in ("one.npy", "stack.npy", "frame.csv", "shard.parquet")]
+    assert main(["predict", "--model", str(trained_run), "--out", str(out), "--gender", "female",
+                 "--batch-size", "4", *files]) == 0
+    names = ["one", "stack_0000", "stack_0001", "stack_0002", "frame", "shard_0000", "shard_0001"]
+    for n in names:
+        record = json.loads((out / f"{n}.json").read_text())
+        assert len(record["pose_axis_angle"]) == 23 and len(record["joints_m"]) == 24
+        assert record["shape"]["gender"] == 1.0 and 30 < record["mass_kg"] < 160
+        v, f = read_ply(out / f"{n}.ply")
+        assert v.shape == (anny32.num_vertices, 3) and f.shape == tuple(anny32.faces.shape)
+        assert (out / f"{n}.png").stat().st_size > 10_000
+    # The same image gives the same answer whatever file and batch it came in.
+    a, b = (json.loads((out / f"{n}.json").read_text()) for n in ("one", "stack_0000"))
+    assert a["root_translation_m"] == pytest.approx(b["root_translation_m"], abs=1e-6)
+
+
+def _shard(path, images):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    flat = pa.array(list(images.reshape(len(images), -1).astype(np.float32)), type=pa.list_(pa.float32(), 64 * 27))
+    pq.write_table(pa.table({"pressure_mmhg": flat}), path)
+
+
+@pytest.mark.parametrize("case", ["wrong_size", "nan", "negative", "empty_image", "empty_file", "words",
+                                  "not_an_array", "pickled", "unknown_suffix", "missing"])
+def test_predict_bad_files_exit_2_with_one_line(case, trained_run, tmp_path, capsys):
+    path = tmp_path / "bad.npy"
+    good = np.zeros((64, 27), np.float32)
+    good[20:30, 10:15] = 30
+    if case == "wrong_size":
+        np.save(path, np.ones((32, 27)))
+    elif case == "nan":
+        good[0, 0] = np.nan
+        np.save(path, good)
+    elif case == "negative":
+        good[0, 0] = -5
+        np.save(path, good)
+    elif case == "empty_image":
+        np.save(path, np.zeros((64, 27)))
+    elif case == "empty_file":
+        path.write_bytes(b"")
+    elif case == "words":
+        path = tmp_path / "bad.txt"
+        path.write_text("\n".join(" ".join(["hello"] * 27) for _ in range(64)))
+    elif case == "not_an_array":
+        path.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
+    elif case == "pickled":
+        np.save(path, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    elif case == "unknown_suffix":
+        path = tmp_path / "bad.png"
+        path.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
+    else:
+        path = tmp_path / "missing.npy"
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main(["predict", "--model", str(trained_run), "--out", str(out), str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pressurepose: error:") and path.name in err[0]
+    assert not out.exists()  # nothing written before every input was checked
+
+
+def test_train_cli_errors_exit_2(tmp_path, capsys):
+    assert main(["train", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "run"), "--preset", "smoke"]) == 2
+    assert "no dataset" in capsys.readouterr().err
+    assert main(["predict", "--model", str(tmp_path), str(tmp_path / "x.npy")]) == 2
+    assert "no such file" in capsys.readouterr().err
