@@ -16,6 +16,7 @@ import tyro
 from pressurepose.calib.run import CalibrateConfig
 from pressurepose.data.coregister import CoregisterConfig
 from pressurepose.demo import DemoConfig
+from pressurepose.eval.report import EvaluateConfig
 from pressurepose.net.predict import PredictConfig
 from pressurepose.sampling.run import SampleConfig
 from pressurepose.sim.run import SimulateConfig
@@ -117,9 +118,22 @@ def predict(cfg: PredictConfig) -> None:
           f"({summary['network_ms_per_image']:.1f} ms per image for the network and body model)")
 
 
+def evaluate(cfg: EvaluateConfig) -> None:
+    """Evaluate a trained network on a dataset (seed Table 5): tables per partition and gender
+    with the seed's numbers and two baselines, per-region errors, best/median/worst cases and
+    failures; report.md, report.json and PNGs in --out."""
+    from pressurepose.eval.report import run_evaluate
+
+    paths = run_evaluate(cfg)
+    record = json.loads(paths["json"].read_text())
+    o = record["overall"]
+    print(f"{record['count']} samples: 3DVPE {o['vpe_m']['mean'] * 100:.2f} cm, MPJPE {o['mpjpe_m']['mean'] * 100:.2f} cm "
+          f"-> {paths['markdown']}")
+
+
 COMMANDS = {
     "demo": demo, "sample": sample, "simulate": simulate, "calibrate": calibrate, "coregister": coregister,
-    "cache": cache, "train": train, "predict": predict,
+    "cache": cache, "train": train, "predict": predict, "evaluate": evaluate,
 }
 
 

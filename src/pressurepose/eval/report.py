@@ -1,0 +1,346 @@
+"""`pressurepose evaluate`: a trained network on a dataset's test split -> a report.
+
+Per sample: 3DVPE (as released), per-vertex error, MPJPE, PA-MPJPE, root position and
+orientation error, height and mass error, and the joint error per body region. Tables per
+partition and per gender in the layout of seed Table 5 with the seed's synthetic 3DVPE beside
+ours, overall numbers, two baselines that give every number its context - the training set's
+mean body, and the body of the nearest training pressure image - and figures of the best,
+median and worst cases plus a gallery of failures. Written as report.md, report.json and PNGs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pressurepose.body.joints import J24_NAMES
+from pressurepose.body.params import BodyParams
+from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from pressurepose.eval import metrics as M
+from pressurepose.files import atomic_write
+
+# Seed Table 5, synthetic test sets: 3DVPE (cm) of the best network.
+SEED_SYNTH_VPE_CM = {"straight_limbs": 2.68, "supine": 3.40, "crossed_legs": 3.41, "prone_hands_up": 4.24,
+                     "general": 4.30, "hands_behind_head": 4.40, "female": 3.85, "male": 4.04}
+REGIONS = {
+    "head": ("neck", "head"),
+    "torso": ("pelvis", "spine1", "spine2", "spine3", "left_collar", "right_collar"),
+    "arms": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("shoulder", "elbow", "wrist", "hand")),
+    "legs": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("hip", "knee", "ankle", "foot")),
+}
+METRICS = ("vpe_m", "v2v_m", "mpjpe_m", "pa_mpjpe_m", "root_pos_m", "root_rot_deg", "height_err_m", "mass_err_kg")
+PARAM_KEYS = ("shape", "root_rotation", "root_translation", "pose")
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluateConfig:
+    """Evaluate a trained network (seed B.4, Table 5) on a dataset."""
+
+    model: Path
+    """Run folder of `pressurepose train` (model.safetensors + config.json)."""
+    data: Path
+    """Dataset folder (generated shards with manifest.json, or .npz files)."""
+    out: Path = Path("out/evaluate")
+    """Report folder: report.md, report.json, cases.png, failures.png."""
+    split: str = "test"
+    """Split evaluated (generated datasets); the train split feeds the baselines."""
+    batch: int = 32
+    limit: int | None = None
+    """Evaluate at most this many samples (the first ones)."""
+    train_data: Path | None = None
+    """Training set for the baselines (default: the train split of --data when it is a
+    generated dataset; .npz data have no split, so no baselines without this)."""
+    baseline_samples: int = 4096
+    """Training samples read for the baselines (mean body, nearest pressure image)."""
+    failures: int = 8
+    """Worst cases drawn in failures.png."""
+
+
+def _as_params(batch: dict, dtype) -> BodyParams:
+    return BodyParams(**{k: batch[k].to(dtype) for k in PARAM_KEYS})
+
+
+def _item_label(item: dict, key: str, default: str) -> str:
+    v = item.get(key, default)
+    if isinstance(v, torch.Tensor):
+        v = v.item() if v.numel() == 1 else default
+    if key == "gender" and not isinstance(v, str):
+        return "female" if float(v) >= 0.5 else "male"
+    return str(v)
+
+
+def _batches(dataset, batch: int, limit: int | None):
+    """(labels, tensor batch) over the dataset in order."""
+    from pressurepose.train.data import standardise
+
+    n = len(dataset) if limit is None else min(limit, len(dataset))
+    for lo in range(0, n, batch):
+        items = [dataset[i] for i in range(lo, min(lo + batch, n))]
+        labels = [(_item_label(it, "partition", "unknown"), _item_label(it, "gender", "unknown")) for it in items]
+        std = [standardise(it) for it in items]
+        yield labels, {k: torch.stack([s[k] for s in std]) for k in std[0]}
+
+
+def _open(data: Path, split: str):
+    from pressurepose.train.data import open_dataset
+
+    ds = open_dataset(data, split=split)
+    return ds
+
+
+def _check_backend(net, data: Path, shape_dim: int) -> None:
+    """A network and a dataset from different body models cannot be compared."""
+    manifest = data / "manifest.json"
+    if manifest.is_file():
+        try:
+            record = json.loads(manifest.read_text())
+        except json.JSONDecodeError:
+            record = {}
+        backend = _find_backend(record)
+        if backend is not None and backend != net.config.backend:
+            raise ValueError(f"the network estimates {net.config.backend} bodies but {data} holds {backend} bodies; "
+                             f"evaluate on a dataset generated with --backend {net.config.backend}")
+    if shape_dim != len(net.body.shape_names):
+        raise ValueError(f"the dataset's shapes have {shape_dim} parameters but the network's {net.config.backend} "
+                         f"model has {len(net.body.shape_names)}: a dataset of another body model")
+
+
+def _find_backend(record) -> str | None:
+    if isinstance(record, dict):
+        for k, v in record.items():
+            if k in ("backend", "body_backend") and isinstance(v, str):
+                return v
+            found = _find_backend(v)
+            if found:
+                return found
+    return None
+
+
+def _mean_body(train, n: int, dtype) -> BodyParams:
+    """The training set's mean body: mean shape, pose (axis-angle), pelvis position, and the
+    chordal mean of the root rotations."""
+    acc = {k: [] for k in PARAM_KEYS}
+    for _, b in _batches(train, 256, n):
+        for k in PARAM_KEYS:
+            acc[k].append(b[k].to(dtype))
+    p = {k: torch.cat(v) for k, v in acc.items()}
+    U, _, Vh = torch.linalg.svd(axis_angle_to_matrix(p["root_rotation"]).mean(0))
+    R = U @ torch.diag(torch.tensor([1.0, 1.0, float(torch.linalg.det(U @ Vh))], dtype=dtype)) @ Vh
+    return BodyParams(shape=p["shape"].mean(0, keepdim=True), root_rotation=matrix_to_axis_angle(R[None]),
+                      root_translation=p["root_translation"].mean(0, keepdim=True), pose=p["pose"].mean(0, keepdim=True))
+
+
+def _train_images(train, n: int, dtype) -> tuple[torch.Tensor, BodyParams]:
+    """(N, 1728) sum-normalised training images and their bodies, for the nearest-image baseline."""
+    imgs, acc = [], {k: [] for k in PARAM_KEYS}
+    for _, b in _batches(train, 256, n):
+        imgs.append(_normalised(b["pressure_mmhg"]))
+        for k in PARAM_KEYS:
+            acc[k].append(b[k].to(dtype))
+    return torch.cat(imgs), BodyParams(**{k: torch.cat(v) for k, v in acc.items()})
+
+
+def _normalised(p: torch.Tensor) -> torch.Tensor:
+    flat = p.reshape(p.shape[0], -1).to(torch.float32)
+    return flat / flat.sum(1, keepdim=True).clamp_min(1e-6)
+
+
+def _sample_metrics(body, est: BodyParams, true: BodyParams, true_joints: torch.Tensor,
+                    true_out, true_measure) -> dict[str, torch.Tensor]:
+    out = body(est)
+    meas = body.measure(est.shape)
+    joint_err = (out.joints - true_joints).norm(dim=-1)  # (B, 24)
+    res = {
+        "vpe_m": M.vpe(out.vertices, true_out.vertices, body.faces),
+        "v2v_m": M.per_vertex_error(out.vertices, true_out.vertices),
+        "mpjpe_m": joint_err.mean(-1),
+        "pa_mpjpe_m": M.pa_mpjpe(out.joints, true_joints),
+        "root_pos_m": M.root_position_error(est.root_translation, true.root_translation),
+        "root_rot_deg": M.degrees(M.root_orientation_error(est.root_rotation, true.root_rotation)),
+        "height_err_m": (meas.height_m - true_measure.height_m).abs(),
+        "mass_err_kg": (meas.mass_kg - true_measure.mass_kg).abs(),
+    }
+    for region, names in REGIONS.items():
+        res[f"joints_{region}_m"] = joint_err[:, [J24_NAMES.index(n) for n in names]].mean(-1)
+    return res, out.vertices
+
+
+def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from pressurepose.net.model import NetInputs
+    from pressurepose.train.checkpoint import load_network
+
+    if cfg.batch < 1:
+        raise ValueError(f"batch must be >= 1, got {cfg.batch}")
+    net, _ = load_network(cfg.model)
+    body = net.body
+    dtype = torch.float32
+    test = _open(cfg.data, cfg.split)
+    n = len(test) if cfg.limit is None else min(cfg.limit, len(test))
+    if n == 0:
+        raise ValueError(f"{cfg.data} has no {cfg.split} samples to evaluate")
+    first = next(_batches(test, 1, 1))[1]
+    _check_backend(net, cfg.data, first["shape"].shape[-1])
+    train = None
+    if cfg.train_data is not None:
+        train = _open(cfg.train_data, "train")
+    elif (cfg.data / "manifest.json").is_file():
+        train = _open(cfg.data, "train")
+    if train is not None and len(train) == 0:
+        train = None
+    mean_body = _mean_body(train, cfg.baseline_samples, dtype) if train is not None else None
+    train_imgs, train_bodies = _train_images(train, cfg.baseline_samples, dtype) if train is not None else (None, None)
+
+    rows: dict[str, list] = {"partition": [], "gender": []}
+    base_rows: dict[str, list] = {"mean_body": [], "nearest_image": []}
+    keep = []  # per sample: image, true and estimated vertices for the figures (only the needed ones later)
+    t0 = time.perf_counter()
+    columns = (TextColumn("evaluating"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[rate]}"),
+               TimeRemainingColumn())
+    with Progress(*columns, transient=True) as bar, torch.no_grad():
+        task = bar.add_task("eval", total=n, rate="")
+        done = 0
+        for labels, b in _batches(test, cfg.batch, n):
+            true = _as_params(b, dtype)
+            true_out = body(true)
+            true_measure = body.measure(true.shape)
+            inputs = NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
+                               mass_kg=b["mass_kg"])
+            est = net(inputs, mesh=False)[-1].params
+            res, est_v = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure)
+            for k, v in res.items():
+                rows.setdefault(k, []).extend(v.tolist())
+            rows["partition"] += [p for p, _ in labels]
+            rows["gender"] += [g for _, g in labels]
+            B = len(labels)
+            if mean_body is not None:
+                mb = BodyParams(**{k: getattr(mean_body, k).expand(B, *getattr(mean_body, k).shape[1:])
+                                   for k in PARAM_KEYS})
+                base_rows["mean_body"] += _sample_metrics(body, mb, true, b["joints"].to(dtype), true_out,
+                                                          true_measure)[0]["vpe_m"].tolist()
+                nearest = torch.cdist(_normalised(b["pressure_mmhg"]), train_imgs).argmin(1)
+                nb = BodyParams(**{k: getattr(train_bodies, k)[nearest] for k in PARAM_KEYS})
+                base_rows["nearest_image"] += _sample_metrics(body, nb, true, b["joints"].to(dtype), true_out,
+                                                              true_measure)[0]["vpe_m"].tolist()
+            for i in range(B):
+                keep.append((b["pressure_mmhg"][i].numpy(), true_out.vertices[i].numpy().astype(np.float32),
+                             est_v[i].numpy().astype(np.float32)))
+            done += B
+            bar.update(task, completed=done, rate=f"{done / (time.perf_counter() - t0):.1f} img/s")
+    seconds = time.perf_counter() - t0
+    return _write_report(cfg, rows, base_rows, keep, body.faces.numpy(), seconds)
+
+
+def _summary(values: list[float]) -> dict[str, float]:
+    a = np.asarray(values, dtype=np.float64)
+    return {"mean": float(a.mean()), "median": float(np.median(a)), "p90": float(np.quantile(a, 0.9))}
+
+
+def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
+    labels = np.asarray(rows[key])
+    out = []
+    for g in sorted(set(labels.tolist())):
+        sel = labels == g
+        entry = {key: g, "count": int(sel.sum())}
+        for m in METRICS:
+            entry[m] = float(np.asarray(rows[m])[sel].mean())
+        for name, vals in base.items():
+            if vals:
+                entry[f"baseline_{name}_vpe_m"] = float(np.asarray(vals)[sel].mean())
+        entry["seed_synth_vpe_cm"] = SEED_SYNTH_VPE_CM.get(g)
+        out.append(entry)
+    return out
+
+
+def _write_report(cfg: EvaluateConfig, rows: dict, base: dict, keep: list, faces: np.ndarray,
+                  seconds: float) -> dict[str, Path]:
+    from pressurepose.viz.evaluation import plot_cases
+
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    vpe = np.asarray(rows["vpe_m"])
+    order = np.argsort(vpe)
+    n = len(vpe)
+    picks = {"best": int(order[0]), "median": int(order[n // 2]), "worst": int(order[-1])}
+    failures = [int(i) for i in order[::-1][: cfg.failures]]
+    record = {
+        "command": "evaluate",
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "count": n,
+        "seconds": round(seconds, 2),
+        "overall": {m: _summary(rows[m]) for m in METRICS},
+        "regions_m": {r: _summary(rows[f"joints_{r}_m"]) for r in REGIONS},
+        "baselines_vpe_m": {k: _summary(v) for k, v in base.items() if v},
+        "by_partition": _group_table(rows, base, "partition"),
+        "by_gender": _group_table(rows, base, "gender"),
+        "cases": {k: {"index": i, "vpe_m": float(vpe[i])} for k, i in picks.items()},
+        "failures": [{"index": i, "vpe_m": float(vpe[i]), "partition": rows["partition"][i]} for i in failures],
+        "per_sample": {k: v for k, v in rows.items()},
+        "seed_reference": "Bodies at Rest, Table 5 (synthetic test sets, best network)",
+    }
+    paths = {}
+    paths["cases"] = atomic_write(cfg.out / "cases.png", lambda tmp: plot_cases(
+        tmp, [(f"{k}: 3DVPE {vpe[i] * 100:.1f} cm", *keep[i]) for k, i in picks.items()], faces))
+    paths["failures"] = atomic_write(cfg.out / "failures.png", lambda tmp: plot_cases(
+        tmp, [(f"#{i} {rows['partition'][i]}: {vpe[i] * 100:.1f} cm", *keep[i]) for i in failures], faces))
+    paths["json"] = atomic_write(cfg.out / "report.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
+    paths["markdown"] = atomic_write(cfg.out / "report.md", lambda tmp: Path(tmp).write_text(_markdown(record)))
+    return paths
+
+
+def _cm(x: float | None) -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x * 100:.2f}"
+
+
+def _markdown(r: dict) -> str:
+    has_base = bool(r["baselines_vpe_m"])
+    lines = [f"# Evaluation: {r['config']['model']} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
+             "", "All errors unaligned except PA-MPJPE; 3DVPE as released (camera-facing vertices, two-way, "
+             "area-weighted). Seed = Bodies at Rest Table 5, synthetic, best network.", ""]
+    for key, title in (("by_partition", "pose partition"), ("by_gender", "gender partition")):
+        head = f"| {title} | test ct. | 3DVPE (cm) | seed 3DVPE (cm) | v2v (cm) | MPJPE (cm) | PA-MPJPE (cm) |"
+        sep = "| --- | --- | --- | --- | --- | --- | --- |"
+        if has_base:
+            head += " mean body (cm) | nearest image (cm) |"
+            sep += " --- | --- |"
+        lines += [head, sep]
+        for e in r[key]:
+            name = e["partition" if key == "by_partition" else "gender"]
+            seed = e["seed_synth_vpe_cm"]
+            row = (f"| {name} | {e['count']} | {_cm(e['vpe_m'])} | {'-' if seed is None else f'{seed:.2f}'} | "
+                   f"{_cm(e['v2v_m'])} | {_cm(e['mpjpe_m'])} | {_cm(e['pa_mpjpe_m'])} |")
+            if has_base:
+                row += (f" {_cm(e.get('baseline_mean_body_vpe_m'))} | {_cm(e.get('baseline_nearest_image_vpe_m'))} |")
+            lines.append(row)
+        lines.append("")
+    o = r["overall"]
+    lines += ["## Overall (mean / median / 90th percentile)", "", "| metric | mean | median | p90 |",
+              "| --- | --- | --- | --- |"]
+    units = {"root_rot_deg": ("deg", 1.0), "mass_err_kg": ("kg", 1.0)}
+    for m in METRICS:
+        unit, scale = units.get(m, ("cm", 100.0))
+        s = o[m]
+        lines.append(f"| {m.replace('_m', '').replace('_deg', '').replace('_kg', '')} ({unit}) | "
+                     f"{s['mean'] * scale:.2f} | {s['median'] * scale:.2f} | {s['p90'] * scale:.2f} |")
+    lines += ["", "## Joint error per body region (cm, mean / median / p90)", "", "| region | mean | median | p90 |",
+              "| --- | --- | --- | --- |"]
+    for reg, s in r["regions_m"].items():
+        lines.append(f"| {reg} | {s['mean'] * 100:.2f} | {s['median'] * 100:.2f} | {s['p90'] * 100:.2f} |")
+    if has_base:
+        lines += ["", "## Baselines (3DVPE, cm, mean / median)", ""]
+        for k, s in r["baselines_vpe_m"].items():
+            lines.append(f"- {k.replace('_', ' ')}: {s['mean'] * 100:.2f} / {s['median'] * 100:.2f}")
+    else:
+        lines += ["", "No training split in the dataset: baselines not computed."]
+    lines += ["", "## Cases", "", "![best, median, worst](cases.png)", "", "## Failures", "",
+              "![worst cases](failures.png)", ""]
+    return "\n".join(lines)
+
+
+__all__ = ["EvaluateConfig", "METRICS", "REGIONS", "SEED_SYNTH_VPE_CM", "run_evaluate"]
