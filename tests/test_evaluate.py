@@ -2,8 +2,10 @@
 metric pipeline (zero for the truth), and bad inputs."""
 
 import json
+import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -78,3 +80,38 @@ def test_bad_inputs(tiny, tmp_path):
     r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "evaluate", "--model", str(tmp_path / "nothing"),
                         "--data", str(root / "test"), "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+PMAT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pmatdata"
+
+
+def test_posture_from_the_root_orientation():
+    from pressurepose.eval.real import posture_of, roll_deg
+    from pressurepose.sampling.sampler import root_axis_angle
+
+    rolls = [0.0, -math.pi / 2, math.pi / 2, math.pi, 0.3, -2.0]
+    aa = torch.tensor(np.stack([root_axis_angle(r, yaw) for r, yaw in zip(rolls, [0.2, -0.4, 0.5, 0.1, -0.3, 0.0])]))
+    got = roll_deg(aa)
+    want = torch.rad2deg(torch.tensor(rolls, dtype=torch.float64))
+    diff = (got - want + 180) % 360 - 180  # +-180 are the same roll
+    assert float(diff.abs().max()) < 1e-9
+    assert posture_of(got) == ["supine", "left", "right", "prone", "supine", "left"]
+
+
+@pytest.mark.skipif(not (PMAT / "index.csv").is_file(), reason="PmatData not present beside the project")
+def test_evaluate_real_on_pmatdata(tiny, tmp_path):
+    from pressurepose.cli import main
+
+    _, run = tiny
+    out = tmp_path / "real"
+    assert main(["evaluate-real", "--model", str(run), "--pmatdata", str(PMAT), "--groups", "CD", "--out", str(out)]) == 0
+    record = json.loads((out / "real.json").read_text())
+    assert record["frames"] == 96 and set(record["by_mattress"]) == {"air", "sponge"}
+    for s in record["by_mattress"].values():
+        assert 0.0 <= s["posture_accuracy"] <= 1.0 and s["frames"] == 48
+        assert sum(sum(row.values()) for row in s["confusion"].values()) == 48
+        assert s["height_mae_m"] < 1.0 and s["mass_mae_kg"] < 200
+    assert (out / "real.png").read_bytes()[:4] == b"\x89PNG" and "posture accuracy" in (out / "real.md").read_text()
+    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "evaluate-real", "--model", str(run), "--pmatdata",
+                        str(PMAT), "--groups", "BX", "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert r.returncode == 2 and "groups must be" in r.stderr

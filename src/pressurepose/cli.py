@@ -16,6 +16,7 @@ import tyro
 from pressurepose.calib.run import CalibrateConfig
 from pressurepose.data.coregister import CoregisterConfig
 from pressurepose.demo import DemoConfig
+from pressurepose.eval.real import RealEvalConfig
 from pressurepose.eval.report import EvaluateConfig
 from pressurepose.net.predict import PredictConfig
 from pressurepose.sampling.run import SampleConfig
@@ -131,9 +132,22 @@ def evaluate(cfg: EvaluateConfig) -> None:
           f"-> {paths['markdown']}")
 
 
+def evaluate_real(cfg: RealEvalConfig) -> None:
+    """Run a trained network on PmatData's real recordings: posture accuracy from the estimated
+    root, estimated height and mass against the subjects', per mattress (real.md, real.png)."""
+    from pressurepose.eval.real import run_evaluate_real
+
+    paths = run_evaluate_real(cfg)
+    record = json.loads(paths["json"].read_text())
+    parts = [f"{k}: posture {v['posture_accuracy'] * 100:.0f}%, height MAE {v['height_mae_m'] * 100:.1f} cm, "
+             f"mass MAE {v['mass_mae_kg']:.1f} kg" for k, v in record["by_mattress"].items()]
+    print(f"{record['frames']} frames; " + "; ".join(parts) + f" -> {paths['markdown']}")
+
+
 COMMANDS = {
     "demo": demo, "sample": sample, "simulate": simulate, "calibrate": calibrate, "coregister": coregister,
     "cache": cache, "train": train, "predict": predict, "evaluate": evaluate,
+    "evaluate-real": evaluate_real,
 }
 
 
