@@ -10,6 +10,7 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import Literal
 
 import tyro
 
@@ -18,6 +19,7 @@ from pressurepose.data.coregister import CoregisterConfig
 from pressurepose.demo import DemoConfig
 from pressurepose.eval.real import RealEvalConfig
 from pressurepose.eval.report import EvaluateConfig
+from pressurepose.generate.plan import GenerateConfig
 from pressurepose.net.predict import PredictConfig
 from pressurepose.sampling.run import SampleConfig
 from pressurepose.sim.run import SimulateConfig
@@ -144,10 +146,55 @@ def evaluate_real(cfg: RealEvalConfig) -> None:
     print(f"{record['frames']} frames; " + "; ".join(parts) + f" -> {paths['markdown']}")
 
 
+def generate(cfg: GenerateConfig) -> None:
+    """Generate a dataset (sampling, sim #1, sim #2, sensor) into Parquet shards and
+    manifest.json; re-running the same command resumes an interrupted run."""
+    from pressurepose.generate.run import run_generate
+
+    s = run_generate(cfg)
+    print(f"{s['total']} samples in {s['shards']} shards -> {cfg.out} ({s['made']} made now, {s['resumed']} "
+          f"already there; {s['rejected']} rejected and replaced)"
+          + (f", {s['made'] / s['seconds']:.2f} samples/s" if s["made"] else ""))
+
+
+def info(dataset: tyro.conf.Positional[Path], sheet: int = 24, seed: int = 0) -> None:
+    """Describe a dataset: counts per partition and gender, rejections, pressure statistics;
+    verifies every shard's sha256 and writes DATASET/contact_sheet.png.
+
+    Args:
+        dataset: Dataset folder (with manifest.json).
+        sheet: Random samples drawn in the contact sheet (0: none).
+        seed: Which random samples.
+    """
+    from pressurepose.data.info import dataset_info, format_info
+
+    print(format_info(dataset_info(dataset, sheet=sheet, seed=seed)))
+
+
+def import_original(files: tyro.conf.Positional[list[Path]], out: Path = Path("out/imported"),
+                    split: Literal["train", "test"] | None = None, gender: Literal["female", "male"] | None = None,
+                    partition: str | None = None) -> None:
+    """Convert original PressurePose synthetic files (Python 2 pickles of dicts of lists) into a
+    dataset folder (Parquet shards + manifest.json). Only numpy arrays and plain containers are
+    accepted from the pickles; anything else is refused.
+
+    Args:
+        files: Original .p files.
+        out: Dataset folder to write.
+        split: train or test (default: from the file name, else train).
+        gender: female or male (default: from the file name, e.g. train_roll0_f_lay_...).
+        partition: Partition label (default: from the file name, else "unknown").
+    """
+    from pressurepose.data.importer import import_original as run
+
+    path = run(files, out, split=split, gender=gender, partition=partition)
+    print(f"{json.loads(path.read_text())['total']} samples from {len(files)} files -> {out}")
+
+
 COMMANDS = {
-    "demo": demo, "sample": sample, "simulate": simulate, "calibrate": calibrate, "coregister": coregister,
-    "cache": cache, "train": train, "predict": predict, "evaluate": evaluate,
-    "evaluate-real": evaluate_real,
+    "demo": demo, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
+    "import-original": import_original, "calibrate": calibrate, "coregister": coregister, "cache": cache,
+    "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real,
 }
 
 

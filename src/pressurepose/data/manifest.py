@@ -1,0 +1,72 @@
+"""`manifest.json`: what a finished dataset folder holds and how it was made.
+
+Written once, after the last shard, atomically - a folder without it is an unfinished run
+(re-running the same `pressurepose generate` command completes it). It holds the package
+version, the generation config, the mattress parameters, the seeds and how samples derive
+from them, counts per split / partition / gender, rejection counts by reason, and one entry
+per shard (id, file, counts, sha256). It has no timestamps or timings, so a resumed run
+writes the same manifest, byte for byte, as an uninterrupted one (timings go to timing.json).
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+from pressurepose.data.shards import verify_shard
+from pressurepose.files import atomic_write
+
+MANIFEST = "manifest.json"
+FORMAT = "pressurepose-dataset"
+FORMAT_VERSION = 1
+
+
+def summarise(records: list[dict]) -> dict:
+    """Counts and rejections over shard records (in plan order)."""
+    counts: dict = {}
+    rejections: Counter = Counter()
+    sampling: Counter = Counter()
+    candidates = 0
+    for r in records:
+        leaf = counts.setdefault(r["split"], {}).setdefault(r["partition"], {})
+        leaf[r["gender"]] = leaf.get(r["gender"], 0) + r["count"]
+        rejections.update(r["rejections"])
+        sampling.update(r["sampling_rejections"])
+        candidates += r["candidates"]
+    total = sum(r["count"] for r in records)
+    return {"total": total, "counts": counts, "candidates": candidates,
+            "rejected": candidates - total, "rejections": dict(sorted(rejections.items())),
+            "sampling_rejections": dict(sorted(sampling.items()))}
+
+
+def write_manifest(root: Path, header: dict, records: list[dict]) -> Path:
+    manifest = {"format": FORMAT, "format_version": FORMAT_VERSION, **header, **summarise(records),
+                "shards": records}
+    text = json.dumps(manifest, indent=1, sort_keys=True)
+    return atomic_write(Path(root) / MANIFEST, lambda tmp: Path(tmp).write_text(text))
+
+
+def load_manifest(root: Path, verify: bool = True) -> dict:
+    """The manifest of a finished dataset folder; with `verify`, every shard's sha256 is
+    checked (CorruptShardError names the bad shard)."""
+    root = Path(root)
+    path = root / MANIFEST
+    if not path.exists():
+        if (root / "generate.json").exists():
+            raise ValueError(f"{root} holds an unfinished dataset (no {MANIFEST}); re-run the same "
+                             "`pressurepose generate` command to finish it")
+        raise ValueError(f"{root} is not a pressurepose dataset (no {MANIFEST})")
+    try:
+        manifest = json.loads(path.read_text())
+    except ValueError:
+        raise ValueError(f"{path} is not valid JSON; re-run `pressurepose generate` to rewrite it") from None
+    if manifest.get("format") != FORMAT or manifest.get("format_version") != FORMAT_VERSION:
+        raise ValueError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest")
+    if verify:
+        for record in manifest["shards"]:
+            verify_shard(root, record)
+    return manifest
+
+
+__all__ = ["MANIFEST", "load_manifest", "summarise", "write_manifest"]

@@ -1,0 +1,118 @@
+"""Shard files: Parquet bytes, atomic writes, sha256 records and checks.
+
+A dataset folder holds `shards/<id>.parquet`, each with a record `shards/<id>.json` (sha256,
+size, counts, rejections) written after it, and, once every shard is there, `manifest.json`.
+A shard counts as done only when its record exists and its bytes hash to the recorded sha256:
+a crash between the two writes, a truncated copy or flipped bits are all caught by the hash.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import io
+import json
+import os
+from pathlib import Path
+
+from pressurepose.files import atomic_write
+
+SHARD_DIR = "shards"
+ROW_GROUP_ROWS = 32  # rows per Parquet row group: the unit the Dataset reads lazily
+
+
+class CorruptShardError(ValueError):
+    """A shard whose bytes do not match its recorded sha256 (or that cannot be parsed)."""
+
+
+def table_bytes(table) -> bytes:
+    """pyarrow.Table -> Parquet bytes (zstd; no timestamps, so equal tables give equal bytes)."""
+    import pyarrow.parquet as pq
+
+    buf = io.BytesIO()
+    pq.write_table(table, buf, compression="zstd", row_group_size=ROW_GROUP_ROWS)
+    return buf.getvalue()
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def shard_paths(root: Path, shard_id: str) -> tuple[Path, Path]:
+    """(parquet file, json record) of a shard."""
+    folder = Path(root) / SHARD_DIR
+    return folder / f"{shard_id}.parquet", folder / f"{shard_id}.json"
+
+
+def _explain_os_error(exc: OSError, path: Path) -> OSError:
+    if exc.errno == errno.ENOSPC:
+        return OSError(f"no space left on the device writing {path}; shards already written are intact - "
+                       "free some space and re-run the same command to resume")
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return OSError(f"cannot write {path} (permission denied or read-only file system); "
+                       "choose a writable --out folder")
+    return OSError(f"cannot write {path}: {exc.strerror or exc}")
+
+
+def write_shard(root: Path, shard_id: str, data: bytes, record: dict) -> dict:
+    """Write a shard's bytes, then its record (with sha256 and size added), both atomically.
+    Returns the record. OSErrors come back with a message that says what to do."""
+    parquet, meta = shard_paths(root, shard_id)
+    record = {**record, "id": shard_id, "file": f"{SHARD_DIR}/{parquet.name}", "sha256": sha256_bytes(data),
+              "bytes": len(data)}
+    text = json.dumps(record, indent=1, sort_keys=True)
+    for path, write in ((parquet, lambda tmp: Path(tmp).write_bytes(data)),
+                        (meta, lambda tmp: Path(tmp).write_text(text))):
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, lambda tmp: _write_synced(tmp, write))
+        except OSError as exc:
+            raise _explain_os_error(exc, path) from None
+    return record
+
+
+def _write_synced(tmp, write) -> None:
+    # fsync before the rename: after a power cut a shard is either complete or absent.
+    write(tmp)
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def read_record(root: Path, shard_id: str) -> dict | None:
+    """The shard's record, or None when the shard is not finished (no record, or unreadable)."""
+    _, meta = shard_paths(root, shard_id)
+    try:
+        return json.loads(meta.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError):
+        return None
+
+
+def verify_shard(root: Path, record: dict) -> None:
+    """CorruptShardError unless the shard file exists and hashes to its recorded sha256."""
+    path = Path(root) / record["file"]
+    if not path.exists():
+        raise CorruptShardError(f"shard {path} is missing; re-run `pressurepose generate` with the same "
+                                "arguments to regenerate it")
+    size = path.stat().st_size
+    if size != record["bytes"] or sha256_file(path) != record["sha256"]:
+        what = f"truncated ({size} of {record['bytes']} bytes)" if size < record["bytes"] else "corrupted"
+        raise CorruptShardError(
+            f"shard {path} is {what}: its sha256 does not match the recorded {record['sha256'][:16]}...; "
+            "re-run `pressurepose generate` with the same arguments to regenerate it")
+
+
+__all__ = ["CorruptShardError", "ROW_GROUP_ROWS", "SHARD_DIR", "read_record", "sha256_bytes", "sha256_file",
+           "shard_paths", "table_bytes", "verify_shard", "write_shard"]

@@ -1,0 +1,209 @@
+"""`pressurepose generate`: plan the shards, make the missing ones on an engine, write the manifest.
+
+Resume: the folder's `generate.json` pins what the dataset is (config fields that define its
+content, mattress parameters, package version). A re-run with the same settings skips every
+shard whose record exists and whose bytes match its sha256, remakes the others (a shard is a
+pure function of the settings, so a remade shard equals the lost one), and writes the
+manifest when all are there. Only this process writes files; workers return bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+
+from pressurepose.data.manifest import MANIFEST, write_manifest
+from pressurepose.data.shards import SHARD_DIR, CorruptShardError, read_record, verify_shard, write_shard
+from pressurepose.files import atomic_write
+from pressurepose.generate.plan import (
+    REPLACEMENT_BASE, REPLACEMENT_SPAN, TEST_INDEX_BASE, GenerateConfig, ShardSpec, plan_shards,
+)
+from pressurepose.generate.worker import WorkContext, make_shard
+
+log = logging.getLogger(__name__)
+SETTINGS = "generate.json"
+TIMING = "timing.json"
+
+
+def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
+    from pressurepose import __version__
+    from pressurepose.sampling.partitions import SamplingConfig
+
+    sampling = SamplingConfig()
+    return {"pressurepose_version": __version__, "config": cfg.identity(), "mattress": mattress,
+            "sampling_limits": {k: getattr(sampling, k) for k in ("max_failures", "max_shapes", "max_limb_draws")}}
+
+
+def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
+    out = Path(cfg.out)
+    try:
+        (out / SHARD_DIR).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"cannot create the dataset folder {out} ({exc.strerror or exc}); choose a writable --out") from None
+    path = out / SETTINGS
+    text = json.dumps(settings, indent=1, sort_keys=True)
+    if path.exists():
+        try:
+            old = json.loads(path.read_text())
+        except ValueError:
+            old = None
+        if old != settings:
+            diff = sorted(k for k in set(settings["config"]) | set((old or {}).get("config", {}))
+                          if settings["config"].get(k) != (old or {}).get("config", {}).get(k))
+            what = ", ".join(diff) if diff else "mattress parameters or package version"
+            raise ValueError(f"{out} holds a dataset made with other settings ({what} differ, see {path}); "
+                             "re-run with the same settings to resume, or choose another --out")
+        return
+    if any((out / SHARD_DIR).iterdir()) or (out / MANIFEST).exists():
+        raise ValueError(f"{out} is not empty and has no {SETTINGS}; choose another --out")
+    try:
+        atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+    except OSError as exc:
+        raise OSError(f"cannot write to {out} ({exc.strerror or exc}); choose a writable --out") from None
+
+
+def _finished(out: Path, spec: ShardSpec) -> dict | None:
+    """The shard's record if it is complete and intact; None (and a warning when it was
+    damaged) otherwise."""
+    record = read_record(out, spec.id)
+    if record is None:
+        return None
+    if record.get("count") != spec.count or record.get("first_slot") != spec.first_slot:
+        log.warning("shard %s: record does not match the plan; remaking it", spec.id)
+        return None
+    try:
+        verify_shard(out, record)
+    except CorruptShardError as exc:
+        log.warning("%s - remaking it", exc)
+        return None
+    return record
+
+
+def run_generate(cfg: GenerateConfig, progress: bool = True) -> dict:
+    """Generate (or finish) the dataset in cfg.out; returns the manifest's summary."""
+    from pressurepose.sim.mattress import MattressParams
+
+    mattress = (MattressParams.load(cfg.params) if cfg.params is not None else MattressParams()).to_dict()
+    settings = _settings(cfg, mattress)
+    out = Path(cfg.out)
+    _prepare_folder(cfg, settings)
+    for stale in (out / SHARD_DIR).glob(".*.partial*"):  # left by a killed run
+        stale.unlink(missing_ok=True)
+
+    shards = plan_shards(cfg)
+    records: dict[str, dict] = {}
+    for spec in shards:
+        record = _finished(out, spec)
+        if record is not None:
+            records[spec.id] = record
+    pending = [s for s in shards if s.id not in records]
+    total = sum(s.count for s in shards)
+    resumed = sum(r["count"] for r in records.values())
+    if resumed:
+        log.info("resuming: %d of %d samples already in %s", resumed, total, out)
+    ctx = WorkContext(seed=cfg.seed, batch=cfg.batch, backend=cfg.backend,
+                      smpl_dir=str(cfg.smpl_dir) if cfg.smpl_dir else None, mattress=mattress)
+
+    t0 = time.perf_counter()
+    made = 0
+    rejected = Counter()
+    with _Progress(total, resumed, enabled=progress) as bar:
+        for spec, data, record in _engine(cfg, pending, ctx):
+            records[spec.id] = write_shard(out, spec.id, data, record)
+            made += record["count"]
+            rejected.update(record["rejections"])
+            bar.advance(record["count"], sum(rejected.values()))
+    seconds = time.perf_counter() - t0
+
+    header = {**settings, "seeds": {
+        "dataset": cfg.seed,
+        "initial_pose": "PoseSampler(SamplingConfig(partition, gender, over_bed, seed)).sample([index])",
+        "sensor_noise": "per simulated chunk of a shard: SeedSequence([seed, crc32(shard id), chunk])",
+        "test_index_base": TEST_INDEX_BASE, "replacement_base": REPLACEMENT_BASE,
+        "replacement_span": REPLACEMENT_SPAN,
+    }}
+    ordered = [records[s.id] for s in shards]
+    write_manifest(out, header, ordered)
+    timing = {"samples_made": made, "seconds": round(seconds, 2),
+              "samples_per_second": round(made / seconds, 3) if made and seconds > 0 else None,
+              "engine": cfg.engine, "workers": cfg.workers}
+    atomic_write(out / TIMING, lambda tmp: Path(tmp).write_text(json.dumps(timing, indent=1)))
+    return {"total": total, "made": made, "resumed": resumed, "seconds": seconds, "shards": len(shards),
+            "rejected": sum(r["candidates"] - r["count"] for r in ordered)}
+
+
+def _engine(cfg: GenerateConfig, pending: list[ShardSpec], ctx: WorkContext) -> Iterator[tuple]:
+    if not pending:
+        return iter(())
+    if cfg.engine == "ray":
+        from pressurepose.generate.ray_engine import run_ray
+
+        return run_ray(pending, ctx, cfg.workers, cfg.ray_address)
+    if cfg.workers == 1:
+        return ((spec, *make_shard(spec, ctx)) for spec in pending)
+    return _run_pool(pending, ctx, cfg.workers)
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING)
+
+
+def _run_pool(pending: list[ShardSpec], ctx: WorkContext, workers: int) -> Iterator[tuple]:
+    """Shards on a pool of `workers` processes (spawned: no forked torch/MuJoCo state), at most
+    2 per worker in flight so finished shards never pile up in memory."""
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    todo = list(pending)
+    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker) as pool:
+        running: dict = {}
+        while todo or running:
+            while todo and len(running) < 2 * workers:
+                spec = todo.pop(0)
+                running[pool.submit(make_shard, spec, ctx)] = spec
+            done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+            for fut in done:
+                spec = running.pop(fut)
+                yield (spec, *fut.result())
+
+
+class _Progress:
+    """A rich progress bar: samples, samples/s (this run), rejections, ETA."""
+
+    def __init__(self, total: int, done: int, enabled: bool) -> None:
+        self.total, self.done, self.enabled = total, done, enabled
+        self.start = time.perf_counter()
+        self.made = 0
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self.bar = Progress(TextColumn("generating"), BarColumn(), MofNCompleteColumn(),
+                                TextColumn("{task.fields[rate]}"), TextColumn("{task.fields[rejected]}"),
+                                TimeRemainingColumn(), transient=True)
+            self.bar.__enter__()
+            self.task = self.bar.add_task("generate", total=self.total, completed=self.done, rate="",
+                                          rejected="")
+        return self
+
+    def advance(self, n: int, rejected: int) -> None:
+        self.made += n
+        if self.enabled:
+            rate = self.made / max(time.perf_counter() - self.start, 1e-9)
+            self.bar.update(self.task, advance=n, rate=f"{rate:.2f} samples/s", rejected=f"{rejected} rejected")
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            self.bar.__exit__(*exc)
+        return False
+
+
+__all__ = ["run_generate"]

@@ -1,0 +1,177 @@
+"""Make one shard: sample initial poses, simulate them, keep the accepted ones, encode Parquet.
+
+Runs in whatever process the engine picks (this one, a pool worker, a Ray worker); it reads
+no files but the optional mattress JSON's content (passed in as a dict) and writes nothing, and
+returns the shard's bytes and its record to the one process that writes.
+Torch uses one thread here, whatever the engine, so every engine runs the same arithmetic.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+import zlib
+from collections import Counter
+
+import numpy as np
+import torch
+
+from pressurepose.data.schema import SampleBatch, to_table
+from pressurepose.data.shards import table_bytes
+from pressurepose.generate.plan import ShardSpec
+
+log = logging.getLogger(__name__)
+REASON_UNREACHABLE = "sampling: constraints unreachable within the attempt limits"
+REASON_NONFINITE = "non-finite output"
+MAX_REJECTED_FRACTION = 0.9  # give up on a shard (clear error) when physics rejects more than this
+
+
+@dataclasses.dataclass(frozen=True)
+class WorkContext:
+    """What every shard of a run needs besides its spec (small and picklable)."""
+
+    seed: int
+    batch: int
+    backend: str
+    smpl_dir: str | None
+    mattress: dict  # MattressParams.to_dict()
+
+
+_MODELS: dict = {}
+
+
+def _model(ctx: WorkContext):
+    key = (ctx.backend, ctx.smpl_dir)
+    if key not in _MODELS:
+        from pressurepose.body import load_body_model
+
+        options = {"model_dir": ctx.smpl_dir} if ctx.backend == "smpl" else {}
+        _MODELS[key] = load_body_model(ctx.backend, dtype=torch.float64, **options)
+    return _MODELS[key]
+
+
+def noise_seed(seed: int, shard_id: str, chunk: int) -> int:
+    """Sensor-noise seed of one simulated chunk of a shard."""
+    return int(np.random.SeedSequence([seed, zlib.crc32(shard_id.encode()), chunk]).generate_state(1)[0])
+
+
+def make_shard(spec: ShardSpec, ctx: WorkContext) -> tuple[bytes, dict]:
+    """(Parquet bytes, record) of a shard with exactly spec.count accepted samples."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _make_shard(spec, ctx)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _make_shard(spec: ShardSpec, ctx: WorkContext) -> tuple[bytes, dict]:
+    from pressurepose.sampling import PoseSampler, SamplingConfig
+    from pressurepose.sim.mattress import MattressParams
+
+    t0 = time.perf_counter()
+    model = _model(ctx)
+    g = spec.group
+    sampler = PoseSampler(model, SamplingConfig(partition=g.partition, gender=g.gender, over_bed=g.over_bed,
+                                                seed=ctx.seed))
+    mattress = MattressParams(**ctx.mattress)
+    kept: list[SampleBatch] = []
+    rejections: Counter = Counter()
+    sampling_rejections: Counter = Counter()
+    primary = list(spec.primary_indices())
+    n_kept = candidates = replacements = chunk = 0
+    while n_kept < spec.count:
+        todo = spec.count - n_kept
+        if candidates < len(primary):
+            indices = primary[candidates:candidates + min(ctx.batch, len(primary) - candidates)]
+        else:  # replacements for rejected samples: exactly as many as missing, from this shard's stream
+            indices = [spec.replacement_index(replacements + r) for r in range(min(ctx.batch, todo))]
+            replacements += len(indices)
+        candidates += len(indices)
+        batch, reasons, counts = simulate_indices(model, sampler, indices, mattress,
+                                                  noise_seed(ctx.seed, spec.id, chunk), g.split)
+        chunk += 1
+        sampling_rejections.update(counts)
+        rejections.update(r for r in reasons if r)
+        if batch is not None:
+            kept.append(batch)
+            n_kept += len(batch)
+        if candidates - n_kept > MAX_REJECTED_FRACTION * candidates and candidates >= 4 * ctx.batch:
+            raise ValueError(f"shard {spec.id}: {candidates - n_kept} of {candidates} samples rejected "
+                             f"({dict(rejections)}); check the mattress parameters (--params)")
+    data = SampleBatch.concat(kept)
+    record = {"split": g.split, "partition": g.partition, "gender": g.gender, "over_bed": g.over_bed,
+              "number": spec.number, "first_slot": spec.first_slot, "count": len(data), "candidates": candidates,
+              "rejections": dict(sorted(rejections.items())),
+              "sampling_rejections": {k: int(v) for k, v in sorted(sampling_rejections.items())}}
+    log.debug("shard %s: %d samples in %.1f s", spec.id, len(data), time.perf_counter() - t0)
+    return table_bytes(to_table(data)), record
+
+
+def _sample(sampler, indices: list[int]):
+    """InitialPoses of the indices that the sampler can satisfy, and the unreachable ones."""
+    from pressurepose.sampling import UnreachableConstraints
+
+    try:
+        return sampler.sample(indices), []
+    except UnreachableConstraints:
+        # One sample gave up; a sample does not depend on its batch, so redo them one by one.
+        ok, bad = [], []
+        for i in indices:
+            try:
+                sampler.sample([i])
+                ok.append(i)
+            except UnreachableConstraints:
+                bad.append(i)
+        return (sampler.sample(ok) if ok else None), bad
+
+
+def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, split: str):
+    """Sample and simulate `indices`; (SampleBatch of the accepted ones or None, reason per
+    index ("" = kept), summed sampling rejection counts)."""
+    from pressurepose.sim.run import simulate_poses
+
+    initial, unreachable = _sample(sampler, indices)
+    reasons = {i: REASON_UNREACHABLE for i in unreachable}
+    if initial is None:
+        return None, [reasons[i] for i in indices], {}
+    B = initial.batch_size
+    head = np.asarray(getattr(initial, "head_angle_deg", np.zeros(B)), dtype=np.float64)
+    bed = None
+    if (head != 0).any():
+        from pressurepose.sim.bed import BedShape
+
+        bed = [BedShape(float(a)) for a in head]
+    sim = simulate_poses(model, initial.params, mattress, seed=seed, bed=bed)
+    height = model.measure(sim.params.shape).height_m.detach().numpy()
+    cfg = sampler.config
+    p = sim.params
+    arrays = dict(
+        split=np.array([split] * B, dtype=object), partition=np.array([cfg.partition] * B, dtype=object),
+        gender=np.array([cfg.gender] * B, dtype=object), over_bed=np.full(B, cfg.over_bed),
+        index=np.asarray(initial.index, dtype=np.int64),
+        pressure_mmhg=sim.pressure_mmhg.detach().numpy().astype(np.float32),
+        depth_mm=sim.depth_mm.detach().numpy().astype(np.float32),
+        contact=(sim.contact.detach().numpy() > 0.5).astype(np.uint8),
+        shape=p.shape.detach().numpy(), root_rotation=p.root_rotation.detach().numpy(),
+        root_translation=p.root_translation.detach().numpy(), pose=p.pose.detach().numpy(),
+        joints_m=sim.joints.detach().numpy(), mass_kg=sim.mass_kg.detach().numpy().astype(np.float64),
+        height_m=height.astype(np.float64), head_angle_deg=head,
+        settle_steps=np.asarray(sim.settle_steps, dtype=np.int32),
+        sink_mm=(np.asarray(sim.sink_m, dtype=np.float64) * 1e3).astype(np.float32),
+    )
+    good = []
+    for b in range(B):
+        reason = sim.reason[b]
+        if not reason and not all(np.isfinite(v[b]).all() for v in arrays.values() if v.dtype.kind == "f"):
+            reason = REASON_NONFINITE  # never store NaN; such a sample is replaced like any rejection
+        reasons[int(initial.index[b])] = reason
+        if not reason:
+            good.append(b)
+    counts = {k: int(np.asarray(v).sum()) for k, v in initial.rejections.items()}
+    batch = SampleBatch(**{k: v[good] for k, v in arrays.items()}) if good else None
+    return batch, [reasons[i] for i in indices], counts
+
+
+__all__ = ["WorkContext", "make_shard", "noise_seed", "simulate_indices"]
