@@ -1,0 +1,266 @@
+"""Dataset generation: presets and plans, exact counts, determinism, resume after SIGKILL
+(finished on a process pool), damaged shards, the Ray engine agreeing with the in-process run."""
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from pressurepose.cli import main
+from pressurepose.data.manifest import load_manifest
+from pressurepose.data.schema import NAMES, SampleBatch, from_table
+from pressurepose.generate import worker
+from pressurepose.generate.plan import (
+    PAPER_TABLE4, REPLACEMENT_BASE, TEST_INDEX_BASE, GenerateConfig, plan_groups, plan_shards, preset_rows,
+)
+from pressurepose.generate.run import run_generate
+from pressurepose.sampling.partitions import PARTITIONS
+
+# A tiny dataset: 6 supine samples spread over the preset's supine rows, shards of 2, chunks of 2.
+SMALL = dict(preset="small", partition="supine", n=6, shard_size=2, batch=2, seed=3)
+SMALL_ARGS = ["--partition", "supine", "--n", "6", "--shard-size", "2", "--batch", "2", "--seed", "3"]
+
+
+def cli(*args, **kwargs):
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).parents[1] / "src"))
+    return subprocess.Popen([sys.executable, "-m", "pressurepose.cli", *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, **kwargs)
+
+
+def files_of(root: Path) -> dict[str, bytes]:
+    """Every file that defines the dataset (shards, records, manifest), by relative path."""
+    keep = [p for p in root.rglob("*") if p.is_file() and p.name not in ("timing.json", "contact_sheet.png")]
+    return {str(p.relative_to(root)): p.read_bytes() for p in keep}
+
+
+def read_all(root: Path) -> dict[str, np.ndarray]:
+    manifest = load_manifest(root)
+    parts = [from_table(pq.read_table(root / r["file"])) for r in manifest["shards"]]
+    return {k: np.concatenate([p[k] for p in parts]) for k in NAMES}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gen") / "ref"
+    summary = run_generate(GenerateConfig(out=out, **SMALL), progress=False)
+    return out, summary
+
+
+# --- plans ------------------------------------------------------------------------------------
+
+
+def test_paper_preset_is_seed_table4():
+    rows = preset_rows("paper")
+    assert sum(g.count for g in rows if g.split == "train") == 184_000
+    assert sum(g.count for g in rows if g.split == "test") == 22_000
+    per = {}
+    for g in rows:
+        per.setdefault(g.partition, [0, 0])[g.split == "test"] += g.count
+    assert per == {"general": [104_000, 12_000], "supine": [52_000, 6_000], "hands_behind_head": [4_000, 1_000],
+                   "prone_hands_up": [8_000, 1_000], "crossed_legs": [8_000, 1_000], "straight_limbs": [8_000, 1_000]}
+    # every row is a (partition, gender, over_bed) the sampler accepts
+    for (part, _, over) in PAPER_TABLE4:
+        assert over in PARTITIONS[part].over_bed_choices
+    small = preset_rows("small")
+    assert [g.count * 100 for g in small] == [g.count for g in rows]
+    assert len(preset_rows("tiny")) == len(rows) and all(g.count == 1 for g in preset_rows("tiny"))
+
+
+@pytest.mark.parametrize("n", [1, 7, 1000, 2063])
+def test_n_is_spread_exactly(n):
+    groups = plan_groups(GenerateConfig(preset="paper", n=n))
+    assert sum(g.count for g in groups) == n
+    if n >= 1000:  # proportions follow Table 4 within one sample per row
+        paper = {(g.split, g.partition, g.gender, g.over_bed): g.count for g in preset_rows("paper")}
+        for g in groups:
+            assert abs(g.count - n * paper[(g.split, g.partition, g.gender, g.over_bed)] / 206_000) < 1
+    only = plan_groups(GenerateConfig(preset="paper", partition="crossed_legs", n=n))
+    assert sum(g.count for g in only) == n and {g.partition for g in only} == {"crossed_legs"}
+
+
+def test_partition_outside_the_preset_gets_its_own_rows():
+    extra = [p for p in PARTITIONS if p not in {k[0] for k in PAPER_TABLE4}]
+    for name in extra:  # e.g. half_sitting
+        groups = plan_groups(GenerateConfig(partition=name, n=10))
+        assert sum(g.count for g in groups) == 10 and {g.partition for g in groups} == {name}
+        assert {g.over_bed for g in groups} == set(PARTITIONS[name].over_bed_choices)
+
+
+def test_shards_cover_slots_once_and_indices_never_collide():
+    shards = plan_shards(GenerateConfig(preset="small", shard_size=7))
+    by_group = {}
+    for s in shards:
+        by_group.setdefault(s.group, []).extend(range(s.first_slot, s.first_slot + s.count))
+    for g, slots in by_group.items():
+        assert sorted(slots) == list(range(g.count))
+    seen = set()
+    for s in shards:
+        key = (s.group.partition, s.group.gender, s.group.over_bed)  # the sampler's stream
+        idx = list(s.primary_indices()) + [s.replacement_index(r) for r in (0, 1, 999)]
+        assert all((i >= TEST_INDEX_BASE) == (s.group.split == "test") for i in s.primary_indices())
+        assert all(i >= REPLACEMENT_BASE for i in idx[-3:])
+        for i in idx:
+            assert (key, i) not in seen
+            seen.add((key, i))
+    assert len({s.id for s in shards}) == len(shards)
+
+
+def test_bad_settings_are_clear(tmp_path, capsys):
+    with pytest.raises(ValueError, match="unknown partition 'sitting'"):
+        GenerateConfig(partition="sitting")
+    for field, value in (("n", 0), ("workers", 0), ("shard_size", 0), ("seed", -1)):
+        with pytest.raises(ValueError, match=field):
+            GenerateConfig(**{field: value})
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["generate", "--out", str(blocker / "ds"), "--n", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "cannot create the dataset folder" in err
+    assert main(["generate", "--out", str(tmp_path / "ds"), "--partition", "sitting"]) == 2
+    assert "unknown partition" in capsys.readouterr().err
+
+
+# --- one shard ----------------------------------------------------------------------------
+
+
+def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkeypatch):
+    """A shard keeps exactly `count` samples: rejected primary indices are replaced by
+    replacement indices, the same ones every time."""
+    def fake(model, sampler, indices, mattress, seed, split):
+        rng = np.random.default_rng(seed)
+        keep = [i for i in indices if i % 3 != 0]  # index 0, 3, 6, ... and some replacements rejected
+        n = len(keep)
+        from tests.test_data import random_batch
+
+        b = random_batch(n, rng, split=split)
+        b = dataclasses.replace(b, index=np.array(keep, dtype=np.int64)) if n else None
+        return b, ["fake" if i % 3 == 0 else "" for i in indices], {"collisions": len(indices)}
+
+    monkeypatch.setattr(worker, "simulate_indices", fake)
+    monkeypatch.setitem(worker._MODELS, ("anny", None), anny64)
+    ctx = worker.WorkContext(seed=0, batch=4, backend="anny", smpl_dir=None, mattress={})
+    spec = plan_shards(GenerateConfig(partition="supine", n=200, shard_size=10))[1]
+    data, record = worker.make_shard(spec, ctx)
+    again, _ = worker.make_shard(spec, ctx)
+    assert data == again
+    import io
+
+    rows = from_table(pq.read_table(io.BytesIO(data)))
+    primary = list(spec.primary_indices())
+    assert len(rows["index"]) == spec.count == record["count"] == 10
+    assert len(set(rows["index"])) == 10
+    kept_primary = [i for i in primary if i % 3 != 0]
+    assert list(rows["index"][:len(kept_primary)]) == kept_primary
+    assert all(i >= REPLACEMENT_BASE for i in rows["index"][len(kept_primary):])
+    assert record["rejections"] == {"fake": record["candidates"] - 10}
+    assert record["sampling_rejections"] == {"collisions": record["candidates"]}
+
+
+# --- whole runs ---------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_counts_exact_no_nan_and_labels_consistent(reference, anny64):
+    out, summary = reference
+    manifest = load_manifest(out)
+    groups = plan_groups(GenerateConfig(**SMALL))
+    assert manifest["total"] == summary["total"] == 6 == sum(g.count for g in groups)
+    for g in groups:
+        assert manifest["counts"][g.split][g.partition][g.gender] == sum(
+            h.count for h in groups if (h.split, h.partition, h.gender) == (g.split, g.partition, g.gender))
+    assert manifest["rejected"] == sum(manifest["rejections"].values()) == manifest["candidates"] - 6
+    data = read_all(out)
+    assert len(data["index"]) == 6
+    for name, value in data.items():
+        if value.dtype.kind == "f":
+            assert np.isfinite(value).all(), name
+    for r in manifest["shards"]:
+        assert pq.ParquetFile(out / r["file"]).metadata.num_rows == r["count"]
+    keys = set(zip(data["split"], data["gender"], data["over_bed"], data["index"]))
+    assert len(keys) == 6
+    p = data["pressure_mmhg"]
+    assert p.shape == (6, 64, 27) and p.min() >= 0 and p.max() <= 100 and (p.reshape(6, -1).max(1) > 0).all()
+    assert set(np.unique(data["contact"])) <= {0, 1}
+    assert (data["head_angle_deg"] == 0).all() and (data["mass_kg"] > 30).all()
+    assert ((data["height_m"] > 1.3) & (data["height_m"] < 2.2)).all()
+    # The stored parameters reproduce the stored joints through the body model.
+    from pressurepose.body.params import BodyParams
+
+    params = BodyParams(*(torch.from_numpy(data[k]) for k in ("shape", "root_rotation", "root_translation", "pose")))
+    joints = anny64.joints(params).numpy()
+    assert np.abs(joints - data["joints_m"]).max() < 1e-6
+    # each sample's initial pose is the sampler's for its index (regenerable alone)
+    from pressurepose.sampling import PoseSampler, SamplingConfig
+
+    i = int(np.argmax(data["index"] < TEST_INDEX_BASE))
+    cfg = SamplingConfig(partition="supine", gender=data["gender"][i], over_bed=bool(data["over_bed"][i]), seed=3)
+    initial = PoseSampler(anny64, cfg).sample([int(data["index"][i])])
+    assert np.allclose(initial.params.shape.numpy()[0], data["shape"][i])
+
+
+@pytest.mark.slow
+def test_resume_after_sigkill_equals_an_uninterrupted_run(reference, tmp_path):
+    ref, _ = reference
+    out = tmp_path / "ds"
+    args = ["generate", "--out", str(out), *SMALL_ARGS]
+    for kill_after in (1, 2):  # SIGKILL once the k-th new shard record lands (mid-run, writing the next)
+        before = len(list((out / "shards").glob("*.json"))) if out.exists() else 0
+        p = cli(*args)
+        deadline = time.time() + 300
+        while time.time() < deadline and p.poll() is None:
+            if len(list((out / "shards").glob("*.json"))) >= before + kill_after if out.exists() else False:
+                break
+            time.sleep(0.01)
+        assert p.poll() is None, "the run finished before it could be killed"
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+        assert not (out / "manifest.json").exists()
+        with pytest.raises(ValueError, match="unfinished dataset"):
+            load_manifest(out)
+    p = cli(*args, "--workers", "2")  # the last run on a process pool: same shards as in-process
+    stdout, stderr = p.communicate(timeout=300)
+    assert p.returncode == 0, stderr
+    assert "already there" in stdout
+    assert files_of(out) == files_of(ref)
+
+
+@pytest.mark.slow
+def test_resume_remakes_damaged_and_half_written_shards(reference, tmp_path, caplog):
+    ref, _ = reference
+    out = tmp_path / "ds"
+    shutil.copytree(ref, out)
+    (out / "manifest.json").unlink()
+    shards = sorted((out / "shards").glob("*.parquet"))
+    data = bytearray(shards[0].read_bytes())
+    data[200] ^= 0xFF
+    shards[0].write_bytes(bytes(data))                  # corrupted
+    shards[1].with_suffix(".json").unlink()             # killed between the shard and its record
+    (out / "shards" / ".x.partial.parquet").write_bytes(b"partial")  # killed inside a write
+    summary = run_generate(GenerateConfig(out=out, **SMALL), progress=False)
+    assert summary["made"] == sum(
+        json.loads((ref / "shards" / f"{p.stem}.json").read_text())["count"] for p in shards[:2])
+    assert "sha256 does not match" in caplog.text
+    assert files_of(out) == files_of(ref)
+    with pytest.raises(ValueError, match="other settings .*seed"):
+        run_generate(GenerateConfig(out=out, **dict(SMALL, seed=4)), progress=False)
+
+
+@pytest.mark.slow
+def test_ray_engine_makes_the_same_dataset(reference, tmp_path):
+    ref, _ = reference
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        pytest.skip("ray is not installed (pip install 'pressurepose[ray]'); the Ray engine is untested here")
+    run_generate(GenerateConfig(out=tmp_path / "ray", workers=2, engine="ray", **SMALL), progress=False)
+    assert files_of(tmp_path / "ray") == files_of(ref)
