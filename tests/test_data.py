@@ -4,8 +4,6 @@ the importer of original pickles (restricted unpickler)."""
 import json
 import os
 import pickle
-import subprocess
-import sys
 from collections import OrderedDict
 
 import numpy as np
@@ -13,6 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
+from pressurepose.cli import main
 from pressurepose.data.dataset import PressurePoseDataset
 from pressurepose.data.importer import import_original, infer_labels, load_restricted, read_original
 from pressurepose.data.info import dataset_info
@@ -79,7 +78,7 @@ def test_sample_batch_rejects_nan_and_bad_shapes():
         SampleBatch(**dict(fields, joints_m=np.zeros((2, 23, 3))))
 
 
-def test_checksums_catch_corruption_and_truncation(tmp_path):
+def test_checksums_catch_corruption_and_truncation(tmp_path, capsys):
     make_fake_dataset(tmp_path, GROUPS)
     manifest = load_manifest(tmp_path)
     assert manifest["total"] == 108 and manifest["counts"]["train"]["supine"]["female"] == 70
@@ -93,8 +92,9 @@ def test_checksums_catch_corruption_and_truncation(tmp_path):
     path.write_bytes(bytes(data[:100]))
     with pytest.raises(CorruptShardError, match="truncated"):
         verify_shard(tmp_path, rec)
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "info", str(tmp_path)], capture_output=True, text=True)
-    assert r.returncode == 2 and "Traceback" not in r.stderr and "truncated" in r.stderr
+    assert main(["info", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "truncated" in err
 
 
 def test_full_disk_leaves_written_shards_intact(tmp_path, monkeypatch):
@@ -159,16 +159,16 @@ def test_dataset_reads_each_row_group_once_when_sequential(tmp_path, monkeypatch
     assert len(calls) == 6
 
 
-def test_info_counts_and_contact_sheet(tmp_path):
+def test_info_counts_and_contact_sheet(tmp_path, capsys):
     make_fake_dataset(tmp_path, GROUPS)
     info = dataset_info(tmp_path, sheet=6)
     assert info["total"] == 108 and info["rejected"] == 3 and info["rejections"] == {"sim #1: fake": 3}
     assert info["pressure"]["supine"]["samples"] == 75 and info["pressure"]["supine"]["nan_values"] == 0
     png = (tmp_path / "contact_sheet.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "info", str(tmp_path), "--sheet", "0"],
-                       capture_output=True, text=True)
-    assert r.returncode == 0 and "108 samples in 3 shards" in r.stdout and "general" in r.stdout
+    assert main(["info", str(tmp_path), "--sheet", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "108 samples in 3 shards" in out and "general" in out
 
 
 def test_not_a_dataset_is_a_clear_error(tmp_path):
