@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from pressurepose.cli import main
-from pressurepose.data.dataset import PressurePoseDataset
+from pressurepose.data.dataset import BlockShuffleSampler, PressurePoseDataset
 from pressurepose.data.importer import import_original, infer_labels, load_restricted, read_original
 from pressurepose.data.info import dataset_info
 from pressurepose.data.manifest import load_manifest, write_manifest
@@ -157,6 +157,28 @@ def test_dataset_reads_each_row_group_once_when_sequential(tmp_path, monkeypatch
         ds[i]
     # row groups of 32 rows: 70 -> 3, 33 -> 2, 5 -> 1
     assert len(calls) == 6
+
+
+def test_block_shuffle_reads_each_row_group_once_per_epoch(tmp_path, monkeypatch):
+    make_fake_dataset(tmp_path, GROUPS)
+    calls = []
+    original = pq.ParquetFile.read_row_group
+
+    def spy(self, i, *args, **kwargs):
+        calls.append(i)
+        return original(self, i, *args, **kwargs)
+
+    ds = PressurePoseDataset(tmp_path, cache_row_groups=2, columns=("index", "split"))
+    sampler = BlockShuffleSampler(ds, blocks_in_memory=2, seed=1)
+    first = list(sampler)
+    assert sorted(first) == list(range(len(ds))) and first != sorted(first)
+    assert list(sampler) == first
+    sampler.set_epoch(1)
+    assert list(sampler) != first
+    monkeypatch.setattr(pq.ParquetFile, "read_row_group", spy)
+    for i in sampler:
+        ds[i]
+    assert len(calls) == len(sampler.blocks) == 6
 
 
 def test_info_counts_and_contact_sheet(tmp_path, capsys):

@@ -94,10 +94,7 @@ class PressurePoseDataset(torch.utils.data.Dataset):
                                     "with the same arguments to regenerate it") from None
 
     def _row_group(self, s: int, row: int) -> tuple[dict, int]:
-        if s not in self._groups:
-            meta = self._file(s).metadata
-            self._groups[s] = np.cumsum([0] + [meta.row_group(g).num_rows for g in range(meta.num_row_groups)]).tolist()
-        starts = self._groups[s]
+        starts = self.row_groups(s)
         g = bisect.bisect_right(starts, row) - 1
         key = (s, g)
         if key in self._cache:
@@ -108,6 +105,13 @@ class PressurePoseDataset(torch.utils.data.Dataset):
             while len(self._cache) > self.cache_row_groups:
                 self._cache.popitem(last=False)
         return self._cache[key], row - starts[g]
+
+    def row_groups(self, s: int) -> list[int]:
+        """Start rows of shard s's row groups, plus its row count at the end (footer only)."""
+        if s not in self._groups:
+            meta = self._file(s).metadata
+            self._groups[s] = np.cumsum([0] + [meta.row_group(g).num_rows for g in range(meta.num_row_groups)]).tolist()
+        return self._groups[s]
 
     def __getitem__(self, i: int) -> dict:
         s, row = self.locate(int(i))
@@ -125,4 +129,34 @@ class PressurePoseDataset(torch.utils.data.Dataset):
         return state
 
 
-__all__ = ["DEFAULT_COLUMNS", "PressurePoseDataset"]
+class BlockShuffleSampler(torch.utils.data.Sampler):
+    """Random order that reads every row group once per epoch: the row groups (blocks) are
+    shuffled, then taken `blocks_in_memory` at a time and their rows shuffled together. With
+    the Dataset's `cache_row_groups >= blocks_in_memory`, an epoch reads each row group once
+    (plain `shuffle=True` reads about one row group per item). Call `set_epoch` for a new order."""
+
+    def __init__(self, dataset: PressurePoseDataset, blocks_in_memory: int = 8, seed: int = 0) -> None:
+        if blocks_in_memory < 1:
+            raise ValueError(f"blocks_in_memory must be >= 1, got {blocks_in_memory}")
+        self.dataset, self.blocks_in_memory, self.seed, self.epoch = dataset, blocks_in_memory, seed, 0
+        self.blocks = []  # (first item, end item) of every row group, in dataset order
+        for s in range(len(dataset.shards)):
+            starts = dataset.row_groups(s)
+            base = dataset._starts[s]
+            self.blocks += [(base + a, base + b) for a, b in zip(starts[:-1], starts[1:])]
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __iter__(self):
+        rng = np.random.default_rng([self.seed, self.epoch])
+        order = rng.permutation(len(self.blocks))
+        for k in range(0, len(order), self.blocks_in_memory):
+            rows = np.concatenate([np.arange(*self.blocks[b]) for b in order[k:k + self.blocks_in_memory]])
+            yield from rng.permutation(rows).tolist()
+
+
+__all__ = ["BlockShuffleSampler", "DEFAULT_COLUMNS", "PressurePoseDataset"]

@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -110,13 +109,14 @@ def run_generate(cfg: GenerateConfig, progress: bool = True) -> dict:
 
     t0 = time.perf_counter()
     made = 0
-    rejected = Counter()
+    in_process = cfg.engine == "local" and cfg.workers == 1
     with _Progress(total, resumed, enabled=progress) as bar:
-        for spec, data, record in _engine(cfg, pending, ctx):
+        # In this process the bar moves per simulated chunk; otherwise per finished shard.
+        for spec, data, record in _engine(cfg, pending, ctx, bar.advance if in_process else None):
             records[spec.id] = write_shard(out, spec.id, data, record)
             made += record["count"]
-            rejected.update(record["rejections"])
-            bar.advance(record["count"], sum(rejected.values()))
+            if not in_process:
+                bar.advance(record["count"], record["candidates"] - record["count"])
     seconds = time.perf_counter() - t0
 
     header = {**settings, "seeds": {
@@ -136,7 +136,7 @@ def run_generate(cfg: GenerateConfig, progress: bool = True) -> dict:
             "rejected": sum(r["candidates"] - r["count"] for r in ordered)}
 
 
-def _engine(cfg: GenerateConfig, pending: list[ShardSpec], ctx: WorkContext) -> Iterator[tuple]:
+def _engine(cfg: GenerateConfig, pending: list[ShardSpec], ctx: WorkContext, on_chunk) -> Iterator[tuple]:
     if not pending:
         return iter(())
     if cfg.engine == "ray":
@@ -144,7 +144,7 @@ def _engine(cfg: GenerateConfig, pending: list[ShardSpec], ctx: WorkContext) -> 
 
         return run_ray(pending, ctx, cfg.workers, cfg.ray_address)
     if cfg.workers == 1:
-        return ((spec, *make_shard(spec, ctx)) for spec in pending)
+        return ((spec, *make_shard(spec, ctx, on_chunk)) for spec in pending)
     return _run_pool(pending, ctx, cfg.workers)
 
 
@@ -180,7 +180,7 @@ class _Progress:
     def __init__(self, total: int, done: int, enabled: bool) -> None:
         self.total, self.done, self.enabled = total, done, enabled
         self.start = time.perf_counter()
-        self.made = 0
+        self.made = self.rejected = 0
 
     def __enter__(self):
         if self.enabled:
@@ -194,11 +194,13 @@ class _Progress:
                                           rejected="")
         return self
 
-    def advance(self, n: int, rejected: int) -> None:
-        self.made += n
+    def advance(self, kept: int, rejected: int) -> None:
+        self.made += kept
+        self.rejected += rejected
         if self.enabled:
             rate = self.made / max(time.perf_counter() - self.start, 1e-9)
-            self.bar.update(self.task, advance=n, rate=f"{rate:.2f} samples/s", rejected=f"{rejected} rejected")
+            self.bar.update(self.task, advance=kept, rate=f"{rate:.2f} samples/s",
+                            rejected=f"{self.rejected} rejected")
 
     def __exit__(self, *exc):
         if self.enabled:

@@ -56,17 +56,18 @@ def noise_seed(seed: int, shard_id: str, chunk: int) -> int:
     return int(np.random.SeedSequence([seed, zlib.crc32(shard_id.encode()), chunk]).generate_state(1)[0])
 
 
-def make_shard(spec: ShardSpec, ctx: WorkContext) -> tuple[bytes, dict]:
-    """(Parquet bytes, record) of a shard with exactly spec.count accepted samples."""
+def make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes, dict]:
+    """(Parquet bytes, record) of a shard with exactly spec.count accepted samples;
+    `on_chunk(kept, rejected)` is called after every simulated chunk (progress)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        return _make_shard(spec, ctx)
+        return _make_shard(spec, ctx, on_chunk)
     finally:
         torch.set_num_threads(threads)
 
 
-def _make_shard(spec: ShardSpec, ctx: WorkContext) -> tuple[bytes, dict]:
+def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes, dict]:
     from pressurepose.sampling import PoseSampler, SamplingConfig
     from pressurepose.sim.mattress import MattressParams
 
@@ -97,6 +98,8 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext) -> tuple[bytes, dict]:
         if batch is not None:
             kept.append(batch)
             n_kept += len(batch)
+        if on_chunk is not None:
+            on_chunk(0 if batch is None else len(batch), sum(1 for r in reasons if r))
         if candidates - n_kept > MAX_REJECTED_FRACTION * candidates and candidates >= 4 * ctx.batch:
             raise ValueError(f"shard {spec.id}: {candidates - n_kept} of {candidates} samples rejected "
                              f"({dict(rejections)}); check the mattress parameters (--params)")
