@@ -274,3 +274,21 @@ def test_ray_engine_makes_the_same_dataset(reference, tmp_path):
         pytest.skip("ray is not installed (pip install 'pressurepose[ray]'); the Ray engine is untested here")
     run_generate(GenerateConfig(out=tmp_path / "ray", workers=1, engine="ray", **SMALL), progress=False)
     assert files_of(tmp_path / "ray") == files_of(ref)
+
+
+@pytest.mark.slow
+def test_half_sitting_samples_keep_their_bed(tmp_path, anny64):
+    """Samples of a partition on a raised bed are simulated on their own bed and store its angle."""
+    out = tmp_path / "sit"
+    run_generate(GenerateConfig(out=out, partition="half_sitting", n=2, shard_size=2, batch=2), progress=False)
+    data = read_all(out)
+    assert len(data["index"]) == 2 and (data["head_angle_deg"] > 0).all()
+    from pressurepose.sampling import PoseSampler, SamplingConfig
+
+    for k in range(2):
+        cfg = SamplingConfig(partition="half_sitting", gender=data["gender"][k], over_bed=bool(data["over_bed"][k]))
+        initial = PoseSampler(anny64, cfg).sample([int(data["index"][k])])
+        assert data["head_angle_deg"][k] == initial.head_angle_deg[0]
+    for name, value in data.items():
+        if value.dtype.kind == "f":
+            assert np.isfinite(value).all(), name

@@ -140,13 +140,8 @@ def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, sp
     if initial is None:
         return None, [reasons[i] for i in indices], {}
     B = initial.batch_size
-    head = np.asarray(getattr(initial, "head_angle_deg", np.zeros(B)), dtype=np.float64)
-    bed = None
-    if (head != 0).any():
-        from pressurepose.sim.bed import BedShape
-
-        bed = [BedShape(float(a)) for a in head]
-    sim = simulate_poses(model, initial.params, mattress, seed=seed, bed=bed)
+    # Each sample rests on its own bed (raised head section for half_sitting, flat otherwise).
+    sim = simulate_poses(model, initial.params, mattress, seed=seed, bed=initial.beds())
     height = model.measure(sim.params.shape).height_m.detach().numpy()
     cfg = sampler.config
     p = sim.params
@@ -160,7 +155,7 @@ def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, sp
         shape=p.shape.detach().numpy(), root_rotation=p.root_rotation.detach().numpy(),
         root_translation=p.root_translation.detach().numpy(), pose=p.pose.detach().numpy(),
         joints_m=sim.joints.detach().numpy(), mass_kg=sim.mass_kg.detach().numpy().astype(np.float64),
-        height_m=height.astype(np.float64), head_angle_deg=head,
+        height_m=height.astype(np.float64), head_angle_deg=np.asarray(sim.head_angle_deg, dtype=np.float64),
         settle_steps=np.asarray(sim.settle_steps, dtype=np.int32),
         sink_mm=(np.asarray(sim.sink_m, dtype=np.float64) * 1e3).astype(np.float32),
     )
