@@ -292,3 +292,15 @@ def test_half_sitting_samples_keep_their_bed(tmp_path, anny64):
     for name, value in data.items():
         if value.dtype.kind == "f":
             assert np.isfinite(value).all(), name
+
+
+def test_a_second_run_on_the_same_folder_is_refused(tmp_path):
+    import fcntl
+
+    out = tmp_path / "ds"
+    out.mkdir()
+    with open(out / ".lock", "a") as held:  # what a running generate holds
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(ValueError, match="another `pressurepose generate` is writing"):
+            run_generate(GenerateConfig(out=out, partition="supine", n=1), progress=False)
+    assert not (out / "manifest.json").exists() and not list((out / "shards").iterdir())

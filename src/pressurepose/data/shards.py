@@ -52,7 +52,7 @@ def shard_paths(root: Path, shard_id: str) -> tuple[Path, Path]:
     return folder / f"{shard_id}.parquet", folder / f"{shard_id}.json"
 
 
-def _explain_os_error(exc: OSError, path: Path) -> OSError:
+def explain_os_error(exc: OSError, path: Path) -> OSError:
     if exc.errno == errno.ENOSPC:
         return OSError(f"no space left on the device writing {path}; shards already written are intact - "
                        "free some space and re-run the same command to resume")
@@ -75,7 +75,7 @@ def write_shard(root: Path, shard_id: str, data: bytes, record: dict) -> dict:
             path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(path, lambda tmp: _write_synced(tmp, write))
         except OSError as exc:
-            raise _explain_os_error(exc, path) from None
+            raise explain_os_error(exc, path) from None
     return record
 
 
@@ -114,5 +114,5 @@ def verify_shard(root: Path, record: dict) -> None:
             "re-run `pressurepose generate` with the same arguments to regenerate it")
 
 
-__all__ = ["CorruptShardError", "ROW_GROUP_ROWS", "SHARD_DIR", "read_record", "sha256_bytes", "sha256_file",
+__all__ = ["CorruptShardError", "explain_os_error", "ROW_GROUP_ROWS", "SHARD_DIR", "read_record", "sha256_bytes", "sha256_file",
            "shard_paths", "table_bytes", "verify_shard", "write_shard"]

@@ -9,6 +9,7 @@ manifest when all are there. Only this process writes files; workers return byte
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
@@ -16,7 +17,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from pressurepose.data.manifest import MANIFEST, write_manifest
-from pressurepose.data.shards import SHARD_DIR, CorruptShardError, read_record, verify_shard, write_shard
+from pressurepose.data.shards import (
+    SHARD_DIR, CorruptShardError, explain_os_error, read_record, verify_shard, write_shard,
+)
 from pressurepose.files import atomic_write
 from pressurepose.generate.plan import (
     REPLACEMENT_BASE, REPLACEMENT_SPAN, TEST_INDEX_BASE, GenerateConfig, ShardSpec, plan_shards,
@@ -90,6 +93,31 @@ def run_generate(cfg: GenerateConfig, progress: bool = True) -> dict:
     settings = _settings(cfg, mattress)
     out = Path(cfg.out)
     _prepare_folder(cfg, settings)
+    with _exclusive(out):
+        return _generate(cfg, out, settings, mattress, progress)
+
+
+@contextlib.contextmanager
+def _exclusive(out: Path):
+    """Hold an advisory lock on the folder for the run (released by the OS if the process dies):
+    two runs writing the same folder would share temporary file names."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        yield
+        return
+    fh = open(out / ".lock", "a")
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"another `pressurepose generate` is writing {out}; wait for it or stop it first") from None
+        yield
+    finally:
+        fh.close()
+
+
+def _generate(cfg: GenerateConfig, out: Path, settings: dict, mattress: dict, progress: bool) -> dict:
     for stale in (out / SHARD_DIR).glob(".*.partial*"):  # left by a killed run
         stale.unlink(missing_ok=True)
 
@@ -127,11 +155,14 @@ def run_generate(cfg: GenerateConfig, progress: bool = True) -> dict:
         "replacement_span": REPLACEMENT_SPAN,
     }}
     ordered = [records[s.id] for s in shards]
-    write_manifest(out, header, ordered)
     timing = {"samples_made": made, "seconds": round(seconds, 2),
               "samples_per_second": round(made / seconds, 3) if made and seconds > 0 else None,
               "engine": cfg.engine, "workers": cfg.workers}
-    atomic_write(out / TIMING, lambda tmp: Path(tmp).write_text(json.dumps(timing, indent=1)))
+    try:
+        write_manifest(out, header, ordered)
+        atomic_write(out / TIMING, lambda tmp: Path(tmp).write_text(json.dumps(timing, indent=1)))
+    except OSError as exc:
+        raise explain_os_error(exc, out / MANIFEST) from None
     return {"total": total, "made": made, "resumed": resumed, "seconds": seconds, "shards": len(shards),
             "rejected": sum(r["candidates"] - r["count"] for r in ordered)}
 
