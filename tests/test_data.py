@@ -298,3 +298,15 @@ def test_importer_bad_inputs(tmp_path):
         read_original(tmp_path / "junk.p", gender="male")
     assert infer_labels(path.with_name("test_roll180_m_lay_set1_500.p")) == {
         "split": "test", "gender": "male", "partition": "prone_hands_up"}
+
+
+def test_import_original_cli(tmp_path, capsys):
+    path = tmp_path / "test_roll0_m_lay_set1_2.p"
+    path.write_bytes(pickle.dumps(original_dict(2, np.random.default_rng(5)), protocol=2))
+    assert main(["import-original", str(path), "--out", str(tmp_path / "ds"), "--partition", "general"]) == 0
+    assert "2 samples from 1 files" in capsys.readouterr().out
+    assert load_manifest(tmp_path / "ds")["counts"] == {"test": {"general": {"male": 2}}}
+    bad = tmp_path / "train_f_evil.p"
+    bad.write_bytes(pickle.dumps({"images": [_Evil()]}, protocol=2))
+    assert main(["import-original", str(bad), "--out", str(tmp_path / "ds2")]) == 2
+    assert "refusing to load the global" in capsys.readouterr().err
