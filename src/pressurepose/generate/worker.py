@@ -100,7 +100,7 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
             n_kept += len(batch)
         if on_chunk is not None:
             on_chunk(0 if batch is None else len(batch), sum(1 for r in reasons if r))
-        if candidates - n_kept > MAX_REJECTED_FRACTION * candidates and candidates >= 4 * ctx.batch:
+        if candidates - n_kept > MAX_REJECTED_FRACTION * candidates and candidates >= max(4 * ctx.batch, 32):
             raise ValueError(f"shard {spec.id}: {candidates - n_kept} of {candidates} samples rejected "
                              f"({dict(rejections)}); check the mattress parameters (--params)")
     data = SampleBatch.concat(kept)
