@@ -23,6 +23,10 @@ demo: $(STAMP)
 	$(BIN)/pressurepose demo --out out/demo
 	$(BIN)/pressurepose sample --out out/demo/sample --n 96 --partition general
 	$(BIN)/pressurepose simulate --out out/demo/simulate --partition supine --gender male --index 3
+	$(BIN)/pressurepose generate --out out/demo/data --preset tiny
+	$(BIN)/pressurepose info out/demo/data
+	$(BIN)/pressurepose train --data out/demo/data --out out/demo/run --preset smoke --epochs 2
+	$(BIN)/pressurepose evaluate --model out/demo/run --data out/demo/data --out out/demo/report
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

@@ -82,7 +82,7 @@ def test_bad_inputs(tiny, tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr
 
 
-PMAT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pmatdata"
+PMAT = Path(__file__).resolve().parent / "data" / "pmatdata"  # 12 frames of PmatData (its README)
 
 
 def test_posture_from_the_root_orientation():
@@ -98,7 +98,6 @@ def test_posture_from_the_root_orientation():
     assert posture_of(got) == ["supine", "left", "right", "prone", "supine", "left"]
 
 
-@pytest.mark.skipif(not (PMAT / "index.csv").is_file(), reason="PmatData not present beside the project")
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     from pressurepose.cli import main
 
@@ -106,12 +105,28 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     out = tmp_path / "real"
     assert main(["evaluate-real", "--model", str(run), "--pmatdata", str(PMAT), "--groups", "CD", "--out", str(out)]) == 0
     record = json.loads((out / "real.json").read_text())
-    assert record["frames"] == 96 and set(record["by_mattress"]) == {"air", "sponge"}
+    assert record["frames"] == 12 and set(record["by_mattress"]) == {"air", "sponge"}
     for s in record["by_mattress"].values():
-        assert 0.0 <= s["posture_accuracy"] <= 1.0 and s["frames"] == 48
-        assert sum(sum(row.values()) for row in s["confusion"].values()) == 48
+        assert 0.0 <= s["posture_accuracy"] <= 1.0 and s["frames"] == 6
+        assert sum(sum(row.values()) for row in s["confusion"].values()) == 6
+        assert set(s["confusion"]) == {"supine", "left", "right"} and sum(s["confusion"]["supine"].values()) == 0
         assert s["height_mae_m"] < 1.0 and s["mass_mae_kg"] < 200
     assert (out / "real.png").read_bytes()[:4] == b"\x89PNG" and "posture accuracy" in (out / "real.md").read_text()
     r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "evaluate-real", "--model", str(run), "--pmatdata",
                         str(PMAT), "--groups", "BX", "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert r.returncode == 2 and "groups must be" in r.stderr
+
+
+@pytest.mark.slow
+def test_report_on_a_generated_dataset_has_partitions_and_baselines(tiny, tmp_path):
+    from pressurepose.cli import main
+
+    _, run = tiny
+    data = tmp_path / "data"
+    assert main(["generate", "--out", str(data), "--preset", "tiny", "--partition", "supine"]) == 0
+    out = tmp_path / "report"
+    assert main(["evaluate", "--model", str(run), "--data", str(data), "--out", str(out)]) == 0
+    record = json.loads((out / "report.json").read_text())
+    assert [e["partition"] for e in record["by_partition"]] == ["supine"]
+    assert record["by_partition"][0]["seed_synth_vpe_cm"] == 3.40
+    assert set(record["baselines_vpe_m"]) == {"mean_body", "nearest_image"}  # from the train split

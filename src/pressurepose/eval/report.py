@@ -88,10 +88,16 @@ def _batches(dataset, batch: int, limit: int | None):
 
 
 def _open(data: Path, split: str):
+    """A split of a generated dataset (with its partition labels) or .npz files."""
     from pressurepose.train.data import open_dataset
 
-    ds = open_dataset(data, split=split)
-    return ds
+    if (data / "manifest.json").is_file():
+        from pressurepose.data.dataset import PressurePoseDataset
+
+        columns = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose",
+                   "joints_m", "gender", "mass_kg", "height_m", "partition")
+        return PressurePoseDataset(data, split=split, columns=columns)
+    return open_dataset(data, split=split)
 
 
 def _check_backend(net, data: Path, shape_dim: int) -> None:
@@ -322,12 +328,14 @@ def _markdown(r: dict) -> str:
     o = r["overall"]
     lines += ["## Overall (mean / median / 90th percentile)", "", "| metric | mean | median | p90 |",
               "| --- | --- | --- | --- |"]
-    units = {"root_rot_deg": ("deg", 1.0), "mass_err_kg": ("kg", 1.0)}
+    labels = {"vpe_m": ("3DVPE", "cm", 100.0), "v2v_m": ("v2v", "cm", 100.0), "mpjpe_m": ("MPJPE", "cm", 100.0),
+              "pa_mpjpe_m": ("PA-MPJPE", "cm", 100.0), "root_pos_m": ("root position", "cm", 100.0),
+              "root_rot_deg": ("root orientation", "deg", 1.0), "height_err_m": ("height", "cm", 100.0),
+              "mass_err_kg": ("mass", "kg", 1.0)}
     for m in METRICS:
-        unit, scale = units.get(m, ("cm", 100.0))
+        name, unit, scale = labels[m]
         s = o[m]
-        lines.append(f"| {m.replace('_m', '').replace('_deg', '').replace('_kg', '')} ({unit}) | "
-                     f"{s['mean'] * scale:.2f} | {s['median'] * scale:.2f} | {s['p90'] * scale:.2f} |")
+        lines.append(f"| {name} ({unit}) | {s['mean'] * scale:.2f} | {s['median'] * scale:.2f} | {s['p90'] * scale:.2f} |")
     lines += ["", "## Joint error per body region (cm, mean / median / p90)", "", "| region | mean | median | p90 |",
               "| --- | --- | --- | --- |"]
     for reg, s in r["regions_m"].items():
