@@ -55,3 +55,25 @@ def test_orientation_and_bad_images():
         resample_to_mat(np.ones((3, 3)), 0.0, 0.01)
     with pytest.raises(ValueError, match="head_row"):
         orient(img, "top")
+
+
+def test_import_pmatdata_writes_predict_ready_images(tmp_path):
+    from pathlib import Path
+
+    from pressurepose.cli import main
+    from pressurepose.data.pmatdata import read_frame
+    from pressurepose.net.inputs import read_pressure_file
+
+    root = Path(__file__).resolve().parent / "data" / "pmatdata"
+    out = tmp_path / "p.npz"
+    assert main(["import-pmatdata", "--pmatdata", str(root), "--out", str(out), "--mattress", "air"]) == 0
+    with np.load(out, allow_pickle=False) as f:
+        assert f["pressure_mmhg"].shape == (6, 64, 27) and set(f["posture"].tolist()) == {"left", "right"}
+        assert (f["mattress"] == "air").all() and (f["height_m"] == 1.75).all() and (f["mass_kg"] == 87).all()
+        p, first = f["pressure_mmhg"], f["path"][0]
+    assert (p >= 0).all() and (p <= 100).all()
+    # Same orientation as the reader (row 0 at the head): the loaded rows follow the raw frame's.
+    raw = read_frame(root / first)
+    assert np.corrcoef((raw > raw.min() + 30).sum(1), (p[0] > 0).sum(1))[0, 1] > 0.9
+    assert read_pressure_file(out).shape == (6, 64, 27)  # predict reads it
+    assert main(["import-pmatdata", "--pmatdata", str(root), "--out", str(out), "--groups", "B"]) == 2

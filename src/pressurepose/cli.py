@@ -191,9 +191,28 @@ def import_original(files: tyro.conf.Positional[list[Path]], out: Path = Path("o
     print(f"{json.loads(path.read_text())['total']} samples from {len(files)} files -> {out}")
 
 
+def import_pmatdata(pmatdata: Path = Path("../shared/data/pmatdata"), out: Path = Path("out/pmatdata.npz"),
+                    groups: str | None = None, mattress: str | None = None, threshold: float = 20.0) -> None:
+    """Convert PmatData (PhysioNet) frames into one .npz of 64 x 27 mmHg images (row 0 at the
+    head) with their subject, posture and mattress, ready for `predict`.
+
+    Args:
+        pmatdata: PmatData folder (index.csv, experiment-ii/).
+        out: .npz file to write.
+        groups: posture groups to keep, e.g. BCD (default: all).
+        mattress: air or sponge (default: both).
+        threshold: raw noise threshold of the normalisation (data README).
+    """
+    from pressurepose.data.pmatdata import import_pmatdata as run
+
+    res = run(pmatdata, out, groups, mattress, threshold)
+    print(f"{res['frames']} frames of {res['subjects']} subjects -> {res['out']}")
+
+
 COMMANDS = {
     "demo": demo, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
-    "import-original": import_original, "calibrate": calibrate, "coregister": coregister, "cache": cache,
+    "import-original": import_original, "import-pmatdata": import_pmatdata, "calibrate": calibrate,
+    "coregister": coregister, "cache": cache,
     "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real,
 }
 

@@ -89,6 +89,45 @@ def load_index(root: str | Path) -> list[PmatRecord]:
     return out
 
 
+def import_pmatdata(root: str | Path, out: str | Path, groups: str | None = None, mattress: str | None = None,
+                    threshold: float = 20.0) -> dict:
+    """PmatData frames -> one .npz in the project's image convention, ready for `predict`:
+    pressure_mmhg (N, 64, 27) float32 (row 0 at the head; normalised as the README says and
+    clipped at the sensor's 100 mmHg), with per frame: path, subject, mattress, group, index,
+    posture, bed_incline_deg, height_m, mass_kg (no pickles: strings as unicode arrays).
+    groups: posture groups to keep (e.g. "BCD"; default all); mattress: air or sponge (default
+    both). Returns counts."""
+    from pressurepose.files import atomic_write
+
+    records = load_index(root)
+    if groups is not None:
+        records = [r for r in records if r.group in groups]
+    if mattress is not None:
+        if mattress not in ("air", "sponge"):
+            raise ValueError(f"mattress must be 'air' or 'sponge', got {mattress!r}")
+        records = [r for r in records if r.mattress == mattress]
+    if not records:
+        raise ValueError(f"no PmatData frames under {root} match groups={groups!r}, mattress={mattress!r}")
+    images = np.stack([np.minimum(normalise(read_frame(r.path), r.weight_kg, threshold), 100.0)
+                       for r in records]).astype(np.float32)
+    arrays = {
+        "pressure_mmhg": images,
+        "path": np.array([str(r.path.relative_to(Path(root))) for r in records]),
+        "subject": np.array([r.subject for r in records], dtype=np.int64),
+        "mattress": np.array([r.mattress for r in records]),
+        "group": np.array([r.group for r in records]),
+        "index": np.array([r.index for r in records], dtype=np.int64),
+        "posture": np.array([r.posture for r in records]),
+        "bed_incline_deg": np.array([r.bed_incline_deg for r in records]),
+        "height_m": np.array([r.height_cm / 100 for r in records]),
+        "mass_kg": np.array([r.weight_kg for r in records]),
+    }
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(out, lambda tmp: np.savez_compressed(tmp, **arrays))
+    return {"frames": len(records), "subjects": len({r.subject for r in records}), "out": str(out)}
+
+
 def frame_stats(p_mmhg: np.ndarray, taxel_area_m2: float = PMAT_TAXEL_AREA_M2) -> dict[str, float]:
     """Contact area (m^2), mean contact pressure and peak (mmHg) of one image."""
     loaded = p_mmhg > 0
