@@ -62,7 +62,7 @@ def main() -> None:
         steps, reason_list = [], []
         for bed, rows_ in groups.items():
             idx = torch.tensor(rows_)
-            sub = type(initial)(**{f: getattr(initial, f)[idx] for f in ("shape", "root_rotation", "root_translation", "pose")})
+            sub = initial.index(idx)
             t0 = time.perf_counter()
             body = build_capsule_body(model, sub.shape, volume_points=SIM_VOLUME_POINTS)
             t1, c1 = time.perf_counter(), time.process_time()
@@ -72,7 +72,7 @@ def main() -> None:
             mass = model.measure(res.params.shape).mass_kg
             t3 = time.perf_counter()
             pressed = simulate_pressure(out.vertices, out.faces, mass, params, mat, bed=bed)
-            reading = taxel_reading(sensing_area(pressed.pressure_pa, mat), params, mat)
+            taxel_reading(sensing_area(pressed.pressure_pa, mat), params, mat)
             label_maps(pressed.vertices, out.faces, mat, bed)
             t4 = time.perf_counter()
             t_body, t_sim1, t_mesh, t_sim2 = t_body + t1 - t0, t_sim1 + t2 - t1, t_mesh + t3 - t2, t_sim2 + t4 - t3
@@ -97,7 +97,7 @@ def main() -> None:
     rest = settle(model, supine, params, mat, batch=args.batch)
     rest_params = rest.params
     for B in (1, 8, 32):
-        initial = type(rest_params)(**{k: getattr(rest_params, k)[:B] for k in ("shape", "root_rotation", "root_translation", "pose")})
+        initial = rest_params.index(slice(0, B))
         out = model(initial)
         mass = model.measure(initial.shape).mass_kg
         simulate_pressure(out.vertices[:1], out.faces, mass[:1], params, mat)  # warm-up

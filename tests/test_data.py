@@ -142,8 +142,8 @@ def test_dataset_items_equal_the_shards_and_filters_select(tmp_path):
         PressurePoseDataset(tmp_path, columns=("pressure",))
 
 
-def test_dataset_reads_each_row_group_once_when_sequential(tmp_path, monkeypatch):
-    make_fake_dataset(tmp_path, GROUPS)
+def count_row_group_reads(monkeypatch) -> list:
+    """From now on, every Parquet row-group read appends its row-group number to the list."""
     calls = []
     original = pq.ParquetFile.read_row_group
 
@@ -152,6 +152,12 @@ def test_dataset_reads_each_row_group_once_when_sequential(tmp_path, monkeypatch
         return original(self, i, *args, **kwargs)
 
     monkeypatch.setattr(pq.ParquetFile, "read_row_group", spy)
+    return calls
+
+
+def test_dataset_reads_each_row_group_once_when_sequential(tmp_path, monkeypatch):
+    make_fake_dataset(tmp_path, GROUPS)
+    calls = count_row_group_reads(monkeypatch)
     ds = PressurePoseDataset(tmp_path, cache_row_groups=1)
     for i in range(len(ds)):
         ds[i]
@@ -161,13 +167,6 @@ def test_dataset_reads_each_row_group_once_when_sequential(tmp_path, monkeypatch
 
 def test_block_shuffle_reads_each_row_group_once_per_epoch(tmp_path, monkeypatch):
     make_fake_dataset(tmp_path, GROUPS)
-    calls = []
-    original = pq.ParquetFile.read_row_group
-
-    def spy(self, i, *args, **kwargs):
-        calls.append(i)
-        return original(self, i, *args, **kwargs)
-
     ds = PressurePoseDataset(tmp_path, cache_row_groups=2, columns=("index", "split"))
     sampler = BlockShuffleSampler(ds, blocks_in_memory=2, seed=1)
     first = list(sampler)
@@ -175,7 +174,7 @@ def test_block_shuffle_reads_each_row_group_once_per_epoch(tmp_path, monkeypatch
     assert list(sampler) == first
     sampler.set_epoch(1)
     assert list(sampler) != first
-    monkeypatch.setattr(pq.ParquetFile, "read_row_group", spy)
+    calls = count_row_group_reads(monkeypatch)
     for i in sampler:
         ds[i]
     assert len(calls) == len(sampler.blocks) == 6

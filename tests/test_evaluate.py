@@ -59,7 +59,7 @@ def test_metrics_of_the_truth_are_zero(anny32, tiny):
     body = anny32
     true = _as_params(batch, torch.float32)
     out = body(true)
-    res, _ = _sample_metrics(body, true, true, out.joints, out, body.measure(true.shape))
+    res = _sample_metrics(body, true, true, out.joints, out, body.measure(true.shape))
     for k, v in res.items():
         assert float(v.abs().max()) < 1e-5, k
 

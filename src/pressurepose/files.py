@@ -1,7 +1,9 @@
-"""Writing outputs so that a partial file never sits under a final name."""
+"""Writing outputs so that a partial file never sits under a final name; reading the JSON
+files users hand us with one clear message when they are missing or broken."""
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -18,3 +20,15 @@ def atomic_write(path: Path, write) -> Path:
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+def read_json(path: str | os.PathLike, what: str, hint: str = ""):
+    """The decoded JSON of a user's file; ValueError "<what> <path> does not exist" or
+    "... is not readable JSON (<why>)<hint>" instead of a traceback."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{what} {path} does not exist") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{what} {path} is not readable JSON ({exc}){hint}") from None

@@ -59,6 +59,16 @@ class BodyParams:
     def replace(self, **changes: torch.Tensor) -> "BodyParams":
         return dataclasses.replace(self, **changes)
 
+    def index(self, idx) -> "BodyParams":
+        """The samples `idx` (a slice, index tensor or mask over the batch)."""
+        return BodyParams(**{f.name: getattr(self, f.name)[idx] for f in dataclasses.fields(self)})
+
+    @staticmethod
+    def cat(parts: "list[BodyParams]") -> "BodyParams":
+        """One batch of several, in order."""
+        return BodyParams(**{f.name: torch.cat([getattr(p, f.name) for p in parts])
+                             for f in dataclasses.fields(BodyParams)})
+
     def to(self, *args, **kwargs) -> "BodyParams":
         return BodyParams(**{f.name: getattr(self, f.name).to(*args, **kwargs)
                              for f in dataclasses.fields(self)})

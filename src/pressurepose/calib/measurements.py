@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from pressurepose.calib.objects import CalibObject, SceneSimulator
-from pressurepose.files import atomic_write
+from pressurepose.files import atomic_write, read_json
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
 
@@ -74,13 +74,7 @@ class Measurements:
 def load_measurements(path: str | os.PathLike, mat: MatSpec | None = None) -> Measurements:
     """Read and check a measurement file (format above)."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"measurement file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"measurement file {path} is not readable JSON ({exc})") from None
-    return parse_measurements(doc, mat, source=str(path))
+    return parse_measurements(read_json(path, "measurement file"), mat, source=str(path))
 
 
 def parse_measurements(doc, mat: MatSpec | None = None, source: str = "measurements") -> Measurements:

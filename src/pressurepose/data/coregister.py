@@ -27,6 +27,7 @@ from typing import Literal
 
 import numpy as np
 
+from pressurepose.files import read_json
 from pressurepose.mat import MatSpec
 
 FORMAT = "pressurepose.coregistration/1"
@@ -153,11 +154,7 @@ def read_markers(path: str | Path, mat: MatSpec | None = None) -> Markers:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"no marker file at {path}")
-    try:
-        data = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path} is not readable JSON ({exc})") from None
-    return parse_markers(data, mat)
+    return parse_markers(read_json(path, "marker file"), mat)
 
 
 # --- solving -------------------------------------------------------------------------------

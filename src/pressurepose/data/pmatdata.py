@@ -89,6 +89,13 @@ def load_index(root: str | Path) -> list[PmatRecord]:
     return out
 
 
+def load_images(records: list[PmatRecord], threshold: float = 20.0) -> np.ndarray:
+    """(N, 64, 27) float32 mmHg images of index records, row 0 at the head: normalised as the
+    data README says and clipped at the sensor model's 100 mmHg."""
+    return np.stack([np.minimum(normalise(read_frame(r.path), r.weight_kg, threshold), 100.0)
+                     for r in records]).astype(np.float32)
+
+
 def import_pmatdata(root: str | Path, out: str | Path, groups: str | None = None, mattress: str | None = None,
                     threshold: float = 20.0) -> dict:
     """PmatData frames -> one .npz in the project's image convention, ready for `predict`:
@@ -108,10 +115,8 @@ def import_pmatdata(root: str | Path, out: str | Path, groups: str | None = None
         records = [r for r in records if r.mattress == mattress]
     if not records:
         raise ValueError(f"no PmatData frames under {root} match groups={groups!r}, mattress={mattress!r}")
-    images = np.stack([np.minimum(normalise(read_frame(r.path), r.weight_kg, threshold), 100.0)
-                       for r in records]).astype(np.float32)
     arrays = {
-        "pressure_mmhg": images,
+        "pressure_mmhg": load_images(records, threshold),
         "path": np.array([str(r.path.relative_to(Path(root))) for r in records]),
         "subject": np.array([r.subject for r in records], dtype=np.int64),
         "mattress": np.array([r.mattress for r in records]),

@@ -16,7 +16,6 @@ body lying on it). Against a real point cloud (`vpe_to_cloud`) the cloud is voxe
 
 from __future__ import annotations
 
-import math
 
 import torch
 
@@ -185,10 +184,6 @@ def vpe_to_cloud(est_vertices: torch.Tensor, faces: torch.Tensor, cloud: torch.T
     mask, area = camera_facing(est_vertices[None], faces, camera)
     e = est_vertices[mask[0]]
     return (_directed(e, area[0][mask[0]], cloud) + _directed(cloud, torch.ones(cloud.shape[0], dtype=cloud.dtype), e)) / 2
-
-
-def degrees(x: torch.Tensor) -> torch.Tensor:
-    return x * (180.0 / math.pi)
 
 
 __all__ = ["CAMERA_M", "VOXEL_M", "camera_facing", "mpjpe", "pa_mpjpe", "per_vertex_error", "procrustes_align",

@@ -69,7 +69,7 @@ def posture_of(roll: torch.Tensor) -> list[str]:
 
 
 def run_evaluate_real(cfg: RealEvalConfig) -> dict[str, Path]:
-    from pressurepose.data.pmatdata import load_index, normalise, read_frame
+    from pressurepose.data.pmatdata import load_images, load_index
     from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
     from pressurepose.train.checkpoint import load_network
 
@@ -81,13 +81,9 @@ def run_evaluate_real(cfg: RealEvalConfig) -> dict[str, Path]:
     if not records:
         raise ValueError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
     net, _ = load_network(cfg.model)
-    images, heights, masses = [], [], []
-    for r in records:
-        p = normalise(read_frame(r.path), r.weight_kg, cfg.threshold)
-        images.append(np.minimum(p, 100.0))
-        heights.append(r.height_cm / 100)
-        masses.append(r.weight_kg)
-    images = torch.tensor(np.stack(images), dtype=torch.float32)
+    images = torch.from_numpy(load_images(records, cfg.threshold))
+    heights = [r.height_cm / 100 for r in records]
+    masses = [r.weight_kg for r in records]
     t0 = time.perf_counter()
     rolls, est_h, est_m = [], [], []
     with torch.no_grad():

@@ -35,7 +35,7 @@ REGIONS = {
     "legs": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("hip", "knee", "ankle", "foot")),
 }
 METRICS = ("vpe_m", "v2v_m", "mpjpe_m", "pa_mpjpe_m", "root_pos_m", "root_rot_deg", "height_err_m", "mass_err_kg")
-PARAM_KEYS = ("shape", "root_rotation", "root_translation", "pose")
+PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +66,10 @@ def _as_params(batch: dict, dtype) -> BodyParams:
     return BodyParams(**{k: batch[k].to(dtype) for k in PARAM_KEYS})
 
 
+def _vpe(body, params: BodyParams, true_vertices: torch.Tensor) -> list[float]:
+    return M.vpe(body(params).vertices, true_vertices, body.faces).tolist()
+
+
 def _item_label(item: dict, key: str, default: str) -> str:
     v = item.get(key, default)
     if isinstance(v, torch.Tensor):
@@ -91,65 +95,36 @@ def _open(data: Path, split: str):
     """A split of a generated dataset (with its partition labels) or .npz files."""
     from pressurepose.train.data import open_dataset
 
-    if (data / "manifest.json").is_file():
-        from pressurepose.data.dataset import PressurePoseDataset
-
-        columns = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose",
-                   "joints_m", "gender", "mass_kg", "height_m", "partition")
-        return PressurePoseDataset(data, split=split, columns=columns)
-    return open_dataset(data, split=split)
+    return open_dataset(data, split=split, extra_columns=("partition",))
 
 
-def _check_backend(net, data: Path, shape_dim: int) -> None:
+def _check_backend(net, dataset, data: Path, shape_dim: int) -> None:
     """A network and a dataset from different body models cannot be compared."""
-    manifest = data / "manifest.json"
-    if manifest.is_file():
-        try:
-            record = json.loads(manifest.read_text())
-        except json.JSONDecodeError:
-            record = {}
-        backend = _find_backend(record)
-        if backend is not None and backend != net.config.backend:
-            raise ValueError(f"the network estimates {net.config.backend} bodies but {data} holds {backend} bodies; "
-                             f"evaluate on a dataset generated with --backend {net.config.backend}")
+    manifest = getattr(dataset, "manifest", None)  # generated datasets record their body model
+    backend = manifest.get("config", {}).get("backend") if isinstance(manifest, dict) else None
+    if backend is not None and backend != net.config.backend:
+        raise ValueError(f"the network estimates {net.config.backend} bodies but {data} holds {backend} bodies; "
+                         f"evaluate on a dataset generated with --backend {net.config.backend}")
     if shape_dim != len(net.body.shape_names):
         raise ValueError(f"the dataset's shapes have {shape_dim} parameters but the network's {net.config.backend} "
                          f"model has {len(net.body.shape_names)}: a dataset of another body model")
 
 
-def _find_backend(record) -> str | None:
-    if isinstance(record, dict):
-        for k, v in record.items():
-            if k in ("backend", "body_backend") and isinstance(v, str):
-                return v
-            found = _find_backend(v)
-            if found:
-                return found
-    return None
-
-
-def _mean_body(train, n: int, dtype) -> BodyParams:
-    """The training set's mean body: mean shape, pose (axis-angle), pelvis position, and the
-    chordal mean of the root rotations."""
-    acc = {k: [] for k in PARAM_KEYS}
-    for _, b in _batches(train, 256, n):
-        for k in PARAM_KEYS:
-            acc[k].append(b[k].to(dtype))
-    p = {k: torch.cat(v) for k, v in acc.items()}
-    U, _, Vh = torch.linalg.svd(axis_angle_to_matrix(p["root_rotation"]).mean(0))
-    R = U @ torch.diag(torch.tensor([1.0, 1.0, float(torch.linalg.det(U @ Vh))], dtype=dtype)) @ Vh
-    return BodyParams(shape=p["shape"].mean(0, keepdim=True), root_rotation=matrix_to_axis_angle(R[None]),
-                      root_translation=p["root_translation"].mean(0, keepdim=True), pose=p["pose"].mean(0, keepdim=True))
-
-
-def _train_images(train, n: int, dtype) -> tuple[torch.Tensor, BodyParams]:
-    """(N, 1728) sum-normalised training images and their bodies, for the nearest-image baseline."""
-    imgs, acc = [], {k: [] for k in PARAM_KEYS}
+def _baseline_data(train, n: int, dtype) -> tuple[BodyParams, torch.Tensor, BodyParams]:
+    """From one pass over up to n training samples: the mean body (mean shape, pose
+    (axis-angle) and pelvis position, chordal mean of the root rotations), and the (N, 1728)
+    sum-normalised images with their bodies for the nearest-image baseline."""
+    imgs, parts = [], []
     for _, b in _batches(train, 256, n):
         imgs.append(_normalised(b["pressure_mmhg"]))
-        for k in PARAM_KEYS:
-            acc[k].append(b[k].to(dtype))
-    return torch.cat(imgs), BodyParams(**{k: torch.cat(v) for k, v in acc.items()})
+        parts.append(_as_params(b, dtype))
+    bodies = BodyParams.cat(parts)
+    U, _, Vh = torch.linalg.svd(axis_angle_to_matrix(bodies.root_rotation).mean(0))
+    R = U @ torch.diag(torch.tensor([1.0, 1.0, float(torch.linalg.det(U @ Vh))], dtype=dtype)) @ Vh
+    mean = BodyParams(shape=bodies.shape.mean(0, keepdim=True), root_rotation=matrix_to_axis_angle(R[None]),
+                      root_translation=bodies.root_translation.mean(0, keepdim=True),
+                      pose=bodies.pose.mean(0, keepdim=True))
+    return mean, torch.cat(imgs), bodies
 
 
 def _normalised(p: torch.Tensor) -> torch.Tensor:
@@ -168,13 +143,13 @@ def _sample_metrics(body, est: BodyParams, true: BodyParams, true_joints: torch.
         "mpjpe_m": joint_err.mean(-1),
         "pa_mpjpe_m": M.pa_mpjpe(out.joints, true_joints),
         "root_pos_m": M.root_position_error(est.root_translation, true.root_translation),
-        "root_rot_deg": M.degrees(M.root_orientation_error(est.root_rotation, true.root_rotation)),
+        "root_rot_deg": torch.rad2deg(M.root_orientation_error(est.root_rotation, true.root_rotation)),
         "height_err_m": (meas.height_m - true_measure.height_m).abs(),
         "mass_err_kg": (meas.mass_kg - true_measure.mass_kg).abs(),
     }
     for region, names in REGIONS.items():
         res[f"joints_{region}_m"] = joint_err[:, [J24_NAMES.index(n) for n in names]].mean(-1)
-    return res, out.vertices
+    return res
 
 
 def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
@@ -193,7 +168,7 @@ def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
     if n == 0:
         raise ValueError(f"{cfg.data} has no {cfg.split} samples to evaluate")
     first = next(_batches(test, 1, 1))[1]
-    _check_backend(net, cfg.data, first["shape"].shape[-1])
+    _check_backend(net, test, cfg.data, first["shape"].shape[-1])
     train = None
     if cfg.train_data is not None:
         train = _open(cfg.train_data, "train")
@@ -201,12 +176,12 @@ def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
         train = _open(cfg.data, "train")
     if train is not None and len(train) == 0:
         train = None
-    mean_body = _mean_body(train, cfg.baseline_samples, dtype) if train is not None else None
-    train_imgs, train_bodies = _train_images(train, cfg.baseline_samples, dtype) if train is not None else (None, None)
+    mean_body, train_imgs, train_bodies = (_baseline_data(train, cfg.baseline_samples, dtype) if train is not None
+                                           else (None, None, None))
 
     rows: dict[str, list] = {"partition": [], "gender": []}
     base_rows: dict[str, list] = {"mean_body": [], "nearest_image": []}
-    keep = []  # per sample: image, true and estimated vertices for the figures (only the needed ones later)
+    estimates = []  # BodyParams per batch: the figures re-pose the few samples they show
     t0 = time.perf_counter()
     columns = (TextColumn("evaluating"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[rate]}"),
                TimeRemainingColumn())
@@ -220,28 +195,32 @@ def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
             inputs = NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
                                mass_kg=b["mass_kg"])
             est = net(inputs, mesh=False)[-1].params
-            res, est_v = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure)
+            res = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure)
             for k, v in res.items():
                 rows.setdefault(k, []).extend(v.tolist())
             rows["partition"] += [p for p, _ in labels]
             rows["gender"] += [g for _, g in labels]
+            estimates.append(est)
             B = len(labels)
             if mean_body is not None:
-                mb = BodyParams(**{k: getattr(mean_body, k).expand(B, *getattr(mean_body, k).shape[1:])
-                                   for k in PARAM_KEYS})
-                base_rows["mean_body"] += _sample_metrics(body, mb, true, b["joints"].to(dtype), true_out,
-                                                          true_measure)[0]["vpe_m"].tolist()
+                base_rows["mean_body"] += _vpe(body, mean_body.index(torch.zeros(B, dtype=torch.long)),
+                                               true_out.vertices)
                 nearest = torch.cdist(_normalised(b["pressure_mmhg"]), train_imgs).argmin(1)
-                nb = BodyParams(**{k: getattr(train_bodies, k)[nearest] for k in PARAM_KEYS})
-                base_rows["nearest_image"] += _sample_metrics(body, nb, true, b["joints"].to(dtype), true_out,
-                                                              true_measure)[0]["vpe_m"].tolist()
-            for i in range(B):
-                keep.append((b["pressure_mmhg"][i].numpy(), true_out.vertices[i].numpy().astype(np.float32),
-                             est_v[i].numpy().astype(np.float32)))
+                base_rows["nearest_image"] += _vpe(body, train_bodies.index(nearest), true_out.vertices)
             done += B
             bar.update(task, completed=done, rate=f"{done / (time.perf_counter() - t0):.1f} img/s")
     seconds = time.perf_counter() - t0
-    return _write_report(cfg, rows, base_rows, keep, body.faces.numpy(), seconds)
+    estimates = BodyParams.cat(estimates)
+
+    def case(i: int) -> tuple:
+        """The pressure image and the true and estimated meshes of sample i."""
+        _, b = next(_batches(torch.utils.data.Subset(test, [i]), 1, 1))
+        with torch.no_grad():
+            true_v = body(_as_params(b, dtype)).vertices[0]
+            est_v = body(estimates.index([i])).vertices[0]
+        return b["pressure_mmhg"][0].numpy(), true_v.numpy(), est_v.numpy()
+
+    return _write_report(cfg, rows, base_rows, case, body.faces.numpy(), seconds)
 
 
 def _summary(values: list[float]) -> dict[str, float]:
@@ -265,7 +244,7 @@ def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
     return out
 
 
-def _write_report(cfg: EvaluateConfig, rows: dict, base: dict, keep: list, faces: np.ndarray,
+def _write_report(cfg: EvaluateConfig, rows: dict, base: dict, case, faces: np.ndarray,
                   seconds: float) -> dict[str, Path]:
     from pressurepose.viz.evaluation import plot_cases
 
@@ -292,9 +271,9 @@ def _write_report(cfg: EvaluateConfig, rows: dict, base: dict, keep: list, faces
     }
     paths = {}
     paths["cases"] = atomic_write(cfg.out / "cases.png", lambda tmp: plot_cases(
-        tmp, [(f"{k}: 3DVPE {vpe[i] * 100:.1f} cm", *keep[i]) for k, i in picks.items()], faces))
+        tmp, [(f"{k}: 3DVPE {vpe[i] * 100:.1f} cm", *case(i)) for k, i in picks.items()], faces))
     paths["failures"] = atomic_write(cfg.out / "failures.png", lambda tmp: plot_cases(
-        tmp, [(f"#{i} {rows['partition'][i]}: {vpe[i] * 100:.1f} cm", *keep[i]) for i in failures], faces))
+        tmp, [(f"#{i} {rows['partition'][i]}: {vpe[i] * 100:.1f} cm", *case(i)) for i in failures], faces))
     paths["json"] = atomic_write(cfg.out / "report.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
     paths["markdown"] = atomic_write(cfg.out / "report.md", lambda tmp: Path(tmp).write_text(_markdown(record)))
     return paths

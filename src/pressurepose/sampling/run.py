@@ -107,8 +107,7 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
         poses.joints.numpy(), poses.root_draw, poses.cells, tmp, title=f"{title} - distal joints over the cells"))
     k = min(cfg.figures, cfg.n)
     if k > 0:
-        sub = type(poses.params)(**{f: getattr(poses.params, f)[:k] for f in
-                                    ("shape", "root_rotation", "root_translation", "pose")})
+        sub = poses.params.index(slice(0, k))
         labels = [f"#{i} cells {c.tolist()}" for i, c in zip(poses.index[:k], poses.cells[:k])]
         vertices = posed_vertices(model, sub)
         paths["bodies"] = atomic_write(cfg.out / "bodies.png", lambda tmp: plot_bodies(vertices, MatSpec(), tmp, labels))
@@ -144,8 +143,7 @@ def concat(parts: list[InitialPoses]) -> InitialPoses:
     from pressurepose.body.params import BodyParams
 
     first = parts[0]
-    params = BodyParams(**{f: torch.cat([getattr(p.params, f) for p in parts]) for f in
-                           ("shape", "root_rotation", "root_translation", "pose")})
+    params = BodyParams.cat([p.params for p in parts])
     return InitialPoses(
         params=params, joints=torch.cat([p.joints for p in parts]),
         index=np.concatenate([p.index for p in parts]), cells=np.concatenate([p.cells for p in parts]),

@@ -498,10 +498,7 @@ class PoseSampler:
     def _pitch(self, st: _State, root_aa: torch.Tensor) -> None:
         """The pitch this trunk sits up by on its bed, and the legs' frame and pelvis turned
         back by it (one sample at a time: never batch-dependent)."""
-        caps = Capsules(st.caps[0][None], st.caps[1][None], st.caps[2][None], st.rest[None])
-        lying = BodyParams(shape=torch.from_numpy(st.shape)[None], root_rotation=root_aa,
-                           root_translation=st.shift[None].clone(),
-                           pose=torch.zeros(1, NUM_POSE_JOINTS, 3, dtype=torch.float64))
+        caps, lying = _lying(st, root_aa, torch.zeros(1, NUM_POSE_JOINTS, 3, dtype=torch.float64))
         st.pitch = trunk_pitch(caps, lying, BedShape(st.head_angle), self.mat)
         # A body-axes vector v of the turned body points along Q v in the lying frame, so the
         # bed axes f seen from the lying frame are Q^T f: rows f^T Q.
@@ -817,9 +814,7 @@ class PoseSampler:
         over_bed = sorted({j for lb in self.limbs.values() for j in lb.over_bed})
         for st in states:
             bed = BedShape(st.head_angle)
-            caps = Capsules(st.caps[0][None], st.caps[1][None], st.caps[2][None], st.rest[None])
-            lying = BodyParams(shape=torch.from_numpy(st.shape)[None], root_rotation=st.root_aa[None],
-                               root_translation=st.shift[None].clone(), pose=self._pose([st]))
+            caps, lying = _lying(st, st.root_aa[None], self._pose([st]))
             sat, seat = sit_up(caps, lying, bed, self.mat, pitch=st.pitch, keep_thighs=False)
             ok = float(seat[0]) <= SEAT_TOLERANCE_M
             if ok and self.config.over_bed:
@@ -866,6 +861,13 @@ class PoseSampler:
             config=self.config,
             backend=self.model.name,
         )
+
+
+def _lying(st: _State, root_aa: torch.Tensor, pose: torch.Tensor) -> tuple[Capsules, BodyParams]:
+    """A sample's capsules and its pose lying flat (pelvis over the bed, height 0), batch of 1."""
+    caps = Capsules(st.caps[0][None], st.caps[1][None], st.caps[2][None], st.rest[None])
+    return caps, BodyParams(shape=torch.from_numpy(st.shape)[None], root_rotation=root_aa,
+                            root_translation=st.shift[None].clone(), pose=pose)
 
 
 def _draw_schedule(budget: int) -> np.ndarray:

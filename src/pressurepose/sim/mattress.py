@@ -77,21 +77,18 @@ class MattressParams:
         return {f.name: _scalar(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
     def save(self, path: str | os.PathLike) -> None:
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps({"format": "pressurepose.mattress/1", "params": self.to_dict()}, indent=2) + "\n")
-        os.replace(tmp, path)
+        from pressurepose.files import atomic_write
+
+        text = json.dumps({"format": "pressurepose.mattress/1", "params": self.to_dict()}, indent=2) + "\n"
+        atomic_write(Path(path), lambda tmp: Path(tmp).write_text(text))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "MattressParams":
+        from pressurepose.files import read_json
+
         path = Path(path)
-        try:
-            doc = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise ValueError(f"mattress parameter file {path} does not exist") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"mattress parameter file {path} is not readable JSON ({exc}); "
-                             "write one with `pressurepose calibrate` or MattressParams.save") from None
+        doc = read_json(path, "mattress parameter file",
+                        "; write one with `pressurepose calibrate` or MattressParams.save")
         if not isinstance(doc, dict) or doc.get("format") != "pressurepose.mattress/1" or not isinstance(doc.get("params"), dict):
             raise ValueError(f"{path} is not a pressurepose mattress parameter file "
                              "(expected {'format': 'pressurepose.mattress/1', 'params': {...}})")

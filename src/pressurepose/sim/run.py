@@ -65,9 +65,7 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
         return _simulate_one_bed(model, params, mattress, mat, seed, beds[0])
     parts, order = [], []
     for k, (b, rows) in enumerate(groups.items()):
-        idx = torch.tensor(rows)
-        sub = BodyParams(**{f: getattr(params, f)[idx] for f in ("shape", "root_rotation", "root_translation", "pose")})
-        parts.append(_simulate_one_bed(model, sub, mattress, mat, seed + 7919 * k, b))
+        parts.append(_simulate_one_bed(model, params.index(torch.tensor(rows)), mattress, mat, seed + 7919 * k, b))
         order += rows
     back = torch.from_numpy(np.argsort(np.array(order)))
     return _concat(parts, back)
@@ -78,8 +76,7 @@ def _concat(parts: list[SimulatedSamples], back: torch.Tensor) -> SimulatedSampl
     concatenation)."""
     cat_t = lambda name: torch.cat([getattr(p, name) for p in parts])[back]  # noqa: E731
     cat_n = lambda name: np.concatenate([getattr(p, name) for p in parts])[back.numpy()]  # noqa: E731
-    params = BodyParams(**{f: torch.cat([getattr(p.params, f) for p in parts])[back]
-                           for f in ("shape", "root_rotation", "root_translation", "pose")})
+    params = BodyParams.cat([p.params for p in parts]).index(back)
     reason = [r for p in parts for r in p.reason]
     return SimulatedSamples(
         params=params, vertices=cat_t("vertices"), joints=cat_t("joints"), pressure_mmhg=cat_t("pressure_mmhg"),

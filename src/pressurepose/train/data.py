@@ -98,8 +98,9 @@ class NpzDataset(TensorDictDataset):
         super().__init__(arrays)
 
 
-def open_dataset(root: str | Path, split: str = "train") -> torch.utils.data.Dataset:
-    """The training samples under `root`: generated shards (manifest.json) or *.npz files."""
+def open_dataset(root: str | Path, split: str = "train", extra_columns: tuple[str, ...] = ()) -> torch.utils.data.Dataset:
+    """The training samples under `root`: generated shards (manifest.json) or *.npz files.
+    `extra_columns`: further shard columns to load (e.g. "partition"; .npz files have none)."""
     root = Path(root)
     if not root.exists():
         raise ValueError(f"no dataset at {root}")
@@ -112,7 +113,7 @@ def open_dataset(root: str | Path, split: str = "train") -> torch.utils.data.Dat
             raise ValueError(f"{root} holds dataset shards, but this install cannot read them "
                              "(pressurepose.data.dataset missing)") from None
         columns = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose",
-                   "joints_m", "gender", "mass_kg", "height_m")
+                   "joints_m", "gender", "mass_kg", "height_m") + tuple(extra_columns)
         return PressurePoseDataset(root, split=split, columns=columns)
     files = sorted(root.glob("*.npz"))
     if not files:

@@ -104,8 +104,7 @@ def posed_vertices(model, params, batch: int = 16) -> np.ndarray:
     out = []
     with torch.no_grad():
         for i in range(0, params.batch_size, batch):
-            chunk = type(params)(**{k: getattr(params, k)[i:i + batch].to(model.dtype)
-                                    for k in ("shape", "root_rotation", "root_translation", "pose")})
+            chunk = params.index(slice(i, i + batch)).to(model.dtype)
             out.append(model(chunk).vertices.cpu().numpy())
     return np.concatenate(out)
 
