@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/pressurepose demo --out out/demo
+	$(BIN)/pressurepose pose --out out/demo/pose
 	$(BIN)/pressurepose sample --out out/demo/sample --n 96 --partition general
 	$(BIN)/pressurepose simulate --out out/demo/simulate --partition supine --gender male --index 3
 	$(BIN)/pressurepose generate --out out/demo/data --preset tiny

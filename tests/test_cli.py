@@ -19,8 +19,8 @@ def test_help_lists_subcommands():
         assert command in r.stdout
 
 
-def test_demo_writes_png_and_json(tmp_path):
-    assert main(["demo", "--out", str(tmp_path / "d")]) == 0
+def test_pose_writes_png_and_json(tmp_path):
+    assert main(["pose", "--out", str(tmp_path / "d")]) == 0
     png = (tmp_path / "d" / "body.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     record = json.loads((tmp_path / "d" / "body.json").read_text())
@@ -31,11 +31,11 @@ def test_demo_writes_png_and_json(tmp_path):
 
 
 def test_user_errors_exit_2_without_traceback(tmp_path):
-    r = run("demo", "--backend", "smpl", "--smpl-dir", str(tmp_path))
+    r = run("pose", "--backend", "smpl", "--smpl-dir", str(tmp_path))
     assert r.returncode == 2
     assert "Traceback" not in r.stderr
     assert "SMPL_NEUTRAL.npz or .pkl not found" in r.stderr
-    r = run("demo", "--backend", "star")
+    r = run("pose", "--backend", "star")
     assert r.returncode == 2 and "Traceback" not in r.stderr
 
 

@@ -21,16 +21,27 @@ from pressurepose.eval.real import RealEvalConfig
 from pressurepose.eval.report import EvaluateConfig
 from pressurepose.generate.plan import GenerateConfig
 from pressurepose.net.predict import PredictConfig
+from pressurepose.pose_figure import PoseConfig
 from pressurepose.sampling.run import SampleConfig
 from pressurepose.sim.run import SimulateConfig
 from pressurepose.train.config import TrainConfig
 
 
 def demo(cfg: DemoConfig) -> None:
-    """Run the main job on embedded defaults: pose a body lying on the mat and write a PNG."""
+    """The whole system on embedded defaults: simulate fresh samples, estimate their bodies with
+    the packaged network, run it on real PmatData recordings; report.md in --out."""
     from pressurepose.demo import run_demo
 
     paths = run_demo(cfg)
+    print(Path(paths["markdown"]).read_text())
+    print(f"demo report: {paths['markdown']}")
+
+
+def pose(cfg: PoseConfig) -> None:
+    """Pose the body model's default adult supine on the mat and draw it (body.png, body.json)."""
+    from pressurepose.pose_figure import run_pose
+
+    paths = run_pose(cfg)
     print(f"wrote {paths['png']} and {paths['json']}")
 
 
@@ -191,13 +202,13 @@ def import_original(files: tyro.conf.Positional[list[Path]], out: Path = Path("o
     print(f"{json.loads(path.read_text())['total']} samples from {len(files)} files -> {out}")
 
 
-def import_pmatdata(pmatdata: Path = Path("../shared/data/pmatdata"), out: Path = Path("out/pmatdata.npz"),
+def import_pmatdata(pmatdata: Path = Path("pmatdata"), out: Path = Path("out/pmatdata.npz"),
                     groups: str | None = None, mattress: str | None = None, threshold: float = 20.0) -> None:
     """Convert PmatData (PhysioNet) frames into one .npz of 64 x 27 mmHg images (row 0 at the
     head) with their subject, posture and mattress, ready for `predict`.
 
     Args:
-        pmatdata: PmatData folder (index.csv, experiment-ii/).
+        pmatdata: PmatData folder (index.csv, experiment-ii/); "pmatdata" = the packaged copy of experiment II.
         out: .npz file to write.
         groups: posture groups to keep, e.g. BCD (default: all).
         mattress: air or sponge (default: both).
@@ -210,7 +221,7 @@ def import_pmatdata(pmatdata: Path = Path("../shared/data/pmatdata"), out: Path 
 
 
 COMMANDS = {
-    "demo": demo, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
+    "demo": demo, "pose": pose, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
     "import-original": import_original, "import-pmatdata": import_pmatdata, "calibrate": calibrate,
     "coregister": coregister, "cache": cache,
     "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real,

@@ -105,7 +105,9 @@ def import_pmatdata(root: str | Path, out: str | Path, groups: str | None = None
     groups: posture groups to keep (e.g. "BCD"; default all); mattress: air or sponge (default
     both). Returns counts."""
     from pressurepose.files import atomic_write
+    from pressurepose.samples import resolve_pmatdata
 
+    root = resolve_pmatdata(root)
     records = load_index(root)
     if groups is not None:
         records = [r for r in records if r.group in groups]

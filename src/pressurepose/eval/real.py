@@ -38,10 +38,10 @@ GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (R
 class RealEvalConfig:
     """Run a trained network on PmatData experiment II and compare with what is known."""
 
-    model: Path
-    """Run folder of `pressurepose train`."""
-    pmatdata: Path = Path("../shared/data/pmatdata")
-    """PmatData folder (index.csv, experiment-ii/)."""
+    model: Path = Path("default")
+    """Run folder of `pressurepose train`; "default" = the packaged model."""
+    pmatdata: Path = Path("pmatdata")
+    """PmatData folder (index.csv, experiment-ii/); "pmatdata" = the packaged copy of experiment II."""
     out: Path = Path("out/evaluate-real")
     """Report folder: real.md, real.json, real.png."""
     groups: str = "BCD"
@@ -71,7 +71,10 @@ def posture_of(roll: torch.Tensor) -> list[str]:
 def run_evaluate_real(cfg: RealEvalConfig) -> dict[str, Path]:
     from pressurepose.data.pmatdata import load_images, load_index
     from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
+    from pressurepose.samples import resolve_pmatdata
     from pressurepose.train.checkpoint import load_network
+
+    cfg = dataclasses.replace(cfg, pmatdata=resolve_pmatdata(cfg.pmatdata))
 
     groups = [g for g in cfg.groups if g in GROUP_POSTURE]
     if not groups or len(groups) != len(cfg.groups):

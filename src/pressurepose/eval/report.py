@@ -42,10 +42,10 @@ PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
 class EvaluateConfig:
     """Evaluate a trained network (seed B.4, Table 5) on a dataset."""
 
-    model: Path
-    """Run folder of `pressurepose train` (model.safetensors + config.json)."""
     data: Path
     """Dataset folder (generated shards with manifest.json, or .npz files)."""
+    model: Path = Path("default")
+    """Run folder of `pressurepose train` (model.safetensors + config.json); "default" = the packaged model."""
     out: Path = Path("out/evaluate")
     """Report folder: report.md, report.json, cases.png, failures.png."""
     split: str = "test"

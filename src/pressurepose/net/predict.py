@@ -35,7 +35,7 @@ class PredictConfig:
     Args:
         files: pressure images: .npy / .npz (mmHg, (64, 27) or (N, 64, 27)), .parquet dataset
             shards, .csv / .txt PmatData-like frames (64 lines of 27, row 0 at the foot end).
-        model: a `pressurepose train` run folder (model.safetensors).
+        model: a `pressurepose train` run folder (model.safetensors); "default" = the packaged model.
         out: output folder.
         gender: the subject's gender, if the network takes it (unknown = 0.5 on Anny's scale).
         height_m: the subject's height, for networks trained with height and mass inputs.
@@ -49,7 +49,7 @@ class PredictConfig:
     """
 
     files: tyro.conf.Positional[tuple[Path, ...]] = ()
-    model: Path = Path("out/train")
+    model: Path = Path("default")
     out: Path = Path("out/predict")
     gender: Literal["female", "male", "unknown"] = "unknown"
     height_m: float | None = None

@@ -75,10 +75,13 @@ def _strip(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Ten
 
 
 def read_model(run: Path) -> tuple[dict[str, torch.Tensor], dict]:
-    """(weights, config record) of a run's model.safetensors."""
-    tensors, meta = _load(Path(run) / MODEL_FILE)
+    """(weights, config record) of a run's model.safetensors; run "default" is the packaged model."""
+    from pressurepose.models import resolve_model
+
+    run = resolve_model(run)
+    tensors, meta = _load(run / MODEL_FILE)
     if meta.get("format") != FORMAT or "config" not in meta:
-        raise ValueError(f"{Path(run) / MODEL_FILE} is not a pressurepose network file")
+        raise ValueError(f"{run / MODEL_FILE} is not a pressurepose network file")
     return _strip(tensors, "model/"), json.loads(meta["config"])
 
 

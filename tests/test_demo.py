@@ -1,0 +1,56 @@
+"""Embedded defaults: the packaged PmatData copy, the default-model lookup, `pressurepose demo`'s
+report, and its bad inputs."""
+
+import hashlib
+import subprocess
+import sys
+
+import pytest
+
+from pressurepose.data.pmatdata import load_index
+from pressurepose.models import DEFAULT, resolve_model
+from pressurepose.samples import pmatdata_dir, resolve_pmatdata
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "pressurepose.cli", *args], capture_output=True, text=True)
+
+
+def test_packaged_pmatdata_matches_the_published_sums():
+    root = pmatdata_dir()
+    sums = [line.split() for line in (root / "SHA256SUMS.txt").read_text().splitlines() if line.strip()]
+    listed = {name.lstrip("*") for _, name in sums}
+    assert len(sums) >= 465
+    for digest, name in sums:
+        path = root / name.lstrip("*")
+        if path.is_file():  # the sums cover experiment I too; the copy holds experiment II
+            assert hashlib.sha256(path.read_bytes()).hexdigest() == digest, name
+    frames = sorted(p.relative_to(root).as_posix() for p in (root / "experiment-ii").rglob("*.txt"))
+    assert len(frames) == 465 and set(frames) <= listed
+    records = load_index(root)
+    assert len(records) == 465 and all(r.path.is_file() for r in records)
+    assert "Open Data Commons Attribution" in (root / "README.md").read_text()
+
+
+def test_names_resolve_to_packaged_files_unless_a_path_exists(tmp_path, monkeypatch):
+    assert resolve_pmatdata("pmatdata") == pmatdata_dir()
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pmatdata").mkdir()
+    assert resolve_pmatdata("pmatdata").resolve() == (tmp_path / "pmatdata").resolve()  # a real folder wins
+    (tmp_path / DEFAULT).mkdir()
+    assert resolve_model(DEFAULT).resolve() == (tmp_path / DEFAULT).resolve()
+    assert resolve_model(tmp_path / "run") == tmp_path / "run"
+
+
+def test_missing_default_model_is_a_clear_error(tmp_path, monkeypatch):
+    import pressurepose.models as models
+
+    monkeypatch.setattr(models, "_HERE", tmp_path)
+    with pytest.raises(ValueError, match="no default model in this installation"):
+        resolve_model(DEFAULT)
+
+
+def test_demo_bad_model_exits_2_before_simulating(tmp_path):
+    r = run("demo", "--out", str(tmp_path / "d"), "--model", str(tmp_path / "nowhere"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "model.safetensors" in r.stderr and not (tmp_path / "d" / "data").exists()
