@@ -147,11 +147,20 @@ def evaluate(cfg: EvaluateConfig) -> None:
 
 def evaluate_real(cfg: RealEvalConfig) -> None:
     """Run a trained network on PmatData's real recordings: posture accuracy from the estimated
-    root, estimated height and mass against the subjects', per mattress (real.md, real.png)."""
+    root, estimated height and mass against the subjects', per mattress (real.md, real.png);
+    with --data FILE.npz (import-pressurepose-real), 3DVPE against its point clouds per
+    participant."""
     from pressurepose.eval.real import run_evaluate_real
 
     paths = run_evaluate_real(cfg)
     record = json.loads(paths["json"].read_text())
+    if record.get("kind") == "point-cloud":
+        o = record["overall"]
+        extra = (f", height MAE {o['height_mae_m'] * 100:.1f} cm, mass MAE {o['mass_mae_kg']:.1f} kg"
+                 if "height_mae_m" in o else "")
+        print(f"{record['frames']} frames of {o['participants']} participants: 3DVPE {o['vpe_m'] * 100:.2f} cm"
+              f"{extra} -> {paths['markdown']}")
+        return
     parts = [f"{k}: posture {v['posture_accuracy'] * 100:.0f}%, height MAE {v['height_mae_m'] * 100:.1f} cm, "
              f"mass MAE {v['mass_mae_kg']:.1f} kg" for k, v in record["by_mattress"].items()]
     print(f"{record['frames']} frames; " + "; ".join(parts) + f" -> {paths['markdown']}")
@@ -220,9 +229,63 @@ def import_pmatdata(pmatdata: Path = Path("pmatdata"), out: Path = Path("out/pma
     print(f"{res['frames']} frames of {res['subjects']} subjects -> {res['out']}")
 
 
+def import_pressurepose_real(src: tyro.conf.Positional[Path], out: Path = Path("out/pressurepose_real.npz"),
+                             pose_sets: tuple[Literal["prescribed", "p_select"], ...] = ("prescribed", "p_select"),
+                             pressure: Literal["release", "weight", "stored"] = "release", bed_angle_deg: float = 0.0,
+                             head_x_m: float = 64 * 0.0286 * 1.04, col0_y_m: float = 0.0,
+                             mattress_z_m: float = 0.075) -> None:
+    """Convert the original PressurePose real dataset (participant folders S103 ... of Python 2
+    pickles) into one .npz: 64 x 27 mmHg images (row 0 at the head), participant, gender,
+    height, mass, bed angle, and the Kinect point clouds in the mat frame, for `predict` and
+    `evaluate-real --data`. Only numpy arrays and plain containers are accepted from the pickles.
+
+    Args:
+        src: The release's real/ folder (or one participant's folder).
+        out: .npz file to write.
+        pose_sets: prescribed (48 poses) and/or p_select (5 participant-selected poses).
+        pressure: release (x4, the release's bed-sheet factor), weight (summed force = the
+            participant's weight) or stored; all clipped at 100 mmHg.
+        bed_angle_deg: Head-of-bed angle to record (the release evaluates its real frames flat).
+        head_x_m: Cloud frame: the head edge of the sensing area along the cloud's axis 0 (m).
+        col0_y_m: Cloud frame: the column-0 edge along the cloud's axis 1 (m).
+        mattress_z_m: Cloud frame: the mattress top along the cloud's (downward) axis 2 (m).
+    """
+    from pressurepose.data.pressurepose_real import CloudFrame
+    from pressurepose.data.pressurepose_real import import_pressurepose_real as run
+
+    res = run(src, out, tuple(pose_sets), pressure, bed_angle_deg, CloudFrame(head_x_m, col0_y_m, mattress_z_m))
+    print(f"{res['frames']} frames of {res['participants']} participants ({res['points']} cloud points) -> {res['out']}")
+
+
+def import_slp(slp: tyro.conf.Positional[Path], out: Path = Path("out/slp.npz"),
+               covers: tuple[Literal["uncover", "cover1", "cover2"], ...] = ("uncover", "cover1", "cover2"),
+               subjects: list[int] | None = None, calibration: Literal["weight", "pmcali"] = "weight",
+               pitch_m: float = 0.01, head_row: Literal["first", "last"] = "first", flip_columns: bool = False) -> None:
+    """Convert SLP pressure maps (danaLab/NNNNN/PMarray/COVER/NNNNNN.npy, 192 x 84 at 1 cm)
+    into one .npz of 64 x 27 mmHg images on the BT3510 grid (area resampling, row 0 at the
+    head) with subject, cover, frame, gender, height and mass, ready for `predict`.
+
+    Args:
+        slp: SLP's danaLab folder (physiqueData.npy and the subject folders).
+        out: .npz file to write.
+        covers: Cover conditions to import.
+        subjects: Subject numbers (default: all found).
+        calibration: weight (summed force on our grid = the subject's weight) or pmcali
+            (PMarray x PMcali.npy, taken as kPa).
+        pitch_m: SLP taxel pitch (m).
+        head_row: Which stored row is at the head end.
+        flip_columns: Mirror the columns.
+    """
+    from pressurepose.data.slp import import_slp as run
+
+    res = run(slp, out, tuple(covers), subjects, calibration, pitch_m, head_row, flip_columns)
+    print(f"{res['frames']} frames of {res['subjects']} subjects -> {res['out']}")
+
+
 COMMANDS = {
     "demo": demo, "pose": pose, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
-    "import-original": import_original, "import-pmatdata": import_pmatdata, "calibrate": calibrate,
+    "import-original": import_original, "import-pmatdata": import_pmatdata,
+    "import-pressurepose-real": import_pressurepose_real, "import-slp": import_slp, "calibrate": calibrate,
     "coregister": coregister, "cache": cache,
     "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real,
 }

@@ -1,4 +1,5 @@
-"""Estimation on real recordings: PmatData experiment II (issue 9, seed A.8).
+"""Estimation on real recordings: PmatData experiment II (issue 9, seed A.8); with `data`, an
+imported real set with point clouds (3DVPE per participant, `eval.real_cloud`).
 
 Real frames have no 3D labels, but PmatData knows each subject's posture (supine / left /
 right lateral), height and weight. `pressurepose evaluate-real` runs a trained network on
@@ -28,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.eval.metrics import CAMERA_M
 from pressurepose.files import atomic_write
 
 POSTURES = ("supine", "left", "right", "prone")
@@ -49,6 +51,13 @@ class RealEvalConfig:
     threshold: float = 20.0
     """Raw noise threshold of the frames' normalisation (data README)."""
     batch: int = 32
+    data: Path | None = None
+    """An imported real-data .npz with point clouds (`import-pressurepose-real`): instead of
+    PmatData, report 3DVPE against the clouds per participant and height / mass errors."""
+    voxel_m: float = 0.01
+    """Voxel size of the clouds' downsampling before 3DVPE (--data; 1 cm as released)."""
+    camera_m: tuple[float, float, float] = CAMERA_M
+    """Camera position in the mat frame for the camera-facing vertices (--data; metrics.CAMERA_M)."""
 
 
 def roll_deg(root_rotation: torch.Tensor) -> torch.Tensor:
@@ -69,6 +78,12 @@ def posture_of(roll: torch.Tensor) -> list[str]:
 
 
 def run_evaluate_real(cfg: RealEvalConfig) -> dict[str, Path]:
+    if cfg.data is not None:
+        from pressurepose.eval.real_cloud import run_evaluate_cloud
+
+        if not cfg.voxel_m > 0:
+            raise ValueError(f"voxel size must be > 0 m, got {cfg.voxel_m}")
+        return run_evaluate_cloud(cfg)
     from pressurepose.data.pmatdata import load_images, load_index
     from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
     from pressurepose.samples import resolve_pmatdata
