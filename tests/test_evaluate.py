@@ -130,3 +130,58 @@ def test_report_on_a_generated_dataset_has_partitions_and_baselines(tiny, tmp_pa
     assert [e["partition"] for e in record["by_partition"]] == ["supine"]
     assert record["by_partition"][0]["seed_synth_vpe_cm"] == 3.40
     assert set(record["baselines_vpe_m"]) == {"mean_body", "nearest_image"}  # from the train split
+
+
+def test_evaluate_real_3dvpe_against_point_clouds_per_participant(tiny, tmp_path):
+    """Clouds made from the network's own estimate (its camera-facing vertices): participant A's
+    are exact, B's lifted 5 cm - A's 3DVPE is millimetres, B's about the lift."""
+    from pressurepose.cli import main
+    from pressurepose.eval.metrics import camera_facing
+    from pressurepose.net.inputs import read_pressure_file
+    from pressurepose.net.model import NetInputs
+    from pressurepose.train.checkpoint import load_network
+
+    root, run = tiny
+    images = read_pressure_file(root / "test" / "test.npz")[:4]
+    gender = np.array(["female", "male", "female", "male"])
+    height, mass = np.array([1.6, 1.8, 1.7, 1.75]), np.array([60.0, 85.0, 70.0, 80.0])
+    net, _ = load_network(run)
+    with torch.no_grad():
+        est = net(NetInputs(torch.from_numpy(images), gender=torch.tensor([1.0, 0.0, 1.0, 0.0]),
+                            height_m=torch.tensor(height, dtype=torch.float32),
+                            mass_kg=torch.tensor(mass, dtype=torch.float32)), mesh=True, maps=False)[-1]
+        mask, _ = camera_facing(est.vertices, net.faces)
+    lift = 0.05
+    clouds = [est.vertices[i][mask[i]].numpy() + (np.array([0, 0, lift]) if i >= 2 else 0) for i in range(4)]
+    data = tmp_path / "real.npz"
+    np.savez(data, pressure_mmhg=images, subject=np.array(["A", "A", "B", "B"]), gender=gender, height_m=height,
+             mass_kg=mass, cloud_points=np.concatenate(clouds).astype(np.float32),
+             cloud_offsets=np.concatenate([[0], np.cumsum([len(c) for c in clouds])]))
+    out = tmp_path / "report"
+    assert main(["evaluate-real", "--model", str(run), "--data", str(data), "--out", str(out), "--batch", "3"]) == 0
+    record = json.loads((out / "real.json").read_text())
+    a, b = record["by_participant"]["A"], record["by_participant"]["B"]
+    assert a["frames"] == b["frames"] == 2 and record["frames"] == 4
+    assert a["vpe_m"] < 0.006  # only the 1 cm voxel averaging separates them
+    # Never more than the lift (each point's lifted twin is `lift` away; + the voxel averaging),
+    # less on the body's sloping sides, where the nearest lifted point is closer.
+    assert 0.4 * lift < b["vpe_m"] < lift + 0.006 and b["vpe_m"] > 5 * a["vpe_m"]
+    o = record["overall"]
+    assert o["vpe_m"] == pytest.approx((a["vpe_m"] + b["vpe_m"]) / 2)
+    assert o["vpe_m_over_frames"] == pytest.approx(np.mean([r["vpe_m"] for r in record["per_frame"]]))
+    # Height and mass from the estimated shape against the participants' values.
+    rows = record["per_frame"]
+    assert o["height_mae_m"] == pytest.approx(np.mean([abs(r["estimated_height_m"] - r["height_m"]) for r in rows]))
+    assert [r["height_m"] for r in rows] == pytest.approx(height.tolist())
+    assert "| A | 2 |" in (out / "real.md").read_text() and (out / "real.png").read_bytes()[:4] == b"\x89PNG"
+    # A file without clouds, or with offsets that do not fit, is refused in one line.
+    np.savez(data, pressure_mmhg=images, subject=np.array(["A"] * 4))
+    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "evaluate-real", "--model", str(run), "--data",
+                        str(data), "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert r.returncode == 2 and "missing arrays ['cloud_points', 'cloud_offsets']" in r.stderr
+    np.savez(data, pressure_mmhg=images, subject=np.array(["A"] * 4), cloud_points=np.zeros((3, 3)),
+             cloud_offsets=np.array([0, 1, 1, 2, 3]))
+    with pytest.raises(ValueError, match="every frame with at least one point"):
+        from pressurepose.eval.real import RealEvalConfig, run_evaluate_real
+
+        run_evaluate_real(RealEvalConfig(model=run, data=data, out=tmp_path / "o"))
