@@ -66,7 +66,10 @@ def _load_dict(path: Path, what: str) -> dict:
         data = path.read_bytes()
     except FileNotFoundError:
         raise ValueError(f"no {what} at {path}") from None
-    doc = load_restricted(data)
+    try:
+        doc = load_restricted(data)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: expected a dict ({what}), got {type(doc).__name__}")
     return {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in doc.items()}
@@ -123,7 +126,7 @@ def read_pose_set(folder: Path, pose_set: str) -> dict:
         raise ValueError(f"{path}: missing keys {missing}; a PressurePose real file holds images, pc, pose_type, "
                          "pmat_corners, RGB, depth")
     frames, clouds = doc["images"], doc["pc"]
-    if not isinstance(frames, (list, tuple)) or not isinstance(clouds, (list, tuple)):
+    if not isinstance(frames, (list, tuple, np.ndarray)) or not isinstance(clouds, (list, tuple)):
         raise ValueError(f"{path}: 'images' and 'pc' must be per-frame lists")
     n = len(frames)
     if len(clouds) != n:
