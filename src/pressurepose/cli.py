@@ -282,12 +282,33 @@ def import_slp(slp: tyro.conf.Positional[Path], out: Path = Path("out/slp.npz"),
     print(f"{res['frames']} frames of {res['subjects']} subjects -> {res['out']}")
 
 
+def view(path: tyro.conf.Positional[Path], port: int = 8765, open: bool = True, data: Path | None = None,
+         backend: Literal["anny", "smpl"] | None = None, smpl_dir: Path | None = None) -> None:
+    """Browse samples and predictions in a local web page on 127.0.0.1: pressure images, true
+    and estimated 3D bodies, joint errors, training curves (docs/viewer.md). Ctrl-C stops it.
+
+    Args:
+        path: Dataset folder (manifest.json), `evaluate` report folder, training run folder, or a
+            .npz of pressure images (import-pmatdata).
+        port: Port on 127.0.0.1 (0: any free port).
+        open: Open the page in the default web browser.
+        data: Dataset of a report or run, when the path recorded in it is not found.
+        backend: Body model (default: the dataset's or run's, else anny).
+        smpl_dir: Folder with the SMPL files for --backend smpl.
+    """
+    from pressurepose.viz.viewer import ViewConfig, serve
+
+    cfg = ViewConfig(path=path, port=port, open=open, data=data, backend=backend, smpl_dir=smpl_dir)
+    serve(cfg, ready=lambda url: print(f"viewing {path} at {url} (Ctrl-C stops)", flush=True))
+    print("viewer stopped")
+
+
 COMMANDS = {
     "demo": demo, "pose": pose, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
     "import-original": import_original, "import-pmatdata": import_pmatdata,
     "import-pressurepose-real": import_pressurepose_real, "import-slp": import_slp, "calibrate": calibrate,
     "coregister": coregister, "cache": cache,
-    "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real,
+    "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real, "view": view,
 }
 
 

@@ -5,7 +5,8 @@ orientation error, height and mass error, and the joint error per body region. T
 partition and per gender in the layout of seed Table 5 with the seed's synthetic 3DVPE beside
 ours, overall numbers, two baselines that give every number its context - the training set's
 mean body, and the body of the nearest training pressure image - and figures of the best,
-median and worst cases plus a gallery of failures. Written as report.md, report.json and PNGs.
+median and worst cases plus a gallery of failures. Written as report.md, report.json, PNGs and
+predictions.npz (the estimated body parameters, re-posed by `pressurepose view`).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ REGIONS = {
 }
 METRICS = ("vpe_m", "v2v_m", "mpjpe_m", "pa_mpjpe_m", "root_pos_m", "root_rot_deg", "height_err_m", "mass_err_kg")
 PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
+PREDICTIONS = "predictions.npz"  # the estimated BodyParams per sample (write_predictions)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,7 +49,7 @@ class EvaluateConfig:
     model: Path = Path("default")
     """Run folder of `pressurepose train` (model.safetensors + config.json); "default" = the packaged model."""
     out: Path = Path("out/evaluate")
-    """Report folder: report.md, report.json, cases.png, failures.png."""
+    """Report folder: report.md, report.json, cases.png, failures.png, predictions.npz."""
     split: str = "test"
     """Split evaluated (generated datasets); the train split feeds the baselines."""
     batch: int = 32
@@ -220,7 +222,7 @@ def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
             est_v = body(estimates.index([i])).vertices[0]
         return b["pressure_mmhg"][0].numpy(), true_v.numpy(), est_v.numpy()
 
-    return _write_report(cfg, rows, base_rows, case, body.faces.numpy(), seconds)
+    return _write_report(cfg, rows, base_rows, case, body.faces.numpy(), seconds, estimates)
 
 
 def _summary(values: list[float]) -> dict[str, float]:
@@ -244,8 +246,37 @@ def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
     return out
 
 
+def write_predictions(path: Path, estimates: BodyParams) -> Path:
+    """The estimated bodies of a report, for `pressurepose view` to re-pose: `index` (N,) the
+    samples' positions in the evaluated split (as `train.data.open_dataset(data, split)` lists
+    them; the first N when --limit is given), and the BodyParams fields as float32 arrays -
+    `shape` (N, S), `root_rotation` (N, 3) rad, `root_translation` (N, 3) m, `pose`
+    (N, 23, 3) rad. A plain .npz (no pickles)."""
+    arrays = {"index": np.arange(estimates.batch_size, dtype=np.int64)}
+    arrays.update({k: getattr(estimates, k).detach().cpu().numpy().astype(np.float32) for k in PARAM_KEYS})
+    return atomic_write(Path(path), lambda tmp: np.savez_compressed(tmp, **arrays))
+
+
+def read_predictions(path: Path) -> tuple[np.ndarray, BodyParams]:
+    """(index (N,), BodyParams (N, ...) float32) of a `predictions.npz`; ValueError if it is
+    not one."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{path} is not a readable predictions file ({exc}); re-run `pressurepose evaluate`") from None
+    missing = [k for k in ("index", *PARAM_KEYS) if k not in arrays]
+    if missing:
+        raise ValueError(f"{path} lacks arrays {missing}; re-run `pressurepose evaluate` to rewrite it")
+    index = arrays["index"].astype(np.int64)
+    params = BodyParams(**{k: torch.from_numpy(arrays[k].astype(np.float32)) for k in PARAM_KEYS})
+    if len({len(index), *(len(getattr(params, k)) for k in PARAM_KEYS)}) != 1:
+        raise ValueError(f"{path}: arrays of different lengths; re-run `pressurepose evaluate` to rewrite it")
+    return index, params
+
+
 def _write_report(cfg: EvaluateConfig, rows: dict, base: dict, case, faces: np.ndarray,
-                  seconds: float) -> dict[str, Path]:
+                  seconds: float, estimates: BodyParams) -> dict[str, Path]:
     from pressurepose.viz.evaluation import plot_cases
 
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -274,6 +305,7 @@ def _write_report(cfg: EvaluateConfig, rows: dict, base: dict, case, faces: np.n
         tmp, [(f"{k}: 3DVPE {vpe[i] * 100:.1f} cm", *case(i)) for k, i in picks.items()], faces))
     paths["failures"] = atomic_write(cfg.out / "failures.png", lambda tmp: plot_cases(
         tmp, [(f"#{i} {rows['partition'][i]}: {vpe[i] * 100:.1f} cm", *case(i)) for i in failures], faces))
+    paths["predictions"] = write_predictions(cfg.out / PREDICTIONS, estimates)
     paths["json"] = atomic_write(cfg.out / "report.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
     paths["markdown"] = atomic_write(cfg.out / "report.md", lambda tmp: Path(tmp).write_text(_markdown(record)))
     return paths
@@ -330,4 +362,5 @@ def _markdown(r: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["EvaluateConfig", "METRICS", "REGIONS", "SEED_SYNTH_VPE_CM", "run_evaluate"]
+__all__ = ["EvaluateConfig", "METRICS", "PREDICTIONS", "REGIONS", "SEED_SYNTH_VPE_CM", "read_predictions",
+           "run_evaluate", "write_predictions"]

@@ -1,0 +1,171 @@
+"""`pressurepose view PATH`: a local web viewer of samples and predictions.
+
+Python's standard library only on the server: a `ThreadingHTTPServer` bound to 127.0.0.1 that
+serves one static page (`viz/static/`, shipped as package data; it fetches nothing from the
+internet - the 3D view is plain WebGL written for it) and a small API over a
+`viz.view_data.Browser`:
+
+    GET /                       the page (viewer.html, viewer.js)
+    GET /api/info               what PATH is: kind, sample count, body model, curves, images
+    GET /api/list?offset=&limit=&order=   list entries (labels, 3DVPE / MPJPE where known)
+    GET /api/sample/<i>         pressure image (64 x 27 mmHg, row-major), labels, joints, errors
+    GET /api/mesh/<i>           float32 vertices of each layer (true, estimated), one after the
+                                other; headers X-Layers (names) and X-Vertices (per layer)
+    GET /api/faces              the body model's triangles, uint32 (F, 3), sent once
+    GET /files/<name>           metrics.png, cases.png, ... of PATH
+
+Errors come back as JSON {"error": message} with status 400/404/500.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import logging
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from urllib.parse import parse_qs, urlparse
+
+from pressurepose.viz.view_data import IMAGES, Browser
+
+log = logging.getLogger(__name__)
+
+STATIC = {"/": ("viewer.html", "text/html; charset=utf-8"),
+          "/viewer.js": ("viewer.js", "text/javascript; charset=utf-8")}
+MAX_LIST = 500  # list entries per request: the page pages through big datasets
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewConfig:
+    """Browse samples and predictions in a local web page."""
+
+    path: Path
+    """Dataset folder, `pressurepose evaluate` report folder, training run folder or .npz of images."""
+    port: int = 8765
+    """Port on 127.0.0.1 (0: any free port; the address is printed)."""
+    open: bool = True
+    """Open the page in the default web browser."""
+    data: Path | None = None
+    """Dataset of a report or run, when the path recorded in it is not found."""
+    backend: str | None = None
+    """Body model (default: the dataset's or run's, else anny)."""
+    smpl_dir: Path | None = None
+    """Folder with the SMPL files for backend smpl."""
+
+
+def static_file(name: str) -> bytes:
+    return resources.files("pressurepose.viz").joinpath("static", name).read_bytes()
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: "ViewerServer"
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, fmt, *args) -> None:  # the default writes every request to stderr
+        log.debug("%s " + fmt, self.address_string(), *args)
+
+    def _send(self, status: int, body: bytes, ctype: str, headers: dict | None = None) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        for k, v in (headers or {}).items():
+            self.send_header(k, v)
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _json(self, obj, status: int = 200) -> None:
+        self._send(status, json.dumps(obj, allow_nan=False).encode(), "application/json")
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+        url = urlparse(self.path)
+        route, query = url.path, parse_qs(url.query)
+        b = self.server.browser
+        try:
+            if route in STATIC:
+                name, ctype = STATIC[route]
+                self._send(200, static_file(name), ctype)
+            elif route == "/api/info":
+                self._json(b.info())
+            elif route == "/api/list":
+                offset = int(query.get("offset", ["0"])[0])
+                limit = min(MAX_LIST, int(query.get("limit", ["100"])[0]))
+                order = query.get("order", ["index"])[0]
+                ids = b.order(order)[offset:offset + limit]
+                entries = {e["i"]: e for e in b.labels(min(ids, default=0), max(ids, default=-1) + 1)} \
+                    if order == "index" else {i: b.labels(i, i + 1)[0] for i in ids}
+                self._json({"total": len(b), "offset": offset, "items": [entries[i] for i in ids]})
+            elif route.startswith("/api/sample/"):
+                self._json(b.sample(int(route.rsplit("/", 1)[1])))
+            elif route.startswith("/api/mesh/"):
+                layers, data = b.meshes(int(route.rsplit("/", 1)[1]))
+                n = len(data) // (12 * len(layers)) if layers else 0
+                self._send(200, data, "application/octet-stream", {"X-Layers": ",".join(layers), "X-Vertices": str(n)})
+            elif route == "/api/faces":
+                data = b.faces()
+                self._send(200, data, "application/octet-stream", {"X-Faces": str(len(data) // 12)})
+            elif route.startswith("/files/") and route[7:] in IMAGES and (b.path / route[7:]).is_file():
+                self._send(200, (b.path / route[7:]).read_bytes(), "image/png")
+            else:
+                self._json({"error": f"no such page: {route}"}, 404)
+        except (IndexError, KeyError) as exc:
+            self._json({"error": str(exc).strip("'\"")}, 404)
+        except ValueError as exc:  # bad numbers in the URL, a corrupt shard, ...
+            self._json({"error": str(exc)}, 400)
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # the page went away (next/previous clicked quickly)
+        except Exception as exc:  # a bug: keep serving, say what happened
+            log.exception("viewer request %s failed", self.path)
+            self._json({"error": f"{type(exc).__name__}: {exc}"}, 500)
+
+
+class ViewerServer(ThreadingHTTPServer):
+    """The viewer's HTTP server on 127.0.0.1; `url` after construction, `serve_forever()` to run."""
+
+    daemon_threads = True
+    allow_reuse_address = False  # a second viewer on the same port must fail, not share it
+
+    def __init__(self, browser: Browser, port: int = 8765) -> None:
+        if not 0 <= port <= 65535:
+            raise ValueError(f"--port must be in 0..65535, got {port}")
+        self.browser = browser
+        try:
+            super().__init__(("127.0.0.1", port), _Handler)
+        except OSError as exc:
+            if exc.errno in (errno.EADDRINUSE, errno.EACCES):
+                raise ValueError(f"port {port} on 127.0.0.1 is {'in use' if exc.errno == errno.EADDRINUSE else 'not allowed'}; "
+                                 "choose another with --port N (--port 0 picks a free one)") from None
+            raise
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.server_address[1]}/"
+
+
+def make_server(cfg: ViewConfig) -> ViewerServer:
+    """Open cfg.path (ValueError if it is none of what the viewer reads) and bind the server."""
+    browser = Browser(cfg.path, data=cfg.data, backend=cfg.backend, smpl_dir=cfg.smpl_dir)
+    return ViewerServer(browser, cfg.port)
+
+
+def serve(cfg: ViewConfig, ready=None) -> None:
+    """Run the viewer until Ctrl-C. `ready(url)` is called once the server listens."""
+    server = make_server(cfg)
+    if ready is not None:
+        ready(server.url)
+    if cfg.open:
+        import webbrowser
+
+        threading.Thread(target=webbrowser.open, args=(server.url,), daemon=True).start()
+    try:
+        server.serve_forever(poll_interval=0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()
+
+
+__all__ = ["ViewConfig", "ViewerServer", "make_server", "serve", "static_file"]
