@@ -204,7 +204,7 @@ def test_run_folder_shows_curves_and_predicts(folders, viewer):
     assert info["count"] == 0 and "--data" in info["note"] and info["metrics"] == rows
 
 
-def test_npz_of_images(tmp_path, viewer):
+def test_npz_of_images(folders, tmp_path, viewer):
     rng = np.random.default_rng(0)
     np.savez(tmp_path / "pmat.npz", pressure_mmhg=rng.uniform(0, 40, (3, 64, 27)).astype(np.float32),
              subject=np.array(["S1", "S2", "S3"]), posture=np.array(["supine", "left", "right"]), height_m=np.full(3, 1.7))
@@ -216,6 +216,14 @@ def test_npz_of_images(tmp_path, viewer):
     assert s["meta"]["subject"] == "S3" and s["joints_true"] is None
     np.testing.assert_allclose(np.reshape(s["pressure"], (64, 27)), np.load(tmp_path / "pmat.npz")["pressure_mmhg"][2],
                                atol=0.01)
+    # with --model, a run's network estimates the bodies of the images (no truth: no joint errors)
+    v = viewer(tmp_path / "pmat.npz", model=folders["run"])
+    assert v.json("api/info")["has_estimate"]
+    s = v.json("api/sample/0")
+    assert s["joint_errors_m"] is None and len(s["joints_est"]) == 24
+    assert list(vertices(v, 0)) == ["estimated"]
+    with pytest.raises(ValueError, match="not a training run"):
+        make_server(ViewConfig(path=tmp_path / "pmat.npz", port=0, model=tmp_path))
 
 
 def test_bad_paths_and_ports(folders, tmp_path, capsys):

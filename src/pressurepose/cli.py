@@ -283,7 +283,7 @@ def import_slp(slp: tyro.conf.Positional[Path], out: Path = Path("out/slp.npz"),
 
 
 def view(path: tyro.conf.Positional[Path], port: int = 8765, open: bool = True, data: Path | None = None,
-         backend: Literal["anny", "smpl"] | None = None, smpl_dir: Path | None = None) -> None:
+         model: Path | None = None, backend: Literal["anny", "smpl"] | None = None, smpl_dir: Path | None = None) -> None:
     """Browse samples and predictions in a local web page on 127.0.0.1: pressure images, true
     and estimated 3D bodies, joint errors, training curves (docs/viewer.md). Ctrl-C stops it.
 
@@ -293,12 +293,13 @@ def view(path: tyro.conf.Positional[Path], port: int = 8765, open: bool = True, 
         port: Port on 127.0.0.1 (0: any free port).
         open: Open the page in the default web browser.
         data: Dataset of a report or run, when the path recorded in it is not found.
+        model: Training run whose network estimates the bodies shown (datasets, .npz images).
         backend: Body model (default: the dataset's or run's, else anny).
         smpl_dir: Folder with the SMPL files for --backend smpl.
     """
     from pressurepose.viz.viewer import ViewConfig, serve
 
-    cfg = ViewConfig(path=path, port=port, open=open, data=data, backend=backend, smpl_dir=smpl_dir)
+    cfg = ViewConfig(path=path, port=port, open=open, data=data, model=model, backend=backend, smpl_dir=smpl_dir)
     serve(cfg, ready=lambda url: print(f"viewing {path} at {url} (Ctrl-C stops)", flush=True))
     print("viewer stopped")
 

@@ -111,7 +111,7 @@ class Browser:
     """The samples and predictions behind one PATH (see the module docstring)."""
 
     def __init__(self, path: Path, data: Path | None = None, backend: str | None = None,
-                 smpl_dir: Path | None = None, cache: int = 8) -> None:
+                 smpl_dir: Path | None = None, model: Path | None = None, cache: int = 8) -> None:
         path = Path(path)
         if not path.exists():
             raise ValueError(f"{path} does not exist; {HINT}")
@@ -149,6 +149,13 @@ class Browser:
                              "`pressurepose generate` command to finish it")
         else:
             raise ValueError(f"{path} is {'an empty folder' if path.is_dir() and not any(path.iterdir()) else 'none of what the viewer reads'}; {HINT}")
+        if model is not None:
+            if self.kind == "report":
+                raise ValueError("--model is for datasets, runs and .npz images; a report has its own estimates")
+            if not (Path(model) / "model.safetensors").is_file():
+                raise ValueError(f"--model {model} is not a training run folder (no model.safetensors)")
+            self._net_run = Path(model)
+            self.backend = self.backend or json.loads((Path(model) / "config.json").read_text())["train"]["backend"]
         if self.backend is None:
             manifest = getattr(self.dataset, "manifest", None)
             self.backend = (manifest or {}).get("config", {}).get("backend") or "anny"

@@ -50,6 +50,8 @@ class ViewConfig:
     """Open the page in the default web browser."""
     data: Path | None = None
     """Dataset of a report or run, when the path recorded in it is not found."""
+    model: Path | None = None
+    """Training run whose network estimates the bodies shown (datasets, .npz images)."""
     backend: str | None = None
     """Body model (default: the dataset's or run's, else anny)."""
     smpl_dir: Path | None = None
@@ -147,7 +149,7 @@ class ViewerServer(ThreadingHTTPServer):
 
 def make_server(cfg: ViewConfig) -> ViewerServer:
     """Open cfg.path (ValueError if it is none of what the viewer reads) and bind the server."""
-    browser = Browser(cfg.path, data=cfg.data, backend=cfg.backend, smpl_dir=cfg.smpl_dir)
+    browser = Browser(cfg.path, data=cfg.data, backend=cfg.backend, smpl_dir=cfg.smpl_dir, model=cfg.model)
     return ViewerServer(browser, cfg.port)
 
 

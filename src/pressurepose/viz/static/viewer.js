@@ -372,7 +372,7 @@ function lineChart(title, series) {
   const all = series.flatMap((s) => s.values.filter((v) => Number.isFinite(v)));
   if (!all.length) return;
   const n = Math.max(...series.map((s) => s.values.length));
-  const lo = Math.min(0, ...all), hi = Math.max(...all) * 1.05 || 1;
+  const lo = Math.min(0, ...all), hi = Math.max(...all) * 1.2 || 1;  // headroom for the legend
   const L = 44, R = 10, T = 10, B = 24, W = c.width - L - R, H = c.height - T - B;
   g.strokeStyle = "#999"; g.strokeRect(L, T, W, H);
   g.fillStyle = "#333"; g.font = "11px system-ui, sans-serif";
@@ -439,9 +439,12 @@ async function start() {
     if (info.has_truth || info.has_estimate) {
       initGL();
       upload("mat", ...matArrays());
-    } else {
+    } else {  // pressure images only: no 3D view and none of its controls
       $("gl").parentElement.style.display = "none";
+      for (const id of ["showTrue", "showEst", "side3d"]) $(id).parentElement.style.display = "none";
+      $("resetView").style.display = "none"; document.querySelector(".legend").style.display = "none";
     }
+    $("showTrue").disabled = !info.has_truth;
     $("prev").onclick = () => gotoPos(state.pos - 1);
     $("next").onclick = () => gotoPos(state.pos + 1);
     $("pgprev").onclick = () => gotoPos((state.page - 1) * PAGE);
