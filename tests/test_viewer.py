@@ -33,6 +33,10 @@ from pressurepose.train.data import synthetic_arrays, write_npz
 from pressurepose.train.loop import train
 from pressurepose.viz.viewer import ViewConfig, make_server
 
+# Every test shares the module's fixture (sim #2 samples, a smoke training run and its report):
+# ~15 s of CPU, more on a loaded machine.
+pytestmark = pytest.mark.slow
+
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium") or "/usr/bin/chromium", shutil.which("chromedriver") or "/usr/bin/chromedriver"
 
 
@@ -63,16 +67,16 @@ def write_dataset(root: Path, arrays: dict[str, torch.Tensor]) -> None:
 def folders(anny64, tmp_path_factory):
     """A dataset (test split), a smoke-trained run (on the same samples as a training .npz:
     the network's accuracy is not the point) and the run's evaluate report on the dataset
-    (no train split there, so no baselines: they would triple the report's time; 3 samples:
+    (no train split there, so no baselines: they would triple the report's time; 2 samples:
     its 3DVPE takes ~0.5 s a sample here)."""
     root = tmp_path_factory.mktemp("view")
-    arrays = synthetic_arrays(6, seed=2, body=anny64)
+    arrays = synthetic_arrays(4, seed=2, body=anny64)
     write_dataset(root / "data", arrays)
     (root / "train").mkdir()
     write_npz(root / "train" / "train.npz", arrays)
     run = train(TrainConfig.smoke(data=root / "train", out=root / "run", epochs=1, progress=False, val_fraction=0.2))
     run_evaluate(EvaluateConfig(model=run, data=root / "data", out=root / "report", batch=8, failures=1,
-                                limit=3))
+                                limit=2))
     return {"data": root / "data", "run": run, "report": root / "report", "root": root, "n": len(arrays["shape"])}
 
 
@@ -162,26 +166,30 @@ def test_dataset_is_listed_without_reading_samples(folders, viewer, anny32):
     ds = v.server.browser.dataset
     info = v.json("api/info")
     assert (info["kind"], info["count"], info["has_estimate"]) == ("dataset", len(ds), False)
-    page = v.json("api/list?offset=2&limit=3")
-    assert page["total"] == len(ds) and [e["i"] for e in page["items"]] == [2, 3, 4]
+    page = v.json("api/list?offset=1&limit=2")
+    assert page["total"] == len(ds) and [e["i"] for e in page["items"]] == [1, 2]
     full = v.json("api/list?limit=1000")["items"]
     assert len(ds._cache) == 0  # the list came from the manifest: no row group was read
     plain = PressurePoseDataset(folders["data"], columns=("split", "gender", "joints_m"))
     for e in full:
         assert (e["split"], e["gender"]) == (plain[e["i"]]["split"], plain[e["i"]]["gender"])
-    s = v.json("api/sample/3")
-    assert s["joint_errors_m"] is None and s["meta"]["gender"] == full[3]["gender"]
-    np.testing.assert_allclose(s["joints_true"], plain[3]["joints_m"].numpy(), atol=1e-4)
-    meshes = vertices(v, 3)
+    last = len(ds) - 1  # a male sample, in the second shard
+    s = v.json(f"api/sample/{last}")
+    assert s["joint_errors_m"] is None and s["meta"]["gender"] == full[last]["gender"] == "male"
+    np.testing.assert_allclose(s["joints_true"], plain[last]["joints_m"].numpy(), atol=1e-4)
+    meshes = vertices(v, last)
     assert list(meshes) == ["true"] and meshes["true"].shape == (anny32.num_vertices, 3)
     # the mesh is the body model's for the stored parameters: its joints are the stored joints
-    item = ds[3]
+    item = ds[last]
     params = BodyParams(**{k: item[k].float()[None] for k in ("shape", "root_rotation", "root_translation", "pose")})
     with torch.no_grad():
         np.testing.assert_allclose(meshes["true"], anny32(params).vertices[0].numpy(), atol=1e-5)
     assert v.status(f"api/sample/{len(ds)}")[0] == 404
     assert v.status("api/sample/x")[0] == 400
     assert v.status("files/../manifest.json")[0] == 404
+    rebound = urllib.request.Request(v.url + "api/info", headers={"Host": "evil.example:80"})
+    with pytest.raises(urllib.error.HTTPError, match="403"):
+        urllib.request.urlopen(rebound, timeout=30)
     assert v.get("")[0].startswith(b"<!doctype html>") and b"getContext(\"webgl\"" in v.get("viewer.js")[0]
 
 

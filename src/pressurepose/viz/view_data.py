@@ -128,7 +128,7 @@ class Browser:
         self.backend = backend
         self.smpl_dir = smpl_dir
         self._body = None
-        self._lock = threading.Lock()  # one body-model / network pass at a time
+        self._lock = threading.RLock()  # one body-model / network pass (or load) at a time
         self._cache: OrderedDict = OrderedDict()
         self._cache_size = cache
         if path.is_file():
@@ -217,12 +217,13 @@ class Browser:
 
     @property
     def body(self):
-        if self._body is None:
-            from pressurepose.body import load_body_model
+        with self._lock:
+            if self._body is None:
+                from pressurepose.body import load_body_model
 
-            options = {"model_dir": self.smpl_dir} if self.backend == "smpl" and self.smpl_dir else {}
-            self._body = load_body_model(self.backend or "anny", **options)
-        return self._body
+                options = {"model_dir": self.smpl_dir} if self.backend == "smpl" and self.smpl_dir else {}
+                self._body = load_body_model(self.backend or "anny", **options)
+            return self._body
 
     # --- answers -----------------------------------------------------------------------------
 

@@ -86,6 +86,11 @@ class _Handler(BaseHTTPRequestHandler):
         url = urlparse(self.path)
         route, query = url.path, parse_qs(url.query)
         b = self.server.browser
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
+        if host not in ("127.0.0.1", "localhost", "[::1]"):
+            # another site's page reaching this port through a rebound DNS name: not ours to serve
+            self._json({"error": f"the viewer answers to 127.0.0.1 or localhost, not {host!r}"}, 403)
+            return
         try:
             if route in STATIC:
                 name, ctype = STATIC[route]
