@@ -144,18 +144,25 @@ class Browser:
             self._open_run(path, data)
         elif path.is_dir() and any(path.glob("*.npz")):
             self.kind, self.dataset = "dataset", _open_samples(path, None)
+        elif path.is_dir() and (path / "real.json").is_file():
+            raise ValueError(f"{path} is an `evaluate-real` report (no bodies to show); view the PmatData images "
+                             "with `pressurepose import-pmatdata --out pmat.npz` and `pressurepose view pmat.npz --model RUN`")
         elif path.is_dir() and (path / "generate.json").is_file():
             raise ValueError(f"{path} holds an unfinished dataset (no manifest.json); re-run the same "
                              "`pressurepose generate` command to finish it")
         else:
             raise ValueError(f"{path} is {'an empty folder' if path.is_dir() and not any(path.iterdir()) else 'none of what the viewer reads'}; {HINT}")
         if model is not None:
+            from pressurepose.models import resolve_model
+            from pressurepose.train.checkpoint import read_model
+
             if self.kind == "report":
                 raise ValueError("--model is for datasets, runs and .npz images; a report has its own estimates")
-            if not (Path(model) / "model.safetensors").is_file():
+            run = resolve_model(model)  # "default": the packaged network
+            if not (run / "model.safetensors").is_file():
                 raise ValueError(f"--model {model} is not a training run folder (no model.safetensors)")
-            self._net_run = Path(model)
-            self.backend = self.backend or json.loads((Path(model) / "config.json").read_text())["train"]["backend"]
+            self._net_run = run
+            self.backend = self.backend or read_model(run)[1].get("net", {}).get("backend")
         if self.backend is None:
             manifest = getattr(self.dataset, "manifest", None)
             self.backend = (manifest or {}).get("config", {}).get("backend") or "anny"

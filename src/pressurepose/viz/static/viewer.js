@@ -281,7 +281,10 @@ function drawMeta(s) {
   }
   const jt = $("joints");
   jt.innerHTML = "";
-  if (!s.joint_errors_m) { jt.innerHTML = "<tr><td>no estimate for this sample</td></tr>"; return; }
+  if (!s.joint_errors_m) {
+    jt.innerHTML = `<tr><td>${s.joints_est ? "no true body to compare with" : "no estimate for this sample"}</td></tr>`;
+    return;
+  }
   const worst = Math.max(0.1, ...s.joint_errors_m);
   s.joint_errors_m.forEach((e, k) => {
     const tr = document.createElement("tr");
