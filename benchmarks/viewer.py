@@ -59,7 +59,8 @@ def main() -> None:
                     ("faces (body model already in memory)", *timed(u + "api/faces")),
                     ("sample 1 (first: read + pose)", *timed(u + "api/sample/1")),
                     ("mesh 1 (cached)", *timed(u + "api/mesh/1")),
-                    ("sample 2 + mesh 2 (first)", *[a + b for a, b in zip(timed(u + "api/sample/2"), timed(u + "api/mesh/2"))]),
+                    ("sample 2 + mesh 2 (first)",
+                     *[a + b for a, b in zip(timed(u + "api/sample/2"), timed(u + "api/mesh/2"))]),
                     ("sample 1 again (cached)", *timed(u + "api/sample/1"))]
             print(f"{kind} ({path.name}, {len(server.browser)} samples)")
             for name, ms, size in rows:

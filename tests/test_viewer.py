@@ -37,7 +37,8 @@ from pressurepose.viz.viewer import ViewConfig, make_server
 # ~15 s of CPU, more on a loaded machine.
 pytestmark = pytest.mark.slow
 
-CHROMIUM, CHROMEDRIVER = shutil.which("chromium") or "/usr/bin/chromium", shutil.which("chromedriver") or "/usr/bin/chromedriver"
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
 
 
 def write_dataset(root: Path, arrays: dict[str, torch.Tensor]) -> None:

@@ -16,7 +16,6 @@ or, for a training run, from its network run on the sample's pressure image on d
 from __future__ import annotations
 
 import json
-import logging
 import math
 import threading
 from collections import OrderedDict
@@ -27,8 +26,6 @@ import torch
 
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.params import BodyParams
-
-log = logging.getLogger(__name__)
 
 PARAM_KEYS = ("shape", "root_rotation", "root_translation", "pose")
 LABEL_KEYS = ("split", "partition", "gender", "over_bed", "index")
@@ -91,8 +88,7 @@ def _open_samples(data: Path, split: str | None):
             if not f.is_file() or f.stat().st_size != r["bytes"]:
                 raise ValueError(f"shard {f} is {'missing' if not f.is_file() else 'truncated or changed'}; re-run "
                                  "`pressurepose generate` with the same arguments to remake it")
-        columns = tuple(c for c in ("pressure_mmhg", "shape", "root_rotation", "root_translation", "pose", "joints_m",
-                                    "mass_kg", "height_m", "head_angle_deg", "settle_steps", "sink_mm")) + LABEL_KEYS
+        columns = ("pressure_mmhg", *PARAM_KEYS, "joints_m", *SCALAR_KEYS, *LABEL_KEYS)
         return PressurePoseDataset(data, split=split, columns=columns, verify=False, cache_row_groups=4)
     if data.is_file() and data.suffix == ".npz":
         return NpzImages(data)
@@ -145,13 +141,14 @@ class Browser:
         elif path.is_dir() and any(path.glob("*.npz")):
             self.kind, self.dataset = "dataset", _open_samples(path, None)
         elif path.is_dir() and (path / "real.json").is_file():
-            raise ValueError(f"{path} is an `evaluate-real` report (no bodies to show); view the PmatData images "
-                             "with `pressurepose import-pmatdata --out pmat.npz` and `pressurepose view pmat.npz --model RUN`")
+            raise ValueError(f"{path} is an `evaluate-real` report (no bodies to show); view the PmatData images with "
+                             "`pressurepose import-pmatdata --out pmat.npz` and `pressurepose view pmat.npz --model RUN`")
         elif path.is_dir() and (path / "generate.json").is_file():
             raise ValueError(f"{path} holds an unfinished dataset (no manifest.json); re-run the same "
                              "`pressurepose generate` command to finish it")
         else:
-            raise ValueError(f"{path} is {'an empty folder' if path.is_dir() and not any(path.iterdir()) else 'none of what the viewer reads'}; {HINT}")
+            empty = path.is_dir() and not any(path.iterdir())
+            raise ValueError(f"{path} is {'an empty folder' if empty else 'none of what the viewer reads'}; {HINT}")
         if model is not None:
             from pressurepose.models import resolve_model
             from pressurepose.train.checkpoint import read_model

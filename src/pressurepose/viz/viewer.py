@@ -143,7 +143,8 @@ class ViewerServer(ThreadingHTTPServer):
             super().__init__(("127.0.0.1", port), _Handler)
         except OSError as exc:
             if exc.errno in (errno.EADDRINUSE, errno.EACCES):
-                raise ValueError(f"port {port} on 127.0.0.1 is {'in use' if exc.errno == errno.EADDRINUSE else 'not allowed'}; "
+                why = "in use" if exc.errno == errno.EADDRINUSE else "not allowed"
+                raise ValueError(f"port {port} on 127.0.0.1 is {why}; "
                                  "choose another with --port N (--port 0 picks a free one)") from None
             raise
 
