@@ -49,6 +49,24 @@ def test_shapes_both_modules(arch, anny32):
         assert 7.9e6 < sum(p.numel() for p in net.mod1.parameters()) < 8.4e6
 
 
+def test_width_scales_the_fast_cnn_and_is_saved(anny32, tmp_path):
+    from pressurepose.net.cnn import make_cnn
+    from pressurepose.train.checkpoint import load_network, save_model
+
+    count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+    assert count(make_cnn("fast", 3, 84, width=2)) > 3.5 * count(make_cnn("fast", 3, 84))
+    for arch, width in (("paper", 2), ("fast", 0)):
+        with pytest.raises(ValueError, match="width"):
+            make_cnn(arch, 3, 84, width=width)
+    net = PressureNet(NetConfig(width=2, gender_input=False), body=anny32).eval()
+    save_model(tmp_path, net, {"train": {}, "net": dict(net.config.__dict__)})
+    loaded, _ = load_network(tmp_path, body=anny32)
+    assert loaded.config.width == 2
+    p = _images(2)
+    with torch.no_grad():
+        assert torch.equal(net(NetInputs(p))[-1].raw, loaded(NetInputs(p))[-1].raw)
+
+
 def test_channels_and_options(anny32):
     net = PressureNet(NetConfig(height_weight=True, gender_input=True), body=anny32)
     p = _images(3)

@@ -116,6 +116,15 @@ def test_resume_equals_an_uninterrupted_run(data32, tmp_path):
         assert (tmp_path / "b" / name).is_file()
     with pytest.raises(ValueError, match="different settings"):
         train(TrainConfig.smoke(out=tmp_path / "b", epochs=4, lr=1e-2, **{**common}), ds)
+    with pytest.raises(ValueError, match="different settings.*width"):
+        train(TrainConfig.smoke(out=tmp_path / "b", epochs=4, width=2, **common), ds)
+    # A run saved before a field existed resumes with that field at its default.
+    path = tmp_path / "b" / "config.json"
+    record = json.loads(path.read_text())
+    del record["train"]["width"]
+    path.write_text(json.dumps(record))
+    train(TrainConfig.smoke(out=tmp_path / "b", epochs=4, **common), ds)
+    assert [r["epoch"] for r in _metrics(tmp_path / "b")] == [1, 2, 3, 4]
 
 
 def test_mod2_trains_on_a_frozen_mod1(data32, tmp_path):

@@ -50,24 +50,29 @@ class FastCNN(nn.Module):
     # The released channel values (sums of 20,000, contact 100) are brought to O(1) first.
     INPUT_SCALE = 0.02
 
-    def __init__(self, in_channels: int, out_features: int, dropout: float = 0.1) -> None:
+    def __init__(self, in_channels: int, out_features: int, dropout: float = 0.1, width: int = 1) -> None:
         super().__init__()
+        c = 32 * width  # width multiplies every layer's channels (1: 1.3 M parameters, 2: ~5 M)
         self.features = nn.Sequential(
-            _block(in_channels, 32, 2, kernel=5), _block(32, 64, 2), _block(64, 128, 2), _block(128, 128, 1),
+            _block(in_channels, c, 2, kernel=5), _block(c, 2 * c, 2), _block(2 * c, 4 * c, 2), _block(4 * c, 4 * c, 1),
         )
-        self.fc = nn.Sequential(nn.Linear(128 * 8 * 4, 256), nn.SiLU(), nn.Dropout(dropout),
-                                nn.Linear(256, out_features))
+        self.fc = nn.Sequential(nn.Linear(4 * c * 8 * 4, 256 * width), nn.SiLU(), nn.Dropout(dropout),
+                                nn.Linear(256 * width, out_features))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, C, 64, 27) -> (B, out_features)."""
         return self.fc(self.features(x * self.INPUT_SCALE).flatten(1))
 
 
-def make_cnn(arch: str, in_channels: int, out_features: int, dropout: float = 0.1) -> nn.Module:
+def make_cnn(arch: str, in_channels: int, out_features: int, dropout: float = 0.1, width: int = 1) -> nn.Module:
+    if width < 1:
+        raise ValueError(f"width must be >= 1, got {width}")
     if arch == "paper":
+        if width != 1:
+            raise ValueError("width applies to arch 'fast' only (the paper CNN is the released one)")
         net = PaperCNN(in_channels, out_features, dropout)
     elif arch == "fast":
-        net = FastCNN(in_channels, out_features, dropout)
+        net = FastCNN(in_channels, out_features, dropout, width)
     else:
         raise ValueError(f"unknown arch {arch!r}; expected one of {', '.join(ARCHS)}")
     # Start at the reference output (raw = 0: mid-range shape and pose, supine, pelvis over

@@ -41,6 +41,7 @@ class NetConfig:
     height_weight: bool = False  # height (m) and mass (/100 kg) given as constant planes
     smpl_dir: str | None = None  # SMPL model folder, backend smpl only
     dropout: float = 0.1         # the seed's dropout after every tanh (paper) / in the FC head (fast)
+    width: int = 1               # channel multiplier of the fast CNN (1: 1.3 M parameters)
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast"):
@@ -95,8 +96,8 @@ class PressureNet(nn.Module):
             raise ValueError(f"body model is {self.body.name!r} but NetConfig.backend is {config.backend!r}")
         self.head = ParamHead(config.backend, self.body.shape_names, self.mat)
         D = self.head.size
-        self.mod1 = make_cnn(config.arch, config.in_channels, D, config.dropout)
-        self.mod2 = make_cnn(config.arch, config.in_channels + 2, D, config.dropout) if config.modules == 2 else None
+        self.mod1 = make_cnn(config.arch, config.in_channels, D, config.dropout, config.width)
+        self.mod2 = make_cnn(config.arch, config.in_channels + 2, D, config.dropout, config.width) if config.modules == 2 else None
         if self.mod2 is not None:  # Mod2 starts as "no correction"
             last = self.mod2.fc if isinstance(self.mod2.fc, nn.Linear) else self.mod2.fc[-1]
             with torch.no_grad():

@@ -42,6 +42,7 @@ class TrainConfig:
         gender_input: give the gender as an input (as the original did).
         height_weight: give height and mass as input planes.
         dropout: dropout rate (the seed's 0.1).
+        width: channel multiplier of the fast CNN (1: 1.3 M parameters; 2: ~5 M).
         synthesis_weight: Mod2 only: weight of the analysis-by-synthesis loss (sim #2 pressure of
             the estimated mesh vs the input; 0 = off; slow: ~15 ms a sample).
         val_fraction: share of the samples held out for per-epoch validation.
@@ -68,6 +69,7 @@ class TrainConfig:
     gender_input: bool = True
     height_weight: bool = False
     dropout: float = 0.1
+    width: int = 1
     synthesis_weight: float = 0.0
     val_fraction: float = 0.05
     seed: int = 0

@@ -9,6 +9,7 @@ metrics.jsonl + metrics.csv (one row per epoch) and metrics.png - all atomically
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import logging
@@ -68,13 +69,13 @@ def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainC
 def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
     netcfg = NetConfig(arch=cfg.arch, backend=cfg.backend, modules=cfg.module, gender_input=cfg.gender_input,
                        height_weight=cfg.height_weight, smpl_dir=cfg.smpl_dir,
-                       dropout=cfg.dropout)
+                       dropout=cfg.dropout, width=cfg.width)
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
         m1 = net_config_from_record(record)
         if m1.modules != 1:
             raise ValueError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
-        mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight") if getattr(m1, f) != getattr(netcfg, f)]
+        mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight", "width") if getattr(m1, f) != getattr(netcfg, f)]
         if mismatch:
             raise ValueError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
     body = netcfg.load_body(device=device)
@@ -98,7 +99,9 @@ def _check_resume(run: Path, cfg: TrainConfig) -> None:
     if saved is None:
         return
     now = cfg.to_json()
-    differ = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
+    # A field added after the run was saved counts at its default (older runs resume).
+    defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
+    differ = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k, defaults.get(k)) != now[k]]
     if differ:
         raise ValueError(f"{run} holds a run with different settings ({', '.join(differ)}); "
                          "resume with the same settings or train into a new --out folder")
