@@ -97,7 +97,8 @@ class PressureNet(nn.Module):
         self.head = ParamHead(config.backend, self.body.shape_names, self.mat)
         D = self.head.size
         self.mod1 = make_cnn(config.arch, config.in_channels, D, config.dropout, config.width)
-        self.mod2 = make_cnn(config.arch, config.in_channels + 2, D, config.dropout, config.width) if config.modules == 2 else None
+        self.mod2 = (make_cnn(config.arch, config.in_channels + 2, D, config.dropout, config.width)
+                     if config.modules == 2 else None)
         if self.mod2 is not None:  # Mod2 starts as "no correction"
             last = self.mod2.fc if isinstance(self.mod2.fc, nn.Linear) else self.mod2.fc[-1]
             with torch.no_grad():

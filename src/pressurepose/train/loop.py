@@ -75,7 +75,8 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         m1 = net_config_from_record(record)
         if m1.modules != 1:
             raise ValueError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
-        mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight", "width") if getattr(m1, f) != getattr(netcfg, f)]
+        mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight", "width")
+                    if getattr(m1, f) != getattr(netcfg, f)]
         if mismatch:
             raise ValueError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
     body = netcfg.load_body(device=device)
