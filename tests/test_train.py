@@ -100,13 +100,14 @@ def test_checkpoint_round_trip(anny32, tmp_path):
 
 def test_resume_equals_an_uninterrupted_run(data32, tmp_path):
     ds = _small(data32)
-    common = dict(batch_size=4, val_fraction=0.0, progress=False, seed=7)
+    common = dict(batch_size=4, val_fraction=0.0, progress=False, seed=7, lr_gamma=0.5)
     train(TrainConfig.smoke(out=tmp_path / "a", epochs=3, **common), ds)
     train(TrainConfig.smoke(out=tmp_path / "b", epochs=2, **common), ds)
     assert len(_metrics(tmp_path / "b")) == 2
     train(TrainConfig.smoke(out=tmp_path / "b", epochs=3, **common), ds)  # resumes after epoch 2
     rows_a, rows_b = _metrics(tmp_path / "a"), _metrics(tmp_path / "b")
     assert [r["epoch"] for r in rows_b] == [1, 2, 3]
+    assert [r["lr"] for r in rows_b] == pytest.approx([1e-3, 5e-4, 2.5e-4])  # decays per epoch, across the resume
     assert rows_a[2]["loss"] == pytest.approx(rows_b[2]["loss"], rel=1e-5)
     wa, _ = load_network(tmp_path / "a")
     wb, _ = load_network(tmp_path / "b")
@@ -125,6 +126,24 @@ def test_resume_equals_an_uninterrupted_run(data32, tmp_path):
     path.write_text(json.dumps(record))
     train(TrainConfig.smoke(out=tmp_path / "b", epochs=4, **common), ds)
     assert [r["epoch"] for r in _metrics(tmp_path / "b")] == [1, 2, 3, 4]
+
+
+def test_init_starts_from_another_runs_weights(data32, tmp_path):
+    ds = _small(data32)
+    common = dict(batch_size=4, val_fraction=0.0, progress=False, seed=3, epochs=1)
+    a = train(TrainConfig.smoke(out=tmp_path / "a", **common), ds)
+    b = train(TrainConfig.smoke(out=tmp_path / "b", init=a, lr=1e-12, **common), ds)  # ~no step
+    na, _ = load_network(a)
+    nb, _ = load_network(b)
+    fresh = train(TrainConfig.smoke(out=tmp_path / "c", lr=1e-12, **common), ds)
+    nc, _ = load_network(fresh)
+    pa, pb, pc = ([p.detach() for p in n.parameters()] for n in (na, nb, nc))
+    assert all(torch.allclose(x, y, atol=1e-9) for x, y in zip(pa, pb))
+    assert not all(torch.allclose(x, y, atol=1e-6) for x, y in zip(pa, pc))  # without init: other weights
+    with pytest.raises(ValueError, match="different network.*width"):
+        train(TrainConfig.smoke(out=tmp_path / "d", init=a, width=2, **common), ds)
+    with pytest.raises(ValueError, match="lr_gamma"):
+        train(TrainConfig.smoke(out=tmp_path / "e", lr_gamma=0.0, **common), ds)
 
 
 def test_mod2_trains_on_a_frozen_mod1(data32, tmp_path):

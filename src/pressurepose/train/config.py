@@ -43,6 +43,9 @@ class TrainConfig:
         height_weight: give height and mass as input planes.
         dropout: dropout rate (the seed's 0.1).
         width: channel multiplier of the fast CNN (1: 1.3 M parameters; 2: ~5 M).
+        lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
+        init: start from the weights of this run's network (fine-tuning; the same network settings);
+            Adam's state starts fresh. "default" = the packaged model.
         synthesis_weight: Mod2 only: weight of the analysis-by-synthesis loss (sim #2 pressure of
             the estimated mesh vs the input; 0 = off; slow: ~15 ms a sample).
         val_fraction: share of the samples held out for per-epoch validation.
@@ -70,6 +73,8 @@ class TrainConfig:
     height_weight: bool = False
     dropout: float = 0.1
     width: int = 1
+    lr_gamma: float = 1.0
+    init: Path | None = None
     synthesis_weight: float = 0.0
     val_fraction: float = 0.05
     seed: int = 0
@@ -109,6 +114,8 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.lr > 0 or self.weight_decay < 0:
             raise ValueError(f"lr must be > 0 and weight_decay >= 0, got {self.lr}, {self.weight_decay}")
+        if not 0 < self.lr_gamma <= 1:
+            raise ValueError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:
             raise ValueError(f"val_fraction must lie in [0, 1), got {self.val_fraction}")
         if self.synthesis_weight < 0 or (self.synthesis_weight > 0 and self.module != 2):
@@ -123,7 +130,7 @@ class TrainConfig:
     def from_json(cls, record: dict) -> "TrainConfig":
         fields = {f.name for f in dataclasses.fields(cls)}
         kw = {k: v for k, v in record.items() if k in fields}
-        for k in ("data", "out", "mod1"):
+        for k in ("data", "out", "mod1", "init"):
             if kw.get(k) is not None:
                 kw[k] = Path(kw[k])
         return cls(**kw)

@@ -86,7 +86,22 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         mod1 = {k[len("mod1."):]: v for k, v in weights.items() if k.startswith("mod1.")}
         net.mod1.load_state_dict(mod1)
         net.freeze_mod1()
+    if cfg.init is not None:
+        _load_init(net, cfg.init)
     return net.to(device)
+
+
+def _load_init(net: PressureNet, init: Path) -> None:
+    """Start from the weights of another run's network (fine-tuning), which must be the same
+    network: same arch, width, modules, inputs and body model."""
+    weights, record = read_model(init)
+    other = net_config_from_record(record)
+    fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight")
+    mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
+    if mismatch:
+        raise ValueError(f"--init {init} is a different network ({', '.join(mismatch)} differ); "
+                         "train with the same settings or drop --init")
+    net.load_trainable_state(weights)
 
 
 def _split(n: int, cfg: TrainConfig) -> tuple[list[int], list[int]]:
@@ -135,6 +150,8 @@ def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> 
     history = [r for r in _read_metrics(run) if r["epoch"] <= start] if resuming else []
     train_idx, val_idx = _split(len(dataset), cfg)
     for epoch in range(start + 1, cfg.epochs + 1):
+        for group in opt.param_groups:  # a function of the epoch alone, so resuming keeps it
+            group["lr"] = cfg.lr * cfg.lr_gamma ** (epoch - 1)
         row = _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device)
         history.append(row)
         if epoch % cfg.save_every == 0 or epoch == cfg.epochs:
@@ -173,7 +190,7 @@ def _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device) -> dict:
             advance(f"loss {float(loss.detach()):.3f}")
     seconds = time.perf_counter() - t0
     row = {"epoch": epoch, **{k: v / n_seen for k, v in totals.items()}, "train_mpjpe_mm": 1000 * err_sum / n_seen,
-           "images_per_s": n_seen / seconds, "seconds": seconds}
+           "images_per_s": n_seen / seconds, "seconds": seconds, "lr": opt.param_groups[0]["lr"]}
     if val_idx:
         row.update(evaluate(net, torch.utils.data.Subset(dataset, val_idx), cfg, device))
     return row
