@@ -128,6 +128,57 @@ def test_resume_equals_an_uninterrupted_run(data32, tmp_path):
     assert [r["epoch"] for r in _metrics(tmp_path / "b")] == [1, 2, 3, 4]
 
 
+def test_shift_moves_images_and_labels_as_the_physics_does(anny64):
+    from pressurepose.body import BodyParams
+    from pressurepose.mat import MatSpec
+    from pressurepose.net.losses import Targets
+    from pressurepose.sim.foundation import simulate_pressure
+    from pressurepose.sim.sensor import sensing_area, taxel_reading
+    from pressurepose.train.loop import shift_batch
+
+    a = synthetic_arrays(1, seed=5, body=anny64)
+    inputs = NetInputs(pressure_mmhg=a["pressure_mmhg"])
+    targets = Targets(joints=a["joints"], shape=a["shape"], depth_mm=a["depth_mm"], contact=a["contact"])
+    mat = MatSpec()
+    gen = torch.Generator().manual_seed(0)
+    while True:  # a draw that moves both ways
+        moved_in, moved = shift_batch(inputs, targets, 4, 3, gen)
+        step = (moved.joints - targets.joints)[0, 0]
+        dr, dc = round(float(step[0]) / mat.pitch_row_m), round(float(step[1]) / mat.pitch_col_m)
+        if dr and dc:
+            break
+    # labels: every joint lands exactly (dr, dc) taxels further; the shape does not change
+    rc = lambda j: torch.as_tensor(mat.to_taxel(j[0, :, :2].double()))  # noqa: E731
+    assert torch.allclose(rc(moved.joints) - rc(targets.joints), torch.tensor([float(dr), float(dc)]).double(), atol=1e-4)
+    assert torch.equal(moved.shape, targets.shape)
+    # naive reference of the image move, with zeros entering
+    ref = torch.zeros(64, 27)
+    for r in range(64):
+        for c in range(27):
+            if 0 <= r - dr < 64 and 0 <= c - dc < 27:
+                ref[r, c] = a["pressure_mmhg"][0, r - dr, c - dc]
+    assert torch.equal(moved_in.pressure_mmhg[0], ref)
+    assert float(moved.contact[0].sum()) <= float(targets.contact[0].sum())
+    # physics: sim #2 on the body moved by the same whole taxels gives the same image moved
+    # (both solved here from the same start, so only the move differs)
+    move = torch.tensor([[0.0, 0.0, 0.0], [dr * mat.pitch_row_m, dc * mat.pitch_col_m, 0.0]], dtype=torch.float64)
+    two = lambda x: x.double().expand(2, *x.shape[1:])  # noqa: E731
+    params = BodyParams(shape=two(a["shape"]), pose=two(a["pose"]), root_rotation=two(a["root_rotation"]),
+                        root_translation=two(a["root_translation"]) + move)
+    out = anny64(params)
+    with torch.no_grad():
+        pressed = simulate_pressure(out.vertices, out.faces, anny64.measure(params.shape).mass_kg)
+    here, there = taxel_reading(sensing_area(pressed.pressure_pa)).float()
+    moved_here, _ = shift_batch(NetInputs(pressure_mmhg=here[None]), targets, 0, 0, None)
+    ref = torch.zeros(64, 27)
+    ref[max(dr, 0):64 + min(dr, 0), max(dc, 0):27 + min(dc, 0)] = here[max(-dr, 0):64 + min(-dr, 0),
+                                                                      max(-dc, 0):27 + min(-dc, 0)]
+    rows, cols = slice(max(dr, 0), 64 + min(dr, 0)), slice(max(dc, 0), 27 + min(dc, 0))
+    assert torch.equal(moved_here.pressure_mmhg[0], here) and float(here.sum()) > 100
+    diff = (there[rows, cols] - ref[rows, cols]).abs()
+    assert float(diff.max()) < 0.02 * float(ref.max()), float(diff.max())
+
+
 def test_init_starts_from_another_runs_weights(data32, tmp_path):
     ds = _small(data32)
     common = dict(batch_size=4, val_fraction=0.0, progress=False, seed=3, epochs=1)

@@ -43,6 +43,8 @@ class TrainConfig:
         height_weight: give height and mass as input planes.
         dropout: dropout rate (the seed's 0.1).
         width: channel multiplier of the fast CNN (1: 1.3 M parameters; 2: ~5 M).
+        shift_rows: augmentation: move training images (and labels) by up to this many rows along the bed.
+        shift_cols: augmentation: the same across the bed, in columns.
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.
@@ -73,6 +75,8 @@ class TrainConfig:
     height_weight: bool = False
     dropout: float = 0.1
     width: int = 1
+    shift_rows: int = 0
+    shift_cols: int = 0
     lr_gamma: float = 1.0
     init: Path | None = None
     synthesis_weight: float = 0.0
@@ -114,6 +118,9 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.lr > 0 or self.weight_decay < 0:
             raise ValueError(f"lr must be > 0 and weight_decay >= 0, got {self.lr}, {self.weight_decay}")
+        if not (0 <= self.shift_rows < 64 and 0 <= self.shift_cols < 27):
+            raise ValueError(f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, "
+                             f"{self.shift_cols}")
         if not 0 < self.lr_gamma <= 1:
             raise ValueError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:

@@ -47,9 +47,42 @@ def batch_inputs(batch: dict[str, torch.Tensor], device: torch.device) -> tuple[
     return inputs, Targets(joints=b["joints"], shape=b["shape"], depth_mm=b["depth_mm"], contact=b["contact"])
 
 
+def shift_batch(inputs: NetInputs, targets: Targets, rows: int, cols: int,
+                generator: torch.Generator | None) -> tuple[NetInputs, Targets]:
+    """Move every image of the batch by a random whole number of taxels (|dr| <= rows, |dc| <=
+    cols) and its labels with it: the same body lying elsewhere on a uniform flat bed gives the
+    same image moved (taxels leaving the grid are lost, those entering read 0 - as for a body
+    partly off the mat). Real users lie wherever they lie; the generator's bodies do not cover
+    every placement (PmatData's heads reach row 0)."""
+    from pressurepose.maps import EMPTY_HEIGHT_M
+    from pressurepose.mat import MatSpec
+
+    p = inputs.pressure_mmhg
+    B, R, C = p.shape
+    draw = lambda n: torch.randint(-n, n + 1, (B,), generator=generator).tolist()  # noqa: E731
+    dr, dc = draw(rows), draw(cols)
+
+    def move(x: torch.Tensor, fill: float) -> torch.Tensor:
+        out = torch.full_like(x, fill)
+        for b, (r, c) in enumerate(zip(dr, dc)):
+            out[b, max(r, 0):R + min(r, 0), max(c, 0):C + min(c, 0)] = \
+                x[b, max(-r, 0):R + min(-r, 0), max(-c, 0):C + min(-c, 0)]
+        return out
+
+    mat = MatSpec()
+    step = torch.tensor([[mat.pitch_row_m * r, mat.pitch_col_m * c, 0.0] for r, c in zip(dr, dc)],
+                        dtype=targets.joints.dtype, device=targets.joints.device)
+    moved = Targets(joints=targets.joints + step[:, None], shape=targets.shape,
+                    depth_mm=None if targets.depth_mm is None else move(targets.depth_mm, 1000 * EMPTY_HEIGHT_M),
+                    contact=None if targets.contact is None else move(targets.contact, 0.0))
+    return dataclasses.replace(inputs, pressure_mmhg=move(p, 0.0)), moved
+
+
 def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainConfig, augment: bool,
               generator: torch.Generator | None) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
     """Loss of the module being trained, its parts, and the (B,) joint error of its estimate."""
+    if augment and (cfg.shift_rows or cfg.shift_cols):
+        inputs, targets = shift_batch(inputs, targets, cfg.shift_rows, cfg.shift_cols, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
     est = ests[-1]
     scale = net.head.shape_scale()
