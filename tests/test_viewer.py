@@ -3,8 +3,6 @@ re-posed to the report's own numbers), a training run and a .npz of images; bad 
 ports; Ctrl-C; and the page end to end in headless Chromium over the W3C WebDriver protocol
 (urllib only) with a screenshot check of the heat map and the WebGL canvas."""
 
-import base64
-import io
 import json
 import os
 import shutil
@@ -13,7 +11,6 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -33,12 +30,12 @@ from pressurepose.train.data import synthetic_arrays, write_npz
 from pressurepose.train.loop import train
 from pressurepose.viz.viewer import ViewConfig, make_server
 
+from webdriver import WebDriver, needs_chromium
+
 # Every test shares the module's fixture (sim #2 samples, a smoke training run and its report):
 # ~15 s of CPU, more on a loaded machine.
 pytestmark = pytest.mark.slow
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
 
 
 def write_dataset(root: Path, arrays: dict[str, torch.Tensor]) -> None:
@@ -286,68 +283,6 @@ def test_ctrl_c_stops_the_cli_cleanly(folders):
 # --- the page in headless Chromium ---------------------------------------------------------------
 
 
-class WebDriver:
-    """The few W3C WebDriver commands the test needs, over HTTP with urllib."""
-
-    def __init__(self) -> None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        self.proc = subprocess.Popen([CHROMEDRIVER, f"--port={port}"], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
-        self.base = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                if self.call("GET", "/status")["ready"]:
-                    break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.1)
-        args = ["--headless=new", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader", "--window-size=1400,1000", "--disable-dev-shm-usage"]
-        caps = {"capabilities": {"alwaysMatch": {"browserName": "chrome",
-                                                 "goog:chromeOptions": {"binary": CHROMIUM, "args": args}}}}
-        self.session = self.call("POST", "/session", caps)["sessionId"]
-
-    def call(self, method: str, path: str, body=None):
-        data = None if body is None else json.dumps(body).encode()
-        req = urllib.request.Request(self.base + path, data=data, method=method,
-                                     headers={"Content-Type": "application/json"})
-        with urllib.request.urlopen(req, timeout=120) as r:
-            return json.loads(r.read() or b"{}").get("value")
-
-    def cmd(self, method: str, path: str, body=None):
-        return self.call(method, f"/session/{self.session}{path}", body)
-
-    def js(self, script: str):
-        return self.cmd("POST", "/execute/sync", {"script": script, "args": []})
-
-    def wait(self, script: str, timeout: float = 60):
-        deadline = time.monotonic() + timeout
-        while not self.js(script):
-            assert time.monotonic() < deadline, f"timed out waiting for {script}: {self.js('return window.viewerState')}"
-            time.sleep(0.1)
-
-    def click(self, css: str) -> None:
-        element = self.cmd("POST", "/element", {"using": "css selector", "value": css})
-        self.cmd("POST", f"/element/{next(iter(element.values()))}/click", {})
-
-    def screenshot(self) -> np.ndarray:
-        import matplotlib.image
-
-        png = base64.b64decode(self.cmd("GET", "/screenshot"))
-        return (matplotlib.image.imread(io.BytesIO(png), format="png")[..., :3] * 255).round().astype(np.uint8)
-
-    def close(self) -> None:
-        try:
-            self.cmd("DELETE", "")
-        finally:
-            self.proc.terminate()
-            self.proc.wait(timeout=30)
-
-
 def region(img: np.ndarray, driver: WebDriver, element_id: str) -> np.ndarray:
     r = driver.js(f"const r = document.getElementById('{element_id}').getBoundingClientRect();"
                   "return [r.left, r.top, r.width, r.height, window.devicePixelRatio];")
@@ -359,8 +294,7 @@ def colours(pixels: np.ndarray) -> int:
     return len(np.unique(pixels.reshape(-1, 3), axis=0))
 
 
-@pytest.mark.skipif(not (os.access(CHROMIUM, os.X_OK) and os.access(CHROMEDRIVER, os.X_OK)),
-                    reason="needs headless Chromium: apt-get install chromium chromium-driver")
+@needs_chromium
 def test_page_renders_in_headless_chromium(folders, viewer, anny32):
     v = viewer(folders["report"])
     faces = len(anny32.faces)

@@ -304,11 +304,40 @@ def view(path: tyro.conf.Positional[Path], port: int = 8765, open: bool = True, 
     print("viewer stopped")
 
 
+def click(image: tyro.conf.Positional[Path], out: Path = Path("markers.json"), fx: float | None = None,
+          fy: float | None = None, cx: float | None = None, cy: float | None = None, intrinsics: Path | None = None,
+          depth_unit: Literal["auto", "m", "mm"] = "auto", port: int = 8765, open: bool = True) -> None:
+    """Click the mat's corner markers in a camera image on a local web page (127.0.0.1) and
+    save the marker file `coregister --markers` reads (docs/real_data.md). Ctrl-C stops it.
+
+    Args:
+        image: RGB image (.png, .jpg) or depth image (.npy, (H, W), metres or millimetres;
+            clicks then record the marker's depth).
+        out: Marker file to write; an existing one is loaded for editing.
+        fx: Focal length along u (pixels).
+        fy: Focal length along v (pixels).
+        cx: Principal point u (pixels; pixel centres at integers).
+        cy: Principal point v (pixels).
+        intrinsics: JSON with fx, fy, cx, cy (top level or under "intrinsics"); flags override it.
+        depth_unit: Unit of a depth .npy (auto: integers or values over 20 are millimetres).
+        port: Port on 127.0.0.1 (0: any free port).
+        open: Open the page in the default web browser.
+    """
+    from pressurepose.viz.clicker import ClickConfig, make_click_server
+    from pressurepose.viz.viewer import run_local
+
+    cfg = ClickConfig(image=image, out=out, fx=fx, fy=fy, cx=cx, cy=cy, intrinsics=intrinsics,
+                      depth_unit=depth_unit, port=port, open=open)
+    server = make_click_server(cfg)
+    run_local(server, open, ready=lambda url: print(f"clicking {image} at {url} -> {out} (Ctrl-C stops)", flush=True))
+    print("click page stopped")
+
+
 COMMANDS = {
     "demo": demo, "pose": pose, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
     "import-original": import_original, "import-pmatdata": import_pmatdata,
     "import-pressurepose-real": import_pressurepose_real, "import-slp": import_slp, "calibrate": calibrate,
-    "coregister": coregister, "cache": cache,
+    "coregister": coregister, "click": click, "cache": cache,
     "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real, "view": view,
 }
 

@@ -62,8 +62,10 @@ def static_file(name: str) -> bytes:
     return resources.files("pressurepose.viz").joinpath("static", name).read_bytes()
 
 
-class _Handler(BaseHTTPRequestHandler):
-    server: "ViewerServer"
+class LocalHandler(BaseHTTPRequestHandler):
+    """What every page served on 127.0.0.1 shares (the viewer, `pressurepose click`): quiet
+    logging, sending bytes and JSON, and the Host check."""
+
     protocol_version = "HTTP/1.1"
 
     def log_message(self, fmt, *args) -> None:  # the default writes every request to stderr
@@ -82,14 +84,24 @@ class _Handler(BaseHTTPRequestHandler):
     def _json(self, obj, status: int = 200) -> None:
         self._send(status, json.dumps(obj, allow_nan=False).encode(), "application/json")
 
+    def _local(self) -> bool:
+        """False (after answering 403) unless the request names this machine as its Host."""
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
+        if host not in ("127.0.0.1", "localhost", "[::1]"):
+            # another site's page reaching this port through a rebound DNS name: not ours to serve
+            self._json({"error": f"this page answers to 127.0.0.1 or localhost, not {host!r}"}, 403)
+            return False
+        return True
+
+
+class _Handler(LocalHandler):
+    server: "ViewerServer"
+
     def do_GET(self) -> None:  # noqa: N802 (http.server's name)
         url = urlparse(self.path)
         route, query = url.path, parse_qs(url.query)
         b = self.server.browser
-        host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
-        if host not in ("127.0.0.1", "localhost", "[::1]"):
-            # another site's page reaching this port through a rebound DNS name: not ours to serve
-            self._json({"error": f"the viewer answers to 127.0.0.1 or localhost, not {host!r}"}, 403)
+        if not self._local():
             return
         try:
             if route in STATIC:
@@ -129,18 +141,18 @@ class _Handler(BaseHTTPRequestHandler):
             self._json({"error": f"{type(exc).__name__}: {exc}"}, 500)
 
 
-class ViewerServer(ThreadingHTTPServer):
-    """The viewer's HTTP server on 127.0.0.1; `url` after construction, `serve_forever()` to run."""
+class LocalServer(ThreadingHTTPServer):
+    """An HTTP server on 127.0.0.1 only; `url` after construction, `serve_forever()` to run.
+    A port in use or not allowed is a ValueError naming --port."""
 
     daemon_threads = True
-    allow_reuse_address = False  # a second viewer on the same port must fail, not share it
+    allow_reuse_address = False  # a second server on the same port must fail, not share it
 
-    def __init__(self, browser: Browser, port: int = 8765) -> None:
+    def __init__(self, port: int, handler: type[LocalHandler]) -> None:
         if not 0 <= port <= 65535:
             raise ValueError(f"--port must be in 0..65535, got {port}")
-        self.browser = browser
         try:
-            super().__init__(("127.0.0.1", port), _Handler)
+            super().__init__(("127.0.0.1", port), handler)
         except OSError as exc:
             if exc.errno in (errno.EADDRINUSE, errno.EACCES):
                 why = "in use" if exc.errno == errno.EADDRINUSE else "not allowed"
@@ -153,6 +165,14 @@ class ViewerServer(ThreadingHTTPServer):
         return f"http://127.0.0.1:{self.server_address[1]}/"
 
 
+class ViewerServer(LocalServer):
+    """The viewer's server over a `Browser`."""
+
+    def __init__(self, browser: Browser, port: int = 8765) -> None:
+        self.browser = browser
+        super().__init__(port, _Handler)
+
+
 def make_server(cfg: ViewConfig) -> ViewerServer:
     """Open cfg.path (ValueError if it is none of what the viewer reads) and bind the server."""
     browser = Browser(cfg.path, data=cfg.data, backend=cfg.backend, smpl_dir=cfg.smpl_dir, model=cfg.model)
@@ -161,10 +181,14 @@ def make_server(cfg: ViewConfig) -> ViewerServer:
 
 def serve(cfg: ViewConfig, ready=None) -> None:
     """Run the viewer until Ctrl-C. `ready(url)` is called once the server listens."""
-    server = make_server(cfg)
+    run_local(make_server(cfg), cfg.open, ready)
+
+
+def run_local(server: LocalServer, open_browser: bool, ready=None) -> None:
+    """Serve until Ctrl-C, then close; `ready(url)` once listening; optionally open a browser."""
     if ready is not None:
         ready(server.url)
-    if cfg.open:
+    if open_browser:
         import webbrowser
 
         threading.Thread(target=webbrowser.open, args=(server.url,), daemon=True).start()
@@ -176,4 +200,5 @@ def serve(cfg: ViewConfig, ready=None) -> None:
         server.server_close()
 
 
-__all__ = ["ViewConfig", "ViewerServer", "make_server", "serve", "static_file"]
+__all__ = ["LocalHandler", "LocalServer", "ViewConfig", "ViewerServer", "make_server", "run_local", "serve",
+           "static_file"]
