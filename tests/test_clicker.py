@@ -122,6 +122,12 @@ def test_saved_clicks_give_back_the_camera_pose(picture, tmp_path, clicker):
     shown = matplotlib.image.imread(io.BytesIO(c.get("api/image.png")), format="png")[..., :3]
     np.testing.assert_array_equal((shown * 255).round(), (matplotlib.image.imread(picture)[..., :3] * 255).round())
     assert c.get("").startswith(b"<!doctype html>") and b"api/save" in c.get("clicker.js")
+    # a JPEG of the same picture (through Pillow) reads as the same image, give or take compression
+    matplotlib.image.imsave(tmp_path / "frame.jpg", matplotlib.image.imread(picture)[..., :3])
+    jpg = load_image(tmp_path / "frame.jpg")
+    assert jpg.size == (W, H) and jpg.depth_m is None
+    u, v = np.round(PIXELS["head_left"]).astype(int)
+    assert np.abs(jpg.rgb[v, u].astype(int) - DOT["head_left"]).max() < 40
 
     custom = {"name": "pillow", "pixel": project(K, R_TRUE, T_TRUE, np.array([[0.3, 0.2, 0.05]]))[0].tolist(),
               "mat_xyz_m": [0.3, 0.2, 0.05]}
@@ -212,6 +218,8 @@ def test_depth_image_clicks_record_depth(tmp_path, clicker):
     # the page's depth look-up and the saved file: the reading at the nearest pixel, in metres
     assert json.loads(c.get("api/depth?u=100.4&v=50.6"))["depth_m"] == depth_mm[51, 100] / 1000
     assert json.loads(c.get("api/depth?u=20&v=10"))["depth_m"] is None
+    with pytest.raises(urllib.error.HTTPError, match="400"):
+        c.get("api/depth?u=left")
     status, reply = c.post(payload({k: np.array(v) for k, v in clicks.items()}))
     assert status == 200, reply
     got = {m["name"]: m.get("depth_m") for m in json.loads(out.read_text())["markers"]}
