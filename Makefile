@@ -20,13 +20,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/pressurepose pose --out out/demo/pose
-	$(BIN)/pressurepose sample --out out/demo/sample --n 96 --partition general
-	$(BIN)/pressurepose simulate --out out/demo/simulate --partition supine --gender male --index 3
-	$(BIN)/pressurepose generate --out out/demo/data --preset tiny
-	$(BIN)/pressurepose info out/demo/data
-	$(BIN)/pressurepose train --data out/demo/data --out out/demo/run --preset smoke --epochs 2
-	$(BIN)/pressurepose evaluate --model out/demo/run --data out/demo/data --out out/demo/report
+	$(BIN)/pressurepose demo --out out/demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

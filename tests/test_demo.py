@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from pressurepose.data.pmatdata import load_index
-from pressurepose.models import DEFAULT, resolve_model
+from pressurepose.models import DEFAULT, default_model_dir, resolve_model
 from pressurepose.samples import pmatdata_dir, resolve_pmatdata
 
 
@@ -54,3 +54,27 @@ def test_demo_bad_model_exits_2_before_simulating(tmp_path):
     r = run("demo", "--out", str(tmp_path / "d"), "--model", str(tmp_path / "nowhere"))
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "model.safetensors" in r.stderr and not (tmp_path / "d" / "data").exists()
+
+
+def test_packaged_default_model_estimates_bodies(anny64):
+    """The shipped weights are a trained network: on fresh simulated samples it beats
+    predicting their mean joints, and its bodies are people-sized."""
+    import torch
+
+    from pressurepose.net import NetInputs
+    from pressurepose.train.checkpoint import load_network
+    from pressurepose.train.data import synthetic_arrays
+
+    assert (default_model_dir() / "model.safetensors").is_file()
+    net, record = load_network(DEFAULT)
+    assert record["net"]["arch"] == "fast" and record["net"]["gender_input"] is False
+    a = synthetic_arrays(12, seed=321, body=anny64)
+    with torch.no_grad():
+        est = net(NetInputs(pressure_mmhg=a["pressure_mmhg"]))[-1]
+    true = a["joints"]
+    mpjpe = (est.joints - true).norm(dim=-1).mean()
+    mean_pose = (true.mean(0, keepdim=True) - true).norm(dim=-1).mean()
+    assert torch.isfinite(est.joints).all()
+    assert mpjpe < 0.8 * mean_pose, (float(mpjpe), float(mean_pose))
+    height = net.body.measure(est.params.shape).height_m
+    assert ((height > 1.3) & (height < 2.2)).all()
