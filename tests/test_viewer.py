@@ -267,8 +267,11 @@ def test_bad_paths_and_ports(folders, tmp_path, capsys):
 
 def test_ctrl_c_stops_the_cli_cleanly(folders):
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).parents[1] / "src"))
+    # A shell's background job (CI runners, `cmd &`) starts with SIGINT ignored, and children
+    # inherit that; give the viewer the default disposition a terminal user has.
     p = subprocess.Popen([sys.executable, "-m", "pressurepose.cli", "view", str(folders["data"]), "--port", "0",
-                          "--no-open"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                          "--no-open"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         line = p.stdout.readline()
         url = line.split(" at ")[1].split()[0]
