@@ -55,8 +55,8 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     from pressurepose.train.checkpoint import read_model
 
     out = Path(cfg.out)
-    _, record = read_model(cfg.model)  # fails early, before any simulation, on a bad --model
     model_dir = resolve_model(cfg.model)
+    _, record = read_model(model_dir)  # fails early, before any simulation, on a bad --model
     backend = record.get("net", {}).get("backend", "anny")
     timings = {}
 
@@ -70,13 +70,13 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
 
     t0 = time.perf_counter()
     log.info("2/3 estimating the generated bodies with %s", model_dir)
-    synthetic = run_evaluate(EvaluateConfig(data=data, model=cfg.model, out=out / "synthetic", split="test",
+    synthetic = run_evaluate(EvaluateConfig(data=data, model=model_dir, out=out / "synthetic", split="test",
                                             failures=4))
     timings["synthetic_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     log.info("3/3 estimating bodies on real PmatData recordings")
-    real = run_evaluate_real(RealEvalConfig(model=cfg.model, pmatdata=cfg.pmatdata, out=out / "real"))
+    real = run_evaluate_real(RealEvalConfig(model=model_dir, pmatdata=cfg.pmatdata, out=out / "real"))
     timings["real_s"] = time.perf_counter() - t0
 
     summary = _summary(json.loads(synthetic["json"].read_text()), json.loads(real["json"].read_text()))

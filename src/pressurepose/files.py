@@ -32,3 +32,21 @@ def read_json(path: str | os.PathLike, what: str, hint: str = ""):
         raise ValueError(f"{what} {path} does not exist") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{what} {path} is not readable JSON ({exc}){hint}") from None
+
+
+def read_npy(path: str | os.PathLike, missing: str = "", what: str = "array"):
+    """The numeric array of a user's .npy file, never unpickled; ValueError `missing` (default
+    "no file <path>") when absent, or one line naming the file when it is unreadable, pickled or
+    not a numeric `what` - instead of a traceback."""
+    import numpy as np
+
+    path = Path(path)
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise ValueError(missing or f"no file {path}") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{path} is not a readable .npy: not a numpy array file without pickles ({exc})") from None
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiu":
+        raise ValueError(f"{path} must hold a numeric {what}, got {getattr(arr, 'dtype', type(arr).__name__)}")
+    return arr

@@ -27,7 +27,7 @@ from typing import Literal
 
 import numpy as np
 
-from pressurepose.files import read_json
+from pressurepose.files import read_json, read_npy
 from pressurepose.mat import MatSpec
 
 FORMAT = "pressurepose.coregistration/1"
@@ -308,14 +308,7 @@ class CoregisterConfig:
 
 
 def _load_cloud(path: Path, intr: Intrinsics) -> np.ndarray:
-    if not path.is_file():
-        raise ValueError(f"no point cloud or depth image at {path}")
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path} is not a readable .npy array ({exc})") from None
-    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiu":
-        raise ValueError(f"{path} must hold a numeric array")
+    arr = read_npy(path, f"no point cloud or depth image at {path}")
     if arr.ndim == 2 and arr.shape[1] == 3:
         pts = arr.astype(np.float64)
         return pts[np.isfinite(pts).all(1)]

@@ -23,6 +23,7 @@ from typing import Literal
 import numpy as np
 
 from pressurepose.data.real import orient, resample_to_mat
+from pressurepose.files import read_npy
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA
 
@@ -41,12 +42,7 @@ def read_physique(root: Path) -> np.ndarray:
     reads weight (kg), height, gender (0 female, 1 male): the file holds gender, height (cm),
     weight (kg) in columns 0, 1, 2."""
     path = Path(root) / "physiqueData.npy"
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise ValueError(f"no physiqueData.npy in {root}; point at SLP's danaLab folder") from None
-    except (ValueError, OSError, EOFError) as exc:
-        raise ValueError(f"{path}: not a numpy array file without pickles ({exc})") from None
+    arr = read_npy(path, f"no physiqueData.npy in {root}; point at SLP's danaLab folder")
     if arr.ndim != 2 or arr.shape[1] < 3 or not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"{path}: expected a numeric (subjects, >= 3) array, got {arr.dtype} {arr.shape}")
     gender, height_cm, mass_kg = arr[:, 0].astype(float), arr[:, 1].astype(float), arr[:, 2].astype(float)
@@ -72,10 +68,7 @@ def _subject_folders(root: Path, subjects: list[int] | None) -> list[tuple[int, 
 
 def read_pm(path: Path) -> np.ndarray:
     """One PMarray frame (192, 84), finite and >= 0."""
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise ValueError(f"{path}: not a numpy array file without pickles ({exc})") from None
+    arr = read_npy(path)
     if arr.shape != SLP_SHAPE or not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"{path}: expected an SLP pressure map of shape {SLP_SHAPE}, got {arr.dtype} {arr.shape}")
     arr = arr.astype(np.float64)
@@ -87,12 +80,7 @@ def read_pm(path: Path) -> np.ndarray:
 def read_calibration(folder: Path) -> np.ndarray:
     """(3, F) PMcali factors of one subject (covers in COVERS order)."""
     path = folder / "PMcali.npy"
-    try:
-        cali = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise ValueError(f"no PMcali.npy in {folder}; use --calibration weight") from None
-    except (ValueError, OSError, EOFError) as exc:
-        raise ValueError(f"{path}: not a numpy array file without pickles ({exc})") from None
+    cali = read_npy(path, f"no PMcali.npy in {folder}; use --calibration weight")
     if cali.ndim != 2 or cali.shape[0] != len(COVERS) or not np.isfinite(cali).all() or (cali <= 0).any():
         raise ValueError(f"{path}: expected positive factors of shape (3, frames), got {cali.shape}")
     return cali.astype(np.float64)

@@ -42,7 +42,7 @@ import numpy as np
 from pressurepose.data.coregister import (
     FORMAT, _number, _vector, corner_markers, parse_markers, project, solve_camera_pose,
 )
-from pressurepose.files import atomic_write, read_json
+from pressurepose.files import atomic_write, read_json, read_npy
 from pressurepose.viz.viewer import LocalHandler, LocalServer, static_file
 
 log = logging.getLogger(__name__)
@@ -127,12 +127,7 @@ def load_image(path: Path, depth_unit: str = "auto") -> ClickImage:
 def _load_depth(path: Path, unit: str) -> ClickImage:
     if unit not in ("auto", "m", "mm"):
         raise ValueError(f"--depth-unit must be auto, m or mm, got {unit!r}")
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path} is not a readable .npy array ({exc})") from None
-    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiu":
-        raise ValueError(f"{path} must hold a numeric depth image (H, W)")
+    arr = read_npy(path, what="depth image (H, W)")
     if arr.ndim != 2 or min(arr.shape) < 2:
         raise ValueError(f"depth image {path} must be 2-D (H, W), got shape {arr.shape}")
     depth = arr.astype(np.float64)
