@@ -309,3 +309,23 @@ def test_import_original_cli(tmp_path, capsys):
     bad.write_bytes(pickle.dumps({"images": [_Evil()]}, protocol=2))
     assert main(["import-original", str(bad), "--out", str(tmp_path / "ds2")]) == 2
     assert "refusing to load the global" in capsys.readouterr().err
+
+
+def test_open_dataset_reads_a_folder_of_dataset_folders(tmp_path):
+    """train's --data may name a folder holding several generated sets (e.g. the paper mix and a
+    partition made apart): their train samples in name order, the test ones left out."""
+    from pressurepose.train.data import open_dataset
+
+    a = make_fake_dataset(tmp_path / "mix" / "a_paper", GROUPS, seed=1)
+    b = make_fake_dataset(tmp_path / "mix" / "b_lateral", [("train", "lateral", "male", 9)], seed=2)
+    (tmp_path / "mix" / "notes").mkdir()  # a folder without a manifest is not a dataset
+    ds = open_dataset(tmp_path / "mix")
+    assert len(ds) == 103 + 9
+    train_a = [x for sid, x in a.items() if sid.startswith("train")]
+    expected = np.concatenate([x.pressure_mmhg for x in train_a] + [x.pressure_mmhg for x in b.values()])
+    for i in (0, 102, 103, 111):
+        assert np.array_equal(ds[i]["pressure_mmhg"].numpy(), expected[i]), i
+    (tmp_path / "none").mkdir()
+    (tmp_path / "none" / "empty").mkdir()
+    with pytest.raises(ValueError, match="neither a manifest.json"):
+        open_dataset(tmp_path / "none")

@@ -89,7 +89,7 @@ def test_unknown_partition_lists_the_valid_ones():
     with pytest.raises(ValueError, match="max_limb_draws"):
         SamplingConfig(max_limb_draws=0)
     assert set(PARTITIONS) == {"general", "supine", "hands_behind_head", "prone_hands_up", "crossed_legs",
-                               "straight_limbs", "half_sitting"}
+                               "straight_limbs", "half_sitting", "lateral"}
     assert get_partition("supine").roll == (0.0, 0.0)
 
 
@@ -118,6 +118,23 @@ def test_distal_joint_cells_are_uniform_and_reached(anny):
     # roll spread over the full circle, yaw within +-30 degrees
     assert poses.root_draw[:, 0].min() < -3.0 and poses.root_draw[:, 0].max() > 3.0
     assert np.abs(poses.root_draw[:, 1]).max() <= math.pi / 6
+
+
+def test_lateral_lies_on_either_side_with_the_legs_drawn_up(anny):
+    poses = draw(anny, 40, partition="lateral", gender="female")
+    roll, yaw = poses.root_draw[:, 0], poses.root_draw[:, 1]
+    assert (np.abs(np.abs(roll) - math.pi / 2) <= math.pi / 9 + 1e-12).all()
+    assert 8 <= int((roll < 0).sum()) <= 32  # both sides, about half each
+    assert np.abs(yaw).max() <= math.pi / 18 + 1e-12
+    cells = limb_cells(poses)
+    np.testing.assert_array_equal(cells, poses.cells)
+    assert set(cells[:, :2].ravel()) <= {1, 2, 3} and set(cells[:, 2:].ravel()) <= {2, 3, 4, 5}
+    # the body's left axis points down on the left side (roll < 0) and up on the right
+    from pressurepose.eval.real import roll_deg
+
+    measured = roll_deg(poses.params.root_rotation)
+    np.testing.assert_allclose(measured.numpy(), np.degrees(roll), atol=1e-6)
+    assert_collision_free(anny, poses, PARTITIONS["lateral"].checked_capsules)
 
 
 def test_determinism_same_index_same_sample(anny):

@@ -303,3 +303,50 @@ def test_train_cli_errors_exit_2(tmp_path, capsys):
     assert "no dataset" in capsys.readouterr().err
     assert main(["predict", "--model", str(tmp_path), str(tmp_path / "x.npy")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def _blur_reference(image, sigma, radius):
+    """Naive 2-D convolution with the truncated, normalised separable Gaussian, zero padded."""
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    k = torch.exp(-0.5 * (x / sigma) ** 2) if sigma > 0 else (x == 0).double()
+    k = k / k.sum()
+    out = torch.zeros_like(image, dtype=torch.float64)
+    H, W = image.shape
+    for r in range(H):
+        for c in range(W):
+            for dr in range(-radius, radius + 1):
+                for dc in range(-radius, radius + 1):
+                    if 0 <= r + dr < H and 0 <= c + dc < W:
+                        out[r, c] += k[dr + radius] * k[dc + radius] * float(image[r + dr, c + dc])
+    return out
+
+
+def test_spread_augmentation_against_a_naive_blur_and_threshold(data32, monkeypatch):
+    from pressurepose.train import loop
+    from pressurepose.train.loop import SPREAD_MAX_THRESHOLD_MMHG, spread_batch
+
+    p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:6].double()
+    inputs = NetInputs(pressure_mmhg=p)
+    assert torch.equal(spread_batch(inputs, 0.0, 1.5, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = spread_batch(inputs, 0.5, 1.5, torch.Generator().manual_seed(4)).pressure_mmhg
+    u = torch.rand(3, 6, generator=torch.Generator().manual_seed(4)).double()  # the same draws
+    on = u[0] < 0.5
+    assert 0 < int(on.sum()) < 6, "pick a seed that spreads some images and not others"
+    radius = max(1, int(np.ceil(3 * float((u[1] * 1.5 * on).max()))))
+    for i in range(6):
+        if not on[i]:
+            assert torch.equal(out[i], p[i])
+            continue
+        ref = _blur_reference(p[i], float(u[1, i]) * 1.5, radius)
+        ref = torch.where(ref > float(u[2, i]) * SPREAD_MAX_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
+        assert torch.allclose(out[i], ref, atol=1e-9), i
+    # physics of a spread: the load is kept (less what the threshold drops) and covers more taxels
+    big = spread_batch(inputs, 1.0, 1.5, torch.Generator().manual_seed(1)).pressure_mmhg
+    dropped = (p.sum((1, 2)) - big.sum((1, 2))) / p.sum((1, 2))
+    assert float(dropped.min()) >= -1e-9 and float(dropped.max()) < 0.05, dropped
+    # without the threshold, a spread image covers every loaded taxel and more
+    monkeypatch.setattr(loop, "SPREAD_MAX_THRESHOLD_MMHG", 0.0)
+    wide = spread_batch(inputs, 1.0, 1.5, torch.Generator().manual_seed(1)).pressure_mmhg
+    assert bool(((wide > 0) | ~(p > 0)).all()) and bool(((wide > 0).sum((1, 2)) > (p > 0).sum((1, 2))).all())
+    with pytest.raises(ValueError, match="spread"):
+        TrainConfig.smoke(spread=1.5)

@@ -35,6 +35,7 @@ class Partition:
     name: str
     description: str
     roll: tuple[float, float]                 # root roll about the bed's long axis, uniform
+    either_side: bool = False                 # the drawn roll's sign at random (left or right side)
     yaw: tuple[float, float] = (-math.pi / 6, math.pi / 6)  # in the bed plane, uniform
     shift_x: tuple[float, float] = (-0.2, 0.2)  # pelvis along the bed from the mattress centre
     shift_y: tuple[float, float] = (-0.2, 0.2)  # pelvis across the bed
@@ -92,6 +93,13 @@ def _partitions() -> dict[str, Partition]:
                   # Over the bed, a hand raised above the head (arm cells 0, 1) passes the
                   # head end of the short raised section (0.52 m of mattress above the hinge).
                   over_bed_arm_cells=(2, 3, 4, 5, 6, 7)),
+        # Beyond Table 4: side-lying as people rest on a side (PmatData groups C and D, SLP's
+        # lateral postures): the roll within 20 deg of a side, the ankles at most 3/4 of the leg
+        # below the hips (hips and knees bent; a body on its side with straight legs rolls onto
+        # its front or back in sim #1), the wrists between above the shoulder and the waist.
+        Partition("lateral", "on the left or right side, hips and knees bent, arms in front",
+                  roll=(math.pi / 2 - math.pi / 9, math.pi / 2 + math.pi / 9), either_side=True,
+                  yaw=(-math.pi / 18, math.pi / 18), leg_cells=(1, 2, 3), arm_cells=(2, 3, 4, 5)),
     ]
     return {p.name: p for p in parts}
 

@@ -451,8 +451,10 @@ class PoseSampler:
     def _draw_shape_and_root(self, st: _State) -> None:
         st.shape = draw_shape(st.rng, self.shape_low, self.shape_high)
         p = self.part
-        st.root = np.array([
-            st.rng.uniform(*p.roll), st.rng.uniform(*p.yaw), st.rng.uniform(*p.shift_x), st.rng.uniform(*p.shift_y)])
+        roll = st.rng.uniform(*p.roll)
+        if p.either_side and st.rng.random() < 0.5:  # drawn only by such partitions: the others' streams stay
+            roll = -roll
+        st.root = np.array([roll, st.rng.uniform(*p.yaw), st.rng.uniform(*p.shift_x), st.rng.uniform(*p.shift_y)])
         st.rest = None
 
     def _prepare(self, states: list[_State]) -> None:

@@ -10,7 +10,9 @@ float32 tensors.
 The .npz format (`write_npz` / `NpzDataset`): one uncompressed or compressed .npz file whose
 arrays are those keys with a leading sample axis N (gender as float), loaded without pickles.
 `open_dataset(DIR)` reads the generator's Parquet shards when DIR holds a manifest.json (and
-`pressurepose.data.dataset` exists), else every *.npz file in DIR.
+`pressurepose.data.dataset` exists), else every *.npz file in DIR, else every dataset folder
+(with a manifest.json) directly inside DIR - e.g. links to the paper mix and a partition generated
+apart (docs/model-card.md).
 """
 
 from __future__ import annotations
@@ -117,7 +119,14 @@ def open_dataset(root: str | Path, split: str = "train", extra_columns: tuple[st
         return PressurePoseDataset(root, split=split, columns=columns)
     files = sorted(root.glob("*.npz"))
     if not files:
-        raise ValueError(f"{root} holds neither a manifest.json (generated shards) nor .npz files")
+        # A folder of dataset folders (e.g. links to a generated set and a partition made apart):
+        # all of them, in name order.
+        parts = sorted(d for d in root.iterdir() if d.is_dir() and (d / "manifest.json").is_file())
+        if parts:
+            sets = [open_dataset(d, split, extra_columns) for d in parts]
+            return sets[0] if len(sets) == 1 else torch.utils.data.ConcatDataset(sets)
+        raise ValueError(f"{root} holds neither a manifest.json (generated shards), .npz files, nor dataset "
+                         "folders with a manifest.json")
     sets = [NpzDataset(f) for f in files]
     return sets[0] if len(sets) == 1 else torch.utils.data.ConcatDataset(sets)
 

@@ -78,11 +78,36 @@ def shift_batch(inputs: NetInputs, targets: Targets, rows: int, cols: int,
     return dataclasses.replace(inputs, pressure_mmhg=move(p, 0.0)), moved
 
 
+SPREAD_MAX_THRESHOLD_MMHG = 2.0
+
+
+def spread_batch(inputs: NetInputs, share: float, max_sigma: float,
+                 generator: torch.Generator | None) -> NetInputs:
+    """Spread the load of a random `share` of the images: blur by sigma ~ U(0, max_sigma) taxels
+    (zero padded: the force on the grid is kept unless it blurs off the edge), then drop readings
+    below t ~ U(0, SPREAD_MAX_THRESHOLD_MMHG) mmHg, then clip at the sensor's 100 mmHg. Real mats
+    under a side-lying body read over about twice the area the simulation gives (PmatData groups
+    C and D: 0.30-0.34 m^2 above 5 mmHg, simulated 0.16; docs/model-card.md): the network must not
+    read posture from how concentrated the load is. Images not drawn are returned unchanged."""
+    from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
+
+    p = inputs.pressure_mmhg
+    u = torch.rand(3, p.shape[0], generator=generator).to(p)
+    on = u[0] < share
+    sigma = torch.where(on, u[1] * max_sigma, torch.zeros_like(u[1]))
+    t = torch.where(on, u[2] * SPREAD_MAX_THRESHOLD_MMHG, torch.zeros_like(u[2]))
+    q = gaussian_blur(p, sigma)
+    q = torch.where(q > t[:, None, None], q, torch.zeros_like(q)).clamp(max=MAX_MMHG)
+    return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q, p))
+
+
 def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainConfig, augment: bool,
               generator: torch.Generator | None) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
     """Loss of the module being trained, its parts, and the (B,) joint error of its estimate."""
     if augment and (cfg.shift_rows or cfg.shift_cols):
         inputs, targets = shift_batch(inputs, targets, cfg.shift_rows, cfg.shift_cols, generator)
+    if augment and cfg.spread > 0:
+        inputs = spread_batch(inputs, cfg.spread, cfg.spread_sigma, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
     est = ests[-1]
     scale = net.head.shape_scale()
