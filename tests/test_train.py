@@ -321,32 +321,40 @@ def _blur_reference(image, sigma, radius):
     return out
 
 
-def test_spread_augmentation_against_a_naive_blur_and_threshold(data32, monkeypatch):
+def test_repress_augmentation_against_a_naive_reference(data32, monkeypatch):
+    """Re-pressing from the depth label: a per-image loop with a naive 2-D blur gives the same
+    images; the force is kept; a deeper sink covers more taxels; the off images are untouched."""
     from pressurepose.train import loop
-    from pressurepose.train.loop import SPREAD_MAX_THRESHOLD_MMHG, spread_batch
+    from pressurepose.train.loop import REPRESS_THRESHOLD_MMHG, repress_batch
 
-    p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:6].double()
+    arrays = NpzDataset(data32 / "train.npz").arrays
+    p, Q = arrays["pressure_mmhg"][:6].double(), arrays["depth_mm"][:6].double()
     inputs = NetInputs(pressure_mmhg=p)
-    assert torch.equal(spread_batch(inputs, 0.0, 1.5, torch.Generator().manual_seed(0)).pressure_mmhg, p)
-    out = spread_batch(inputs, 0.5, 1.5, torch.Generator().manual_seed(4)).pressure_mmhg
-    u = torch.rand(3, 6, generator=torch.Generator().manual_seed(4)).double()  # the same draws
+    assert torch.equal(repress_batch(inputs, Q, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = repress_batch(inputs, Q, 0.5, torch.Generator().manual_seed(4)).pressure_mmhg
+    u = torch.rand(4, 6, generator=torch.Generator().manual_seed(4)).double()  # the same draws
     on = u[0] < 0.5
-    assert 0 < int(on.sum()) < 6, "pick a seed that spreads some images and not others"
-    radius = max(1, int(np.ceil(3 * float((u[1] * 1.5 * on).max()))))
+    assert 0 < int(on.sum()) < 6, "pick a seed that re-presses some images and not others"
+    delta, gamma, sigma = 40 * u[1], 0.5 + u[2], 0.3 + 0.7 * u[3]
+    radius = max(1, int(np.ceil(3 * float(sigma.max()))))
     for i in range(6):
         if not on[i]:
             assert torch.equal(out[i], p[i])
             continue
-        ref = _blur_reference(p[i], float(u[1, i]) * 1.5, radius)
-        ref = torch.where(ref > float(u[2, i]) * SPREAD_MAX_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
+        c = (float(delta[i]) - Q[i]).clamp(min=0)
+        ref = _blur_reference(torch.where(c > 0, c ** float(gamma[i]), torch.zeros_like(c)), float(sigma[i]), radius)
+        ref = ref * float(p[i].sum()) / float(ref.sum())
+        ref = torch.where(ref >= REPRESS_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
         assert torch.allclose(out[i], ref, atol=1e-9), i
-    # physics of a spread: the load is kept (less what the threshold drops) and covers more taxels
-    big = spread_batch(inputs, 1.0, 1.5, torch.Generator().manual_seed(1)).pressure_mmhg
-    dropped = (p.sum((1, 2)) - big.sum((1, 2))) / p.sum((1, 2))
-    assert float(dropped.min()) >= -1e-9 and float(dropped.max()) < 0.05, dropped
-    # without the threshold, a spread image covers every loaded taxel and more
-    monkeypatch.setattr(loop, "SPREAD_MAX_THRESHOLD_MMHG", 0.0)
-    wide = spread_batch(inputs, 1.0, 1.5, torch.Generator().manual_seed(1)).pressure_mmhg
-    assert bool(((wide > 0) | ~(p > 0)).all()) and bool(((wide > 0).sum((1, 2)) > (p > 0).sum((1, 2))).all())
-    with pytest.raises(ValueError, match="spread"):
-        TrainConfig.smoke(spread=1.5)
+        # the load is kept, less what the threshold and the 100 mmHg ceiling take
+        assert abs(float(out[i].sum()) / float(p[i].sum()) - 1) < 0.1
+    # a softer bed (deeper sink) loads more taxels, with everything else the same
+    monkeypatch.setattr(loop, "REPRESS_EXPONENT", (1.0, 1.0))
+    monkeypatch.setattr(loop, "REPRESS_SPREAD_TAXELS", (0.5, 0.5))
+    area = []
+    for d in (0.0, 20.0, 40.0):
+        monkeypatch.setattr(loop, "REPRESS_EXTRA_SINK_MM", (d, d))
+        area.append((repress_batch(inputs, Q, 1.0, None).pressure_mmhg > 0).sum((1, 2)))
+    assert bool((area[0] <= area[1]).all() and (area[1] <= area[2]).all() and (area[2] > area[0]).all())
+    with pytest.raises(ValueError, match="repress"):
+        TrainConfig.smoke(repress=1.5)

@@ -45,11 +45,10 @@ class TrainConfig:
         width: channel multiplier of the fast CNN (1: 1.3 M parameters; 2: ~5 M).
         shift_rows: augmentation: move training images (and labels) by up to this many rows along the bed.
         shift_cols: augmentation: the same across the bed, in columns.
-        spread: augmentation: share of training images whose load is spread, as on a softer or
-            enveloping mattress (real side-lying frames carry pressure over ~2x the area of
-            simulated ones): blurred by sigma ~ U(0, spread_sigma) taxels, the force kept, then
-            readings below t ~ U(0, 2) mmHg dropped (0 = off).
-        spread_sigma: the largest blur of the spread augmentation, in taxels.
+        repress: augmentation: share of training images re-pressed into a random other mattress
+            from their depth labels (deeper sinking, another pressure law and spread; the force
+            kept): real mats read far more uniform pressure than the calibrated simulation, most
+            of all under side-lying people (0 = off; `train.loop.repress_batch`).
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.
@@ -82,8 +81,7 @@ class TrainConfig:
     width: int = 1
     shift_rows: int = 0
     shift_cols: int = 0
-    spread: float = 0.0
-    spread_sigma: float = 1.5
+    repress: float = 0.0
     lr_gamma: float = 1.0
     init: Path | None = None
     synthesis_weight: float = 0.0
@@ -128,9 +126,8 @@ class TrainConfig:
         if not (0 <= self.shift_rows < 64 and 0 <= self.shift_cols < 27):
             raise ValueError(f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, "
                              f"{self.shift_cols}")
-        if not (0 <= self.spread <= 1 and 0 <= self.spread_sigma <= 5):
-            raise ValueError(f"spread must lie in [0, 1] and spread_sigma in [0, 5] taxels, got {self.spread}, "
-                             f"{self.spread_sigma}")
+        if not 0 <= self.repress <= 1:
+            raise ValueError(f"repress must lie in [0, 1] (a share of the images), got {self.repress}")
         if not 0 < self.lr_gamma <= 1:
             raise ValueError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:

@@ -78,26 +78,38 @@ def shift_batch(inputs: NetInputs, targets: Targets, rows: int, cols: int,
     return dataclasses.replace(inputs, pressure_mmhg=move(p, 0.0)), moved
 
 
-SPREAD_MAX_THRESHOLD_MMHG = 2.0
+# Re-press augmentation: ranges of the mattress law drawn per image (docs/model-card.md).
+REPRESS_EXTRA_SINK_MM = (0.0, 40.0)   # delta: how much deeper a softer mattress lets the body in
+REPRESS_EXPONENT = (0.5, 1.5)         # gamma: pressure ~ compression^gamma
+REPRESS_SPREAD_TAXELS = (0.3, 1.0)    # sigma: the mat and cover's spread
+REPRESS_THRESHOLD_MMHG = 1.0          # the sensor reads 0 below ~1 mmHg (MattressParams.c0_mmhg)
 
 
-def spread_batch(inputs: NetInputs, share: float, max_sigma: float,
-                 generator: torch.Generator | None) -> NetInputs:
-    """Spread the load of a random `share` of the images: blur by sigma ~ U(0, max_sigma) taxels
-    (zero padded: the force on the grid is kept unless it blurs off the edge), then drop readings
-    below t ~ U(0, SPREAD_MAX_THRESHOLD_MMHG) mmHg, then clip at the sensor's 100 mmHg. Real mats
-    under a side-lying body read over about twice the area the simulation gives (PmatData groups
-    C and D: 0.30-0.34 m^2 above 5 mmHg, simulated 0.16; docs/model-card.md): the network must not
-    read posture from how concentrated the load is. Images not drawn are returned unchanged."""
+def repress_batch(inputs: NetInputs, depth_mm: torch.Tensor, share: float,
+                  generator: torch.Generator | None) -> NetInputs:
+    """Replace a random `share` of the pressure images by the body pressed into another
+    mattress: from the depth label Q (mm, < 0 where the body is sunk in), compression c =
+    max(0, delta - Q) (delta ~ U(REPRESS_EXTRA_SINK_MM): a softer mattress lets the body in
+    deeper), pressure ~ c^gamma (gamma ~ U(REPRESS_EXPONENT): from a softening to a stiffening
+    law), spread by a Gaussian of sigma ~ U(REPRESS_SPREAD_TAXELS) taxels, scaled so the image
+    keeps its total, then the sensor's threshold and 100 mmHg ceiling. The pose does not move
+    (a first-order view of a softer bed). Why: real side-lying frames (PmatData C, D) carry
+    nearly uniform pressure over the whole silhouette (0.36-0.42 m^2), simulated ones a few
+    stiff blobs (0.25 m^2) - the calibrated foundation's cubic term and threshold - and the
+    network read the blobs as the cue for lying on a side. Images not drawn are unchanged."""
     from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
 
     p = inputs.pressure_mmhg
-    u = torch.rand(3, p.shape[0], generator=generator).to(p)
+    B = p.shape[0]
+    u = torch.rand(4, B, generator=generator).to(p)
     on = u[0] < share
-    sigma = torch.where(on, u[1] * max_sigma, torch.zeros_like(u[1]))
-    t = torch.where(on, u[2] * SPREAD_MAX_THRESHOLD_MMHG, torch.zeros_like(u[2]))
-    q = gaussian_blur(p, sigma)
-    q = torch.where(q > t[:, None, None], q, torch.zeros_like(q)).clamp(max=MAX_MMHG)
+    lerp = lambda r, x: r[0] + (r[1] - r[0]) * x  # noqa: E731
+    delta, gamma, sigma = lerp(REPRESS_EXTRA_SINK_MM, u[1]), lerp(REPRESS_EXPONENT, u[2]), lerp(REPRESS_SPREAD_TAXELS, u[3])
+    c = (delta[:, None, None] - depth_mm.to(p)).clamp(min=0.0)
+    q = gaussian_blur(c.pow(gamma[:, None, None]) * (c > 0), sigma)
+    total = p.sum((1, 2), keepdim=True)
+    q = q * (total / q.sum((1, 2), keepdim=True).clamp(min=1e-9))
+    q = torch.where(q >= REPRESS_THRESHOLD_MMHG, q, torch.zeros_like(q)).clamp(max=MAX_MMHG)
     return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q, p))
 
 
@@ -106,8 +118,10 @@ def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainC
     """Loss of the module being trained, its parts, and the (B,) joint error of its estimate."""
     if augment and (cfg.shift_rows or cfg.shift_cols):
         inputs, targets = shift_batch(inputs, targets, cfg.shift_rows, cfg.shift_cols, generator)
-    if augment and cfg.spread > 0:
-        inputs = spread_batch(inputs, cfg.spread, cfg.spread_sigma, generator)
+    if augment and cfg.repress > 0:
+        if targets.depth_mm is None:
+            raise ValueError("--repress needs the depth maps (depth_mm) of the training samples")
+        inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
     est = ests[-1]
     scale = net.head.shape_scale()
