@@ -358,3 +358,51 @@ def test_repress_augmentation_against_a_naive_reference(data32, monkeypatch):
     assert bool((area[0] <= area[1]).all() and (area[1] <= area[2]).all() and (area[2] > area[0]).all())
     with pytest.raises(ValueError, match="repress"):
         TrainConfig.smoke(repress=1.5)
+
+
+def test_mirror_flips_images_and_labels_as_the_physics_does(anny64):
+    from pressurepose.body import BodyParams
+    from pressurepose.body.joints import J24_MIRROR
+    from pressurepose.mat import MatSpec
+    from pressurepose.net.losses import Targets
+    from pressurepose.sim.foundation import simulate_pressure
+    from pressurepose.sim.sensor import sensing_area, taxel_reading
+    from pressurepose.train.loop import mirror_batch
+
+    a = synthetic_arrays(3, seed=6, body=anny64)
+    B = len(a["pressure_mmhg"])
+    inputs = NetInputs(pressure_mmhg=a["pressure_mmhg"])
+    targets = Targets(joints=a["joints"], shape=a["shape"], depth_mm=a["depth_mm"], contact=a["contact"])
+    same_in, same = mirror_batch(inputs, targets, 0.0, torch.Generator().manual_seed(0))
+    assert same_in is inputs and same is targets
+    W = MatSpec().sensing_width_m
+    m_in, m = mirror_batch(inputs, targets, 1.0, None)
+    for b in range(B):  # naive reference
+        for r in range(0, 64, 7):
+            for c in range(27):
+                assert m_in.pressure_mmhg[b, r, c] == inputs.pressure_mmhg[b, r, 26 - c]
+                assert m.depth_mm[b, r, c] == targets.depth_mm[b, r, 26 - c]
+        for j in range(24):
+            src = targets.joints[b, J24_MIRROR[j]]
+            assert torch.allclose(m.joints[b, j], torch.stack([src[0], W - src[1], src[2]]), atol=1e-6)
+    assert torch.equal(m.shape, targets.shape)
+    back_in, back = mirror_batch(m_in, m, 1.0, None)  # an involution
+    assert torch.equal(back_in.pressure_mmhg, inputs.pressure_mmhg) and torch.allclose(back.joints, targets.joints, atol=1e-6)
+    part_in, part = mirror_batch(inputs, targets, 0.5, torch.Generator().manual_seed(2))
+    on = torch.rand(B, generator=torch.Generator().manual_seed(2)) < 0.5
+    for b in range(B):
+        ref_in, ref = (m_in, m) if on[b] else (inputs, targets)
+        assert torch.equal(part_in.pressure_mmhg[b], ref_in.pressure_mmhg[b]) and torch.equal(part.joints[b], ref.joints[b])
+    # physics: sim #2 on the mirrored mesh reads the mirrored image
+    params = BodyParams(shape=a["shape"][:1].double(), pose=a["pose"][:1].double(),
+                        root_rotation=a["root_rotation"][:1].double(), root_translation=a["root_translation"][:1].double())
+    out = anny64(params)
+    mass = anny64.measure(params.shape).mass_kg
+    mirrored = out.vertices.clone()
+    mirrored[..., 1] = W - mirrored[..., 1]
+    with torch.no_grad():
+        here = taxel_reading(sensing_area(simulate_pressure(out.vertices, out.faces, mass).pressure_pa)).float()
+        there = taxel_reading(sensing_area(simulate_pressure(mirrored, out.faces.flip(-1), mass).pressure_pa)).float()
+    flipped, _ = mirror_batch(NetInputs(pressure_mmhg=here), Targets(joints=out.joints.float(), shape=params.shape), 1.0, None)
+    assert float(here.sum()) > 100
+    assert float((flipped.pressure_mmhg - there).abs().max()) < 1e-3 * float(here.max())

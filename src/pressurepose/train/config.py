@@ -45,6 +45,8 @@ class TrainConfig:
         width: channel multiplier of the fast CNN (1: 1.3 M parameters; 2: ~5 M).
         shift_rows: augmentation: move training images (and labels) by up to this many rows along the bed.
         shift_cols: augmentation: the same across the bed, in columns.
+        mirror: augmentation: share of training images mirrored left-right with their labels
+            (left and right joints swapped; `train.loop.mirror_batch`; 0 = off).
         repress: augmentation: share of training images re-pressed into a random other mattress
             from their depth labels (deeper sinking, another pressure law and spread; the force
             kept): real mats read far more uniform pressure than the calibrated simulation, most
@@ -81,6 +83,7 @@ class TrainConfig:
     width: int = 1
     shift_rows: int = 0
     shift_cols: int = 0
+    mirror: float = 0.0
     repress: float = 0.0
     lr_gamma: float = 1.0
     init: Path | None = None
@@ -126,8 +129,9 @@ class TrainConfig:
         if not (0 <= self.shift_rows < 64 and 0 <= self.shift_cols < 27):
             raise ValueError(f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, "
                              f"{self.shift_cols}")
-        if not 0 <= self.repress <= 1:
-            raise ValueError(f"repress must lie in [0, 1] (a share of the images), got {self.repress}")
+        for name in ("mirror", "repress"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 < self.lr_gamma <= 1:
             raise ValueError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:

@@ -78,6 +78,30 @@ def shift_batch(inputs: NetInputs, targets: Targets, rows: int, cols: int,
     return dataclasses.replace(inputs, pressure_mmhg=move(p, 0.0)), moved
 
 
+def mirror_batch(inputs: NetInputs, targets: Targets, share: float,
+                 generator: torch.Generator | None) -> tuple[NetInputs, Targets]:
+    """Mirror a random `share` of the images left-right (columns c -> 26 - c) with their labels:
+    the joints reflected across the mat's centre line (y -> W - y, W the sensing width) with left
+    and right swapped (J24_MIRROR); depth and contact maps flipped; the shape kept (the body
+    model is symmetric to ~1 mm, tests/test_body.py). The bed and the simulation are mirror
+    symmetric (a mirrored body gives the mirrored image, tests/test_sim.py), so the mirrored
+    sample is a sample of the same generator - the one of the mirrored person."""
+    from pressurepose.body.joints import J24_MIRROR
+    from pressurepose.mat import MatSpec
+
+    p = inputs.pressure_mmhg
+    on = torch.rand(p.shape[0], generator=generator).to(p.device) < share
+    if not bool(on.any()):
+        return inputs, targets
+    flip = lambda x: None if x is None else torch.where(on[:, None, None], x.flip(-1), x)  # noqa: E731
+    j = targets.joints
+    mirrored = j[:, list(J24_MIRROR)].clone()
+    mirrored[..., 1] = MatSpec().sensing_width_m - mirrored[..., 1]
+    joints = torch.where(on[:, None, None], mirrored, j)
+    return (dataclasses.replace(inputs, pressure_mmhg=flip(p)),
+            Targets(joints=joints, shape=targets.shape, depth_mm=flip(targets.depth_mm), contact=flip(targets.contact)))
+
+
 # Re-press augmentation: ranges of the mattress law drawn per image (docs/model-card.md).
 REPRESS_EXTRA_SINK_MM = (0.0, 40.0)   # delta: how much deeper a softer mattress lets the body in
 REPRESS_EXPONENT = (0.5, 1.5)         # gamma: pressure ~ compression^gamma
@@ -118,6 +142,8 @@ def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainC
     """Loss of the module being trained, its parts, and the (B,) joint error of its estimate."""
     if augment and (cfg.shift_rows or cfg.shift_cols):
         inputs, targets = shift_batch(inputs, targets, cfg.shift_rows, cfg.shift_cols, generator)
+    if augment and cfg.mirror > 0:
+        inputs, targets = mirror_batch(inputs, targets, cfg.mirror, generator)
     if augment and cfg.repress > 0:
         if targets.depth_mm is None:
             raise ValueError("--repress needs the depth maps (depth_mm) of the training samples")
