@@ -2,6 +2,7 @@
 Mod2 on a frozen Mod1, and the `train` / `predict` commands on good and bad inputs."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -406,3 +407,32 @@ def test_mirror_flips_images_and_labels_as_the_physics_does(anny64):
     flipped, _ = mirror_batch(NetInputs(pressure_mmhg=here), Targets(joints=out.joints.float(), shape=params.shape), 1.0, None)
     assert float(here.sum()) > 100
     assert float((flipped.pressure_mmhg - there).abs().max()) < 1e-3 * float(here.max())
+
+
+def test_bands_against_a_naive_reference(data32):
+    """Air-cell bands: a per-row loop gives the same images, the force is kept, rows of the same
+    phase get the same gain, and the off images are untouched."""
+    from pressurepose.train.loop import REPRESS_THRESHOLD_MMHG, bands_batch
+
+    p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:6].double()
+    inputs = NetInputs(pressure_mmhg=p)
+    assert torch.equal(bands_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = bands_batch(inputs, 0.5, torch.Generator().manual_seed(4)).pressure_mmhg
+    u = torch.rand(4, 6, generator=torch.Generator().manual_seed(4)).double()
+    on = u[0] < 0.5
+    assert 0 < int(on.sum()) < 6
+    for i in range(6):
+        if not on[i]:
+            assert torch.equal(out[i], p[i])
+            continue
+        T, a = 2 + 2 * float(u[1, i]), 0.3 + 0.7 * float(u[2, i])
+        phi = T * float(u[3, i])
+        ref = p[i].clone()
+        for r in range(64):
+            ref[r] *= max(0.0, 1 + a * math.cos(2 * math.pi * (r - phi) / T))
+        ref = ref * float(p[i].sum()) / float(ref.sum())
+        ref = torch.where(ref >= REPRESS_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
+        assert torch.allclose(out[i], ref, atol=1e-9), i
+        assert abs(float(out[i].sum()) / float(p[i].sum()) - 1) < 0.1
+    with pytest.raises(ValueError, match="bands"):
+        TrainConfig.smoke(bands=-0.1)

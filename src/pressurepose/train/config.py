@@ -47,6 +47,8 @@ class TrainConfig:
         shift_cols: augmentation: the same across the bed, in columns.
         mirror: augmentation: share of training images mirrored left-right with their labels
             (left and right joints swapped; `train.loop.mirror_batch`; 0 = off).
+        bands: augmentation: share of training images read through an air-cell mattress's
+            transverse bands (rows alternately brighter and darker; `train.loop.bands_batch`; 0 = off).
         repress: augmentation: share of training images re-pressed into a random other mattress
             from their depth labels (deeper sinking, another pressure law and spread; the force
             kept): real mats read far more uniform pressure than the calibrated simulation, most
@@ -85,6 +87,7 @@ class TrainConfig:
     shift_cols: int = 0
     mirror: float = 0.0
     repress: float = 0.0
+    bands: float = 0.0
     lr_gamma: float = 1.0
     init: Path | None = None
     synthesis_weight: float = 0.0
@@ -129,7 +132,7 @@ class TrainConfig:
         if not (0 <= self.shift_rows < 64 and 0 <= self.shift_cols < 27):
             raise ValueError(f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, "
                              f"{self.shift_cols}")
-        for name in ("mirror", "repress"):
+        for name in ("mirror", "repress", "bands"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 < self.lr_gamma <= 1:

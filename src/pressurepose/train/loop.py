@@ -12,6 +12,7 @@ import csv
 import dataclasses
 import io
 import json
+import math
 import logging
 import time
 from pathlib import Path
@@ -137,6 +138,35 @@ def repress_batch(inputs: NetInputs, depth_mm: torch.Tensor, share: float,
     return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q, p))
 
 
+BANDS_PERIOD_ROWS = (2.0, 4.0)   # T: taxel rows per air cell
+BANDS_DEPTH = (0.3, 1.0)         # a: how much the gain varies between a cell's crest and gap
+
+
+def bands_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
+    """Multiply a random `share` of the images by the pattern of an air-cell mattress: cells
+    running across the bed, so the reading varies along it, gain(r) = max(0, 1 + a cos(2 pi (r -
+    phi) / T)) per row r (T ~ U(BANDS_PERIOD_ROWS), a ~ U(BANDS_DEPTH), phi ~ U(0, T)); the total
+    kept, then the sensor's threshold and ceiling. Alternating-pressure air mattresses, the
+    usual hospital bed against pressure injuries, read in such bands (PmatData's air mattress:
+    rows alternate bright and dark under the whole body); the foundation model of a uniform
+    mattress cannot make them. Images not drawn are unchanged."""
+    from pressurepose.net.preprocess import MAX_MMHG
+
+    p = inputs.pressure_mmhg
+    B, R, _ = p.shape
+    u = torch.rand(4, B, generator=generator).to(p)
+    on = u[0] < share
+    T = BANDS_PERIOD_ROWS[0] + (BANDS_PERIOD_ROWS[1] - BANDS_PERIOD_ROWS[0]) * u[1]
+    a = BANDS_DEPTH[0] + (BANDS_DEPTH[1] - BANDS_DEPTH[0]) * u[2]
+    phi = T * u[3]
+    r = torch.arange(R, dtype=p.dtype, device=p.device)
+    gain = (1 + a[:, None] * torch.cos(2 * math.pi * (r[None] - phi[:, None]) / T[:, None])).clamp(min=0.0)
+    q = p * gain[:, :, None]
+    q = q * (p.sum((1, 2), keepdim=True) / q.sum((1, 2), keepdim=True).clamp(min=1e-9))
+    q = torch.where(q >= REPRESS_THRESHOLD_MMHG, q, torch.zeros_like(q)).clamp(max=MAX_MMHG)
+    return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q, p))
+
+
 def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainConfig, augment: bool,
               generator: torch.Generator | None) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
     """Loss of the module being trained, its parts, and the (B,) joint error of its estimate."""
@@ -148,6 +178,8 @@ def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainC
         if targets.depth_mm is None:
             raise ValueError("--repress needs the depth maps (depth_mm) of the training samples")
         inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
+    if augment and cfg.bands > 0:
+        inputs = bands_batch(inputs, cfg.bands, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
     est = ests[-1]
     scale = net.head.shape_scale()
