@@ -52,6 +52,60 @@ def test_report_end_to_end(tiny):
         assert paths[name].read_bytes()[:4] == b"\x89PNG"
 
 
+def reference_vpe(est, true, faces):
+    """3DVPE as evaluate computed it before the exact pruned search: per sample, brute-force
+    nearest neighbours between the camera-facing vertices."""
+    from pressurepose.eval.metrics import camera_facing
+    from pressurepose.eval.nearest import nearest_brute
+
+    (mask_e, area_e), (mask_t, area_t) = camera_facing(est, faces), camera_facing(true, faces)
+    out = []
+    for i in range(est.shape[0]):
+        e, t, we, wt = est[i][mask_e[i]], true[i][mask_t[i]], area_e[i][mask_e[i]], area_t[i][mask_t[i]]
+        out.append(float((nearest_brute(e, t) * we).sum() / we.sum() + (nearest_brute(t, e) * wt).sum() / wt.sum()) / 2)
+    return out
+
+
+def test_report_numbers_equal_the_per_sample_reference(tiny, tmp_path):
+    """The batched evaluate (meshes packed once per batch, the mean body's once per run, exact
+    pruned nearest neighbours) against the old path: every mesh re-posed per comparison, the
+    mean body once per sample, brute-force 3DVPE."""
+    from pressurepose.eval import report as R
+    from pressurepose.net.model import NetInputs
+    from pressurepose.train.checkpoint import load_network
+
+    root, run = tiny
+    paths = run_evaluate(EvaluateConfig(model=run, data=root / "test", out=tmp_path / "r", train_data=root / "train",
+                                        batch=4, failures=2))
+    record = json.loads(paths["json"].read_text())
+    net, _ = load_network(run)
+    body, f32 = net.body, torch.float32
+    mean, images, bodies = R._baseline_data(R._open(root / "train", "train"), 4096, f32)
+    want = {"vpe_m": [], "v2v_m": [], "mpjpe_m": [], "mean_body": [], "nearest_image": []}
+    with torch.no_grad():
+        for _, b in R._batches(R._open(root / "test", "test"), 4, None):  # batches of 4 and 2
+            true = body(R._as_params(b, f32))
+            est = body(net(NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
+                                     mass_kg=b["mass_kg"]), mesh=False)[-1].params)
+            want["vpe_m"] += reference_vpe(est.vertices, true.vertices, body.faces)
+            want["v2v_m"] += (est.vertices - true.vertices).norm(dim=-1).mean(-1).tolist()
+            want["mpjpe_m"] += (est.joints - b["joints"]).norm(dim=-1).mean(-1).tolist()
+            n = len(b["shape"])
+            want["mean_body"] += reference_vpe(body(mean.index(torch.zeros(n, dtype=torch.long))).vertices,
+                                               true.vertices, body.faces)
+            nearest = torch.cdist(R._normalised(b["pressure_mmhg"]), images).argmin(1)
+            want["nearest_image"] += reference_vpe(body(bodies.index(nearest)).vertices, true.vertices, body.faces)
+    got = record["per_sample"]
+    assert len(got["vpe_m"]) == len(want["vpe_m"]) == 6
+    # The brute force picks neighbours by |p|^2 - 2 q.p in float32: equal to its round-off.
+    np.testing.assert_allclose(got["vpe_m"], want["vpe_m"], rtol=1e-5, atol=0)
+    assert got["v2v_m"] == want["v2v_m"] and got["mpjpe_m"] == want["mpjpe_m"]  # untouched paths: exact
+    for name in ("mean_body", "nearest_image"):
+        s = record["baselines_vpe_m"][name]
+        assert s["mean"] == pytest.approx(np.mean(want[name]), rel=1e-5)
+        assert s["median"] == pytest.approx(np.median(want[name]), rel=1e-5)
+
+
 def test_metrics_of_the_truth_are_zero(anny32, tiny):
     root, _ = tiny
     ds = open_dataset(root / "test")

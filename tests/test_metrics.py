@@ -163,3 +163,60 @@ def test_bad_inputs_are_refused():
         vpe(v[None], torch.stack([v, v]), f)
     with pytest.raises(ValueError, match="no camera-facing"):
         vpe(v[None], v[None], f, camera=(0.0, 0.0, 0.0))  # the camera inside the mesh sees nothing
+
+
+def reference_vpe(est, true, faces, camera):
+    """3DVPE as it was computed before the exact pruned search (eval.nearest): per sample,
+    brute-force nearest neighbours between the camera-facing vertices."""
+    from pressurepose.eval.nearest import nearest_brute
+
+    mask_e, area_e = camera_facing(est, faces, camera)
+    mask_t, area_t = camera_facing(true, faces, camera)
+    out = []
+    for i in range(est.shape[0]):
+        e, t = est[i][mask_e[i]], true[i][mask_t[i]]
+        we, wt = area_e[i][mask_e[i]], area_t[i][mask_t[i]]
+        out.append(((nearest_brute(e, t) * we).sum() / we.sum() + (nearest_brute(t, e) * wt).sum() / wt.sum()) / 2)
+    return torch.stack(out)
+
+
+def posed_bodies(body, n, seed, dtype):
+    from pressurepose.body.params import BodyParams
+
+    gen = torch.Generator().manual_seed(seed)
+    params = BodyParams.zeros(n, body.default_shape(n), dtype=dtype)
+    pose = 0.3 * torch.randn(n, 23, 3, generator=gen, dtype=D).to(dtype)
+    trans = (torch.tensor([1.0, 0.4, 0.2], dtype=D) + 0.05 * torch.randn(n, 3, generator=gen, dtype=D)).to(dtype)
+    return body(params.replace(pose=pose, root_translation=trans)).vertices
+
+
+def test_vpe_of_body_meshes_matches_the_brute_force_reference(anny64, anny32):
+    from pressurepose.eval.metrics import CAMERA_M, facing_meshes, vpe_between
+
+    est, true = posed_bodies(anny64, 3, 0, D), posed_bodies(anny64, 3, 1, D)
+    want = reference_vpe(est, true, anny64.faces, CAMERA_M)
+    assert float((vpe(est, true, anny64.faces) - want).abs().max()) <= 1e-9
+    # One mesh (a baseline's) against several, packed once.
+    one = facing_meshes(est[:1], anny64.faces)
+    many = facing_meshes(true, anny64.faces)
+    assert float((vpe_between(one, many) - reference_vpe(est[:1].expand(3, -1, -1), true, anny64.faces,
+                                                         CAMERA_M)).abs().max()) <= 1e-9
+    with pytest.raises(ValueError, match="batch size"):
+        vpe_between(facing_meshes(est[:2], anny64.faces), many)
+    # float32, as evaluate runs: equal to round-off.
+    est32, true32 = posed_bodies(anny32, 2, 2, torch.float32), posed_bodies(anny32, 2, 3, torch.float32)
+    torch.testing.assert_close(vpe(est32, true32, anny32.faces), reference_vpe(est32, true32, anny32.faces, CAMERA_M),
+                               rtol=1e-5, atol=1e-8)
+
+
+def test_cloud_vpe_matches_the_brute_force_reference(anny64):
+    from pressurepose.eval.nearest import nearest_brute
+
+    est = posed_bodies(anny64, 1, 4, D)[0]
+    gen = torch.Generator().manual_seed(5)
+    cloud = posed_bodies(anny64, 1, 6, D)[0] + 0.003 * torch.randn(est.shape, generator=gen, dtype=D)
+    mask, area = camera_facing(est[None], anny64.faces)
+    e, w = est[mask[0]], area[0][mask[0]]
+    c = voxel_downsample(cloud)
+    want = ((nearest_brute(e, c) * w).sum() / w.sum() + nearest_brute(c, e).mean()) / 2
+    assert abs(float(vpe_to_cloud(est, anny64.faces, cloud)) - float(want)) <= 1e-9

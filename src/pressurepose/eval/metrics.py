@@ -16,16 +16,17 @@ body lying on it). Against a real point cloud (`vpe_to_cloud`) the cloud is voxe
 
 from __future__ import annotations
 
+import dataclasses
 
 import torch
 
 from pressurepose.body.rotations import axis_angle_to_matrix
+from pressurepose.eval.nearest import Forest, build_forest, nearest_pairs
 from pressurepose.mat import MatSpec
 
 _MAT = MatSpec()
 CAMERA_M = (_MAT.sensing_length_m / 2, _MAT.sensing_width_m / 2, 1.6)
 VOXEL_M = 0.01  # point clouds are voxel-downsampled to 1 cm before 3DVPE (as released)
-_CHUNK = 2048   # query points per distance block (memory: chunk x points x 4 bytes)
 
 
 def _check_points(name: str, x: torch.Tensor, n: int | None = None) -> None:
@@ -119,44 +120,63 @@ def camera_facing(vertices: torch.Tensor, faces: torch.Tensor, camera=CAMERA_M) 
     return ((cam - vertices) * normals).sum(-1) > 0, areas
 
 
-def _nearest(query: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """(Q,) distance from each query point (Q, 3) to its nearest point (P, 3).
+@dataclasses.dataclass(frozen=True)
+class FacingMeshes:
+    """The camera-facing vertices of B meshes (or point clouds) with their weights (vertex
+    areas, m^2), packed for nearest-neighbour search (`facing_meshes`): set k of `forest` is
+    mesh k's facing vertices in their original order, `weights[k]` (N_k,) their weights."""
 
-    The nearest point is found from |p|^2 - 2 q.p (one matrix product per block), then its
-    distance is computed exactly, so identical point sets give exactly 0."""
-    out = []
-    pp = (points * points).sum(-1)
-    for lo in range(0, query.shape[0], _CHUNK):
-        q = query[lo:lo + _CHUNK]
-        nearest = torch.addmm(pp[None], q, points.T, alpha=-2).argmin(-1)
-        out.append((q - points[nearest]).norm(dim=-1))
-    return torch.cat(out) if out else query.new_zeros(0)
+    forest: Forest
+    weights: list[torch.Tensor]
+
+    @property
+    def size(self) -> int:
+        return self.forest.size
 
 
-def _directed(a: torch.Tensor, wa: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Weighted mean distance from points a (weights wa) to their nearest point of b."""
-    if a.shape[0] == 0 or b.shape[0] == 0:
+def facing_meshes(vertices: torch.Tensor, faces: torch.Tensor, camera=CAMERA_M) -> FacingMeshes:
+    """`FacingMeshes` of B meshes (B, V, 3) with faces (F, 3); ValueError if one of them has no
+    vertex facing the camera. Pack a mesh once to compare it with several others."""
+    mask, areas = camera_facing(vertices, faces, camera)
+    return _facing_sets([vertices[k][mask[k]] for k in range(vertices.shape[0])],
+                        [areas[k][mask[k]] for k in range(vertices.shape[0])])
+
+
+def _facing_sets(points: list[torch.Tensor], weights: list[torch.Tensor]) -> FacingMeshes:
+    if any(p.shape[0] == 0 for p in points):
         raise ValueError("3DVPE: a mesh or point cloud has no camera-facing points")
-    return (_nearest(a, b) * wa).sum() / wa.sum()
+    return FacingMeshes(build_forest(points), weights)
+
+
+def vpe_between(est: FacingMeshes, true: FacingMeshes) -> torch.Tensor:
+    """(B,) 3DVPE (m) of B estimated meshes against B true ones, or of one estimated mesh
+    (e.g. a baseline's) against each of B true ones: per pair the weighted mean distance from
+    the estimate's facing vertices to the nearest of the truth's and back, averaged."""
+    if est.size not in (1, true.size):
+        raise ValueError(f"estimated and true meshes differ in batch size: {est.size} vs {true.size}")
+    pairs = [(k if est.size > 1 else 0, k) for k in range(true.size)]
+    out = []
+    for (i, j), (to_true, to_est) in zip(pairs, nearest_pairs(est.forest, true.forest, pairs)):
+        out.append((_weighted_mean(to_true, est.weights[i]) + _weighted_mean(to_est, true.weights[j])) / 2)
+    return torch.stack(out)
+
+
+def _weighted_mean(dist: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    return (dist * weights).sum() / weights.sum()
 
 
 def vpe(est_vertices: torch.Tensor, true_vertices: torch.Tensor, faces: torch.Tensor,
         camera=CAMERA_M, true_faces: torch.Tensor | None = None) -> torch.Tensor:
     """(B,) 3DVPE (m): estimated (B, V, 3) and true (B, V', 3) meshes with faces (F, 3)
-    (`true_faces` when the true mesh has another topology), camera position (3,) m."""
+    (`true_faces` when the true mesh has another topology), camera position (3,) m.
+    Nearest neighbours are exact (`eval.nearest`): identical meshes give exactly 0."""
     _check_points("estimated vertices", est_vertices)
     _check_points("true vertices", true_vertices)
     if est_vertices.shape[0] != true_vertices.shape[0]:
         raise ValueError(f"estimated and true meshes differ in batch size: {est_vertices.shape[0]} vs "
                          f"{true_vertices.shape[0]}")
     true_faces = faces if true_faces is None else true_faces
-    mask_e, area_e = camera_facing(est_vertices, faces, camera)
-    mask_t, area_t = camera_facing(true_vertices, true_faces, camera)
-    out = []
-    for i in range(est_vertices.shape[0]):
-        e, t = est_vertices[i][mask_e[i]], true_vertices[i][mask_t[i]]
-        out.append((_directed(e, area_e[i][mask_e[i]], t) + _directed(t, area_t[i][mask_t[i]], e)) / 2)
-    return torch.stack(out)
+    return vpe_between(facing_meshes(est_vertices, faces, camera), facing_meshes(true_vertices, true_faces, camera))
 
 
 def voxel_downsample(points: torch.Tensor, voxel_m: float = VOXEL_M) -> torch.Tensor:
@@ -181,11 +201,10 @@ def vpe_to_cloud(est_vertices: torch.Tensor, faces: torch.Tensor, cloud: torch.T
     uniformly, the mesh's camera-facing vertices by area, the two directions averaged."""
     _check_points("estimated vertices", est_vertices[None])
     cloud = voxel_downsample(cloud, voxel_m).to(est_vertices.dtype)
-    mask, area = camera_facing(est_vertices[None], faces, camera)
-    e = est_vertices[mask[0]]
-    return (_directed(e, area[0][mask[0]], cloud) + _directed(cloud, torch.ones(cloud.shape[0], dtype=cloud.dtype), e)) / 2
+    mesh = facing_meshes(est_vertices[None], faces, camera)
+    return vpe_between(mesh, _facing_sets([cloud], [torch.ones(cloud.shape[0], dtype=cloud.dtype)]))[0]
 
 
-__all__ = ["CAMERA_M", "VOXEL_M", "camera_facing", "mpjpe", "pa_mpjpe", "per_vertex_error", "procrustes_align",
+__all__ = ["CAMERA_M", "FacingMeshes", "VOXEL_M", "camera_facing", "facing_meshes", "mpjpe", "pa_mpjpe", "per_vertex_error", "procrustes_align",
            "root_orientation_error", "root_position_error", "vertex_normals_and_areas", "voxel_downsample", "vpe",
-           "vpe_to_cloud"]
+           "vpe_between", "vpe_to_cloud"]

@@ -68,10 +68,6 @@ def _as_params(batch: dict, dtype) -> BodyParams:
     return BodyParams(**{k: batch[k].to(dtype) for k in PARAM_KEYS})
 
 
-def _vpe(body, params: BodyParams, true_vertices: torch.Tensor) -> list[float]:
-    return M.vpe(body(params).vertices, true_vertices, body.faces).tolist()
-
-
 def _item_label(item: dict, key: str, default: str) -> str:
     v = item.get(key, default)
     if isinstance(v, torch.Tensor):
@@ -135,12 +131,16 @@ def _normalised(p: torch.Tensor) -> torch.Tensor:
 
 
 def _sample_metrics(body, est: BodyParams, true: BodyParams, true_joints: torch.Tensor,
-                    true_out, true_measure) -> dict[str, torch.Tensor]:
+                    true_out, true_measure, true_facing: M.FacingMeshes | None = None) -> dict[str, torch.Tensor]:
+    """Every per-sample metric of a batch; `true_facing` = the true meshes packed for 3DVPE
+    (`M.facing_meshes`), when the caller compares them with other meshes too."""
     out = body(est)
     meas = body.measure(est.shape)
     joint_err = (out.joints - true_joints).norm(dim=-1)  # (B, 24)
+    if true_facing is None:
+        true_facing = M.facing_meshes(true_out.vertices, body.faces)
     res = {
-        "vpe_m": M.vpe(out.vertices, true_out.vertices, body.faces),
+        "vpe_m": M.vpe_between(M.facing_meshes(out.vertices, body.faces), true_facing),
         "v2v_m": M.per_vertex_error(out.vertices, true_out.vertices),
         "mpjpe_m": joint_err.mean(-1),
         "pa_mpjpe_m": M.pa_mpjpe(out.joints, true_joints),
@@ -180,6 +180,8 @@ def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
         train = None
     mean_body, train_imgs, train_bodies = (_baseline_data(train, cfg.baseline_samples, dtype) if train is not None
                                            else (None, None, None))
+    with torch.no_grad():  # the mean body is one mesh for every sample: packed once
+        mean_facing = None if mean_body is None else M.facing_meshes(body(mean_body).vertices, body.faces)
 
     rows: dict[str, list] = {"partition": [], "gender": []}
     base_rows: dict[str, list] = {"mean_body": [], "nearest_image": []}
@@ -193,11 +195,12 @@ def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
         for labels, b in _batches(test, cfg.batch, n):
             true = _as_params(b, dtype)
             true_out = body(true)
+            true_facing = M.facing_meshes(true_out.vertices, body.faces)  # shared by the three 3DVPE
             true_measure = body.measure(true.shape)
             inputs = NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
                                mass_kg=b["mass_kg"])
             est = net(inputs, mesh=False)[-1].params
-            res = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure)
+            res = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure, true_facing)
             for k, v in res.items():
                 rows.setdefault(k, []).extend(v.tolist())
             rows["partition"] += [p for p, _ in labels]
@@ -205,10 +208,11 @@ def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
             estimates.append(est)
             B = len(labels)
             if mean_body is not None:
-                base_rows["mean_body"] += _vpe(body, mean_body.index(torch.zeros(B, dtype=torch.long)),
-                                               true_out.vertices)
+                base_rows["mean_body"] += M.vpe_between(mean_facing, true_facing).tolist()
                 nearest = torch.cdist(_normalised(b["pressure_mmhg"]), train_imgs).argmin(1)
-                base_rows["nearest_image"] += _vpe(body, train_bodies.index(nearest), true_out.vertices)
+                nearest_out = body(train_bodies.index(nearest))
+                base_rows["nearest_image"] += M.vpe_between(M.facing_meshes(nearest_out.vertices, body.faces),
+                                                            true_facing).tolist()
             done += B
             bar.update(task, completed=done, rate=f"{done / (time.perf_counter() - t0):.1f} img/s")
     seconds = time.perf_counter() - t0
