@@ -5,12 +5,13 @@
                                                                      # estimates on a test split
 
 Prints per pair of meshes (camera-facing vertices, two-way) the milliseconds of the brute
-force and of the forest search (packing included), the largest difference between them, and
-the share of point pairs the forest compared; then 3DVPE per sample as `pressurepose evaluate`
-computes it (three comparisons: the estimate, the mean body, a third mesh), batched. Without
---data, the "estimates" are the true bodies with noisy poses and pelvis positions (~5 cm
-3DVPE) and the third mesh another random body. Float32, torch's thread count (pin with
-taskset for one core). The numbers in docs/benchmarks.md come from this script.
+force and of the forest search (packing included), the largest difference between them (to
+the float32 brute force, itself only round-off exact, and to a float64 one), and the share of
+point pairs the forest compared; then 3DVPE per sample as `pressurepose evaluate` computes it
+(three comparisons: the estimate, the mean body, another mesh), batched. Without --data the
+"estimates" are the true bodies with noisy poses and pelvis positions and the other mesh
+another random body; with --data the other mesh is a training sample's body. Float32, torch's
+thread count (pin with taskset for one core). The numbers in docs/benchmarks.md come from it.
 """
 
 from __future__ import annotations
@@ -81,17 +82,22 @@ def main() -> None:
     true, est, mean, third, faces = meshes(args)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {args.n} samples, "
           f"{'test split of ' + str(args.data) if args.data else 'posed Anny bodies'}")
-    print("| meshes | facing vertices (mean) | brute force (ms) | forest (ms) | speed-up | max diff (m) | pairs compared |")
+    print("| meshes | facing vertices (mean) | brute force (ms) | forest (ms) | speed-up | max diff to brute force, "
+          "float32 / float64 (m) | pairs compared |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     mask_t, _ = M.camera_facing(true, faces)
     for name, other in (("estimate vs truth", est), ("mean body vs truth", mean.expand(args.n, -1, -1)),
-                        ("third body vs truth", third)):
+                        ("other body vs truth", third)):
         mask_o, _ = M.camera_facing(other, faces)
         sets = [(other[k][mask_o[k]], true[k][mask_t[k]]) for k in range(args.n)]
         brute_ms, brute = timed(lambda: [(N.nearest_brute(a, b), N.nearest_brute(b, a)) for a, b in sets], 1)
         forest_ms, fast = timed(lambda: [N.nearest_pairs(N.build_forest([a]), N.build_forest([b]), [(0, 0)])[0]
                                          for a, b in sets], args.repeats)
         diff = max(float((x - y).abs().max()) for p, q in zip(brute, fast) for x, y in zip(p, q))
+        # The float32 brute force is itself only round-off exact (|p|^2 - 2 q.p); in float64 both agree.
+        diff64 = max(max(float((N.nearest_brute(a.double(), b.double()) - x.double()).abs().max()),
+                         float((N.nearest_brute(b.double(), a.double()) - y.double()).abs().max()))
+                     for (a, b), (x, y) in zip(sets, fast))
         compared = 0
         for a, b in sets:
             fa, fb = N.build_forest([a]), N.build_forest([b])
@@ -105,7 +111,7 @@ def main() -> None:
             compared += sum(counted) * N.LEAF**2 / (a.shape[0] * b.shape[0])
         facing = statistics.mean((a.shape[0] + b.shape[0]) / 2 for a, b in sets)
         print(f"| {name} | {facing:.0f} | {brute_ms / args.n:.1f} | {forest_ms / args.n:.1f} | "
-              f"{brute_ms / forest_ms:.1f}x | {diff:.1e} | {100 * compared / args.n:.1f} % |")
+              f"{brute_ms / forest_ms:.1f}x | {diff:.1e} / {diff64:.1e} | {100 * compared / args.n:.1f} % |")
 
     def evaluate_like():
         true_f = M.facing_meshes(true, faces)
