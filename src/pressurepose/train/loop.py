@@ -12,8 +12,8 @@ import csv
 import dataclasses
 import io
 import json
-import math
 import logging
+import math
 import time
 from pathlib import Path
 
