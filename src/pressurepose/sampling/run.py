@@ -38,8 +38,8 @@ class SampleConfig:
     n: int = 200
     """Number of initial poses."""
     partition: str = "general"
-    """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs or
-    half_sitting (head of the bed raised 10-60 deg)."""
+    """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs,
+    half_sitting (head of the bed raised 10-60 deg) or lateral (on either side, legs drawn up)."""
     gender: Literal["female", "male"] = "female"
     """Gender of the sampled bodies."""
     over_bed: bool = False

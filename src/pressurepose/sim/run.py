@@ -138,8 +138,8 @@ class SimulateConfig:
     out: Path = Path("out/simulate")
     """Output folder (created)."""
     partition: str = "supine"
-    """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs or
-    half_sitting (head of the bed raised 10-60 deg)."""
+    """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs,
+    half_sitting (head of the bed raised 10-60 deg) or lateral (on either side, legs drawn up)."""
     gender: Literal["female", "male"] = "female"
     over_bed: bool = False
     seed: int = 0
