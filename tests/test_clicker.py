@@ -6,7 +6,6 @@ synthetic image land within a pixel of the true marker positions."""
 import json
 import math
 import socket
-import threading
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -19,6 +18,7 @@ from pressurepose.cli import main
 from pressurepose.data.coregister import FORMAT, corner_markers, project, read_markers, solve_camera_pose
 from pressurepose.viz.clicker import ClickConfig, load_image, make_click_server
 
+from served import Served, opened
 from webdriver import WebDriver, needs_chromium
 
 INTR = {"fx": 365.0, "fy": 365.0, "cx": 256.0, "cy": 212.0}  # a Kinect v2 depth camera
@@ -56,14 +56,11 @@ def picture(tmp_path_factory) -> Path:
     return path
 
 
-class Clicker:
+class Clicker(Served):
     """The click server on a free port, serving in a thread."""
 
     def __init__(self, image: Path, out: Path, **kwargs) -> None:
-        self.server = make_click_server(ClickConfig(image=image, out=out, port=0, open=False, **kwargs))
-        self.url = self.server.url
-        self.thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-        self.thread.start()
+        super().__init__(make_click_server(ClickConfig(image=image, out=out, port=0, open=False, **kwargs)))
 
     def get(self, route: str) -> bytes:
         with urllib.request.urlopen(self.url + route, timeout=30) as r:
@@ -79,22 +76,10 @@ class Clicker:
         except urllib.error.HTTPError as exc:
             return exc.code, json.loads(exc.read())
 
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
-
 
 @pytest.fixture
 def clicker():
-    opened = []
-
-    def start(image, out, **kwargs):
-        opened.append(Clicker(image, out, **kwargs))
-        return opened[-1]
-
-    yield start
-    for c in opened:
-        c.close()
+    yield from opened(Clicker)
 
 
 def payload(pixels=PIXELS, intrinsics=INTR, **extra):

@@ -10,7 +10,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -30,6 +29,7 @@ from pressurepose.train.data import synthetic_arrays, write_npz
 from pressurepose.train.loop import train
 from pressurepose.viz.viewer import ViewConfig, make_server
 
+from served import Served, opened
 from webdriver import WebDriver, needs_chromium
 
 # Every test shares the module's fixture (sim #2 samples, a smoke training run and its report):
@@ -78,14 +78,11 @@ def folders(anny64, tmp_path_factory):
     return {"data": root / "data", "run": run, "report": root / "report", "root": root, "n": len(arrays["shape"])}
 
 
-class Viewer:
+class Viewer(Served):
     """A viewer server on a free port, serving in a thread."""
 
     def __init__(self, path: Path, **kwargs) -> None:
-        self.server = make_server(ViewConfig(path=path, port=0, open=False, **kwargs))
-        self.url = self.server.url
-        self.thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-        self.thread.start()
+        super().__init__(make_server(ViewConfig(path=path, port=0, open=False, **kwargs)))
 
     def get(self, route: str):
         with urllib.request.urlopen(self.url + route, timeout=60) as r:
@@ -101,22 +98,10 @@ class Viewer:
         except urllib.error.HTTPError as exc:
             return exc.code, json.loads(exc.read())["error"]
 
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
-
 
 @pytest.fixture
 def viewer():
-    opened = []
-
-    def start(path, **kwargs):
-        opened.append(Viewer(path, **kwargs))
-        return opened[-1]
-
-    yield start
-    for v in opened:
-        v.close()
+    yield from opened(Viewer)
 
 
 def vertices(v: Viewer, i: int) -> dict[str, np.ndarray]:

@@ -205,6 +205,6 @@ def vpe_to_cloud(est_vertices: torch.Tensor, faces: torch.Tensor, cloud: torch.T
     return vpe_between(mesh, _facing_sets([cloud], [torch.ones(cloud.shape[0], dtype=cloud.dtype)]))[0]
 
 
-__all__ = ["CAMERA_M", "FacingMeshes", "VOXEL_M", "camera_facing", "facing_meshes", "mpjpe", "pa_mpjpe", "per_vertex_error", "procrustes_align",
-           "root_orientation_error", "root_position_error", "vertex_normals_and_areas", "voxel_downsample", "vpe",
-           "vpe_between", "vpe_to_cloud"]
+__all__ = ["CAMERA_M", "FacingMeshes", "VOXEL_M", "camera_facing", "facing_meshes", "mpjpe", "pa_mpjpe",
+           "per_vertex_error", "procrustes_align", "root_orientation_error", "root_position_error",
+           "vertex_normals_and_areas", "voxel_downsample", "vpe", "vpe_between", "vpe_to_cloud"]

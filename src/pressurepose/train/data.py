@@ -117,17 +117,15 @@ def open_dataset(root: str | Path, split: str = "train", extra_columns: tuple[st
         columns = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose",
                    "joints_m", "gender", "mass_kg", "height_m") + tuple(extra_columns)
         return PressurePoseDataset(root, split=split, columns=columns)
-    files = sorted(root.glob("*.npz"))
-    if not files:
+    sets = [NpzDataset(f) for f in sorted(root.glob("*.npz"))]
+    if not sets:
         # A folder of dataset folders (e.g. links to a generated set and a partition made apart):
         # all of them, in name order.
-        parts = sorted(d for d in root.iterdir() if d.is_dir() and (d / "manifest.json").is_file())
-        if parts:
-            sets = [open_dataset(d, split, extra_columns) for d in parts]
-            return sets[0] if len(sets) == 1 else torch.utils.data.ConcatDataset(sets)
+        sets = [open_dataset(d, split, extra_columns) for d in sorted(root.iterdir())
+                if d.is_dir() and (d / "manifest.json").is_file()]
+    if not sets:
         raise ValueError(f"{root} holds neither a manifest.json (generated shards), .npz files, nor dataset "
                          "folders with a manifest.json")
-    sets = [NpzDataset(f) for f in files]
     return sets[0] if len(sets) == 1 else torch.utils.data.ConcatDataset(sets)
 
 

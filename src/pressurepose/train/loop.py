@@ -23,6 +23,7 @@ import torch
 from pressurepose.files import atomic_write
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
+from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
 from pressurepose.train.checkpoint import (
     CHECKPOINT_FILE, load_checkpoint, net_config_from_record, read_model, save_checkpoint, save_model,
 )
@@ -122,18 +123,24 @@ def repress_batch(inputs: NetInputs, depth_mm: torch.Tensor, share: float,
     nearly uniform pressure over the whole silhouette (0.36-0.42 m^2), simulated ones a few
     stiff blobs (0.25 m^2) - the calibrated foundation's cubic term and threshold - and the
     network read the blobs as the cue for lying on a side. Images not drawn are unchanged."""
-    from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
-
     p = inputs.pressure_mmhg
-    B = p.shape[0]
-    u = torch.rand(4, B, generator=generator).to(p)
-    on = u[0] < share
-    lerp = lambda r, x: r[0] + (r[1] - r[0]) * x  # noqa: E731
-    delta, gamma, sigma = lerp(REPRESS_EXTRA_SINK_MM, u[1]), lerp(REPRESS_EXPONENT, u[2]), lerp(REPRESS_SPREAD_TAXELS, u[3])
+    u = torch.rand(4, p.shape[0], generator=generator).to(p)
+    delta, gamma = _uniform(REPRESS_EXTRA_SINK_MM, u[1]), _uniform(REPRESS_EXPONENT, u[2])
     c = (delta[:, None, None] - depth_mm.to(p)).clamp(min=0.0)
-    q = gaussian_blur(c.pow(gamma[:, None, None]) * (c > 0), sigma)
-    total = p.sum((1, 2), keepdim=True)
-    q = q * (total / q.sum((1, 2), keepdim=True).clamp(min=1e-9))
+    q = gaussian_blur(c.pow(gamma[:, None, None]) * (c > 0), _uniform(REPRESS_SPREAD_TAXELS, u[3]))
+    return _read_again(inputs, q, u[0] < share)
+
+
+def _uniform(bounds: tuple[float, float], u: torch.Tensor) -> torch.Tensor:
+    """U(bounds) from U(0, 1) draws u."""
+    return bounds[0] + (bounds[1] - bounds[0]) * u
+
+
+def _read_again(inputs: NetInputs, q: torch.Tensor, on: torch.Tensor) -> NetInputs:
+    """The images `on` (B,) replaced by q (B, 64, 27) scaled to their total, then read as the
+    sensor does (below REPRESS_THRESHOLD_MMHG: 0; ceiling MAX_MMHG); the others unchanged."""
+    p = inputs.pressure_mmhg
+    q = q * (p.sum((1, 2), keepdim=True) / q.sum((1, 2), keepdim=True).clamp(min=1e-9))
     q = torch.where(q >= REPRESS_THRESHOLD_MMHG, q, torch.zeros_like(q)).clamp(max=MAX_MMHG)
     return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q, p))
 
@@ -150,21 +157,13 @@ def bands_batch(inputs: NetInputs, share: float, generator: torch.Generator | No
     usual hospital bed against pressure injuries, read in such bands (PmatData's air mattress:
     rows alternate bright and dark under the whole body); the foundation model of a uniform
     mattress cannot make them. Images not drawn are unchanged."""
-    from pressurepose.net.preprocess import MAX_MMHG
-
     p = inputs.pressure_mmhg
-    B, R, _ = p.shape
-    u = torch.rand(4, B, generator=generator).to(p)
-    on = u[0] < share
-    T = BANDS_PERIOD_ROWS[0] + (BANDS_PERIOD_ROWS[1] - BANDS_PERIOD_ROWS[0]) * u[1]
-    a = BANDS_DEPTH[0] + (BANDS_DEPTH[1] - BANDS_DEPTH[0]) * u[2]
+    u = torch.rand(4, p.shape[0], generator=generator).to(p)
+    T, a = _uniform(BANDS_PERIOD_ROWS, u[1]), _uniform(BANDS_DEPTH, u[2])
     phi = T * u[3]
-    r = torch.arange(R, dtype=p.dtype, device=p.device)
+    r = torch.arange(p.shape[1], dtype=p.dtype, device=p.device)
     gain = (1 + a[:, None] * torch.cos(2 * math.pi * (r[None] - phi[:, None]) / T[:, None])).clamp(min=0.0)
-    q = p * gain[:, :, None]
-    q = q * (p.sum((1, 2), keepdim=True) / q.sum((1, 2), keepdim=True).clamp(min=1e-9))
-    q = torch.where(q >= REPRESS_THRESHOLD_MMHG, q, torch.zeros_like(q)).clamp(max=MAX_MMHG)
-    return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q, p))
+    return _read_again(inputs, p * gain[:, :, None], u[0] < share)
 
 
 def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainConfig, augment: bool,

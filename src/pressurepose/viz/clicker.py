@@ -35,7 +35,7 @@ import shlex
 import threading
 from pathlib import Path
 from typing import Literal
-from urllib.parse import parse_qs, urlparse
+from urllib.parse import urlparse
 
 import numpy as np
 
@@ -43,7 +43,7 @@ from pressurepose.data.coregister import (
     FORMAT, _number, _vector, corner_markers, parse_markers, project, solve_camera_pose,
 )
 from pressurepose.files import atomic_write, read_json, read_npy
-from pressurepose.viz.viewer import LocalHandler, LocalServer, static_file
+from pressurepose.viz.viewer import LocalHandler, LocalServer
 
 log = logging.getLogger(__name__)
 
@@ -294,31 +294,22 @@ class ClickSession:
 class _Handler(LocalHandler):
     server: "ClickServer"
 
-    def do_GET(self) -> None:  # noqa: N802 (http.server's name)
-        if not self._local():
-            return
-        url = urlparse(self.path)
+    STATIC = STATIC
+
+    def _get(self, route: str, query: dict[str, list[str]]) -> bool:
         s = self.server.session
         try:
-            if url.path in STATIC:
-                name, ctype = STATIC[url.path]
-                self._send(200, static_file(name), ctype)
-            elif url.path == "/api/info":
+            if route == "/api/info":
                 self._json(s.info())
-            elif url.path == "/api/image.png":
+            elif route == "/api/image.png":
                 self._send(200, s.png(), "image/png")
-            elif url.path == "/api/depth":
-                q = parse_qs(url.query)
-                self._json({"depth_m": s.image.depth_at(float(q["u"][0]), float(q["v"][0]))})
+            elif route == "/api/depth":
+                self._json({"depth_m": s.image.depth_at(float(query["u"][0]), float(query["v"][0]))})
             else:
-                self._json({"error": f"no such page: {url.path}"}, 404)
+                return False
         except (KeyError, ValueError) as exc:
             self._json({"error": f"bad request: {exc}"}, 400)
-        except (BrokenPipeError, ConnectionResetError):
-            pass
-        except Exception as exc:  # a bug: keep serving, say what happened
-            log.exception("click request %s failed", self.path)
-            self._json({"error": f"{type(exc).__name__}: {exc}"}, 500)
+        return True
 
     def do_POST(self) -> None:  # noqa: N802
         if not self._local():

@@ -15,6 +15,7 @@ or, for a training run, from its network run on the sample's pressure image on d
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -27,7 +28,7 @@ import torch
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.params import BodyParams
 
-PARAM_KEYS = ("shape", "root_rotation", "root_translation", "pose")
+PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
 LABEL_KEYS = ("split", "partition", "gender", "over_bed", "index")
 SCALAR_KEYS = ("mass_kg", "height_m", "head_angle_deg", "settle_steps", "sink_mm")
 IMAGES = ("metrics.png", "cases.png", "failures.png", "contact_sheet.png")  # shown when present
@@ -80,14 +81,12 @@ def _open_samples(data: Path, split: str | None):
 
     if (data / "manifest.json").is_file():
         from pressurepose.data.manifest import load_manifest
+        from pressurepose.data.shards import verify_shard
 
         # A missing or truncated shard is named now (a stat per shard); the sha256 of every byte
         # is not checked here - that reads the whole dataset (`pressurepose info` does it).
         for r in load_manifest(data, verify=False)["shards"]:
-            f = data / r["file"]
-            if not f.is_file() or f.stat().st_size != r["bytes"]:
-                raise ValueError(f"shard {f} is {'missing' if not f.is_file() else 'truncated or changed'}; re-run "
-                                 "`pressurepose generate` with the same arguments to remake it")
+            verify_shard(data, r, contents=False)
         columns = ("pressure_mmhg", *PARAM_KEYS, "joints_m", *SCALAR_KEYS, *LABEL_KEYS)
         return PressurePoseDataset(data, split=split, columns=columns, verify=False, cache_row_groups=4)
     if data.is_file() and data.suffix == ".npz":

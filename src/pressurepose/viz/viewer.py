@@ -84,6 +84,30 @@ class LocalHandler(BaseHTTPRequestHandler):
     def _json(self, obj, status: int = 200) -> None:
         self._send(status, json.dumps(obj, allow_nan=False).encode(), "application/json")
 
+    STATIC: dict[str, tuple[str, str]] = {}  # route -> (file under viz/static, content type)
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+        """The Host check, the static files, then `_get` (False: 404); a page that went away is
+        ignored, a bug answers 500 and the server keeps serving."""
+        if not self._local():
+            return
+        url = urlparse(self.path)
+        try:
+            if url.path in self.STATIC:
+                name, ctype = self.STATIC[url.path]
+                self._send(200, static_file(name), ctype)
+            elif not self._get(url.path, parse_qs(url.query)):
+                self._json({"error": f"no such page: {url.path}"}, 404)
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # the page went away (next/previous clicked quickly)
+        except Exception as exc:  # a bug: keep serving, say what happened
+            log.exception("request %s failed", self.path)
+            self._json({"error": f"{type(exc).__name__}: {exc}"}, 500)
+
+    def _get(self, route: str, query: dict[str, list[str]]) -> bool:
+        """Answer an API route; False if there is no such route."""
+        return False
+
     def _local(self) -> bool:
         """False (after answering 403) unless the request names this machine as its Host."""
         host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
@@ -96,18 +120,12 @@ class LocalHandler(BaseHTTPRequestHandler):
 
 class _Handler(LocalHandler):
     server: "ViewerServer"
+    STATIC = STATIC
 
-    def do_GET(self) -> None:  # noqa: N802 (http.server's name)
-        url = urlparse(self.path)
-        route, query = url.path, parse_qs(url.query)
+    def _get(self, route: str, query: dict[str, list[str]]) -> bool:
         b = self.server.browser
-        if not self._local():
-            return
         try:
-            if route in STATIC:
-                name, ctype = STATIC[route]
-                self._send(200, static_file(name), ctype)
-            elif route == "/api/info":
+            if route == "/api/info":
                 self._json(b.info())
             elif route == "/api/list":
                 offset = int(query.get("offset", ["0"])[0])
@@ -129,16 +147,12 @@ class _Handler(LocalHandler):
             elif route.startswith("/files/") and route[7:] in IMAGES and (b.path / route[7:]).is_file():
                 self._send(200, (b.path / route[7:]).read_bytes(), "image/png")
             else:
-                self._json({"error": f"no such page: {route}"}, 404)
+                return False
         except (IndexError, KeyError) as exc:
             self._json({"error": str(exc).strip("'\"")}, 404)
         except ValueError as exc:  # bad numbers in the URL, a corrupt shard, ...
             self._json({"error": str(exc)}, 400)
-        except (BrokenPipeError, ConnectionResetError):
-            pass  # the page went away (next/previous clicked quickly)
-        except Exception as exc:  # a bug: keep serving, say what happened
-            log.exception("viewer request %s failed", self.path)
-            self._json({"error": f"{type(exc).__name__}: {exc}"}, 500)
+        return True
 
 
 class LocalServer(ThreadingHTTPServer):
