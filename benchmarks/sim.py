@@ -28,6 +28,7 @@ from pressurepose.sampling.sampler import PoseSampler
 from pressurepose.sim.foundation import simulate_pressure
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
+from pressurepose.sim.run import settle_config_for
 from pressurepose.sim.settle import SIM_VOLUME_POINTS, settle
 
 SEED_PER_DAY = 35_000
@@ -66,7 +67,7 @@ def main() -> None:
             t0 = time.perf_counter()
             body = build_capsule_body(model, sub.shape, volume_points=SIM_VOLUME_POINTS)
             t1, c1 = time.perf_counter(), time.process_time()
-            res = settle(model, sub, params, mat, body=body, batch=args.batch, bed=bed)
+            res = settle(model, sub, params, mat, config=settle_config_for(name), body=body, batch=args.batch, bed=bed)
             t2, c2 = time.perf_counter(), time.process_time()
             out = model(res.params)
             mass = model.measure(res.params.shape).mass_kg

@@ -89,7 +89,7 @@ def test_unknown_partition_lists_the_valid_ones():
     with pytest.raises(ValueError, match="max_limb_draws"):
         SamplingConfig(max_limb_draws=0)
     assert set(PARTITIONS) == {"general", "supine", "hands_behind_head", "prone_hands_up", "crossed_legs",
-                               "straight_limbs", "half_sitting", "lateral"}
+                               "straight_limbs", "half_sitting", "lateral", "lateral_straight"}
     assert get_partition("supine").roll == (0.0, 0.0)
 
 
@@ -135,6 +135,18 @@ def test_lateral_lies_on_either_side_with_the_legs_drawn_up(anny):
     measured = roll_deg(poses.params.root_rotation)
     np.testing.assert_allclose(measured.numpy(), np.degrees(roll), atol=1e-6)
     assert_collision_free(anny, poses, PARTITIONS["lateral"].checked_capsules)
+
+
+def test_lateral_straight_lies_on_either_side_with_the_legs_nearly_straight(anny):
+    poses = draw(anny, 30, partition="lateral_straight", gender="male")
+    roll = poses.root_draw[:, 0]
+    assert (np.abs(np.abs(roll) - math.pi / 2) <= math.pi / 9 + 1e-12).all()
+    assert 5 <= int((roll < 0).sum()) <= 25
+    cells = limb_cells(poses)
+    np.testing.assert_array_equal(cells, poses.cells)
+    assert set(cells[:, :2].ravel()) == {3} and set(cells[:, 2:].ravel()) <= {2, 3, 4, 5}
+    assert PARTITIONS["lateral_straight"].hold_roll_m > 0 and PARTITIONS["lateral"].hold_roll_m == 0
+    assert_collision_free(anny, poses, PARTITIONS["lateral_straight"].checked_capsules)
 
 
 def test_determinism_same_index_same_sample(anny):

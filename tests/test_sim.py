@@ -217,7 +217,8 @@ def test_sim1_and_sim2_sink_alike(length, radius, mass):
 # --- sim #1 (MuJoCo) ------------------------------------------------------------------------
 from pressurepose.sampling.partitions import PARTITIONS, SamplingConfig  # noqa: E402
 from pressurepose.sampling.sampler import PoseSampler  # noqa: E402
-from pressurepose.sim.settle import REASON_OFF_BED, SettleConfig, build_mjcf, settle  # noqa: E402
+from pressurepose.sim.run import settle_config_for  # noqa: E402
+from pressurepose.sim.settle import REASON_OFF_BED, TRUNK, SettleConfig, _hold_roll, build_mjcf, settle  # noqa: E402
 
 
 def _initial(model, partition, gender="male", indices=(0, 1)):
@@ -235,7 +236,7 @@ def test_sim1_settles_typical_poses_of_every_partition(anny64, partition):
     for bed in set(poses.beds()):  # the half_sitting partition's samples rest on raised beds
         rows = [i for i, b in enumerate(poses.beds()) if b == bed]
         params = BodyParams(**{f: getattr(poses.params, f)[rows] for f in ("shape", "root_rotation", "root_translation", "pose")})
-        res = settle(anny64, params, bed=bed)
+        res = settle(anny64, params, bed=bed, config=settle_config_for(partition))
         for name in ("root_rotation", "root_translation", "pose"):
             assert torch.isfinite(getattr(res.params, name)).all()
         assert np.isfinite(res.sink_m).all() and (res.steps <= SettleConfig().max_steps).all()
@@ -249,6 +250,55 @@ def test_sim1_settles_typical_poses_of_every_partition(anny64, partition):
         z = res.params.root_translation[torch.from_numpy(res.ok), 2]
         assert (z > -0.1).all() and (z < 0.4).all()
     assert ok >= 2
+
+
+def test_trunk_roll_hold_torque_and_energy():
+    """The hold pulls the pelvis's roll about the bed's long axis back, shared by the trunk
+    capsules' masses, stores 1/2 k roll^2, and ignores a turn about the vertical."""
+    cfg = SettleConfig(hold_roll_m=0.5, hold_time_s=0.1)
+    C = 20
+    mass = np.arange(1.0, C + 1.0)[None]
+    weight = np.array([700.0])
+    k = 0.5 * 700.0
+    R0 = np.eye(3)[None]
+    for theta in (0.3, -1.2, 2.5):
+        c, s = math.cos(theta), math.sin(theta)
+        Rx = np.array([[[1, 0, 0], [0, c, -s], [0, s, c]]])
+        cv = np.zeros((1, C, 6))
+        cv[0, :, 0] = 0.4  # rolling at 0.4 rad/s
+        ft, e = _hold_roll(np.zeros((1, C, 6)), Rx, R0, cv, mass, weight, cfg)
+        tau = ft[0, TRUNK, 3]
+        assert math.isclose(tau.sum(), -k * (theta + 0.1 * 0.4), rel_tol=1e-12)
+        np.testing.assert_allclose(tau / tau.sum(), mass[0, TRUNK] / mass[0, TRUNK].sum())
+        assert np.count_nonzero(ft) == len(TRUNK) and math.isclose(e[0], 0.5 * k * theta**2, rel_tol=1e-12)
+    yaw = np.array([[[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]])
+    ft, e = _hold_roll(np.zeros((1, C, 6)), yaw, R0, np.zeros((1, C, 6)), mass, weight, cfg)
+    assert np.abs(ft).max() < 1e-12 and e[0] < 1e-20
+    with pytest.raises(ValueError, match="hold_roll_m"):
+        SettleConfig(hold_roll_m=-1.0)
+    assert settle_config_for("lateral_straight").hold_roll_m > 0 and settle_config_for("lateral").hold_roll_m == 0
+
+
+def test_trunk_roll_hold_keeps_straight_legged_side_lying_bodies_on_their_side(anny64):
+    from pressurepose.eval.real import roll_deg
+
+    cfg = SamplingConfig(partition="lateral_straight", gender="female", seed=5)
+    params = PoseSampler(anny64, cfg).sample([0, 3]).params  # both passive bodies roll onto their back
+    start = roll_deg(params.root_rotation)
+    passive = settle(anny64, params)
+    held = settle(anny64, params, config=settle_config_for("lateral_straight"))
+    assert passive.ok.all() and held.ok.all()
+    assert (roll_deg(passive.params.root_rotation).abs() < 30).all()
+    assert ((roll_deg(held.params.root_rotation) - start).abs() < 10).all() and (start.abs() > 70).all()
+    assert (held.sink_m > 0).all()
+    # The whole pipeline, as `generate` calls it (one bed per sample), holds them too: they rest
+    # on their side after sim #2.
+    from pressurepose.bed import BedShape
+    from pressurepose.sim.run import simulate_poses
+
+    sim = simulate_poses(anny64, params, bed=[BedShape(), BedShape()], settle_config=settle_config_for("lateral_straight"))
+    assert sim.reason == ["", ""]
+    assert (roll_deg(sim.params.root_rotation).abs() > 45).all()
 
 
 def test_sim1_is_deterministic_and_batch_independent(anny64):

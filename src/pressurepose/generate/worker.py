@@ -133,7 +133,7 @@ def _sample(sampler, indices: list[int]):
 def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, split: str):
     """Sample and simulate `indices`; (SampleBatch of the accepted ones or None, reason per
     index ("" = kept), summed sampling rejection counts)."""
-    from pressurepose.sim.run import simulate_poses
+    from pressurepose.sim.run import settle_config_for, simulate_poses
 
     initial, unreachable = _sample(sampler, indices)
     reasons = {i: REASON_UNREACHABLE for i in unreachable}
@@ -141,9 +141,10 @@ def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, sp
         return None, [reasons[i] for i in indices], {}
     B = initial.batch_size
     # Each sample rests on its own bed (raised head section for half_sitting, flat otherwise).
-    sim = simulate_poses(model, initial.params, mattress, seed=seed, bed=initial.beds())
-    height = model.measure(sim.params.shape).height_m.detach().numpy()
     cfg = sampler.config
+    sim = simulate_poses(model, initial.params, mattress, seed=seed, bed=initial.beds(),
+                         settle_config=settle_config_for(cfg.partition))
+    height = model.measure(sim.params.shape).height_m.detach().numpy()
     p = sim.params
     arrays = dict(
         split=np.array([split] * B, dtype=object), partition=np.array([cfg.partition] * B, dtype=object),

@@ -25,6 +25,7 @@ import math
 LEG_CELLS = 4
 ARM_CELLS = 8
 HEIGHT_TOLERANCE_M = 0.10  # seed A.1: distal joint within +-10 cm of the proximal joint's height
+HOLD_ROLL_M = 0.5  # lateral_straight's trunk roll hold: 0.5 m x weight per radian (docs/sampling.md)
 GENDERS = ("female", "male")
 
 
@@ -55,6 +56,8 @@ class Partition:
     # of the hip joints relative to the hinge (positive: toward the foot) instead of the pelvis
     # relative to the mattress centre.
     head_angles_deg: tuple[float, ...] = (0.0,)
+    # Sim #1's trunk roll hold for this partition (SettleConfig.hold_roll_m; 0: passive body).
+    hold_roll_m: float = 0.0
 
     @property
     def raised(self) -> bool:
@@ -100,6 +103,15 @@ def _partitions() -> dict[str, Partition]:
         Partition("lateral", "on the left or right side, hips and knees bent, arms in front",
                   roll=(math.pi / 2 - math.pi / 9, math.pi / 2 + math.pi / 9), either_side=True,
                   yaw=(-math.pi / 18, math.pi / 18), leg_cells=(1, 2, 3), arm_cells=(2, 3, 4, 5)),
+        # Beyond Table 4: side-lying with the legs nearly straight (ankles more than 3/4 of the
+        # leg below the hips), as PmatData's side-lying subjects lie. A passive body in that
+        # pose rolls onto its front or back, so sim #1 holds the trunk's roll (a person's muscle
+        # tone; SettleConfig.hold_roll_m) while the limbs settle.
+        Partition("lateral_straight", "on the left or right side, legs nearly straight, arms in front "
+                  "(trunk roll held in sim #1)",
+                  roll=(math.pi / 2 - math.pi / 9, math.pi / 2 + math.pi / 9), either_side=True,
+                  yaw=(-math.pi / 18, math.pi / 18), leg_cells=(LEG_CELLS - 1,), arm_cells=(2, 3, 4, 5),
+                  hold_roll_m=HOLD_ROLL_M),
     ]
     return {p.name: p for p in parts}
 

@@ -39,7 +39,8 @@ class SampleConfig:
     """Number of initial poses."""
     partition: str = "general"
     """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs,
-    half_sitting (head of the bed raised 10-60 deg) or lateral (on either side, legs drawn up)."""
+    half_sitting (head of the bed raised 10-60 deg), lateral (on either side, legs drawn up) or
+    lateral_straight (on either side, legs nearly straight; the trunk roll held in sim #1)."""
     gender: Literal["female", "male"] = "female"
     """Gender of the sampled bodies."""
     over_bed: bool = False

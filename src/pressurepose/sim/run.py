@@ -12,7 +12,7 @@ import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import torch
@@ -23,6 +23,9 @@ from pressurepose.files import atomic_write
 from pressurepose.mat import MatSpec
 from pressurepose.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
+
+if TYPE_CHECKING:
+    from pressurepose.sim.settle import SettleConfig
 
 
 @dataclasses.dataclass
@@ -44,16 +47,27 @@ class SimulatedSamples:
     head_angle_deg: np.ndarray     # (B,) the bed each sample rests on (0: flat)
 
 
+def settle_config_for(partition: str) -> SettleConfig:
+    """Sim #1's settings for a sampling partition (its trunk roll hold; else the defaults)."""
+    from pressurepose.sampling.partitions import get_partition
+    from pressurepose.sim.settle import SettleConfig
+
+    return SettleConfig(hold_roll_m=get_partition(partition).hold_roll_m)
+
+
 def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
                    mat: MatSpec | None = None, seed: int = 0,
-                   bed: BedShape | Sequence[BedShape] | None = None) -> SimulatedSamples:
+                   bed: BedShape | Sequence[BedShape] | None = None,
+                   settle_config: SettleConfig | None = None) -> SimulatedSamples:
     """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses on a flat bed,
     a bent one (`bed`), or one bed per sample (a sequence of B, e.g. `InitialPoses.beds()`:
-    samples on the same bed are simulated together, results come back in input order)."""
+    samples on the same bed are simulated together, results come back in input order).
+    `settle_config`: sim #1's settings (default `SettleConfig()`; `settle_config_for` gives a
+    partition's)."""
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
     if bed is None or isinstance(bed, BedShape):
-        return _simulate_one_bed(model, params, mattress, mat, seed, bed or BedShape())
+        return _simulate_one_bed(model, params, mattress, mat, seed, bed or BedShape(), settle_config)
     beds = list(bed)
     if len(beds) != params.batch_size or not all(isinstance(b, BedShape) for b in beds):
         raise ValueError(f"bed must be one BedShape or a sequence of {params.batch_size} (one per sample), "
@@ -62,10 +76,11 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     for i, b in enumerate(beds):
         groups.setdefault(b, []).append(i)
     if len(groups) == 1:
-        return _simulate_one_bed(model, params, mattress, mat, seed, beds[0])
+        return _simulate_one_bed(model, params, mattress, mat, seed, beds[0], settle_config)
     parts, order = [], []
     for k, (b, rows) in enumerate(groups.items()):
-        parts.append(_simulate_one_bed(model, params.index(torch.tensor(rows)), mattress, mat, seed + 7919 * k, b))
+        parts.append(_simulate_one_bed(model, params.index(torch.tensor(rows)), mattress, mat, seed + 7919 * k, b,
+                                       settle_config))
         order += rows
     back = torch.from_numpy(np.argsort(np.array(order)))
     return _concat(parts, back)
@@ -87,13 +102,13 @@ def _concat(parts: list[SimulatedSamples], back: torch.Tensor) -> SimulatedSampl
 
 
 def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressParams, mat: MatSpec,
-                      seed: int, bed: BedShape) -> SimulatedSamples:
+                      seed: int, bed: BedShape, settle_config: SettleConfig | None = None) -> SimulatedSamples:
     from pressurepose.sim.foundation import simulate_pressure
     from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
     from pressurepose.sim.settle import as_float64, settle
 
     model64 = as_float64(model)
-    settled = settle(model64, params, mattress, mat, bed=bed)
+    settled = settle(model64, params, mattress, mat, config=settle_config, bed=bed)
     rest = settled.params
     out = model64(rest)
     mass = model64.measure(rest.shape).mass_kg
@@ -139,7 +154,8 @@ class SimulateConfig:
     """Output folder (created)."""
     partition: str = "supine"
     """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs,
-    half_sitting (head of the bed raised 10-60 deg) or lateral (on either side, legs drawn up)."""
+    half_sitting (head of the bed raised 10-60 deg), lateral (on either side, legs drawn up) or
+    lateral_straight (on either side, legs nearly straight; the trunk roll held in sim #1)."""
     gender: Literal["female", "male"] = "female"
     over_bed: bool = False
     seed: int = 0
@@ -174,7 +190,8 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
             raise ValueError(f"partition {cfg.partition!r} sits sample {cfg.index} up on a bed raised "
                              f"{bed.head_angle_deg:g} deg; leave out --head-angle-deg (or pick another index)")
         bed = BedShape(cfg.head_angle_deg)
-    sim = simulate_poses(model, initial.params, mattress, seed=cfg.seed * 1_000_003 + cfg.index, bed=bed)
+    sim = simulate_poses(model, initial.params, mattress, seed=cfg.seed * 1_000_003 + cfg.index, bed=bed,
+                         settle_config=settle_config_for(cfg.partition))
     t2 = time.perf_counter()
     cfg.out.mkdir(parents=True, exist_ok=True)
     reason = sim.reason[0]
@@ -227,4 +244,4 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
 
 
 
-__all__ = ["SimulateConfig", "SimulatedSamples", "run_simulate", "simulate_poses"]
+__all__ = ["SimulateConfig", "SimulatedSamples", "run_simulate", "settle_config_for", "simulate_poses"]

@@ -65,6 +65,7 @@ REASON_OFF_BED = "body outside the bed"
 SETTLE_REASONS = (REASON_TIMEOUT, REASON_NONFINITE, REASON_SANK, REASON_FELL, REASON_ENERGY, REASON_OFF_BED)
 
 PELVIS = CAPSULE_NAMES.index("pelvis")
+TRUNK = [CAPSULE_NAMES.index(n) for n in ("pelvis", "spine1", "spine2", "spine3")]
 SIM_VOLUME_POINTS = 2048  # capsule volumes for masses: <= 0.3% from 8192 points, a quarter of the cost
 V_STICK = 0.02  # m/s: below this sliding speed Coulomb friction becomes a (stiff) damper
 # Static friction: a tangential spring per capsule and bed section from where the capsule
@@ -86,6 +87,13 @@ class SettleConfig:
     drop_height_m: float = 0.02
     min_steps_after_touch: int = 8
     grid_sub: int = 1   # foundation nodes per taxel side (sim #1's grid)
+    # Trunk roll held (0: off, the seed's passive body): a torque about the bed's long axis
+    # on the trunk capsules pulls the pelvis's roll back to its initial value, stiffness
+    # hold_roll_m x the body's weight (N m/rad), damping that stiffness x hold_time_s - the
+    # muscle tone that keeps a person on a side with straight legs, where a passive body rolls
+    # onto its front or back. Only sim #1 uses it; sim #2 rests the settled mesh passively.
+    hold_roll_m: float = 0.0
+    hold_time_s: float = 0.1
 
     def __post_init__(self) -> None:
         if not (self.timestep_s > 0 and math.isfinite(self.timestep_s)):
@@ -93,6 +101,10 @@ class SettleConfig:
         for name in ("max_steps", "grid_sub"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"SettleConfig.{name} must be >= 1")
+        for name in ("hold_roll_m", "hold_time_s"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"SettleConfig.{name} must be finite and >= 0, got {v}")
 
 
 @dataclasses.dataclass
@@ -602,6 +614,7 @@ class _Pool:
         self.loc_a, self.loc_b = np.zeros((P, C, 3)), np.zeros((P, C, 3))
         self.weight = np.ones(P)
         self.stick = np.zeros((len(self.found._sections), P, C, 2))  # static-friction springs
+        self.roll0 = np.tile(np.eye(3), (P, 1, 1))  # pelvis orientation at the drop (roll hold)
         # Per slot: model, data and views of the MjData arrays read every step (a view made
         # once costs nothing later; MjData's attribute access builds a new one each time).
         self.slot: list[tuple | None] = [None] * P
@@ -617,6 +630,7 @@ class _Pool:
             d = ep.data
             self.slot[s] = (ep.model, d, d.cvel, d.xipos, d.subtree_com[0], d.xmat, d.xpos, d.energy,
                             d.xfrc_applied, d.qvel)
+            self.roll0[s] = d.xmat[ep.body_ids[PELVIS]].reshape(3, 3)
         self.step[slots] = 0
         self.touched[slots] = -1
         self.e_ref[slots] = np.nan
@@ -763,6 +777,9 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
         p.touched[ids] = touched
         energy = np.array([sl[7] for sl in slots]).sum(1) + e_mat
         ft = ft.reshape(n, C, 6)
+        if config.hold_roll_m > 0:
+            ft, e_hold = _hold_roll(ft, R[:, PELVIS], p.roll0[ids], cv, p.mass[ids], p.weight[ids], config)
+            energy = energy + e_hold
         step = p.step[ids]
         reset = (touched < 0) & ((step + 1) % every == 0)
         for j, sl in enumerate(slots):
@@ -786,6 +803,23 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
         left = ~grew & ~sank & ~fell
         finish(ids[left & (step + 1 >= config.max_steps)], REASON_TIMEOUT)
         free = np.flatnonzero(p.ep < 0)
+
+
+def _hold_roll(ft, R, R0, cv, mass, weight, config: SettleConfig):
+    """The trunk roll hold (`SettleConfig.hold_roll_m`): ft (n, C, 6) with the torque about
+    the bed's long axis (x) added on the trunk capsules, shared by mass, and the hold's spring
+    energy (n,), which the energy check counts as the mattress's. R: (n, 3, 3) the pelvis's
+    orientation now, R0 at the drop; cv: (n, C, 6) capsule velocities (angular first)."""
+    E = R @ np.swapaxes(R0, 1, 2)  # rotation since the drop (world frame)
+    roll = np.arctan2(E[:, 2, 1] - E[:, 1, 2], E[:, 1, 1] + E[:, 2, 2])  # exact for a rotation about x
+    m = mass[:, TRUNK]
+    share = m / m.sum(1, keepdims=True)
+    omega_x = (share * cv[:, TRUNK, 0]).sum(1)
+    k = config.hold_roll_m * weight
+    tau = -k * (roll + config.hold_time_s * omega_x)
+    ft = ft.copy()
+    ft[:, TRUNK, 3] += tau[:, None] * share
+    return ft, 0.5 * k * roll**2
 
 
 def as_float64(model: BodyModel) -> BodyModel:
