@@ -1,6 +1,7 @@
 """Dataset generation: presets and plans, exact counts, determinism, resume after SIGKILL
 (finished on a process pool), damaged shards, the Ray engine agreeing with the in-process run."""
 
+import contextlib
 import json
 import os
 import shutil
@@ -263,6 +264,47 @@ def test_resume_remakes_damaged_and_half_written_shards(reference, tmp_path, cap
     assert files_of(out) == files_of(ref)
     with pytest.raises(ValueError, match="other settings .*seed"):
         run_generate(GenerateConfig(out=out, **dict(SMALL, seed=4)), progress=False)
+
+
+def _children(pid: int) -> list[int]:
+    """Live processes whose parent is `pid` (Linux /proc)."""
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            kids.append(int(stat.parent.name))
+    return kids
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
+def test_pool_workers_exit_when_the_generate_process_is_killed(tmp_path):
+    p = cli("generate", "--out", str(tmp_path / "ds"), "--partition", "supine", "--n", "64", "--shard-size", "2",
+            "--batch", "2", "--workers", "2")
+    try:
+        deadline = time.time() + 120
+        workers: list[int] = []
+        while time.time() < deadline and p.poll() is None:
+            # the pool's two workers (besides multiprocessing's resource tracker) and a shard started
+            workers = [c for c in _children(p.pid) if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+            if len(workers) == 2:
+                break
+            time.sleep(0.1)
+        assert p.poll() is None and len(workers) == 2, "the pool did not start"
+        time.sleep(2.0)  # mid-shard
+        os.kill(p.pid, signal.SIGKILL)  # the main process only: no chance to shut the pool down
+        p.wait()
+        deadline = time.time() + 15
+        while time.time() < deadline and any(Path(f"/proc/{w}").exists() for w in workers):
+            time.sleep(0.1)
+        alive = [w for w in workers if Path(f"/proc/{w}").exists()
+                 and Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"]
+        assert not alive, f"orphaned workers still running: {alive}"
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGKILL)
 
 
 @pytest.mark.slow

@@ -179,11 +179,27 @@ def _engine(cfg: GenerateConfig, pending: list[ShardSpec], ctx: WorkContext, on_
     return _run_pool(pending, ctx, cfg.workers)
 
 
-def _init_worker() -> None:
+def _init_worker(parent: int | None = None) -> None:
     import torch
 
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING)
+    if parent is not None:
+        import threading
+
+        threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+
+
+def _exit_with_parent(parent: int, every_s: float = 1.0) -> None:
+    """A pool worker's watch: when the generate process is gone (killed, SIGTERM, SIGKILL -
+    no chance to shut the pool down), the orphaned worker exits instead of finishing its shard
+    for nobody and then waiting forever with a body model in memory."""
+    import os
+
+    while True:
+        time.sleep(every_s)
+        if os.getppid() != parent:
+            os._exit(1)
 
 
 def _run_pool(pending: list[ShardSpec], ctx: WorkContext, workers: int) -> Iterator[tuple]:
@@ -193,7 +209,10 @@ def _run_pool(pending: list[ShardSpec], ctx: WorkContext, workers: int) -> Itera
     import multiprocessing as mp
 
     todo = list(pending)
-    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker) as pool:
+    import os
+
+    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                initargs=(os.getpid(),)) as pool:
         running: dict = {}
         while todo or running:
             while todo and len(running) < 2 * workers:
