@@ -29,6 +29,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/body.py
 	$(BIN)/python benchmarks/sampling.py
 	$(BIN)/python benchmarks/sim.py
+	$(BIN)/python benchmarks/sim1_floor.py
 
 clean-venv:
 	rm -rf $(VENV)
