@@ -156,15 +156,16 @@ def nearest_pairs(fa: Forest, fb: Forest, pairs: list[tuple[int, int]]) -> list[
     leaf_b = torch.cat([torch.arange(b0, b1, device=dev) for _, _, b0, b1 in spans])
     best_a = fa.leaves.new_full((ra[-1], fa.leaf), math.inf)  # squared distances so far
     best_b = fa.leaves.new_full((rb[-1], fb.leaf), math.inf)
-    guesses, gaps = [], []
+    guesses, local, gaps = [], [], []
     for p, (a0, a1, b0, b1) in enumerate(spans):
         centre = torch.cdist((fa.lo[a0:a1] + fa.hi[a0:a1]) / 2, (fb.lo[b0:b1] + fb.hi[b0:b1]) / 2)
         ka, kb = min(_GUESSES, b1 - b0), min(_GUESSES, a1 - a0)
         near_b = centre.topk(ka, dim=1, largest=False).indices  # (na, ka): leaves of j per leaf of i
         near_a = centre.topk(kb, dim=0, largest=False).indices  # (kb, nb): leaves of i per leaf of j
         rows_a, rows_b = torch.arange(a1 - a0, device=dev), torch.arange(b1 - b0, device=dev)
-        guesses.append(torch.stack([torch.cat([rows_a.repeat_interleave(ka), near_a.T.reshape(-1)]) + ra[p],
-                                    torch.cat([near_b.reshape(-1), rows_b.repeat_interleave(kb)]) + rb[p]]))
+        local.append(torch.stack([torch.cat([rows_a.repeat_interleave(ka), near_a.T.reshape(-1)]),
+                                  torch.cat([near_b.reshape(-1), rows_b.repeat_interleave(kb)])]))
+        guesses.append(local[-1] + torch.tensor([[ra[p]], [rb[p]]], device=dev))
         gaps.append(_box_gap2(fa.lo[a0:a1], fa.hi[a0:a1], fb.lo[b0:b1], fb.hi[b0:b1]))
     guesses = torch.cat(guesses, 1)
     _reduce_pairs(fa.leaves, fb.leaves, leaf_a, leaf_b, guesses[0], guesses[1], best_a, best_b)
@@ -173,6 +174,7 @@ def nearest_pairs(fa: Forest, fb: Forest, pairs: list[tuple[int, int]]) -> list[
     todo = []
     for p, gap2 in enumerate(gaps):
         need = (gap2 <= bound_a[ra[p]:ra[p + 1], None]) | (gap2 <= bound_b[None, rb[p]:rb[p + 1]])
+        need[local[p][0], local[p][1]] = False  # the guessed pairs are in the minima already
         rows_a, rows_b = need.nonzero(as_tuple=True)
         todo.append(torch.stack([rows_a + ra[p], rows_b + rb[p]]))
     todo = torch.cat(todo, 1)

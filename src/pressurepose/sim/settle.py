@@ -807,8 +807,8 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
 
 def _hold_roll(ft, R, R0, cv, mass, weight, config: SettleConfig):
     """The trunk roll hold (`SettleConfig.hold_roll_m`): ft (n, C, 6) with the torque about
-    the bed's long axis (x) added on the trunk capsules, shared by mass, and the hold's spring
-    energy (n,), which the energy check counts as the mattress's. R: (n, 3, 3) the pelvis's
+    the bed's long axis (x) added on the trunk capsules, shared by mass (in place), and the
+    hold's spring energy (n,), which the energy check counts as the mattress's. R: (n, 3, 3) the pelvis's
     orientation now, R0 at the drop; cv: (n, C, 6) capsule velocities (angular first)."""
     E = R @ np.swapaxes(R0, 1, 2)  # rotation since the drop (world frame)
     roll = np.arctan2(E[:, 2, 1] - E[:, 1, 2], E[:, 1, 1] + E[:, 2, 2])  # exact for a rotation about x
@@ -817,7 +817,6 @@ def _hold_roll(ft, R, R0, cv, mass, weight, config: SettleConfig):
     omega_x = (share * cv[:, TRUNK, 0]).sum(1)
     k = config.hold_roll_m * weight
     tau = -k * (roll + config.hold_time_s * omega_x)
-    ft = ft.copy()
     ft[:, TRUNK, 3] += tau[:, None] * share
     return ft, 0.5 * k * roll**2
 
