@@ -15,6 +15,7 @@ from typing import Literal
 import tyro
 
 from pressurepose.calib.run import CalibrateConfig
+from pressurepose.commands.realism import RealismConfig
 from pressurepose.data.coregister import CoregisterConfig
 from pressurepose.demo import DemoConfig
 from pressurepose.eval.real import RealEvalConfig
@@ -35,6 +36,17 @@ def demo(cfg: DemoConfig) -> None:
     paths = run_demo(cfg)
     print(Path(paths["markdown"]).read_text())
     print(f"demo report: {paths['markdown']}")
+
+
+def realism(cfg: RealismConfig) -> None:
+    """Simulated pressure images against real frames of known posture, height and weight
+    (PmatData experiment II by default): area, pressure, coverage, profile similarity along and
+    across the bed, load per body region, the real-vs-real ceiling; report.md and figures."""
+    from pressurepose.commands.realism import run_realism
+
+    paths = run_realism(cfg)
+    print(Path(paths["markdown"]).read_text())
+    print(f"realism report: {paths['markdown']}")
 
 
 def pose(cfg: PoseConfig) -> None:
@@ -337,7 +349,7 @@ COMMANDS = {
     "demo": demo, "pose": pose, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
     "import-original": import_original, "import-pmatdata": import_pmatdata,
     "import-pressurepose-real": import_pressurepose_real, "import-slp": import_slp, "calibrate": calibrate,
-    "coregister": coregister, "click": click, "cache": cache,
+    "coregister": coregister, "click": click, "cache": cache, "realism": realism,
     "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real, "view": view,
 }
 

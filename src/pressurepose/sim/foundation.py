@@ -112,6 +112,15 @@ def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tens
     return out[:, 0]
 
 
+def taxel_pressure(foundation_pa: torch.Tensor, params: MattressParams, mat: MatSpec, sub: int) -> torch.Tensor:
+    """Foundation pressure on the covered grid's cells (B, rows*sub, cols*sub) -> per covered
+    taxel (B, rows, cols) Pa: spread by the mat and cover (`spread_m`), averaged per taxel."""
+    h_cell = mat.pitch_row_m / sub
+    w_cell = mat.pitch_col_m / sub
+    spread = gaussian_spread(foundation_pa, params.spread_m / h_cell, params.spread_m / w_cell)
+    return F.avg_pool2d(spread[:, None], sub)[:, 0]
+
+
 class _Grid:
     """The cells under a body (packed: only cells with body above them), with per cell its
     normal nu, its tangent tau along the bed, its world point r relative to the centre of mass,
@@ -363,10 +372,7 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
             failure.append("")
     bad = torch.tensor([bool(x) for x in failure], device=verts.device)
     foundation = torch.where(bad[:, None, None], torch.zeros_like(foundation), foundation)
-    h_cell = mat.pitch_row_m / sub
-    w_cell = mat.pitch_col_m / sub
-    spread = gaussian_spread(foundation, params.spread_m / h_cell, params.spread_m / w_cell)
-    pressure = F.avg_pool2d(spread[:, None], sub)[:, 0]
+    pressure = taxel_pressure(foundation, params, mat, sub)
     return PressureResult(
         pressure_pa=pressure, foundation_pa=foundation, vertices=verts, shift_m=total_q[:, 0],
         tilt_rad=total_q[:, 1:], force_n=f.sum((1, 2)), max_compression_m=w.amax((1, 2)),
@@ -385,5 +391,5 @@ def _detached(params: MattressParams) -> MattressParams:
 
 __all__ = [
     "FAIL_BOTTOM", "FAIL_NOT_CONVERGED", "FAIL_NO_SUPPORT", "FAIL_SLIDES", "FAIL_TILT", "PressureResult",
-    "gaussian_spread", "mesh_centroid", "simulate_pressure",
+    "gaussian_spread", "mesh_centroid", "simulate_pressure", "taxel_pressure",
 ]

@@ -58,16 +58,21 @@ def settle_config_for(partition: str) -> SettleConfig:
 def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
                    mat: MatSpec | None = None, seed: int = 0,
                    bed: BedShape | Sequence[BedShape] | None = None,
-                   settle_config: SettleConfig | None = None) -> SimulatedSamples:
+                   settle_config: SettleConfig | None = None, settle: Literal["mujoco", "none"] = "mujoco",
+                   sim2: Literal["rigid", "articulated"] = "rigid") -> SimulatedSamples:
     """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses on a flat bed,
     a bent one (`bed`), or one bed per sample (a sequence of B, e.g. `InitialPoses.beds()`:
     samples on the same bed are simulated together, results come back in input order).
     `settle_config`: sim #1's settings (default `SettleConfig()`; `settle_config_for` gives a
-    partition's)."""
+    partition's). `settle="none"` skips sim #1 (the poses rest as drawn); `sim2`: the whole mesh
+    at rigid rest, or every body part on its own contact (`sim.articulated`, flat beds)."""
+    if settle not in ("mujoco", "none") or sim2 not in ("rigid", "articulated"):
+        raise ValueError(f"settle must be 'mujoco' or 'none' and sim2 'rigid' or 'articulated', got {settle!r}, {sim2!r}")
+    options = {"settle": settle, "sim2": sim2}
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
     if bed is None or isinstance(bed, BedShape):
-        return _simulate_one_bed(model, params, mattress, mat, seed, bed or BedShape(), settle_config)
+        return _simulate_one_bed(model, params, mattress, mat, seed, bed or BedShape(), settle_config, **options)
     beds = list(bed)
     if len(beds) != params.batch_size or not all(isinstance(b, BedShape) for b in beds):
         raise ValueError(f"bed must be one BedShape or a sequence of {params.batch_size} (one per sample), "
@@ -76,11 +81,11 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     for i, b in enumerate(beds):
         groups.setdefault(b, []).append(i)
     if len(groups) == 1:
-        return _simulate_one_bed(model, params, mattress, mat, seed, beds[0], settle_config)
+        return _simulate_one_bed(model, params, mattress, mat, seed, beds[0], settle_config, **options)
     parts, order = [], []
     for k, (b, rows) in enumerate(groups.items()):
         parts.append(_simulate_one_bed(model, params.index(torch.tensor(rows)), mattress, mat, seed + 7919 * k, b,
-                                       settle_config))
+                                       settle_config, **options))
         order += rows
     back = torch.from_numpy(np.argsort(np.array(order)))
     return _concat(parts, back)
@@ -102,35 +107,50 @@ def _concat(parts: list[SimulatedSamples], back: torch.Tensor) -> SimulatedSampl
 
 
 def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressParams, mat: MatSpec,
-                      seed: int, bed: BedShape, settle_config: SettleConfig | None = None) -> SimulatedSamples:
-    from pressurepose.sim.foundation import simulate_pressure
+                      seed: int, bed: BedShape, settle_config: SettleConfig | None = None, settle: str = "mujoco",
+                      sim2: str = "rigid") -> SimulatedSamples:
+    from pressurepose.sim.foundation import simulate_pressure, taxel_pressure
     from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
-    from pressurepose.sim.settle import as_float64, settle
+    from pressurepose.sim.settle import as_float64, settle as settle_bodies
 
     model64 = as_float64(model)
-    settled = settle(model64, params, mattress, mat, config=settle_config, bed=bed)
-    rest = settled.params
-    out = model64(rest)
+    B = params.batch_size
+    if settle == "mujoco":
+        settled = settle_bodies(model64, params, mattress, mat, config=settle_config, bed=bed)
+        rest, reason1, steps, settle_ms = settled.params, settled.reason, settled.steps, settled.wall_ms
+    else:
+        rest, reason1, steps, settle_ms = params.to(dtype=torch.float64), [""] * B, np.zeros(B, dtype=np.int64), np.zeros(B)
     mass = model64.measure(rest.shape).mass_kg
     t0 = time.perf_counter()
-    pressed = simulate_pressure(out.vertices, out.faces, mass, mattress, mat, bed=bed)
+    if sim2 == "articulated":
+        if not bed.flat:
+            raise ValueError("the articulated sim #2 rests bodies on a flat bed only; use sim2='rigid' on a raised bed")
+        from pressurepose.sim.articulated import rest_articulated
+
+        art = rest_articulated(model64, rest, mass, mattress, mat)
+        pressure_pa, failure2, sink = taxel_pressure(art.foundation_pa, mattress, mat, art.sub), art.failure, art.max_compression_m
+        shifted, vertices, joints = art.params, art.vertices, art.joints
+    else:
+        out = model64(rest)
+        pressed = simulate_pressure(out.vertices, out.faces, mass, mattress, mat, bed=bed)
+        pressure_pa, failure2, sink = pressed.pressure_pa, pressed.failure, pressed.max_compression_m
+        # Fold sim #2's rigid motion into the root so parameters reproduce the mesh; the
+        # joints ride the same motion.
+        shifted = _apply_rest_to_root(rest, pressed)
+        R, t = pressed.rotation.detach(), pressed.translation.detach()
+        vertices, joints = pressed.vertices.detach(), out.joints @ R.transpose(1, 2) + t[:, None]
     press_ms = (time.perf_counter() - t0) * 1e3
     gen = torch.Generator().manual_seed(seed)
-    reading = taxel_reading(sensing_area(pressed.pressure_pa, mat).detach(), mattress, mat, generator=gen)
-    depth, contact = label_maps(pressed.vertices.detach(), out.faces, mat, bed)
+    reading = taxel_reading(sensing_area(pressure_pa, mat).detach(), mattress, mat, generator=gen)
+    depth, contact = label_maps(vertices.detach(), model64.faces, mat, bed)
     reason = [f"sim #1: {r1}" if r1 else (f"sim #2: {r2}" if r2 else "")
-              for r1, r2 in zip(settled.reason, pressed.failure)]
+              for r1, r2 in zip(reason1, failure2)]
     bad = torch.tensor([bool(r) for r in reason])
     reading = torch.where(bad[:, None, None], torch.zeros_like(reading), reading)
-    # Fold sim #2's rigid motion into the root so parameters reproduce the mesh; the joints
-    # ride the same motion.
-    shifted = _apply_rest_to_root(rest, pressed)
-    R, t = pressed.rotation.detach(), pressed.translation.detach()
-    joints = out.joints @ R.transpose(1, 2) + t[:, None]
     return SimulatedSamples(
-        params=shifted, vertices=pressed.vertices.detach(), joints=joints, pressure_mmhg=reading,
-        depth_mm=depth, contact=contact, mass_kg=mass, reason=reason, settle_steps=settled.steps,
-        settle_ms=settled.wall_ms, press_ms=press_ms, sink_m=pressed.max_compression_m.detach().numpy(),
+        params=shifted, vertices=vertices.detach(), joints=joints.detach(), pressure_mmhg=reading,
+        depth_mm=depth, contact=contact, mass_kg=mass, reason=reason, settle_steps=steps,
+        settle_ms=settle_ms, press_ms=press_ms, sink_m=sink.detach().numpy(),
         head_angle_deg=np.full(params.batch_size, float(bed.head_angle_deg)),
     )
 

@@ -1,0 +1,211 @@
+"""`pressurepose realism`: simulated pressure images against real frames of known posture,
+height and weight (docs/realism.md).
+
+Real frames: PmatData experiment II by default (flat bed: supine group B, right C, left D),
+or any folder in its layout (`index.csv` with the columns file, subject, mattress, group,
+index, posture, body_roll_deg, bed_incline_deg, height_cm, weight_kg; frames as text files of
+64 lines of 27 raw readings, row 0 at the foot). Simulated: one body per subject (Anny,
+fitted to the subject's height and weight) in the posture's resting pose, through the
+generator's simulations. Writes report.md, report.json and figures (mean real vs mean
+simulated image, profiles along and across the bed) to --out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from pressurepose.eval import realism as R
+from pressurepose.files import atomic_write
+
+POSTURES = ("supine", "left", "right")
+ROLL_RAD = {"supine": 0.0, "left": -math.pi / 2, "right": math.pi / 2}
+
+
+@dataclasses.dataclass(frozen=True)
+class RealismConfig:
+    """Compare simulated images with real ones (docs/realism.md)."""
+
+    out: Path = Path("out/realism")
+    """Output folder (report.md, report.json, figures)."""
+    real: Path = Path("pmatdata")
+    """Folder of real frames in PmatData's layout; "pmatdata" = the packaged copy."""
+    sim2: Literal["articulated", "rigid"] = "articulated"
+    """Sim #2: every body part resting on its own contact, or the whole mesh as one rigid body."""
+    settle: Literal["none", "mujoco"] = "none"
+    """Sim #1 before sim #2 (MuJoCo settling of the capsule body) or none (the pose as drawn)."""
+    params: Path | None = None
+    """Mattress/sensor parameter file (default: built-in)."""
+    threshold: float = 20.0
+    """Noise threshold (raw units) of the real frames."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RealSubject:
+    subject: int
+    height_m: float
+    mass_kg: float
+
+
+def load_real(root: Path, threshold: float) -> tuple[dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]], list[RealSubject]]:
+    """Real frames of the flat bed per (posture, mattress): images (N, 64, 27) mmHg, heights
+    (N,) m and subject ids (N,); and the subjects."""
+    from pressurepose.data.pmatdata import load_images, load_index
+    from pressurepose.samples import resolve_pmatdata
+
+    root = resolve_pmatdata(root)
+    records = [r for r in load_index(root) if r.bed_incline_deg == 0 and r.posture in POSTURES and r.group != "E"]
+    if not records:
+        raise ValueError(f"{root / 'index.csv'}: no flat-bed supine, left or right frames (columns posture, "
+                         "bed_incline_deg); see docs/realism.md for the format")
+    out = {}
+    for posture in POSTURES:
+        for mattress in sorted({r.mattress for r in records}):
+            rs = [r for r in records if r.posture == posture and r.mattress == mattress]
+            if rs:
+                out[(posture, mattress)] = (load_images(rs, threshold), np.array([r.height_cm / 100 for r in rs]),
+                                            np.array([r.subject for r in rs]))
+    subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in records})
+    return out, [RealSubject(s, h / 100, w) for s, h, w in subjects]
+
+
+def resting_pose(posture: str, batch: int) -> torch.Tensor:
+    """(B, 23, 3) the report's pose: supine in the home pose (arms at the sides, legs
+    straight); on a side with the hips bent 35 deg, the knees 50 deg, the arms forward and the
+    elbows bent, as people lie on their side (PmatData groups C, D)."""
+    from pressurepose.body.capsules import home_pose
+    from pressurepose.body.joints import joint_index
+    from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+    pose = home_pose(batch)
+    if posture == "supine":
+        return pose
+    forward = axis_angle_to_matrix(torch.tensor([-1.2, 0.0, 0.0], dtype=pose.dtype))
+    for side, sign in (("left", -1.0), ("right", 1.0)):
+        j = joint_index(f"{side}_shoulder") - 1
+        pose[:, j] = matrix_to_axis_angle(forward @ axis_angle_to_matrix(pose[:, j]))
+        pose[:, joint_index(f"{side}_elbow") - 1, 1] = sign * 0.9
+        pose[:, joint_index(f"{side}_hip") - 1, 0] = -0.6
+        pose[:, joint_index(f"{side}_knee") - 1, 0] = 0.9
+    return pose
+
+
+def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=None):
+    """Per posture: sensor images (N, 64, 27) mmHg of the accepted bodies, their heights (N,),
+    and the rejection reasons."""
+    from pressurepose.body import load_body_model
+    from pressurepose.body.fit_shape import shape_for_height_mass
+    from pressurepose.body.params import BodyParams
+    from pressurepose.mat import MatSpec
+    from pressurepose.sim.mattress import MattressParams
+    from pressurepose.sim.run import simulate_poses
+
+    mattress = mattress or (MattressParams.load(cfg.params) if cfg.params else MattressParams())
+    mat = MatSpec()
+    model = load_body_model("anny", dtype=torch.float64)
+    heights = torch.tensor([s.height_m for s in subjects], dtype=torch.float64)
+    masses = torch.tensor([s.mass_kg for s in subjects], dtype=torch.float64)
+    shape, h, _ = shape_for_height_mass(model, heights, masses, female=0.0)
+    B = len(subjects)
+    out = {}
+    for posture in POSTURES:
+        params = BodyParams.zeros(B, shape).replace(
+            pose=resting_pose(posture, B),
+            root_rotation=torch.tensor([[ROLL_RAD[posture], 0.0, 0.0]] * B, dtype=torch.float64),
+            root_translation=torch.tensor([[0.85, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64))
+        t0 = time.perf_counter()
+        sim = simulate_poses(model, params, mattress, mat, settle=cfg.settle, sim2=cfg.sim2)
+        ok = [i for i, r in enumerate(sim.reason) if not r]
+        out[posture] = (sim.pressure_mmhg[ok].numpy(), h.numpy()[ok], [r for r in sim.reason if r],
+                        time.perf_counter() - t0)
+    return out
+
+
+def run_realism(cfg: RealismConfig) -> dict[str, Path]:
+    from pressurepose.mat import MatSpec
+
+    mat = MatSpec()
+    real, subjects = load_real(cfg.real, cfg.threshold)
+    sims = simulate_subjects(subjects, cfg)
+    pitch = (mat.pitch_row_m, mat.pitch_col_m)
+    rows, ceilings, figures = [], [], {}
+    for posture in POSTURES:
+        images, heights, reasons, seconds = sims[posture]
+        sim_set = R.summarise(images, heights, *pitch) if len(images) else None
+        for (p, mattress), (imgs, hts, subj) in real.items():
+            if p != posture:
+                continue
+            real_set = R.summarise(imgs, hts, *pitch)
+            row = {"posture": posture, "mattress": mattress, "real": _set_dict(real_set),
+                   "simulated": _set_dict(sim_set) if sim_set else None, "rejected": reasons,
+                   "simulated_bodies": int(len(images)), "sim_seconds": round(seconds, 2)}
+            if sim_set:
+                row["comparison"] = dataclasses.asdict(R.compare(real_set, sim_set))
+                figures[(posture, mattress)] = (real_set, sim_set)
+            rows.append(row)
+            # Ceiling: real against real, first half of the subjects against the second.
+            ids = sorted(set(subj.tolist()))
+            if len(ids) >= 2:
+                a = np.isin(subj, ids[: len(ids) // 2])
+                c = R.compare(R.summarise(imgs[a], hts[a], *pitch), R.summarise(imgs[~a], hts[~a], *pitch))
+                ceilings.append({"posture": posture, "between": f"{mattress}: subjects {ids[:len(ids)//2]} vs rest",
+                                 **dataclasses.asdict(c)})
+        mats = sorted(m for (p, m) in real if p == posture)
+        if len(mats) == 2:
+            a, b = (real[(posture, m)] for m in mats)
+            c = R.compare(R.summarise(a[0], a[1], *pitch), R.summarise(b[0], b[1], *pitch))
+            ceilings.append({"posture": posture, "between": f"{mats[0]} vs {mats[1]}", **dataclasses.asdict(c)})
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    record = {"command": "realism", "config": {k: str(v) for k, v in dataclasses.asdict(cfg).items()},
+              "rows": rows, "ceilings": ceilings}
+    paths = {"json": atomic_write(cfg.out / "report.json", lambda t: Path(t).write_text(json.dumps(record, indent=1)))}
+    paths["markdown"] = atomic_write(cfg.out / "report.md", lambda t: Path(t).write_text(_markdown(record)))
+    from pressurepose.viz.realism import plot_realism
+
+    for (posture, mattress), (a, b) in figures.items():
+        paths[f"{posture}_{mattress}"] = plot_realism(cfg.out / f"realism_{posture}_{mattress}.png", a, b,
+                                                     f"{posture}, {mattress} mattress")
+    return paths
+
+
+def _set_dict(s: R.FrameSet) -> dict:
+    return {"frames": s.n, "area_m2": round(s.area_m2, 4), "mean_mmhg": round(s.mean_mmhg, 2),
+            "peak_mmhg": round(s.peak_mmhg, 1), "coverage": round(s.coverage, 3),
+            "regions": {k: round(v, 3) for k, v in s.regions.items()}}
+
+
+def _markdown(record: dict) -> str:
+    lines = ["# Realism: simulated vs real pressure images", "",
+             f"sim #2 `{record['config']['sim2']}`, sim #1 `{record['config']['settle']}`, "
+             f"real frames `{record['config']['real']}`", "",
+             "| posture | mattress | along | across | area sim/real | coverage sim (real) | mean mmHg sim (real) "
+             "| peak mmHg sim (real) | bodies |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in record["rows"]:
+        s, re_, c = r["simulated"], r["real"], r.get("comparison")
+        if not s:
+            lines.append(f"| {r['posture']} | {r['mattress']} | - | - | - | - | - | - | 0 ({len(r['rejected'])} rejected) |")
+            continue
+        lines.append(f"| {r['posture']} | {r['mattress']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} "
+                     f"| {s['coverage']:.2f} ({re_['coverage']:.2f}) | {s['mean_mmhg']:.1f} ({re_['mean_mmhg']:.1f}) "
+                     f"| {s['peak_mmhg']:.0f} ({re_['peak_mmhg']:.0f}) | {r['simulated_bodies']} |")
+    lines += ["", "Load share per body region, simulated (real):", "",
+              "| posture | mattress | " + " | ".join(R.REGION_NAMES) + " |", "| --- | --- |" + " --- |" * len(R.REGION_NAMES)]
+    for r in record["rows"]:
+        if r["simulated"]:
+            lines.append(f"| {r['posture']} | {r['mattress']} | " + " | ".join(
+                f"{r['simulated']['regions'][k]:.2f} ({r['real']['regions'][k]:.2f})" for k in R.REGION_NAMES) + " |")
+    lines += ["", "Ceiling (real against real, the same measures):", "", "| posture | between | along | across | area ratio |",
+              "| --- | --- | --- | --- | --- |"]
+    for c in record["ceilings"]:
+        lines.append(f"| {c['posture']} | {c['between']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["RealismConfig", "load_real", "resting_pose", "run_realism", "simulate_subjects"]

@@ -1,0 +1,185 @@
+"""How much simulated pressure images look like real ones: the realism metrics.
+
+Pure numpy on (N, 64, 27) images in mmHg, row 0 at the head end (docs/realism.md):
+- `frame_metrics`: contact area (m^2), mean contact pressure and peak (mmHg), coverage (the
+  share of the rows between the first and last loaded row that carry >= 1% of the image's
+  force), and load shares per body region.
+- `profile_similarity`: force profiles along (row sums) or across (column sums) the bed, the
+  mean over frames of unit-sum profiles, compared by 1 - L1 / 2 (1 = identical shapes, 0 =
+  disjoint), best over integer shifts so that placement on the mat is not judged.
+- Body regions are found in the image, the same way for real and simulated frames: the top of
+  the head is the first loaded row from the head end, the subject's height (known) scales the
+  anthropometric fractions of `REGIONS` along the bed, and the arms are the load beside the
+  trunk (farther than `ARM_HALF_WIDTH_OF_HEIGHT` x height from the trunk's centre line).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+COVERAGE_SHARE = 0.01
+ROW_SHIFTS = 15
+COL_SHIFTS = 8
+# Body regions along the bed: (name, start, end) as fractions of the height from the top of
+# the head (standing-height proportions, Drillis & Contini's segment lengths, rounded).
+REGIONS: tuple[tuple[str, float, float], ...] = (
+    ("head", 0.0, 0.13),
+    ("shoulders", 0.13, 0.30),
+    ("back", 0.30, 0.45),
+    ("buttocks", 0.45, 0.58),
+    ("thighs", 0.58, 0.75),
+    ("calves", 0.75, 0.92),
+    ("heels", 0.92, 1.10),
+)
+ARM_ROWS = (0.13, 0.55)  # arms at the sides lie beside the trunk, shoulders to hips
+ARM_HALF_WIDTH_OF_HEIGHT = 0.09  # trunk half-width (~0.16 m at 1.78 m); beyond it: arms
+REGION_NAMES = tuple(r[0] for r in REGIONS) + ("arms",)
+
+
+def _check(images: np.ndarray, name: str = "images") -> np.ndarray:
+    images = np.asarray(images, dtype=np.float64)
+    if images.ndim == 2:
+        images = images[None]
+    if images.ndim != 3:
+        raise ValueError(f"{name} must have shape (N, rows, cols), got {images.shape}")
+    if not np.isfinite(images).all() or (images < 0).any():
+        raise ValueError(f"{name} must be finite and >= 0")
+    return images
+
+
+def coverage(image: np.ndarray, share: float = COVERAGE_SHARE) -> float:
+    """Share of the rows from the first to the last loaded row that carry >= `share` of the
+    image's force (0 for an empty image)."""
+    rows = np.asarray(image, dtype=np.float64).sum(1)
+    total = rows.sum()
+    loaded = np.nonzero(rows > 0)[0]
+    if total <= 0 or loaded.size == 0:
+        return 0.0
+    span = rows[loaded[0]: loaded[-1] + 1]
+    return float((span >= share * total).mean())
+
+
+def region_shares(image: np.ndarray, height_m: float, pitch_row_m: float, pitch_col_m: float) -> dict[str, float]:
+    """Share of the image's force in each body region (`REGIONS` along the bed, `arms` beside
+    the trunk; the along-bed regions exclude what is counted as arms). Sums to 1."""
+    img = np.asarray(image, dtype=np.float64)
+    total = img.sum()
+    out = dict.fromkeys(REGION_NAMES, 0.0)
+    if total <= 0:
+        return out
+    rows = np.nonzero(img.sum(1) > 0)[0]
+    top = rows[0]
+    # row index -> fraction of the height from the head top (row centres)
+    frac = (np.arange(img.shape[0]) - top + 0.5) * pitch_row_m / height_m
+    arm_rows = (frac >= ARM_ROWS[0]) & (frac < ARM_ROWS[1])
+    trunk = img[arm_rows]
+    cols = np.arange(img.shape[1])
+    centre = (trunk.sum(0) * cols).sum() / trunk.sum() if trunk.sum() > 0 else (img.shape[1] - 1) / 2
+    beside = np.abs(cols - centre) * pitch_col_m > ARM_HALF_WIDTH_OF_HEIGHT * height_m
+    arms = np.zeros_like(img, dtype=bool)
+    arms[np.ix_(arm_rows, beside)] = True
+    out["arms"] = float(img[arms].sum() / total)
+    rest = np.where(arms, 0.0, img)
+    for name, a, b in REGIONS:
+        sel = (frac >= a) & (frac < b)
+        if name == REGIONS[-1][0]:
+            sel = frac >= a
+        if name == REGIONS[0][0]:
+            sel = frac < b
+        out[name] = float(rest[sel].sum() / total)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameSet:
+    """Summary of a set of frames: medians over frames, mean unit-sum profiles."""
+
+    n: int
+    area_m2: float
+    mean_mmhg: float
+    peak_mmhg: float
+    coverage: float
+    regions: dict[str, float]    # mean share per region
+    along: np.ndarray            # (rows,) mean unit-sum row profile
+    across: np.ndarray           # (cols,)
+    mean_image: np.ndarray       # (rows, cols) mean image (mmHg)
+
+
+def summarise(images: np.ndarray, heights_m: np.ndarray, pitch_row_m: float, pitch_col_m: float) -> FrameSet:
+    """Metrics of N frames (mmHg, (N, rows, cols)) of subjects of the given heights (N,)."""
+    images = _check(images)
+    heights = np.broadcast_to(np.asarray(heights_m, dtype=np.float64), (images.shape[0],))
+    if images.shape[0] == 0:
+        raise ValueError("no frames to summarise")
+    sums = images.sum((1, 2))
+    if (sums <= 0).any():
+        raise ValueError(f"{int((sums <= 0).sum())} frame(s) carry no load")
+    area = (images > 0).sum((1, 2)) * pitch_row_m * pitch_col_m
+    mean = np.array([im[im > 0].mean() for im in images])
+    regions = [region_shares(im, h, pitch_row_m, pitch_col_m) for im, h in zip(images, heights)]
+    return FrameSet(
+        n=images.shape[0], area_m2=float(np.median(area)), mean_mmhg=float(np.median(mean)),
+        peak_mmhg=float(np.median(images.max((1, 2)))),
+        coverage=float(np.mean([coverage(im) for im in images])),
+        regions={k: float(np.mean([r[k] for r in regions])) for k in REGION_NAMES},
+        along=_mean_profile(images.sum(2)), across=_mean_profile(images.sum(1)), mean_image=images.mean(0),
+    )
+
+
+def _mean_profile(profiles: np.ndarray) -> np.ndarray:
+    unit = profiles / profiles.sum(1, keepdims=True)
+    m = unit.mean(0)
+    return m / m.sum()
+
+
+def shifted(profile: np.ndarray, shift: int) -> np.ndarray:
+    """The profile moved by `shift` bins (positive: towards higher indices), zero-filled."""
+    out = np.zeros_like(profile)
+    if shift >= 0:
+        out[shift:] = profile[: profile.size - shift]
+    else:
+        out[:shift] = profile[-shift:]
+    return out
+
+
+def profile_similarity(a: np.ndarray, b: np.ndarray, max_shift: int) -> tuple[float, int]:
+    """Best 1 - L1/2 between unit-sum profiles a and b over shifts of b in [-max_shift,
+    max_shift], and that shift. Profiles are renormalised to unit sum first."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape or a.ndim != 1:
+        raise ValueError(f"profiles must be 1-D of the same length, got {a.shape} and {b.shape}")
+    if not (a.sum() > 0 and b.sum() > 0):
+        raise ValueError("profiles must carry load")
+    a, b = a / a.sum(), b / b.sum()
+    best, best_shift = -1.0, 0
+    for s in range(-max_shift, max_shift + 1):
+        sim = 1.0 - 0.5 * np.abs(a - shifted(b, s)).sum()
+        if sim > best + 1e-12:
+            best, best_shift = sim, s
+    return float(best), best_shift
+
+
+@dataclasses.dataclass(frozen=True)
+class Comparison:
+    along: float
+    across: float
+    shift_rows: int
+    shift_cols: int
+    area_ratio: float       # b / a
+    coverage_ratio: float   # b / a
+
+
+def compare(a: FrameSet, b: FrameSet) -> Comparison:
+    """b against a (a is the reference: real frames)."""
+    along, sr = profile_similarity(a.along, b.along, ROW_SHIFTS)
+    across, sc = profile_similarity(a.across, b.across, COL_SHIFTS)
+    return Comparison(along=along, across=across, shift_rows=sr, shift_cols=sc,
+                      area_ratio=b.area_m2 / a.area_m2 if a.area_m2 > 0 else float("nan"),
+                      coverage_ratio=b.coverage / a.coverage if a.coverage > 0 else float("nan"))
+
+
+__all__ = ["Comparison", "FrameSet", "REGIONS", "REGION_NAMES", "compare", "coverage", "profile_similarity",
+           "region_shares", "shifted", "summarise"]

@@ -1,0 +1,461 @@
+"""Sim #2, articulated: the posed mesh comes to static rest segment by segment.
+
+The rigid rest (`foundation.simulate_pressure`) moves the whole mesh as one body, so only its
+lowest regions touch the bed. Here every J24 part of the mesh (the vertices its skinning
+assigns to a joint) carries its own weight through its own contact, and the joints between
+parts are compliant: each is a rotational spring with sim #1's stiffness (seed A.2, scaled by
+the body's mass) about the pose it starts in. A calf, a forearm or the head that hangs above
+the foam sinks onto it until the spring and the foam hold its weight.
+
+Mechanics (docs/physics.md, "articulated rest"): unknowns q per body are the vertical shift
+dz, and small rotations theta_k about horizontal axes u_k through joint pivots p_k (the root:
+roll and pitch about the centre of mass; ball joints: the bed's x and y axes; knees and
+elbows: their hinge axis). A rotation moves the joint's whole subtree; to first order a
+point r of the subtree rises by theta_k (u_k x (r - p_k))_z, which is affine in the point's
+(x, y): a_k . (1, x, y). The resting state minimises the potential energy
+
+    E(q) = sum_parts m_s g z_s(q) + sum_k 1/2 k_k (e_k + theta_k)^2 + sum_cells A Phi(w_i(q))
+
+(gravity, joint springs with e_k the deflection already in the joint, the foam's stored
+energy Phi = k1 w^2 / 2 + k3 w^4 / 4 per unit area), with w_i the compression of grid cell i
+under its lowest surface point. With the cells' heights linearised the problem is convex:
+Newton with a backtracking line search on E, the Hessian assembled from per-part moments of
+the contact stiffness (sum c (1, x, y)(1, x, y)^T) summed over subtrees, so a step costs one
+pass over the cells and a (N x N) solve, N = 45. Outer iterations apply the motion exactly
+(the pose parameters are updated and the mesh re-posed through the body model), clamp the
+pose to the joint limits and re-linearise; the last solve's field is the pressure (force
+balances the weight to solver tolerance).
+
+Batched over B bodies, float64, CPU or CUDA; flat beds (raised beds use the rigid rest).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from pressurepose.body.joints import J24_NAMES, J24_PARENTS, NUM_JOINTS
+from pressurepose.body.kinematics import forward_kinematics, rest_joints
+from pressurepose.body.limits import JointLimits
+from pressurepose.body.model import BODY_DENSITY_KG_M3, BodyModel
+from pressurepose.body.params import BodyParams, root_matrix, supine_rotation
+from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, grid_origin, grid_shape, surface_points
+from pressurepose.mat import MatSpec
+from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
+
+FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
+FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
+FAIL_NOT_CONVERGED = "did not converge"
+
+# Seed A.2 stiffness (N m / rad at 70.45 kg) per J24 joint, the same table sim #1 uses.
+_STIFFNESS_BY_KIND = {
+    "hip": 6.0, "knee": 3.0, "ankle": 6.0, "foot": 6.0, "collar": 12.0, "shoulder": 6.0, "elbow": 2.0,
+    "wrist": 4.0, "hand": 4.0, "spine1": 200.0, "spine2": 200.0, "spine3": 200.0, "neck": 200.0, "head": 200.0,
+}
+_REFERENCE_MASS_KG = 70.45
+# Hinge axes in SMPL body axes (knees flex about x, elbows about y), as sim #1's hinges.
+_HINGE_AXIS = {"left_knee": 0, "right_knee": 0, "left_elbow": 1, "right_elbow": 1}
+
+
+def _kind(name: str) -> str:
+    return name.split("_", 1)[1] if name.startswith(("left_", "right_")) else name
+
+
+@dataclasses.dataclass(frozen=True)
+class ArticulatedConfig:
+    """Settings of the articulated rest (defaults: docs/physics.md)."""
+
+    stiffness_scale: float = 1.0
+    """Multiplies every joint's seed stiffness (1 = sim #1's springs)."""
+    neck_stiffness_scale: float = 0.1
+    """Extra factor on the neck and head springs (a relaxed neck lets the head rest)."""
+    outer: int = 6
+    """Re-posings of the mesh (each re-linearises the kinematics)."""
+    inner: int = 25
+    """Newton steps per linearisation."""
+    max_rotation_rad: float = 0.25
+    """Largest joint rotation per re-posing (the linearisation's trust region)."""
+    max_shift_m: float = 0.03
+    sub: int = 2
+    """Grid cells per taxel side."""
+    tissue_pa_per_m: float | None = 3.0e5
+    """Soft tissue in series with the foam: its modulus per unit area (Pa/m); None: rigid."""
+    tol: float = 1e-4
+    """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
+
+
+@dataclasses.dataclass
+class ArticulatedRest:
+    """B bodies at articulated rest. Pressures in Pa on the covered grid (cells), before the
+    mat/cover and the sensor."""
+
+    params: BodyParams            # the pose at rest
+    vertices: torch.Tensor        # (B, V, 3) mesh at rest (mat frame, m)
+    joints: torch.Tensor          # (B, 24, 3)
+    foundation_pa: torch.Tensor   # (B, rows*sub, cols*sub) foam pressure per cell
+    force_n: torch.Tensor         # (B,)
+    max_compression_m: torch.Tensor  # (B,)
+    part_force_n: torch.Tensor    # (B, 24) contact force carried by each J24 part
+    iterations: torch.Tensor      # (B,) Newton steps
+    failure: list[str]
+    sub: int
+
+
+class _Dofs:
+    """The N degrees of freedom: joint index (subtree), stiffness index, pivot and axis."""
+
+    def __init__(self, device, dtype):
+        joint, axis_body, axis_world = [0, 0, 0], [None, None, None], [None, (1.0, 0.0), (0.0, 1.0)]
+        for j in range(1, NUM_JOINTS):
+            name = J24_NAMES[j]
+            if name in _HINGE_AXIS:
+                joint.append(j)
+                axis_body.append(_HINGE_AXIS[name])
+                axis_world.append(None)
+            else:
+                for ax in ((1.0, 0.0), (0.0, 1.0)):
+                    joint.append(j)
+                    axis_body.append(None)
+                    axis_world.append(ax)
+        self.joint = torch.tensor(joint, device=device)
+        self.axis_body = axis_body
+        self.axis_world = axis_world
+        self.n = len(joint)
+        # desc[j, s] = 1 when part s moves with joint j (s in j's subtree); joint 0 moves all.
+        desc = torch.zeros(NUM_JOINTS, NUM_JOINTS)
+        for s in range(NUM_JOINTS):
+            j = s
+            while j >= 0:
+                desc[j, s] = 1.0
+                j = J24_PARENTS[j]
+        self.desc = desc.to(device=device, dtype=dtype)
+        # deeper[k, l]: the joint whose subtree is the overlap of DoF k's and l's (-1: none).
+        jk = self.joint
+        related_kl = desc[jk][:, jk].bool().to(device)  # l's joint in k's subtree
+        related_lk = related_kl.T
+        deeper = torch.where(related_kl, jk[None, :].expand(self.n, self.n),
+                             torch.where(related_lk, jk[:, None].expand(self.n, self.n), torch.full_like(related_kl, -1, dtype=torch.long)))
+        self.deeper = deeper
+
+
+def _stiffness(mass_kg: torch.Tensor, cfg: ArticulatedConfig, dofs: _Dofs) -> torch.Tensor:
+    base = []
+    for j in dofs.joint.tolist():
+        if j == 0:
+            base.append(0.0)
+            continue
+        name = J24_NAMES[j]
+        k = _STIFFNESS_BY_KIND[_kind(name)] * cfg.stiffness_scale
+        if name in ("neck", "head"):
+            k *= cfg.neck_stiffness_scale
+        base.append(k)
+    base_t = torch.tensor(base, dtype=mass_kg.dtype, device=mass_kg.device)
+    return base_t[None] * (mass_kg / _REFERENCE_MASS_KG)[:, None]
+
+
+def part_mass_and_com(vertices: torch.Tensor, faces: torch.Tensor, face_part: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mass (B, 24) kg and centre of mass (B, 24, 3) of each J24 part of closed meshes: the
+    body's volume split into tetrahedra (body centroid, triangle), each given to its
+    triangle's part; the parts' masses sum to the body's (density BODY_DENSITY_KG_M3)."""
+    tri = vertices[:, faces]  # (B, F, 3, 3)
+    v0, v1, v2 = tri.unbind(2)
+    vol6 = torch.linalg.det(torch.stack([v0, v1, v2], -1))
+    total = vol6.sum(1)
+    centre = (vol6[..., None] * (v0 + v1 + v2)).sum(1) / (4.0 * total[:, None])
+    a, b, c = v0 - centre[:, None], v1 - centre[:, None], v2 - centre[:, None]
+    vol = torch.linalg.det(torch.stack([a, b, c], -1)) / 6.0  # (B, F)
+    cen = centre[:, None] + (a + b + c) / 4.0
+    B = vertices.shape[0]
+    idx = face_part[None].expand(B, -1)
+    mass = vertices.new_zeros(B, NUM_JOINTS).scatter_add_(1, idx, vol) * BODY_DENSITY_KG_M3
+    moment = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), vol[..., None] * cen)
+    com = moment * BODY_DENSITY_KG_M3 / mass.clamp(min=1e-9)[..., None]
+    return mass, com
+
+
+def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int):
+    """Lowest point height (B, C) and its part (B, C) per covered grid cell (flattened);
+    cells with no point hold EMPTY_HEIGHT_M and part 0."""
+    B = points.shape[0]
+    nr, nc = grid_shape(mat, sub, True)
+    x0, y0 = grid_origin(mat, True)
+    r = torch.floor((points[..., 0] - x0) * (sub / mat.pitch_row_m)).long()
+    c = torch.floor((points[..., 1] - y0) * (sub / mat.pitch_col_m)).long()
+    inside = (r >= 0) & (r < nr) & (c >= 0) & (c < nc)
+    flat = torch.where(inside, r * nc + c, nr * nc)
+    z = points[..., 2].clamp(max=EMPTY_HEIGHT_M)
+    h = torch.full((B, nr * nc + 1), EMPTY_HEIGHT_M, dtype=points.dtype, device=points.device)
+    h = h.scatter_reduce(1, flat, z, "amin", include_self=True)
+    lowest = (z == h.gather(1, flat)) & inside
+    part = torch.zeros(B, nr * nc + 1, dtype=torch.long, device=points.device)
+    part = part.scatter(1, torch.where(lowest, flat, nr * nc), labels[None].expand(B, -1))
+    return h[:, :-1], part[:, :-1]
+
+
+def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | None):
+    """Soft tissue (linear, modulus k_t in Pa/m) in series with the foam (p = k1 u + k3 u^3):
+    for a total compression w (m) returns the pressure p (Pa), dp/dw (Pa/m) and the stored
+    energy per unit area (J/m^2). The split w = u + p / k_t is solved by Newton on u (the
+    function u + p(u)/k_t is increasing and convex, so Newton from above converges
+    monotonically). tissue None: the foam alone."""
+    k1, k3 = mp.k1_pa_per_m, mp.k3_pa_per_m3
+    if tissue_pa_per_m is None:
+        return k1 * w + k3 * w**3, k1 + 3 * k3 * w**2, 0.5 * k1 * w**2 + 0.25 * k3 * w**4
+    kt = tissue_pa_per_m
+    u = w * (kt / (kt + k1))  # the linear split: an upper bound of the root
+    for _ in range(30):
+        g = u + (k1 * u + k3 * u**3) / kt - w
+        u = u - g / (1 + (k1 + 3 * k3 * u**2) / kt)
+        if bool((g.abs() <= 1e-13 + 1e-10 * w).all()):
+            break
+    p = k1 * u + k3 * u**3
+    kf = k1 + 3 * k3 * u**2
+    return p, kf * kt / (kf + kt), 0.5 * k1 * u**2 + 0.25 * k3 * u**4 + p**2 / (2 * kt)
+
+
+class _Linearised:
+    """Everything the Newton steps need at one posing of the mesh: the cells under the body
+    (packed, K per body), their height h, part, and d(height)/dq (B, K, N)."""
+
+    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: _Dofs, area, tissue):
+        B = h.shape[0]
+        self.tissue = tissue
+        valid = h < EMPTY_HEIGHT_M
+        K = max(int(valid.sum(1).max()), 1)
+        self.index = torch.argsort((~valid).to(torch.int8), dim=1, stable=True)[:, :K]
+        self.h = h.gather(1, self.index)
+        self.mask = valid.gather(1, self.index).to(h.dtype)
+        self.part = part.gather(1, self.index)
+        self.area, self.dofs, self.dof_a = area, dofs, dof_a
+        self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
+        in_sub = dofs.desc[dofs.joint][:, self.part].permute(1, 2, 0)  # (B, K, N): cell moves with DoF
+        self.J = torch.einsum("bnt,bkt->bkn", dof_a, self.basis) * in_sub * self.mask[..., None]
+        # Gravity: d(sum m g z)/d(theta_n) over the parts in the subtree, constant.
+        gb = torch.cat([torch.ones_like(com[..., :1]), com[..., :2]], -1) * (mass * GRAVITY_M_S2)[..., None]
+        sub_g = torch.einsum("js,bst->bjt", dofs.desc, gb)  # (B, 24, 3)
+        self.g_grav = (dof_a * sub_g[:, dofs.joint]).sum(-1)
+        self.e, self.k = e, k
+        self.deeper_ok = (dofs.deeper >= 0)
+        self.deeper = dofs.deeper.clamp(min=0)
+
+    def compression(self, q):
+        return torch.relu(-(self.h + torch.bmm(self.J, q[..., None])[..., 0])) * self.mask
+
+    def energy(self, q, mp: MattressParams):
+        w = self.compression(q)
+        _, _, phi = series_law(w, mp, self.tissue)
+        return (self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
+
+    def newton_step(self, q, mp: MattressParams):
+        """Gradient (B, N), Hessian (B, N, N), cell forces (B, K) N and compressions (B, K) m."""
+        w = self.compression(q)
+        p, dp, _ = series_law(w, mp, self.tissue)
+        f = p * self.area
+        c = dp * self.area * (w > 0)
+        grad = self.g_grav + self.k * (self.e + q) - torch.bmm(f[:, None], self.J)[:, 0]
+        # Hessian from the parts' stiffness moments sum c (1, x, y)(1, x, y)^T, summed over
+        # subtrees: H_nl = a_n^T M[overlap(n, l)] a_l.
+        B = q.shape[0]
+        outer = (c[..., None, None] * self.basis[..., :, None] * self.basis[..., None, :]).reshape(B, -1, 9)
+        m_part = q.new_zeros(B, NUM_JOINTS, 9).scatter_add_(1, self.part[..., None].expand(-1, -1, 9), outer)
+        m_sub = torch.einsum("js,bsx->bjx", self.dofs.desc, m_part).view(B, NUM_JOINTS, 3, 3)
+        M = m_sub[:, self.deeper]  # (B, N, N, 3, 3)
+        H = torch.einsum("bns,bnlst,blt->bnl", self.dof_a, M, self.dof_a) * self.deeper_ok
+        H = H + torch.diag_embed(self.k)
+        return grad, H, f, w
+
+    def unpack(self, values, cells):
+        out = values.new_zeros(values.shape[0], cells)
+        return out.scatter(1, self.index, values * self.mask)
+
+
+def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor | None = None,
+                     mattress: MattressParams | None = None, mat: MatSpec | None = None,
+                     config: ArticulatedConfig | None = None) -> ArticulatedRest:
+    """Rest B posed bodies (BodyParams, float64 model) on the flat mattress, every part on its
+    own contact with compliant joints (module doc). The bodies may start above the bed or in
+    it; their horizontal placement and yaw are kept. Failures are reported per sample."""
+    mp = mattress or MattressParams()
+    mat = mat or MatSpec()
+    cfg = config or ArticulatedConfig()
+    dtype, device = model.dtype, model.device
+    B = params.batch_size
+    dofs = _Dofs(device, dtype)
+    faces = model.faces
+    labels_v = model.part_labels
+    face_part = labels_v[faces[:, 0]]
+    labels = torch.cat([labels_v, face_part])
+    X, Y = cell_centres(mat, cfg.sub, covered=True, dtype=dtype, device=device)
+    xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
+    area = mat.pitch_row_m * mat.pitch_col_m / cfg.sub**2
+    lo, hi = _hinge_bounds(dtype, device)
+    rest = rest_joints(model, params.shape)
+    out = model(params)
+    mass, _ = part_mass_and_com(out.vertices, faces, face_part)
+    total_mass = mass.sum(1) if mass_kg is None else torch.as_tensor(mass_kg, dtype=dtype, device=device)
+    mass = mass * (total_mass / mass.sum(1))[:, None]
+    weight = total_mass * GRAVITY_M_S2
+    k = _stiffness(total_mass, cfg, dofs)
+    ref_local = axis_angle_to_matrix(params.pose)
+    iters = torch.zeros(B, dtype=torch.long, device=device)
+    cur = params
+    q = None
+    for outer in range(cfg.outer + 1):
+        last = outer == cfg.outer
+        out = model(cur)
+        _, com = part_mass_and_com(out.vertices, faces, face_part)
+        body_com = (mass[..., None] * com).sum(1) / total_mass[:, None]
+        rot, _ = forward_kinematics(rest, cur.pose, root_matrix(cur.root_rotation))
+        pts = surface_points(out.vertices, faces)
+        h, part = _cells(pts, labels, mat, cfg.sub)
+        dof_a, e = _dof_geometry(dofs, rot, out.joints, body_com, cur.pose, ref_local)
+        lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cfg.tissue_pa_per_m)
+        q = h.new_zeros(B, dofs.n)
+        if outer == 0:
+            lowest = torch.where(lin.mask.bool(), lin.h, torch.full_like(lin.h, float("inf"))).amin(1)
+            q[:, 0] = torch.where(torch.isfinite(lowest), -lowest, torch.zeros_like(lowest))
+        q, it = _minimise(lin, q, mp, weight, cfg, trust=not last)
+        iters += it
+        if last:
+            break
+        cur = _apply(cur, q, dofs, rot, out.joints, body_com, lo, hi)
+    # The last linearised solve is the rest: its field balances the weight; the mesh is moved
+    # by its (small) motion exactly.
+    grad, _, f, w = lin.newton_step(q, mp)
+    final = _apply(cur, q, dofs, rot, out.joints, body_com, lo, hi, clamp=False)
+    out = model(final)
+    nr, nc = grid_shape(mat, cfg.sub, True)
+    foundation = (lin.unpack(f, nr * nc) / area).view(B, nr, nc)
+    part_force = h.new_zeros(B, NUM_JOINTS).scatter_add_(1, lin.part, f * lin.mask)
+    failure = []
+    force = f.sum(1)
+    for i in range(B):
+        if not bool(lin.mask[i].any()) or float(force[i]) <= 0:
+            failure.append(FAIL_NO_SUPPORT)
+        elif float(w[i].max()) > float(mp.thickness_m):
+            failure.append(FAIL_BOTTOM)
+        elif abs(float(force[i]) - float(weight[i])) > 1e-3 * float(weight[i]):
+            failure.append(FAIL_NOT_CONVERGED)
+        else:
+            failure.append("")
+    bad = torch.tensor([bool(x) for x in failure], device=device)
+    foundation = torch.where(bad[:, None, None], torch.zeros_like(foundation), foundation)
+    return ArticulatedRest(params=final, vertices=out.vertices, joints=out.joints, foundation_pa=foundation,
+                           force_n=force, max_compression_m=w.amax(1), part_force_n=part_force,
+                           iterations=iters, failure=failure, sub=cfg.sub)
+
+
+def _hinge_bounds(dtype, device):
+    """(23, 3) lower and upper pose bounds: the joint limits on the knees' and elbows' hinge
+    angle (no hyperextension), unbounded elsewhere (the springs hold the ball joints)."""
+    limits = JointLimits.default(dtype, device)
+    lo = torch.full_like(limits.lower, -float("inf"))
+    hi = torch.full_like(limits.upper, float("inf"))
+    for name, axis in _HINGE_AXIS.items():
+        j = J24_NAMES.index(name) - 1
+        lo[j, axis], hi[j, axis] = limits.lower[j, axis], limits.upper[j, axis]
+    return lo, hi
+
+
+def _dof_geometry(dofs: _Dofs, rot, joints, body_com, pose, ref_local):
+    """Per DoF: a_k (B, N, 3) with d(height)/d(theta_k) = a_k . (1, x, y) inside its subtree,
+    and e_k (B, N) the spring's present deflection about the DoF's axis."""
+    B = rot.shape[0]
+    n = dofs.n
+    u = rot.new_zeros(B, n, 3)
+    pivot = rot.new_zeros(B, n, 3)
+    for i in range(n):
+        j = int(dofs.joint[i])
+        pivot[:, i] = body_com if j == 0 else joints[:, j]
+        if dofs.axis_world[i] is not None:
+            u[:, i, 0], u[:, i, 1] = dofs.axis_world[i]
+        elif dofs.axis_body[i] is not None:
+            u[:, i] = rot[:, j, :, dofs.axis_body[i]]  # the hinge axis in the joint's own frame
+    # dz: height + theta; rotation: (u x (r - p))_z = u_x (y - p_y) - u_y (x - p_x)
+    a = torch.stack([u[..., 1] * pivot[..., 0] - u[..., 0] * pivot[..., 1], -u[..., 1], u[..., 0]], -1)
+    a[:, 0] = torch.tensor([1.0, 0.0, 0.0], dtype=a.dtype, device=a.device)
+    # Deflection from the reference pose, in the world frame: parent's rotation applied to
+    # the rotation vector of (local @ reference^T), then its component along u.
+    local = axis_angle_to_matrix(pose)
+    dev = matrix_to_axis_angle(local @ ref_local.transpose(-1, -2))  # (B, 23, 3) local frame
+    par = torch.tensor([max(p, 0) for p in J24_PARENTS[1:]], device=rot.device)
+    dev_world = (rot[:, par] @ dev[..., None])[..., 0]  # (B, 23, 3)
+    jj = dofs.joint.clamp(min=1) - 1
+    e = (dev_world[:, jj] * u).sum(-1) * (dofs.joint > 0)
+    return a, e
+
+
+def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, trust: bool):
+    """Newton with backtracking on the (convex) linearised energy. Returns q and step counts."""
+    B, n = q.shape
+    iters = torch.zeros(B, dtype=torch.long, device=q.device)
+    cap = torch.full((n,), cfg.max_rotation_rad, dtype=q.dtype, device=q.device)
+    cap[0] = cfg.max_shift_m
+    done = torch.zeros(B, dtype=torch.bool, device=q.device)
+    eye = torch.eye(n, dtype=q.dtype, device=q.device)
+    for _ in range(cfg.inner):
+        grad, H, f, _ = lin.newton_step(q, mp)
+        scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
+        step = -torch.linalg.solve(H + (1e-9 * scale)[:, None, None] * eye, grad[..., None])[..., 0]
+        # Nothing touches yet (no contact stiffness on dz): fall by the cap.
+        free = H[:, 0, 0] <= 1e-9 * scale
+        step[:, 0] = torch.where(free, torch.full_like(step[:, 0], -cfg.max_shift_m), step[:, 0])
+        step = step * torch.clamp(cfg.max_shift_m / step[:, :1].abs().clamp(min=1e-12), max=1.0)
+        step[:, 1:] = step[:, 1:].clamp(-cfg.max_rotation_rad, cfg.max_rotation_rad)
+        step = torch.where(done[:, None], torch.zeros_like(step), step)
+        e0 = lin.energy(q, mp)
+        t = torch.ones(B, dtype=q.dtype, device=q.device)
+        for _ in range(8):
+            better = (lin.energy(q + t[:, None] * step, mp) <= e0) | done | free
+            if bool(better.all()):
+                break
+            t = torch.where(better, t, t / 2)
+        q = q + t[:, None] * step
+        if trust:
+            q = torch.maximum(torch.minimum(q, cap), -cap)
+        iters += (~done).long()
+        imbalance = (f.sum(1) - weight).abs() / weight
+        done = done | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))
+        if bool(done.all()):
+            break
+    return q, iters
+
+
+def _apply(params: BodyParams, q, dofs: _Dofs, rot, joints, body_com, lo, hi, clamp=True) -> BodyParams:
+    """Turn the DoF motion q into new pose parameters: world rotations applied top-down about
+    the joints (the root's about the centre of mass), plus the vertical shift."""
+    B = q.shape[0]
+    dtype, device = q.dtype, q.device
+    delta = q.new_zeros(B, NUM_JOINTS, 3)
+    for i in range(1, dofs.n):
+        j = int(dofs.joint[i])
+        if dofs.axis_world[i] is not None:
+            u = torch.tensor([*dofs.axis_world[i], 0.0], dtype=dtype, device=device).expand(B, 3)
+        else:
+            u = rot[:, j, :, dofs.axis_body[i]]
+        delta[:, j] = delta[:, j] + q[:, i, None] * u
+    D = axis_angle_to_matrix(delta)  # (B, 24, 3, 3) world-frame rotation at each joint
+    U = [None] * NUM_JOINTS
+    U[0] = D[:, 0]
+    new_rot = rot.clone()
+    new_rot[:, 0] = U[0] @ rot[:, 0]
+    for j in range(1, NUM_JOINTS):
+        U[j] = D[:, j] @ U[J24_PARENTS[j]]
+        new_rot[:, j] = U[j] @ rot[:, j]
+    par = [max(p, 0) for p in J24_PARENTS[1:]]
+    local = new_rot[:, par].transpose(-1, -2) @ new_rot[:, 1:]
+    pose = matrix_to_axis_angle(local)
+    if clamp:
+        pose = torch.maximum(torch.minimum(pose, hi), lo)
+    root_m = new_rot[:, 0] @ supine_rotation(dtype, device).T
+    root = matrix_to_axis_angle(root_m)
+    pelvis = params.root_translation
+    moved = body_com + (U[0] @ (pelvis - body_com)[..., None])[..., 0]
+    moved = moved + torch.stack([torch.zeros_like(q[:, 0]), torch.zeros_like(q[:, 0]), q[:, 0]], -1)
+    return params.replace(pose=pose, root_rotation=root, root_translation=moved)
+
+
+__all__ = ["ArticulatedConfig", "ArticulatedRest", "part_mass_and_com", "rest_articulated"]
