@@ -97,7 +97,7 @@ def resting_pose(posture: str, batch: int) -> torch.Tensor:
     return pose
 
 
-def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=None):
+def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=None, articulated=None):
     """Per posture: sensor images (N, 64, 27) mmHg of the accepted bodies, their heights (N,),
     and the rejection reasons."""
     from pressurepose.body import load_body_model
@@ -121,7 +121,8 @@ def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=
             root_rotation=torch.tensor([[ROLL_RAD[posture], 0.0, 0.0]] * B, dtype=torch.float64),
             root_translation=torch.tensor([[0.85, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64))
         t0 = time.perf_counter()
-        sim = simulate_poses(model, params, mattress, mat, settle=cfg.settle, sim2=cfg.sim2)
+        sim = simulate_poses(model, params, mattress, mat, settle=cfg.settle, sim2=cfg.sim2,
+                             articulated=articulated)
         ok = [i for i, r in enumerate(sim.reason) if not r]
         out[posture] = (sim.pressure_mmhg[ok].numpy(), h.numpy()[ok], [r for r in sim.reason if r],
                         time.perf_counter() - t0)

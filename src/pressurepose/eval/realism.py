@@ -137,6 +137,8 @@ def _mean_profile(profiles: np.ndarray) -> np.ndarray:
 def shifted(profile: np.ndarray, shift: int) -> np.ndarray:
     """The profile moved by `shift` bins (positive: towards higher indices), zero-filled."""
     out = np.zeros_like(profile)
+    if abs(shift) >= profile.size:
+        return out
     if shift >= 0:
         out[shift:] = profile[: profile.size - shift]
     else:

@@ -71,7 +71,7 @@ class ArticulatedConfig:
     """Multiplies every joint's seed stiffness (1 = sim #1's springs)."""
     neck_stiffness_scale: float = 0.1
     """Extra factor on the neck and head springs (a relaxed neck lets the head rest)."""
-    outer: int = 6
+    outer: int = 10
     """Re-posings of the mesh (each re-linearises the kinematics)."""
     inner: int = 25
     """Newton steps per linearisation."""
@@ -80,8 +80,6 @@ class ArticulatedConfig:
     max_shift_m: float = 0.03
     sub: int = 2
     """Grid cells per taxel side."""
-    tissue_pa_per_m: float | None = 3.0e5
-    """Soft tissue in series with the foam: its modulus per unit area (Pa/m); None: rigid."""
     tol: float = 1e-4
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
@@ -96,7 +94,7 @@ class ArticulatedRest:
     joints: torch.Tensor          # (B, 24, 3)
     foundation_pa: torch.Tensor   # (B, rows*sub, cols*sub) foam pressure per cell
     force_n: torch.Tensor         # (B,)
-    max_compression_m: torch.Tensor  # (B,)
+    max_compression_m: torch.Tensor  # (B,) deepest compression of the foam
     part_force_n: torch.Tensor    # (B, 24) contact force carried by each J24 part
     iterations: torch.Tensor      # (B,) Newton steps
     failure: list[str]
@@ -157,23 +155,25 @@ def _stiffness(mass_kg: torch.Tensor, cfg: ArticulatedConfig, dofs: _Dofs) -> to
 
 def part_mass_and_com(vertices: torch.Tensor, faces: torch.Tensor, face_part: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mass (B, 24) kg and centre of mass (B, 24, 3) of each J24 part of closed meshes: the
-    body's volume split into tetrahedra (body centroid, triangle), each given to its
-    triangle's part; the parts' masses sum to the body's (density BODY_DENSITY_KG_M3)."""
-    tri = vertices[:, faces]  # (B, F, 3, 3)
-    v0, v1, v2 = tri.unbind(2)
-    vol6 = torch.linalg.det(torch.stack([v0, v1, v2], -1))
-    total = vol6.sum(1)
-    centre = (vol6[..., None] * (v0 + v1 + v2)).sum(1) / (4.0 * total[:, None])
-    a, b, c = v0 - centre[:, None], v1 - centre[:, None], v2 - centre[:, None]
-    vol = torch.linalg.det(torch.stack([a, b, c], -1)) / 6.0  # (B, F)
-    cen = centre[:, None] + (a + b + c) / 4.0
+    """Mass (B, 24) kg and centre of mass (B, 24, 3) of each J24 part of a closed mesh: each
+    part's triangles with tetrahedra to the part's own centre (the mean of its triangles'
+    centroids, inside the part), density BODY_DENSITY_KG_M3. The part surfaces are open where
+    parts meet, so the parts' masses add up to the body's within a few per cent; callers
+    scale them to the body's mass."""
     B = vertices.shape[0]
+    tri = vertices[:, faces]  # (B, F, 3, 3)
+    centroid = tri.mean(2)
     idx = face_part[None].expand(B, -1)
+    count = vertices.new_zeros(NUM_JOINTS).scatter_add_(0, face_part, torch.ones_like(face_part, dtype=vertices.dtype))
+    apex = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), centroid)
+    apex = apex / count.clamp(min=1)[None, :, None]
+    rel = tri - apex[:, face_part][:, :, None]
+    vol = torch.linalg.det(rel) / 6.0  # (B, F): rows are the corners relative to the apex
+    cen = apex[:, face_part] + rel.sum(2) / 4.0
     mass = vertices.new_zeros(B, NUM_JOINTS).scatter_add_(1, idx, vol) * BODY_DENSITY_KG_M3
     moment = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), vol[..., None] * cen)
-    com = moment * BODY_DENSITY_KG_M3 / mass.clamp(min=1e-9)[..., None]
-    return mass, com
+    com = torch.where(mass[..., None] > 0, moment * BODY_DENSITY_KG_M3 / mass.clamp(min=1e-12)[..., None], apex)
+    return mass.clamp(min=0), com
 
 
 def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int):
@@ -295,13 +295,17 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     rest = rest_joints(model, params.shape)
     out = model(params)
     mass, _ = part_mass_and_com(out.vertices, faces, face_part)
-    total_mass = mass.sum(1) if mass_kg is None else torch.as_tensor(mass_kg, dtype=dtype, device=device)
-    mass = mass * (total_mass / mass.sum(1))[:, None]
+    total_mass = (model.measure(params.shape).mass_kg if mass_kg is None
+                  else torch.as_tensor(mass_kg, dtype=dtype, device=device).reshape(-1))
+    mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     weight = total_mass * GRAVITY_M_S2
     k = _stiffness(total_mass, cfg, dofs)
     ref_local = axis_angle_to_matrix(params.pose)
     iters = torch.zeros(B, dtype=torch.long, device=device)
-    cur = params
+    # Start with the lowest point of each body on the mattress top (a vertical drop).
+    lowest = surface_points(out.vertices, faces)[..., 2].amin(1)
+    cur = params.replace(root_translation=params.root_translation
+                         - torch.stack([torch.zeros_like(lowest), torch.zeros_like(lowest), lowest], -1))
     q = None
     for outer in range(cfg.outer + 1):
         last = outer == cfg.outer
@@ -312,12 +316,9 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         pts = surface_points(out.vertices, faces)
         h, part = _cells(pts, labels, mat, cfg.sub)
         dof_a, e = _dof_geometry(dofs, rot, out.joints, body_com, cur.pose, ref_local)
-        lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cfg.tissue_pa_per_m)
+        lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, float(mp.tissue_pa_per_m) or None)
         q = h.new_zeros(B, dofs.n)
-        if outer == 0:
-            lowest = torch.where(lin.mask.bool(), lin.h, torch.full_like(lin.h, float("inf"))).amin(1)
-            q[:, 0] = torch.where(torch.isfinite(lowest), -lowest, torch.zeros_like(lowest))
-        q, it = _minimise(lin, q, mp, weight, cfg, trust=not last)
+        q, it = _minimise(lin, q, mp, weight, cfg)
         iters += it
         if last:
             break
@@ -325,6 +326,8 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     # The last linearised solve is the rest: its field balances the weight; the mesh is moved
     # by its (small) motion exactly.
     grad, _, f, w = lin.newton_step(q, mp)
+    if lin.tissue is not None:
+        w = (w - f / area / lin.tissue).clamp(min=0)  # the foam's share of the compression
     final = _apply(cur, q, dofs, rot, out.joints, body_com, lo, hi, clamp=False)
     out = model(final)
     nr, nc = grid_shape(mat, cfg.sub, True)
@@ -388,7 +391,7 @@ def _dof_geometry(dofs: _Dofs, rot, joints, body_com, pose, ref_local):
     return a, e
 
 
-def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, trust: bool):
+def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig):
     """Newton with backtracking on the (convex) linearised energy. Returns q and step counts."""
     B, n = q.shape
     iters = torch.zeros(B, dtype=torch.long, device=q.device)
@@ -399,10 +402,14 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, trust: bo
     for _ in range(cfg.inner):
         grad, H, f, _ = lin.newton_step(q, mp)
         scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
-        step = -torch.linalg.solve(H + (1e-9 * scale)[:, None, None] * eye, grad[..., None])[..., 0]
-        # Nothing touches yet (no contact stiffness on dz): fall by the cap.
-        free = H[:, 0, 0] <= 1e-9 * scale
+        # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
+        # or spring (the root's roll and pitch in the air) from taking arbitrary steps.
+        reg = 1e-9 * scale + 1e-7 * weight
+        step = -torch.linalg.solve(H + reg[:, None, None] * eye, grad[..., None])[..., 0]
+        # Nothing touches yet (no contact stiffness on dz): fall by the cap, no tilt.
+        free = H[:, 0, 0] <= 1e-6 * weight
         step[:, 0] = torch.where(free, torch.full_like(step[:, 0], -cfg.max_shift_m), step[:, 0])
+        step[:, 1:3] = torch.where(free[:, None], torch.zeros_like(step[:, 1:3]), step[:, 1:3])
         step = step * torch.clamp(cfg.max_shift_m / step[:, :1].abs().clamp(min=1e-12), max=1.0)
         step[:, 1:] = step[:, 1:].clamp(-cfg.max_rotation_rad, cfg.max_rotation_rad)
         step = torch.where(done[:, None], torch.zeros_like(step), step)
@@ -414,8 +421,7 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, trust: bo
                 break
             t = torch.where(better, t, t / 2)
         q = q + t[:, None] * step
-        if trust:
-            q = torch.maximum(torch.minimum(q, cap), -cap)
+        q = torch.maximum(torch.minimum(q, cap), -cap)  # the linearisation's trust region
         iters += (~done).long()
         imbalance = (f.sum(1) - weight).abs() / weight
         done = done | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))

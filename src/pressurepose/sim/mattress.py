@@ -43,6 +43,9 @@ class MattressParams:
     c1_mmhg_per_mm: float = 1.0
     c2_mmhg_per_mm2: float = 0.0
     noise_mmhg: float = 0.0
+    # Soft tissue in series with the foam (Pa/m of compression per unit area; 0: a rigid body
+    # surface). Used by the articulated sim #2 (sim/articulated.py); the rigid rest ignores it.
+    tissue_pa_per_m: float = 3.0e5
     # sim #1 contact: damping time constant (s) of the foundation, friction coefficient.
     damping_s: float = 0.05
     friction: float = 0.5

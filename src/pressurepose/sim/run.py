@@ -25,6 +25,7 @@ from pressurepose.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
 
 if TYPE_CHECKING:
+    from pressurepose.sim.articulated import ArticulatedConfig
     from pressurepose.sim.settle import SettleConfig
 
 
@@ -59,7 +60,8 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
                    mat: MatSpec | None = None, seed: int = 0,
                    bed: BedShape | Sequence[BedShape] | None = None,
                    settle_config: SettleConfig | None = None, settle: Literal["mujoco", "none"] = "mujoco",
-                   sim2: Literal["rigid", "articulated"] = "rigid") -> SimulatedSamples:
+                   sim2: Literal["rigid", "articulated"] = "rigid",
+                   articulated: ArticulatedConfig | None = None) -> SimulatedSamples:
     """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses on a flat bed,
     a bent one (`bed`), or one bed per sample (a sequence of B, e.g. `InitialPoses.beds()`:
     samples on the same bed are simulated together, results come back in input order).
@@ -68,7 +70,7 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     at rigid rest, or every body part on its own contact (`sim.articulated`, flat beds)."""
     if settle not in ("mujoco", "none") or sim2 not in ("rigid", "articulated"):
         raise ValueError(f"settle must be 'mujoco' or 'none' and sim2 'rigid' or 'articulated', got {settle!r}, {sim2!r}")
-    options = {"settle": settle, "sim2": sim2}
+    options = {"settle": settle, "sim2": sim2, "articulated": articulated}
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
     if bed is None or isinstance(bed, BedShape):
@@ -108,7 +110,7 @@ def _concat(parts: list[SimulatedSamples], back: torch.Tensor) -> SimulatedSampl
 
 def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressParams, mat: MatSpec,
                       seed: int, bed: BedShape, settle_config: SettleConfig | None = None, settle: str = "mujoco",
-                      sim2: str = "rigid") -> SimulatedSamples:
+                      sim2: str = "rigid", articulated: ArticulatedConfig | None = None) -> SimulatedSamples:
     from pressurepose.sim.foundation import simulate_pressure, taxel_pressure
     from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
     from pressurepose.sim.settle import as_float64, settle as settle_bodies
@@ -127,7 +129,7 @@ def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressPa
             raise ValueError("the articulated sim #2 rests bodies on a flat bed only; use sim2='rigid' on a raised bed")
         from pressurepose.sim.articulated import rest_articulated
 
-        art = rest_articulated(model64, rest, mass, mattress, mat)
+        art = rest_articulated(model64, rest, mass, mattress, mat, articulated)
         pressure_pa, failure2, sink = taxel_pressure(art.foundation_pa, mattress, mat, art.sub), art.failure, art.max_compression_m
         shifted, vertices, joints = art.params, art.vertices, art.joints
     else:

@@ -1,0 +1,167 @@
+"""The articulated sim #2: physical invariants, the series law, the Hessian against autograd."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pressurepose.body.capsules import home_pose
+from pressurepose.body.joints import joint_index
+from pressurepose.body.params import BodyParams
+from pressurepose.mat import MatSpec
+from pressurepose.sim.articulated import (
+    ArticulatedConfig, _Dofs, _Linearised, part_mass_and_com, rest_articulated, series_law,
+)
+from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
+
+
+def _bodies(model, B=2, roll=0.0, pose=None, scale_weight=None):
+    mat = MatSpec()
+    shape = model.default_shape(B)
+    if scale_weight is not None:
+        shape[:, model.shape_names.index("weight")] = torch.tensor(scale_weight, dtype=shape.dtype)
+    return BodyParams.zeros(B, shape).replace(
+        pose=home_pose(B) if pose is None else pose,
+        root_rotation=torch.tensor([[roll, 0.0, 0.0]] * B, dtype=torch.float64),
+        root_translation=torch.tensor([[0.85, mat.sensing_width_m / 2, 0.25]] * B, dtype=torch.float64))
+
+
+@pytest.fixture(scope="module")
+def supine_rest(anny64):
+    p = _bodies(anny64, 1)
+    return p, rest_articulated(anny64, p)
+
+
+def test_force_balances_weight_and_nothing_fails(anny64, supine_rest):
+    p, r = supine_rest
+    mass = anny64.measure(p.shape).mass_kg
+    assert r.failure == [""]
+    assert torch.isfinite(r.foundation_pa).all() and torch.isfinite(r.vertices).all()
+    np.testing.assert_allclose(r.force_n.numpy(), (mass * GRAVITY_M_S2).numpy(), rtol=1e-2)
+    # Every part's contact force is >= 0 and they add up to the total.
+    assert (r.part_force_n >= 0).all()
+    np.testing.assert_allclose(r.part_force_n.sum(1).numpy(), r.force_n.numpy(), rtol=1e-9)
+
+
+def test_parts_rest_on_their_own_contact(anny64, supine_rest):
+    """The rigid rest leaves the head and heels nearly unloaded; the articulated rest puts
+    the head, the calves and the forearms on the bed."""
+    _, r = supine_rest
+    names = ["head", "left_knee", "right_knee", "left_elbow", "right_elbow", "left_ankle", "right_ankle"]
+    loads = {n: float(r.part_force_n[0, joint_index(n)]) for n in names}
+    for n in ("head", "left_knee", "right_knee", "left_elbow", "right_elbow"):
+        assert loads[n] > 2.0, loads
+
+
+def test_params_reproduce_the_mesh_at_rest(anny64, supine_rest):
+    _, r = supine_rest
+    again = anny64(r.params)
+    assert float((again.vertices - r.vertices).abs().max()) < 1e-9
+
+
+def test_moments_balance(anny64, supine_rest):
+    """At rest the bed's force acts through the centre of mass (no net moment about it in
+    the bed plane): the centre of pressure lies under the centre of mass within 1 cm."""
+    p, r = supine_rest
+    mat = MatSpec()
+    faces = anny64.faces
+    mass, com = part_mass_and_com(r.vertices, faces, anny64.part_labels[faces[:, 0]])
+    body_com = (mass[..., None] * com).sum(1) / mass.sum(1, keepdim=True)
+    from pressurepose.maps import cell_centres
+
+    X, Y = cell_centres(mat, r.sub, covered=True, dtype=torch.float64)
+    f = r.foundation_pa[0]
+    cop = torch.stack([(f * X).sum() / f.sum(), (f * Y).sum() / f.sum()])
+    assert float((cop - body_com[0, :2]).abs().max()) < 0.01
+
+
+def test_heavier_sinks_deeper_and_stiffer_bed_touches_less(anny64):
+    p = _bodies(anny64, 2, scale_weight=[0.3, 0.8])
+    r = rest_articulated(anny64, p)
+    assert r.failure == ["", ""]
+    assert float(r.max_compression_m[1]) > float(r.max_compression_m[0])
+    soft = rest_articulated(anny64, p.index(torch.tensor([0])))
+    stiff = rest_articulated(anny64, p.index(torch.tensor([0])), mattress=MattressParams(k1_pa_per_m=8e4))
+    assert int((stiff.foundation_pa > 0).sum()) < int((soft.foundation_pa > 0).sum())
+
+
+def test_mirrored_side_gives_mirrored_image(anny64):
+    """A body on its left side and the same body on its right side (mirrored pose) give
+    mirrored images (the mesh is symmetric to ~1 mm: loose tolerance on the image)."""
+    from pressurepose.commands.realism import resting_pose
+
+    pose = resting_pose("left", 1)
+    left = rest_articulated(anny64, _bodies(anny64, 1, roll=-math.pi / 2, pose=pose))
+    right = rest_articulated(anny64, _bodies(anny64, 1, roll=math.pi / 2, pose=pose))
+    a, b = left.foundation_pa[0], right.foundation_pa[0].flip(-1)
+    assert left.failure == right.failure == [""]
+    # Profiles along the bed agree; across, one is the other's mirror.
+    rows_a, rows_b = a.sum(1) / a.sum(), b.sum(1) / b.sum()
+    assert float(0.5 * (rows_a - rows_b).abs().sum()) < 0.1
+    cols_a, cols_b = a.sum(0) / a.sum(), b.sum(0) / b.sum()
+    assert float(0.5 * (cols_a - cols_b).abs().sum()) < 0.15
+
+
+def test_series_law_derivatives():
+    mp = MattressParams()
+    w = torch.linspace(0, 0.08, 50, dtype=torch.float64)
+    for tissue in (None, 3e5):
+        p, dp, phi = series_law(w, mp, tissue)
+        eps = 1e-6  # central differences
+        hi, lo = series_law(w + eps, mp, tissue), series_law((w - eps).clamp(min=0), mp, tissue)
+        span = (w + eps) - (w - eps).clamp(min=0)
+        np.testing.assert_allclose(((hi[0] - lo[0]) / span).numpy(), dp.numpy(), rtol=1e-5, atol=1.0)
+        np.testing.assert_allclose(((hi[2] - lo[2]) / span).numpy(), p.numpy(), rtol=1e-5, atol=0.05)
+    # Tissue in series is softer than the foam alone, and both are 0 at w = 0.
+    p_t, _, _ = series_law(w, mp, 3e5)
+    p_f, _, _ = series_law(w, mp, None)
+    assert float(p_t[0]) == 0.0 and bool((p_t[1:] < p_f[1:]).all())
+
+
+def test_hessian_from_moments_matches_autograd(anny64):
+    """The Newton step's Hessian (assembled from per-part moments) and gradient against
+    autograd on the same linearised energy."""
+    from pressurepose.body.kinematics import forward_kinematics, rest_joints
+    from pressurepose.body.params import root_matrix
+    from pressurepose.body.rotations import axis_angle_to_matrix
+    from pressurepose.maps import cell_centres, surface_points
+    from pressurepose.sim.articulated import _cells, _dof_geometry, _stiffness
+
+    mat, mp = MatSpec(), MattressParams()
+    p = _bodies(anny64, 1)
+    out = anny64(p)
+    faces = anny64.faces
+    face_part = anny64.part_labels[faces[:, 0]]
+    mass, com = part_mass_and_com(out.vertices, faces, face_part)
+    dofs = _Dofs("cpu", torch.float64)
+    rot, _ = forward_kinematics(rest_joints(anny64, p.shape), p.pose, root_matrix(p.root_rotation))
+    h, part = _cells(surface_points(out.vertices, faces), torch.cat([anny64.part_labels, face_part]), mat, 2)
+    body_com = (mass[..., None] * com).sum(1) / mass.sum(1, keepdim=True)
+    a, e = _dof_geometry(dofs, rot, out.joints, body_com, p.pose, axis_angle_to_matrix(p.pose))
+    X, Y = cell_centres(mat, 2, covered=True, dtype=torch.float64)
+    xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
+    k = _stiffness(mass.sum(1), ArticulatedConfig(), dofs)
+    lin = _Linearised(h, part, xy, a, mass, com, e + 0.05, k, dofs, mat.pitch_row_m * mat.pitch_col_m / 4, 3e5)
+    lowest = float(lin.h[lin.mask.bool()].min())
+    q = torch.zeros(1, dofs.n, dtype=torch.float64)
+    q[0, 0] = -lowest - 0.03
+    q[0, 1:] = 0.01 * torch.sin(torch.arange(1, dofs.n, dtype=torch.float64))
+    grad, H, _, _ = lin.newton_step(q, mp)
+    qa = q.clone().requires_grad_(True)
+    g_auto = torch.autograd.grad(lin.energy(qa, mp).sum(), qa)[0]
+    np.testing.assert_allclose(grad.numpy(), g_auto.numpy(), rtol=1e-6, atol=1e-6)
+    H_auto = torch.autograd.functional.hessian(lambda x: lin.energy(x[None], mp).sum(), q[0])
+    np.testing.assert_allclose(H[0].numpy(), H_auto.numpy(), rtol=1e-6, atol=1e-4)
+
+
+def test_part_mass_shares_are_anthropometric(anny64):
+    """Part masses from the mesh, as shares of their sum, against the seed's segment fractions
+    (REFERENCE.md: head .071-.094, thigh .083-.105, shank .045-.055 of the body), within 40%."""
+    p = _bodies(anny64, 1)
+    out = anny64(p)
+    mass, com = part_mass_and_com(out.vertices, anny64.faces, anny64.part_labels[anny64.faces[:, 0]])
+    share = mass[0] / mass[0].sum()
+    assert bool((mass >= 0).all()) and torch.isfinite(com).all()
+    for name, lo, hi in (("head", 0.071, 0.094), ("left_hip", 0.083, 0.105), ("left_knee", 0.045, 0.055)):
+        assert 0.6 * lo < float(share[joint_index(name)]) < 1.4 * hi, (name, float(share[joint_index(name)]))

@@ -1,0 +1,124 @@
+"""Realism metrics against hand-computed cases; `pressurepose realism` on a tiny folder."""
+
+import numpy as np
+import pytest
+
+from pressurepose.cli import main
+from pressurepose.eval import realism as R
+
+
+def test_coverage_by_hand():
+    img = np.zeros((10, 3))
+    img[2] = [50, 40, 10]   # 100
+    img[3] = [0, 0.5, 0]    # 0.5 < 1% of 200.5
+    img[5] = [0, 100, 0]    # 100
+    # rows 2..5 span 4 rows, 2 carry >= 1%: coverage 0.5
+    assert R.coverage(img) == pytest.approx(0.5)
+    assert R.coverage(np.zeros((4, 4))) == 0.0
+
+
+def test_profile_similarity_by_hand():
+    a = np.array([0.0, 0.5, 0.5, 0.0, 0.0])
+    b = np.array([0.0, 0.0, 0.5, 0.5, 0.0])
+    # unshifted overlap: 1 - (0.5 + 0 + 0.5) / 2 = 0.5; shifted by -1: identical
+    sim, shift = R.profile_similarity(a, b, 0)
+    assert sim == pytest.approx(0.5) and shift == 0
+    sim, shift = R.profile_similarity(a, b, 2)
+    assert sim == pytest.approx(1.0) and shift == -1
+    # disjoint profiles score 0; scale does not matter
+    assert R.profile_similarity(np.array([1.0, 0, 0]), np.array([0, 0, 7.0]), 0)[0] == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="same length"):
+        R.profile_similarity(a, b[:3], 1)
+
+
+def test_region_shares_by_hand():
+    """A 1 m tall subject on a 0.1 m grid: the head top at row 1, so row r's centre lies at
+    (r - 1 + 0.5) x 0.1 of the height."""
+    img = np.zeros((12, 9))
+    img[1, 4] = 10.0   # frac 0.05: head
+    img[4, 4] = 20.0   # frac 0.35: back
+    img[4, 0] = 5.0    # frac 0.35, 0.4 m from the centre column (> 0.09 m): arms
+    img[10, 4] = 15.0  # frac 0.95: heels
+    s = R.region_shares(img, 1.0, 0.1, 0.1)
+    assert s["head"] == pytest.approx(0.2)
+    assert s["back"] == pytest.approx(0.4)
+    assert s["arms"] == pytest.approx(0.1)
+    assert s["heels"] == pytest.approx(0.3)
+    assert sum(s.values()) == pytest.approx(1.0)
+
+
+def test_summarise_and_compare_by_hand():
+    a = np.zeros((2, 4, 3))
+    a[0, 1, 1] = 10.0
+    a[0, 2, 1] = 30.0
+    a[1, 1, 1] = 20.0
+    s = R.summarise(a, np.array([1.0, 1.0]), 0.5, 0.5)
+    assert s.area_m2 == pytest.approx(np.median([2 * 0.25, 1 * 0.25]))
+    assert s.mean_mmhg == pytest.approx(np.median([20.0, 20.0]))
+    assert s.peak_mmhg == pytest.approx(25.0)  # median of 30 and 20
+    # mean of unit-sum row profiles: frame 0 (0, .25, .75, 0), frame 1 (0, 1, 0, 0)
+    np.testing.assert_allclose(s.along, [0, 0.625, 0.375, 0])
+    c = R.compare(s, s)
+    assert c.along == pytest.approx(1.0) and c.area_ratio == pytest.approx(1.0) and c.coverage_ratio == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="finite"):
+        R.summarise(np.full((1, 4, 3), np.nan), np.ones(1), 0.5, 0.5)
+    with pytest.raises(ValueError, match="carry no load"):
+        R.summarise(np.zeros((1, 4, 3)), np.ones(1), 0.5, 0.5)
+
+
+def _tiny_folder(tmp_path, frame_text=None, rows=64):
+    """Two subjects' supine, left and right frames copied from the packaged PmatData."""
+    import csv
+    import shutil
+
+    from pressurepose.samples import pmatdata_dir
+
+    src = pmatdata_dir()
+    with (src / "index.csv").open() as fh:
+        records = list(csv.DictReader(fh))
+    keep = [r for r in records if r["subject"] in ("1", "5") and r["mattress"] == "sponge"
+            and r["group"] in ("C", "D") or (r["subject"] in ("1", "5") and r["mattress"] == "sponge"
+                                              and r["group"] == "B" and r["index"] == "1")]
+    for r in keep:
+        (tmp_path / r["file"]).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(src / r["file"], tmp_path / r["file"])
+    with (tmp_path / "index.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(records[0]))
+        w.writeheader()
+        w.writerows(keep)
+    if frame_text is not None:
+        (tmp_path / keep[0]["file"]).write_text(frame_text)
+    return tmp_path, keep
+
+
+def test_realism_command_on_a_tiny_folder(tmp_path, capsys):
+    folder, _ = _tiny_folder(tmp_path / "real")
+    assert main(["realism", "--real", str(folder), "--out", str(tmp_path / "out")]) == 0
+    import json
+
+    record = json.loads((tmp_path / "out" / "report.json").read_text())
+    rows = {(r["posture"], r["mattress"]): r for r in record["rows"]}
+    assert set(rows) == {("supine", "sponge"), ("left", "sponge"), ("right", "sponge")}
+    for r in rows.values():
+        assert r["simulated_bodies"] == 2
+        assert 0 < r["comparison"]["along"] <= 1 and 0 < r["comparison"]["across"] <= 1
+        assert abs(sum(r["simulated"]["regions"].values()) - 1) < 1e-2
+    assert (tmp_path / "out" / "realism_left_sponge.png").stat().st_size > 0
+    assert "Ceiling" in (tmp_path / "out" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("case", ["no index", "short frame", "non-finite"])
+def test_realism_bad_input_is_one_line(tmp_path, capsys, case):
+    if case == "no index":
+        folder = tmp_path / "empty"
+        folder.mkdir()
+        needle = "index.csv"
+    else:
+        text = "1 " * 27 + "\n"
+        text = text * 10 if case == "short frame" else ("nan " + "1 " * 26 + "\n") * 64
+        folder, keep = _tiny_folder(tmp_path / "real", frame_text=text)
+        needle = keep[0]["file"].split("/")[-1]
+    assert main(["realism", "--real", str(folder), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert not (tmp_path / "out" / "report.md").exists()
