@@ -13,7 +13,9 @@ from pathlib import Path
 import matplotlib.image
 import numpy as np
 import pytest
+import torch
 
+from pressurepose.body.rotations import rotation_angle
 from pressurepose.cli import main
 from pressurepose.data.coregister import FORMAT, corner_markers, project, read_markers, solve_camera_pose
 from pressurepose.viz.clicker import ClickConfig, load_image, make_click_server
@@ -88,7 +90,9 @@ def payload(pixels=PIXELS, intrinsics=INTR, **extra):
 
 
 def angle_deg(R1, R2):
-    return math.degrees(math.acos(np.clip((np.trace(R1.T @ R2) - 1) / 2, -1, 1)))
+    """Angle between two rotation matrices (numpy), exact near 0 and pi (unlike acos of the trace)."""
+    return math.degrees(float(rotation_angle(torch.as_tensor(R1, dtype=torch.float64),
+                                             torch.as_tensor(R2, dtype=torch.float64))))
 
 
 # --- API -----------------------------------------------------------------------------------------

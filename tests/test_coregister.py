@@ -6,7 +6,9 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
+from pressurepose.body.rotations import rotation_angle
 from pressurepose.data.coregister import (
     FORMAT, Intrinsics, corner_markers, depth_to_points, parse_markers, project, read_markers, solve_camera_pose,
 )
@@ -43,7 +45,9 @@ def marker_file(R, t, noise_px=0.0, depth=False, extra=(), seed=0):
 
 
 def angle_deg(R1, R2):
-    return math.degrees(math.acos(np.clip((np.trace(R1.T @ R2) - 1) / 2, -1, 1)))
+    """Angle between two rotation matrices (numpy), exact near 0 and pi (unlike acos of the trace)."""
+    return math.degrees(float(rotation_angle(torch.as_tensor(R1, dtype=torch.float64),
+                                             torch.as_tensor(R2, dtype=torch.float64))))
 
 
 @pytest.mark.parametrize("method", ["lm", "cma"])

@@ -3,8 +3,10 @@ import math
 import torch
 from torch.autograd import gradcheck
 
-from pressurepose.body.rotations import (axis_angle_to_matrix, matrix_to_axis_angle, rotation_between,
-                                         swing_twist)
+import pytest
+
+from pressurepose.body.rotations import (axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle,
+                                         rotation_between, swing_twist)
 
 
 def naive_rodrigues(r):
@@ -56,3 +58,34 @@ def test_rotation_between_and_swing_twist():
     # The twist keeps the axis fixed; the swing has no component about it.
     assert torch.allclose(twist @ axis, axis.expand(10, 3), atol=1e-12)
     assert torch.allclose(matrix_to_axis_angle(swing)[:, 0], torch.zeros(10, dtype=torch.float64), atol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("theta", [0.0, 1e-6, math.pi / 2, math.pi - 1e-6, math.pi])
+def test_rotation_angle_is_accurate_at_every_angle(dtype, theta):
+    # R2 = R1 Rot(axis, theta), built in float64: the angle between them is theta (to float64
+    # round-off), whatever R1 and the axis. Rounded to `dtype`, the matrices move by eps/2 per
+    # entry, so the angle may move by a few eps (in rad) - at 0 and pi too, where
+    # acos((trace - 1) / 2) is off by sqrt(eps) (3e-4 rad in float32).
+    g = torch.Generator().manual_seed(5)
+    R1 = axis_angle_to_matrix(torch.randn(64, 3, generator=g, dtype=torch.float64) * 2)
+    axis = torch.randn(64, 3, generator=g, dtype=torch.float64)
+    Rt = axis_angle_to_matrix(axis / axis.norm(dim=-1, keepdim=True) * theta)
+    R2 = R1 @ Rt
+    got = rotation_angle(R1.to(dtype), R2.to(dtype))
+    assert got.dtype == dtype and got.shape == (64,)
+    err = (got.double() - theta).abs().max()
+    assert err <= 8 * torch.finfo(dtype).eps, (theta, float(err))
+    # Against itself, every rotation is exactly 0 away; the function is symmetric (bitwise:
+    # each entry of R2^T R1 is the same sum of the same products as that of R1^T R2).
+    assert (rotation_angle(R2.to(dtype), R2.to(dtype)) == 0).all()
+    assert torch.equal(rotation_angle(R2.to(dtype), R1.to(dtype)), got)
+    # The float64 result is the reference for the float32 one within float32's resolution.
+    if dtype == torch.float32:
+        ref = rotation_angle(R1.float().double(), R2.float().double())
+        assert (got.double() - ref).abs().max() <= 4 * torch.finfo(dtype).eps
+
+
+def test_rotation_angle_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="3, 3"):
+        rotation_angle(torch.eye(3), torch.eye(4))

@@ -626,12 +626,29 @@ def _segment_table(female: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def build_capsule_body(model: BodyModel, shape: torch.Tensor, volume_method: str = "qmc",
-                       volume_points: int = 8192) -> CapsuleBody:
+                       volume_points: int = 8192, one_by_one: bool = False) -> CapsuleBody:
     """Capsules, masses (seed eq. 11-12, summing to the body model's mass), inertia, joint
     stiffness and damping for (B, S) shapes. `volume_points`: Sobol points per capsule for the
     "qmc" shared volumes (2048 changes a capsule's volume by at most 0.3% against 8192 and
-    costs a quarter; sim #1 uses it)."""
+    costs a quarter; sim #1 uses it).
+
+    one_by_one: build every body from its own shape alone (and the average body of each
+    gender alone), so a body's numbers depend on its shape only. Batched, they also depend,
+    in the last bits (~1e-16 relative), on the other shapes in the batch: torch picks matrix
+    kernels by size. Sim #1 builds one by one (`settle`), ~2x the cost of a batched build."""
     model.validate_shape(shape)
+    B = shape.shape[0]
+    if not one_by_one or B == 0:
+        return _build(model, shape, volume_method, volume_points, None)
+    cache: dict = {}
+    parts = [_build(model, shape[i : i + 1], volume_method, volume_points, cache) for i in range(B)]
+    return _concat_bodies(parts)
+
+
+def _build(model: BodyModel, shape: torch.Tensor, volume_method: str, volume_points: int,
+           avg_cache: dict | None) -> CapsuleBody:
+    """build_capsule_body of a batch; avg_cache (one-by-one builds): the average bodies'
+    capsule volumes by shape, each computed alone."""
     caps = fit_capsules(model, shape)
     volume = capsule_volumes(caps, method=volume_method, points=volume_points)
     female = female_fraction(model, shape)
@@ -641,7 +658,18 @@ def build_capsule_body(model: BodyModel, shape: torch.Tensor, volume_method: str
         average_shape[:, 0] = shape[:, 0]
     # One average body per distinct gender (datasets use exactly 0 and 1), not one per body.
     unique, inverse = torch.unique(average_shape, dim=0, return_inverse=True)
-    avg_volume = capsule_volumes(fit_capsules(model, unique), method=volume_method, points=volume_points)[inverse]
+    if avg_cache is None:
+        avg_volume = capsule_volumes(fit_capsules(model, unique), method=volume_method, points=volume_points)
+    else:
+        rows = []
+        for u in unique:
+            key = tuple(u.tolist())
+            if key not in avg_cache:
+                avg_cache[key] = capsule_volumes(fit_capsules(model, u[None]), method=volume_method,
+                                                 points=volume_points)[0]
+            rows.append(avg_cache[key])
+        avg_volume = torch.stack(rows)
+    avg_volume = avg_volume[inverse]
     fraction, seg_id = _segment_table(female)
     # V_R,g of the average body: sum of its capsule volumes over each segment (per side for
     # limbs: a left and a right segment are separate parts, each with fraction X_R).
@@ -665,6 +693,15 @@ def build_capsule_body(model: BodyModel, shape: torch.Tensor, volume_method: str
         damping=DAMPING_RATIO * stiffness, home_pose=home_pose(shape.shape[0], shape.dtype, shape.device),
         body_mass_kg=mass.sum(-1),
     )
+
+
+def _concat_bodies(parts: list[CapsuleBody]) -> CapsuleBody:
+    def cat(objs):
+        return type(objs[0])(**{f.name: cat([getattr(o, f.name) for o in objs])
+                                if dataclasses.is_dataclass(getattr(objs[0], f.name))
+                                else torch.cat([getattr(o, f.name) for o in objs])
+                                for f in dataclasses.fields(objs[0])})
+    return cat(parts)
 
 
 __all__ = [

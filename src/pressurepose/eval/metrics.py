@@ -20,7 +20,7 @@ import dataclasses
 
 import torch
 
-from pressurepose.body.rotations import axis_angle_to_matrix
+from pressurepose.body.rotations import axis_angle_to_matrix, rotation_angle
 from pressurepose.eval.nearest import Forest, build_forest, nearest_pairs
 from pressurepose.mat import MatSpec
 
@@ -92,9 +92,7 @@ def root_orientation_error(est_rotation: torch.Tensor, true_rotation: torch.Tens
     if est_rotation.shape != true_rotation.shape or est_rotation.shape[-1:] != (3,):
         raise ValueError(f"root rotations must both have shape (B, 3), got {tuple(est_rotation.shape)} "
                          f"and {tuple(true_rotation.shape)}")
-    R = axis_angle_to_matrix(est_rotation).transpose(1, 2) @ axis_angle_to_matrix(true_rotation)
-    cos = ((torch.diagonal(R, dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
-    return torch.acos(cos)
+    return rotation_angle(axis_angle_to_matrix(est_rotation), axis_angle_to_matrix(true_rotation))
 
 
 # --- 3DVPE ---------------------------------------------------------------------------------

@@ -30,8 +30,15 @@ always shared. The state every step needs is gathered into (P, ...) arrays from 
 once per body; the foundation forces of all running bodies are one vectorised call that
 visits, per capsule and grid row, only the nodes within the horizontal reach of the capsule's
 part below the top, computes one quadratic root (and one end sphere) per node, and picks the
-lowest capsule per node with a scatter-min. Every body's numbers are its own: results do not
-depend on `batch`, on the slot or on the other bodies (test).
+lowest capsule per node with a scatter-min. Every body's numbers are its own, bit for bit:
+results do not depend on `batch`, on the slot or on the other bodies (test). By
+construction: MuJoCo steps each body in its own MjData; the batched force code uses only
+elementwise operations (correctly rounded, so the same bits in any array), scatter-min/max,
+and `np.bincount` sums, which add each capsule's nodes in the same order whatever comes
+before or after them; every other sum and product is spelled out in a fixed order
+(sim/fixed_order.py) - no `sum`, `einsum` or `@` over a batched array, whose rounding numpy
+and BLAS may vary with the batch's size, alignment or the CPU. The capsule bodies are built
+one body at a time for the same reason.
 """
 
 from __future__ import annotations
@@ -54,6 +61,7 @@ from pressurepose.body.rotations import (
 )
 from pressurepose.mat import MatSpec
 from pressurepose.bed import BedShape
+from pressurepose.sim.fixed_order import atan2_each, matvec3, sq_norm3, sum_last
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 REASON_TIMEOUT = "did not settle within the step limit"
@@ -294,7 +302,7 @@ class CapsuleFoundation:
         y = self.y0 + (jj + 0.5) * self.hy
         # Per capsule: axis direction u, length L, A = 1 - uz^2 (the quadratic's leading term).
         axis = b - a
-        L = np.sqrt((axis**2).sum(1))
+        L = np.sqrt(sq_norm3(axis))
         u = axis / np.maximum(L, 1e-12)[:, None]
         A = 1.0 - u[:, 2] ** 2
         upright = A <= 1e-9
@@ -345,8 +353,8 @@ class CapsuleFoundation:
         total, caps, ws, es = None, [], [], []
         for k, (R, s0, s1) in enumerate(self._sections):
             # Positions into the section's frame about the hinge; velocities just rotate.
-            a_l, b_l, com_l, xi_l = ((p - self.hinge) @ R + self.hinge for p in (a, b, com, xipos))
-            vel = np.concatenate([body_vel[:, :3] @ R, body_vel[:, 3:] @ R], 1)
+            a_l, b_l, com_l, xi_l = (matvec3(R.T, p - self.hinge) + self.hinge for p in (a, b, com, xipos))
+            vel = np.concatenate([matvec3(R.T, body_vel[:, :3]), matvec3(R.T, body_vel[:, 3:])], 1)
             st = None if stick is None else stick[k]
             res = self._forces_local(a_l, b_l, r, vel, com_l, xi_l, mass, inertia, offset, dt, (s0, s1), st)
             if res is None:
@@ -354,7 +362,7 @@ class CapsuleFoundation:
                     st[:] = 0.0  # nothing touches this section: every anchor is released
                 continue
             out, cap, w, energy = res
-            out = np.concatenate([out[:, :3] @ R.T, out[:, 3:] @ R.T], 1)
+            out = np.concatenate([matvec3(R, out[:, :3]), matvec3(R, out[:, 3:])], 1)
             total = out if total is None else total + out
             caps.append(cap), ws.append(w), es.append(energy)
         if total is None:
@@ -410,7 +418,7 @@ class CapsuleFoundation:
         # with the smallest inertia for the lever arms), so light capsules stay stable.
         w2 = w * w
         c = self.nu * (self.k1 + 3.0 * self.k3 * w2) * self.area
-        arm2 = (arm**2).sum(1)
+        arm2 = sq_norm3(arm)
         c_lin = np.bincount(cap, c, minlength=C)
         c_rot = np.bincount(cap, c * arm2, minlength=C)
         scale = 1.0 / (1.0 + dt * np.maximum(c_lin / mass, c_rot / inertia))
@@ -438,10 +446,10 @@ class CapsuleFoundation:
         wgt = fn / np.maximum(Fn[cap], 1e-12)
         arm_c = np.stack([np.bincount(cap, wgt * arm[:, k], minlength=C) for k in range(3)], 1)
         vel_c = np.stack([np.bincount(cap, wgt * vx, minlength=C), np.bincount(cap, wgt * vy, minlength=C)], 1)
-        m_eff = 1.0 / (1.0 / mass + (arm_c**2).sum(1) / inertia)
+        m_eff = 1.0 / (1.0 / mass + sq_norm3(arm_c) / inertia)
         c = self.mu * Fn / V_STICK
         c_eff = c / (1.0 + 2.0 * c * dt / m_eff)
-        speed = np.sqrt((vel_c**2).sum(1))
+        speed = np.sqrt(vel_c[:, 0] * vel_c[:, 0] + vel_c[:, 1] * vel_c[:, 1])
         cap_n = self.mu * Fn
         f = np.zeros((C, 3))
         if stick is None:
@@ -449,11 +457,11 @@ class CapsuleFoundation:
             f[:, :2] = -vel_c * (mag / np.maximum(speed, 1e-12))[:, None]
         else:
             spring = stick - (STICK_STIFFNESS * m_eff / dt)[:, None] * vel_c  # -k v dt, k = kappa m / dt^2
-            norm = np.sqrt((spring**2).sum(1))
+            norm = np.sqrt(spring[:, 0] * spring[:, 0] + spring[:, 1] * spring[:, 1])
             spring *= np.minimum(1.0, cap_n / np.maximum(norm, 1e-12))[:, None]  # slip drags the anchor
             stick[:] = np.where(touching[:, None], spring, 0.0)
             total = stick - c_eff[:, None] * vel_c
-            norm = np.sqrt((total**2).sum(1))
+            norm = np.sqrt(total[:, 0] * total[:, 0] + total[:, 1] * total[:, 1])
             f[:, :2] = total * np.minimum(1.0, cap_n / np.maximum(norm, 1e-12))[:, None]
         out[:, :3] += f
         out[:, 3:] += _cross(arm_c, f)
@@ -485,16 +493,19 @@ def _quat(R: torch.Tensor) -> np.ndarray:
 def initial_pairs(body: CapsuleBody, params: BodyParams) -> list[list[tuple[int, int]]]:
     """Per body, the sampler's self-collision pairs (distal capsules vs non-adjacent ones)
     that are apart in the initial pose: MuJoCo keeps them apart while the body settles.
-    (One batched call; a pair is kept when its gap is > 0, so round-off could only matter
-    for a pair exactly touching.)"""
+    Body by body (torch's batched kernels could move a gap's last bits with the batch)."""
     caps = body.capsules
-    a, b = caps.posed(params.pose.to(caps.rest.dtype))
     pairs = collision_pairs()
     p0, p1 = pairs[:, 0], pairs[:, 1]
-    d = segment_distance(a[:, p0], b[:, p0], a[:, p1], b[:, p1])
-    gap = (d - caps.radius[:, p0] - caps.radius[:, p1]).numpy()
     pl = [(int(x), int(y)) for x, y in pairs]
-    return [[pl[k] for k in np.flatnonzero(g > 0.0)] for g in gap]
+    out = []
+    for i in range(caps.batch_size):
+        one = dataclasses.replace(caps, **{f.name: getattr(caps, f.name)[i : i + 1] for f in dataclasses.fields(caps)})
+        a, b = one.posed(params.pose[i : i + 1].to(caps.rest.dtype))
+        d = segment_distance(a[:, p0], b[:, p0], a[:, p1], b[:, p1])
+        gap = (d - one.radius[:, p0] - one.radius[:, p1])[0].numpy()
+        out.append([pl[k] for k in np.flatnonzero(gap > 0.0)])
+    return out
 
 
 class _Episode:
@@ -732,8 +743,8 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
                                     om[..., 2] * rel[..., 0] - om[..., 0] * rel[..., 2],
                                     om[..., 0] * rel[..., 1] - om[..., 1] * rel[..., 0]], -1)
         has_prev = p.step[ids] > 0
-        speed = np.sqrt((v**2).sum(-1)).max(1)
-        accel = np.sqrt(((v - p.prev_v[ids]) ** 2).sum(-1)).max(1) / dt
+        speed = np.sqrt(sq_norm3(v)).max(1)
+        accel = np.sqrt(sq_norm3(v - p.prev_v[ids])).max(1) / dt
         p.speed[ids] = np.where(has_prev, speed, p.speed[ids])
         p.accel[ids] = np.where(has_prev, accel, p.accel[ids])
         p.prev_v[ids] = v
@@ -752,8 +763,8 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
         # One force evaluation for every running body.
         R = np.array([sl[5] for sl in slots])[:, ids_body].reshape(n, C, 3, 3)
         pos = np.array([sl[6] for sl in slots])[:, ids_body]
-        a = (pos + np.einsum("ncij,ncj->nci", R, p.loc_a[ids])).reshape(-1, 3)
-        b = (pos + np.einsum("ncij,ncj->nci", R, p.loc_b[ids])).reshape(-1, 3)
+        a = (pos + matvec3(R, p.loc_a[ids])).reshape(-1, 3)
+        b = (pos + matvec3(R, p.loc_b[ids])).reshape(-1, 3)
         offset = np.repeat(np.arange(n) * p.n_nodes, C)
         stick = p.stick[:, ids].reshape(-1, n * C, 2)
         res = found.forces(a, b, p.radius[ids].ravel(), cv.reshape(-1, 6), np.repeat(com, C, axis=0),
@@ -771,11 +782,11 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
             np.maximum.at(wmax, body_of, w)
             e_mat = np.bincount(body_of, energy, minlength=n)
             pelvis = np.bincount(body_of, cap % C == PELVIS, minlength=n) > 0
-        carried = ft[:, 2].reshape(n, C).sum(1) >= 0.9 * p.weight[ids]
+        carried = sum_last(ft[:, 2].reshape(n, C)) >= 0.9 * p.weight[ids]
         t = p.touched[ids]
         touched = np.where((t < 0) & (pelvis | carried), p.step[ids], t)
         p.touched[ids] = touched
-        energy = np.array([sl[7] for sl in slots]).sum(1) + e_mat
+        energy = sum_last(np.array([sl[7] for sl in slots])) + e_mat
         ft = ft.reshape(n, C, 6)
         if config.hold_roll_m > 0:
             ft, e_hold = _hold_roll(ft, R[:, PELVIS], p.roll0[ids], cv, p.mass[ids], p.weight[ids], config)
@@ -810,11 +821,13 @@ def _hold_roll(ft, R, R0, cv, mass, weight, config: SettleConfig):
     the bed's long axis (x) added on the trunk capsules, shared by mass (in place), and the
     hold's spring energy (n,), which the energy check counts as the mattress's. R: (n, 3, 3) the pelvis's
     orientation now, R0 at the drop; cv: (n, C, 6) capsule velocities (angular first)."""
-    E = R @ np.swapaxes(R0, 1, 2)  # rotation since the drop (world frame)
-    roll = np.arctan2(E[:, 2, 1] - E[:, 1, 2], E[:, 1, 1] + E[:, 2, 2])  # exact for a rotation about x
+    def E(i, j):  # (R R0^T)[i, j]: the rotation since the drop (world frame)
+        return R[:, i, 0] * R0[:, j, 0] + R[:, i, 1] * R0[:, j, 1] + R[:, i, 2] * R0[:, j, 2]
+
+    roll = atan2_each(E(2, 1) - E(1, 2), E(1, 1) + E(2, 2))  # exact for a rotation about x
     m = mass[:, TRUNK]
-    share = m / m.sum(1, keepdims=True)
-    omega_x = (share * cv[:, TRUNK, 0]).sum(1)
+    share = m / sum_last(m)[:, None]
+    omega_x = sum_last(share * cv[:, TRUNK, 0])
     k = config.hold_roll_m * weight
     tau = -k * (roll + config.hold_time_s * omega_x)
     ft[:, TRUNK, 3] += tau[:, None] * share
@@ -839,10 +852,14 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
            mat: MatSpec | None = None, config: SettleConfig | None = None,
            body: CapsuleBody | None = None, batch: int = 16, bed: BedShape | None = None) -> SettleResult:
     """Settle B initial poses (BodyParams, mat frame) onto the mattress: one MuJoCo model per
-    body, `batch` of them stepped together (results do not depend on `batch`).
+    body, `batch` of them stepped together. A body's result depends on its own initial pose,
+    shape (or capsule body) and bed only - not on `batch`, its slot or the other bodies - bit
+    for bit, by construction (module docstring).
 
-    `body` (the capsulised bodies of params.shape) is built when not given. Returns the
-    resting poses and per-sample statistics; unsettled samples are flagged, never NaN.
+    `body` (the capsulised bodies of params.shape) is built body by body when not given
+    (`build_capsule_body(..., one_by_one=True)`); a body built in a batch may differ in its
+    last bits with the batch. Returns the resting poses and per-sample statistics; unsettled
+    samples are flagged, never NaN.
     """
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
@@ -851,7 +868,7 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
     params.validate(model.shape_dim, torch.float64, params.shape.device)
     B = params.batch_size
     if body is None:
-        body = build_capsule_body(as_float64(model), params.shape, volume_points=SIM_VOLUME_POINTS)
+        body = build_capsule_body(as_float64(model), params.shape, volume_points=SIM_VOLUME_POINTS, one_by_one=True)
     if body.capsules.batch_size != B:
         raise ValueError(f"capsule body batch ({body.capsules.batch_size}) != params batch ({B})")
     masses = body.mass_kg.sum(-1)
