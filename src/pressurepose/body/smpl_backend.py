@@ -20,6 +20,7 @@ from pressurepose.body.joints import J24_PARENTS, NUM_JOINTS
 from pressurepose.body.model import BodyModel
 from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.cache import cache_dir
+from pressurepose.errors import UserError
 
 ENV_VAR = "PRESSUREPOSE_SMPL_DIR"
 GENDERS = ("neutral", "male", "female")
@@ -27,7 +28,7 @@ NUM_BETAS = 10
 _KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
 
 
-class SmplFileError(ValueError):
+class SmplFileError(UserError):
     """An SMPL model file is missing, unreadable or malformed (a user error)."""
 
 

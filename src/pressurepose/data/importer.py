@@ -25,6 +25,7 @@ import numpy as np
 from pressurepose.data.manifest import write_manifest
 from pressurepose.data.schema import COLS, ROWS, SampleBatch, to_table
 from pressurepose.data.shards import table_bytes, write_shard
+from pressurepose.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -91,9 +92,9 @@ def load_restricted(data: bytes):
     try:
         return RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
     except RefusedGlobal as exc:
-        raise ValueError(str(exc)) from None
+        raise UserError(str(exc)) from None
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, IndexError, KeyError, AttributeError) as exc:
-        raise ValueError(f"not a readable pickle ({type(exc).__name__}: {exc})") from None
+        raise UserError(f"not a readable pickle ({type(exc).__name__}: {exc})") from None
 
 
 def _text(key) -> str:
@@ -120,20 +121,20 @@ def read_original(path: str | Path, split: str | None = None, gender: str | None
     try:
         data = path.read_bytes()
     except FileNotFoundError:
-        raise ValueError(f"no file at {path}") from None
+        raise UserError(f"no file at {path}") from None
     doc = load_restricted(data)
     if not isinstance(doc, dict):
-        raise ValueError(f"{path}: expected a dict of lists, got {type(doc).__name__}")
+        raise UserError(f"{path}: expected a dict of lists, got {type(doc).__name__}")
     doc = {_text(k): v for k, v in doc.items()}
     missing_required = [k for k in REQUIRED if k not in doc]
     if missing_required:
-        raise ValueError(f"{path}: missing keys {missing_required}; an original PressurePose file has "
+        raise UserError(f"{path}: missing keys {missing_required}; an original PressurePose file has "
                          f"{', '.join(ORIGINAL_KEYS)}")
     labels = infer_labels(path)
     split, gender = split or labels["split"] or "train", gender or labels["gender"]
     partition = partition or labels["partition"] or "unknown"
     if gender not in ("female", "male"):
-        raise ValueError(f"{path}: cannot tell the gender from the file name; pass --gender female or male")
+        raise UserError(f"{path}: cannot tell the gender from the file name; pass --gender female or male")
     n = len(doc["images"])
     arrays, missing = {}, []
     for key, (field, shape) in ORIGINAL_KEYS.items():
@@ -143,13 +144,13 @@ def read_original(path: str | Path, split: str | None = None, gender: str | None
             continue
         values = doc[key]
         if len(values) != n:
-            raise ValueError(f"{path}: key {key!r} has {len(values)} entries but 'images' has {n}")
+            raise UserError(f"{path}: key {key!r} has {len(values)} entries but 'images' has {n}")
         try:
             a = np.asarray([np.asarray(v, dtype=np.float64).reshape(shape) for v in values]).reshape(n, *shape)
         except (ValueError, TypeError):
-            raise ValueError(f"{path}: key {key!r} entries are not numbers of shape {shape}") from None
+            raise UserError(f"{path}: key {key!r} entries are not numbers of shape {shape}") from None
         if not np.isfinite(a).all():
-            raise ValueError(f"{path}: key {key!r} holds NaN or infinite values")
+            raise UserError(f"{path}: key {key!r} holds NaN or infinite values")
         arrays[field] = a
     pose72 = arrays.pop("pose72")
     batch = SampleBatch(
@@ -172,7 +173,7 @@ def import_original(paths: list[Path], out: Path, split: str | None = None, gend
     from pressurepose import __version__
 
     if not paths:
-        raise ValueError("give at least one original PressurePose file")
+        raise UserError("give at least one original PressurePose file")
     out = Path(out)
     records, sources = [], []
     for k, path in enumerate(paths):

@@ -21,6 +21,8 @@ from typing import Literal
 
 import numpy as np
 
+from pressurepose.errors import UserError
+
 ROWS, COLS = 64, 27
 SUFFIXES = (".npy", ".npz", ".parquet", ".csv", ".txt")
 
@@ -30,12 +32,12 @@ def read_pressure_file(path: str | Path, text_units: Literal["raw", "mmhg"] = "r
     """(N, 64, 27) float32 mmHg images of one file (see module doc)."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"{path}: no such file")
+        raise UserError(f"{path}: no such file")
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
-        raise ValueError(f"{path}: unsupported file type {suffix or '(none)'}; give {', '.join(SUFFIXES)} files")
+        raise UserError(f"{path}: unsupported file type {suffix or '(none)'}; give {', '.join(SUFFIXES)} files")
     if path.stat().st_size == 0:
-        raise ValueError(f"{path}: the file is empty")
+        raise UserError(f"{path}: the file is empty")
     if suffix == ".npy":
         images = _load_npy(path)
     elif suffix == ".npz":
@@ -51,23 +53,23 @@ def check_images(images: np.ndarray, path: Path) -> np.ndarray:
     if images.ndim == 2:
         images = images[None]
     if images.ndim != 3 or images.shape[1:] != (ROWS, COLS):
-        raise ValueError(f"{path}: expected a ({ROWS}, {COLS}) pressure image or a stack (N, {ROWS}, {COLS}), "
+        raise UserError(f"{path}: expected a ({ROWS}, {COLS}) pressure image or a stack (N, {ROWS}, {COLS}), "
                          f"got shape {images.shape}")
     if images.shape[0] == 0:
-        raise ValueError(f"{path}: holds no images")
+        raise UserError(f"{path}: holds no images")
     if not np.issubdtype(images.dtype, np.number) or images.dtype == bool:
-        raise ValueError(f"{path}: not a pressure image (dtype {images.dtype})")
+        raise UserError(f"{path}: not a pressure image (dtype {images.dtype})")
     images = images.astype(np.float32)
     bad = ~np.isfinite(images).all((1, 2))
     if bad.any():
-        raise ValueError(f"{path}: image {int(np.argmax(bad))} contains NaN or infinite values")
+        raise UserError(f"{path}: image {int(np.argmax(bad))} contains NaN or infinite values")
     neg = (images < 0).any((1, 2))
     if neg.any():
-        raise ValueError(f"{path}: image {int(np.argmax(neg))} has negative pressures (min {images.min():.3g}); "
+        raise UserError(f"{path}: image {int(np.argmax(neg))} has negative pressures (min {images.min():.3g}); "
                          "readings must be >= 0 mmHg")
     empty = ~(images > 0).any((1, 2))
     if empty.any():
-        raise ValueError(f"{path}: image {int(np.argmax(empty))} is empty (no loaded taxel): nobody on the mat")
+        raise UserError(f"{path}: image {int(np.argmax(empty))} is empty (no loaded taxel): nobody on the mat")
     return images
 
 
@@ -75,21 +77,21 @@ def _load_npy(path: Path) -> np.ndarray:
     try:
         return np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
-        raise ValueError(f"{path}: not a numpy array file without pickles ({exc})") from None
+        raise UserError(f"{path}: not a numpy array file without pickles ({exc})") from None
 
 
 def _load_npz(path: Path) -> np.ndarray:
     try:
         with np.load(path, allow_pickle=False) as f:
             if "pressure_mmhg" not in f.files:
-                raise ValueError(f"{path}: no array 'pressure_mmhg' (holds {', '.join(f.files) or 'nothing'})")
+                raise UserError(f"{path}: no array 'pressure_mmhg' (holds {', '.join(f.files) or 'nothing'})")
             return f["pressure_mmhg"]
     except (OSError, EOFError) as exc:
-        raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
+        raise UserError(f"{path}: not a readable .npz file ({exc})") from None
     except ValueError as exc:
         if str(exc).startswith(str(path)):
             raise
-        raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
+        raise UserError(f"{path}: not a readable .npz file ({exc})") from None
 
 
 def _load_parquet(path: Path) -> np.ndarray:
@@ -97,14 +99,14 @@ def _load_parquet(path: Path) -> np.ndarray:
         import pyarrow as pa
         import pyarrow.parquet as pq
     except ImportError:
-        raise ValueError(f"{path}: reading dataset shards needs pyarrow (pip install pyarrow)") from None
+        raise UserError(f"{path}: reading dataset shards needs pyarrow (pip install pyarrow)") from None
     try:
         column = pq.read_table(path, columns=["pressure_mmhg"]).column("pressure_mmhg").combine_chunks()
     except (OSError, KeyError, pa.ArrowException) as exc:
-        raise ValueError(f"{path}: not a dataset shard with a pressure_mmhg column ({exc})") from None
+        raise UserError(f"{path}: not a dataset shard with a pressure_mmhg column ({exc})") from None
     values = column.flatten().to_numpy(zero_copy_only=False) if len(column) else np.zeros(0, np.float32)
     if values.size != len(column) * ROWS * COLS:
-        raise ValueError(f"{path}: pressure_mmhg rows are not {ROWS} x {COLS} images")
+        raise UserError(f"{path}: pressure_mmhg rows are not {ROWS} x {COLS} images")
     return values.reshape(len(column), ROWS, COLS)
 
 
@@ -114,24 +116,24 @@ def _load_text(path: Path, units: str, mass_kg: float) -> np.ndarray:
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not a text pressure frame ({exc})") from None
+        raise UserError(f"{path}: not a text pressure frame ({exc})") from None
     rows = [re.split(r"[\s,;]+", line.strip()) for line in text.strip().splitlines() if line.strip()]
     if len(rows) != ROWS or any(len(r) != COLS for r in rows):
         counts = sorted({len(r) for r in rows})
-        raise ValueError(f"{path}: expected {ROWS} lines of {COLS} numbers (a PmatData frame), got {len(rows)} "
+        raise UserError(f"{path}: expected {ROWS} lines of {COLS} numbers (a PmatData frame), got {len(rows)} "
                          f"lines of {counts} values")
     try:
         raw = np.array(rows, dtype=np.float64)[::-1].copy()  # PmatData: row 0 at the foot end
     except ValueError:
-        raise ValueError(f"{path}: not a pressure frame (non-numeric values)") from None
+        raise UserError(f"{path}: not a pressure frame (non-numeric values)") from None
     if units == "mmhg" or not np.isfinite(raw).all() or (raw < 0).any() or not (raw > 0).any():
         return raw  # check_images names the problem
     if units != "raw":
-        raise ValueError(f"text_units must be 'raw' or 'mmhg', got {units!r}")
+        raise UserError(f"text_units must be 'raw' or 'mmhg', got {units!r}")
     try:
         return normalise(raw, mass_kg)
     except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+        raise UserError(f"{path}: {exc}") from None
 
 
 __all__ = ["SUFFIXES", "check_images", "read_pressure_file"]

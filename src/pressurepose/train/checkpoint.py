@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.net.model import NetConfig, PressureNet
 
@@ -33,12 +34,12 @@ def _load(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
 
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"no {path.name} in {path.parent}; is it a `pressurepose train` run folder?")
+        raise UserError(f"no {path.name} in {path.parent}; is it a `pressurepose train` run folder?")
     try:
         with safe_open(str(path), framework="pt") as f:
             return {k: f.get_tensor(k) for k in f.keys()}, dict(f.metadata() or {})
     except (SafetensorError, OSError) as exc:
-        raise ValueError(f"{path} is not a readable safetensors checkpoint ({exc})") from None
+        raise UserError(f"{path} is not a readable safetensors checkpoint ({exc})") from None
 
 
 def save_model(run: Path, net: PressureNet, config_record: dict) -> Path:
@@ -81,7 +82,7 @@ def read_model(run: Path) -> tuple[dict[str, torch.Tensor], dict]:
     run = resolve_model(run)
     tensors, meta = _load(run / MODEL_FILE)
     if meta.get("format") != FORMAT or "config" not in meta:
-        raise ValueError(f"{run / MODEL_FILE} is not a pressurepose network file")
+        raise UserError(f"{run / MODEL_FILE} is not a pressurepose network file")
     return _strip(tensors, "model/"), json.loads(meta["config"])
 
 
@@ -89,7 +90,7 @@ def net_config_from_record(record: dict) -> NetConfig:
     try:
         return NetConfig(**record["net"])
     except (KeyError, TypeError) as exc:
-        raise ValueError(f"network config missing or unreadable in the run's metadata ({exc})") from None
+        raise UserError(f"network config missing or unreadable in the run's metadata ({exc})") from None
 
 
 def load_network(run: Path, device: str | torch.device = "cpu", body=None) -> tuple[PressureNet, dict]:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
@@ -38,7 +39,7 @@ def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device cuda asked for, but torch sees no CUDA device; use --device cpu")
+        raise UserError("device cuda asked for, but torch sees no CUDA device; use --device cpu")
     return torch.device(name)
 
 
@@ -175,7 +176,7 @@ def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainC
         inputs, targets = mirror_batch(inputs, targets, cfg.mirror, generator)
     if augment and cfg.repress > 0:
         if targets.depth_mm is None:
-            raise ValueError("--repress needs the depth maps (depth_mm) of the training samples")
+            raise UserError("--repress needs the depth maps (depth_mm) of the training samples")
         inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
     if augment and cfg.bands > 0:
         inputs = bands_batch(inputs, cfg.bands, generator)
@@ -203,11 +204,11 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         weights, record = read_model(cfg.mod1)
         m1 = net_config_from_record(record)
         if m1.modules != 1:
-            raise ValueError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
+            raise UserError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
         mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight", "width")
                     if getattr(m1, f) != getattr(netcfg, f)]
         if mismatch:
-            raise ValueError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
+            raise UserError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
     body = netcfg.load_body(device=device)
     torch.manual_seed(cfg.seed)  # the initial weights
     net = PressureNet(netcfg, body=body)
@@ -228,7 +229,7 @@ def _load_init(net: PressureNet, init: Path) -> None:
     fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight")
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
     if mismatch:
-        raise ValueError(f"--init {init} is a different network ({', '.join(mismatch)} differ); "
+        raise UserError(f"--init {init} is a different network ({', '.join(mismatch)} differ); "
                          "train with the same settings or drop --init")
     net.load_trainable_state(weights)
 
@@ -248,7 +249,7 @@ def _check_resume(run: Path, cfg: TrainConfig) -> None:
     defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
     differ = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k, defaults.get(k)) != now[k]]
     if differ:
-        raise ValueError(f"{run} holds a run with different settings ({', '.join(differ)}); "
+        raise UserError(f"{run} holds a run with different settings ({', '.join(differ)}); "
                          "resume with the same settings or train into a new --out folder")
 
 
@@ -258,10 +259,10 @@ def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> 
     run = Path(cfg.out)
     if dataset is None:
         if cfg.data is None:
-            raise ValueError("no training data: give --data DIR")
+            raise UserError("no training data: give --data DIR")
         dataset = open_dataset(cfg.data)
     if len(dataset) == 0:
-        raise ValueError("the training dataset is empty")
+        raise UserError("the training dataset is empty")
     device = pick_device(cfg.device)
     run.mkdir(parents=True, exist_ok=True)
     resuming = (run / CHECKPOINT_FILE).is_file()
