@@ -135,3 +135,163 @@ def test_user_error_is_one_line_but_internal_value_error_keeps_its_traceback(mon
     monkeypatch.setitem(cli.COMMANDS, "info", user)
     assert main(["info", "x"]) == 2
     one_line_error(capsys, "x: field 'y' must be z")
+
+
+# --- network files and run folders ---------------------------------------------------------
+
+def good_image(path):
+    image = np.zeros((64, 27), np.float32)
+    image[10:50, 8:19] = 30.0
+    np.save(path, image)
+    return path
+
+
+def rewrite_model(src_run, dst_run, tensors=None, metadata=None):
+    """A copy of a run's model.safetensors with some tensors or metadata replaced."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    dst_run.mkdir(parents=True, exist_ok=True)
+    with safe_open(str(src_run / "model.safetensors"), framework="pt") as f:
+        found = {k: f.get_tensor(k) for k in f.keys()}
+        meta = dict(f.metadata())
+    found.update(tensors or {})
+    meta.update(metadata or {})
+    save_file({k: v.contiguous() for k, v in found.items()}, str(dst_run / "model.safetensors"), metadata=meta)
+    return dst_run
+
+
+@pytest.fixture(scope="module")
+def default_run():
+    from pressurepose.models import default_model_dir
+
+    return default_model_dir()
+
+
+def _first_weight(run):
+    from pressurepose.train.checkpoint import read_model
+
+    weights, _ = read_model(run)
+    return next(k for k, v in weights.items() if v.ndim >= 2)
+
+
+MODEL_CASES = {
+    "wrong_shape": (lambda k, t: {"tensors": {f"model/{k}": t[:, :1].clone()}}, "has shape"),
+    "nan_weight": (lambda k, t: {"tensors": {f"model/{k}": t * float("nan")}}, "NaN or infinite"),
+    "missing_tensor": (None, "missing tensors"),
+    "config_not_json": (lambda k, t: {"metadata": {"config": "{not json"}}, "'config' is not readable JSON"),
+    "config_no_net": (lambda k, t: {"metadata": {"config": "{}"}}, "'config.net' is missing"),
+    "width_text": (lambda k, t: {"metadata": {"config": json.dumps({"net": {"width": "2"}})}},
+                   "'config.net.width' must be an integer"),
+    "width_huge": (lambda k, t: {"metadata": {"config": json.dumps({"net": {"width": 10**9}})}},
+                   "'config.net.width' must lie in"),
+    "arch_unknown": (lambda k, t: {"metadata": {"config": json.dumps({"net": {"arch": "resnet"}})}},
+                     "'config.net.arch' must be one of"),
+    "not_a_network": (lambda k, t: {"metadata": {"format": "other"}}, "is not a pressurepose network file"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MODEL_CASES))
+def test_malformed_model_file_is_one_line_in_predict_and_evaluate(case, default_run, dataset, tmp_path, capsys):
+    from pressurepose.train.checkpoint import read_model
+
+    key = _first_weight(default_run)
+    weights, _ = read_model(default_run)
+    make, message = MODEL_CASES[case]
+    if make is None:  # drop a tensor
+        from safetensors.torch import save_file
+
+        (tmp_path / "run").mkdir()
+        from safetensors import safe_open
+
+        with safe_open(str(default_run / "model.safetensors"), framework="pt") as f:
+            kept = {k: f.get_tensor(k) for k in f.keys() if k != f"model/{key}"}
+            meta = dict(f.metadata())
+        save_file(kept, str(tmp_path / "run" / "model.safetensors"), metadata=meta)
+        run = tmp_path / "run"
+    else:
+        run = rewrite_model(default_run, tmp_path / "run", **make(key, weights[key]))
+    image = good_image(tmp_path / "one.npy")
+    for argv in (["predict", "--model", str(run), "--out", str(tmp_path / "p"), str(image)],
+                 ["evaluate", "--model", str(run), "--data", str(dataset), "--out", str(tmp_path / "e")]):
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        one_line_error(capsys, "model.safetensors", message)
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.fixture(scope="module")
+def finished_run(dataset, tmp_path_factory):
+    """A one-epoch smoke run folder made without training: config.json, checkpoint, model, metrics."""
+    import torch
+
+    from pressurepose.train.checkpoint import save_checkpoint, save_model
+    from pressurepose.train.config import TrainConfig
+    from pressurepose.train.loop import build_network
+
+    run = tmp_path_factory.mktemp("runs") / "run"
+    run.mkdir()
+    cfg = TrainConfig(data=dataset, out=run, preset="smoke", epochs=1).resolved()
+    net = build_network(cfg, torch.device("cpu"))
+    opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=cfg.lr)
+    record = {"train": cfg.to_json(), "net": {**net.config.__dict__}}
+    cfg.save(run / "config.json", record["net"])
+    save_checkpoint(run, net, opt, 1, record)
+    save_model(run, net, record)
+    (run / "metrics.jsonl").write_text(json.dumps({"epoch": 1, "loss": 1.0, "train_mpjpe_mm": 100.0}) + "\n")
+    return run
+
+
+def _resume(run, dataset):
+    return ["train", "--data", str(dataset), "--out", str(run), "--preset", "smoke", "--epochs", "1"]
+
+
+RUN_CASES = {
+    "config_empty": ("config.json", "{}", "config.json: field 'train' is missing"),
+    "config_list": ("config.json", "[1]", "config.json: expected a JSON object"),
+    "config_broken": ("config.json", '{"train": ', "config.json is not readable JSON"),
+    "config_train_text": ("config.json", '{"train": "x"}', "field 'train' must be a JSON object"),
+    "metrics_broken": ("metrics.jsonl", '{"epoch": 1}\n{"epo', "metrics.jsonl: line 2 is not readable JSON"),
+    "metrics_no_epoch": ("metrics.jsonl", '{"loss": 1}\n', "metrics.jsonl: field 'line 1: epoch' is missing"),
+    "metrics_not_object": ("metrics.jsonl", "[1, 2]\n", "metrics.jsonl: line 1: expected a JSON object"),
+}
+
+
+def test_resuming_a_good_run_works(finished_run, dataset, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    assert main(_resume(run, dataset)) == 0
+
+
+@pytest.mark.parametrize("case", sorted(RUN_CASES))
+def test_resuming_a_damaged_run_is_one_line(case, finished_run, dataset, tmp_path, capsys):
+    name, text, message = RUN_CASES[case]
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    (run / name).write_text(text)
+    capsys.readouterr()
+    assert main(_resume(run, dataset)) == 2
+    one_line_error(capsys, message)
+
+
+def test_resuming_from_a_checkpoint_with_wrong_shapes_is_one_line(finished_run, dataset, tmp_path, capsys):
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    with safe_open(str(run / "checkpoint.safetensors"), framework="pt") as f:
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+        meta = dict(f.metadata())
+    import torch
+
+    key = "optim/0/exp_avg"  # Adam's first moment of parameter 0, which is no vector of 3
+    tensors[key] = torch.zeros(3)
+    save_file(tensors, str(run / "checkpoint.safetensors"), metadata=meta)
+    capsys.readouterr()
+    assert main(_resume(run, dataset)) == 2
+    one_line_error(capsys, "checkpoint.safetensors", key, "expected")
+    save_file({k: v for k, v in tensors.items() if not k.startswith("optim/")}, str(run / "checkpoint.safetensors"),
+              metadata={**meta, "epoch": "one"})
+    assert main(_resume(run, dataset)) == 2
+    one_line_error(capsys, "checkpoint.safetensors", "'epoch' must be a whole number")

@@ -146,7 +146,7 @@ def inside(root: str | os.PathLike, relative: Any, path: str | os.PathLike, name
 
 
 def check_tensor_shapes(found: dict, expected: dict, path: str | os.PathLike, hint: str = "") -> None:
-    """The tensors of a weights file must be the network's: same names, same shapes."""
+    """The tensors of a weights file must be the network's: same names, same shapes, finite."""
     missing = [k for k in expected if k not in found]
     unexpected = [k for k in found if k not in expected]
     if missing or unexpected:
@@ -157,6 +157,9 @@ def check_tensor_shapes(found: dict, expected: dict, path: str | os.PathLike, hi
         if got != tuple(want):
             raise UserError(f"{path}: tensor {name!r} has shape {got}, expected {tuple(want)} for the network "
                             f"its metadata describes{hint}")
+        tensor = found[name]
+        if tensor.is_floating_point() and not bool(tensor.isfinite().all()):
+            raise UserError(f"{path}: tensor {name!r} holds NaN or infinite values{hint}")
 
 
 class BoundedUnpickler(pickle.Unpickler):

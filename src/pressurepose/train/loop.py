@@ -26,10 +26,11 @@ from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
 from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
 from pressurepose.train.checkpoint import (
-    CHECKPOINT_FILE, load_checkpoint, net_config_from_record, read_model, save_checkpoint, save_model,
+    CHECKPOINT_FILE, MODEL_FILE, load_checkpoint, net_config_from_record, read_model, save_checkpoint, save_model,
 )
 from pressurepose.train.config import RESUMABLE_CHANGES, TrainConfig
 from pressurepose.train.data import collate, open_dataset
+from pressurepose.validate import check_tensor_shapes, field, read_json_object, read_jsonl
 
 log = logging.getLogger(__name__)
 METRICS = "metrics.jsonl"
@@ -202,7 +203,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
                        dropout=cfg.dropout, width=cfg.width)
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
-        m1 = net_config_from_record(record)
+        m1 = net_config_from_record(record, Path(cfg.mod1) / MODEL_FILE)
         if m1.modules != 1:
             raise UserError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
         mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight", "width")
@@ -214,6 +215,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
     net = PressureNet(netcfg, body=body)
     if cfg.module == 2:
         mod1 = {k[len("mod1."):]: v for k, v in weights.items() if k.startswith("mod1.")}
+        check_tensor_shapes(mod1, {k: v.shape for k, v in net.mod1.state_dict().items()}, Path(cfg.mod1) / MODEL_FILE)
         net.mod1.load_state_dict(mod1)
         net.freeze_mod1()
     if cfg.init is not None:
@@ -225,12 +227,13 @@ def _load_init(net: PressureNet, init: Path) -> None:
     """Start from the weights of another run's network (fine-tuning), which must be the same
     network: same arch, width, modules, inputs and body model."""
     weights, record = read_model(init)
-    other = net_config_from_record(record)
+    other = net_config_from_record(record, Path(init) / MODEL_FILE)
     fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight")
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
     if mismatch:
         raise UserError(f"--init {init} is a different network ({', '.join(mismatch)} differ); "
                          "train with the same settings or drop --init")
+    check_tensor_shapes(weights, {k: v.shape for k, v in net.trainable_state().items()}, Path(init) / MODEL_FILE)
     net.load_trainable_state(weights)
 
 
@@ -241,9 +244,11 @@ def _split(n: int, cfg: TrainConfig) -> tuple[list[int], list[int]]:
 
 
 def _check_resume(run: Path, cfg: TrainConfig) -> None:
-    saved = json.loads((run / "config.json").read_text())["train"] if (run / "config.json").is_file() else None
-    if saved is None:
+    path = run / "config.json"
+    if not path.is_file():
         return
+    hint = "; resume with an intact run folder or train into a new --out folder"
+    saved = field(read_json_object(path, "run config", hint), "train", "dict", path, hint=hint)
     now = cfg.to_json()
     # A field added after the run was saved counts at its default (older runs resume).
     defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
@@ -365,10 +370,12 @@ class _progress:
 
 
 def _read_metrics(run: Path) -> list[dict]:
+    """The rows of a run's metrics.jsonl, each with its epoch (UserError naming the file)."""
     path = run / METRICS
-    if not path.is_file():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = read_jsonl(path, "training metrics", "; delete it to resume without the earlier epochs' metrics")
+    for number, row in enumerate(rows, 1):
+        field(row, "epoch", "count", path, f"line {number}: ")
+    return rows
 
 
 def _write_metrics(run: Path, history: list[dict]) -> None:
