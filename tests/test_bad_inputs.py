@@ -295,3 +295,76 @@ def test_resuming_from_a_checkpoint_with_wrong_shapes_is_one_line(finished_run, 
               metadata={**meta, "epoch": "one"})
     assert main(_resume(run, dataset)) == 2
     one_line_error(capsys, "checkpoint.safetensors", "'epoch' must be a whole number")
+
+
+# --- pickles: a size budget in the restricted unpicklers -----------------------------------
+
+BYTEARRAY_BOMB = b"\x80\x02c__builtin__\nbytearray\n\x8a\x08\x00\x00\x00\x00\x00\x00\x00@\x85R."  # bytearray(2**62)
+ARRAY_BOMB = (b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\n"
+              b"\x8a\x06\x00\x00\x00\x00\x00\x01\x85U\x01b\x87R.")  # _reconstruct(ndarray, (2**40,), 'b')
+NDARRAY_BOMB = b"\x80\x02cnumpy\nndarray\n\x8a\x06\x00\x00\x00\x00\x00\x01\x85\x85R."  # ndarray((2**40,))
+
+
+def _nested_bomb():
+    """A 3 kB pickle of {"images": one list shared 1000 x 1000 x 1000 times}: 10^9 numbers."""
+    inner = [0.0] * 1000
+    middle = [inner] * 1000
+    return pickle.dumps({"images": [middle] * 1000, "markers_xyz_m": [], "body_shape": [], "joint_angles": [],
+                         "root_xyz_shift": []}, protocol=2)
+
+
+@pytest.mark.parametrize("case", ["bytearray", "array", "ndarray", "nested", "global"])
+def test_import_original_refuses_memory_bombs_with_one_line(case, tmp_path, capsys):
+    path = tmp_path / "train_roll0_f_lay_set1_1.p"
+    data = {"bytearray": BYTEARRAY_BOMB, "array": ARRAY_BOMB, "ndarray": NDARRAY_BOMB}.get(case)
+    if case == "nested":
+        data = _nested_bomb()
+    if case == "global":
+        data = b"\x80\x02cposix\nsystem\nX\x02\x00\x00\x00id\x85R."
+    path.write_bytes(data)
+    capsys.readouterr()
+    assert main(["import-original", str(path), "--out", str(tmp_path / "out")]) == 2
+    line = one_line_error(capsys, str(path))
+    assert {"global": "refusing to load the global posix.system", "nested": "more numbers than"}.get(case, "asks for") in line
+    assert not (tmp_path / "out" / "manifest.json").exists()
+
+
+def test_import_original_on_a_folder_names_it(tmp_path, capsys):
+    assert main(["import-original", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    one_line_error(capsys, str(tmp_path), "a folder")
+
+
+@pytest.mark.parametrize("shape", [(10**9, 10**9), (24, -1), ("a", 2), (24, 6890, 1)])
+def test_smpl_pickle_with_a_huge_or_bad_sparse_shape_is_refused(shape, tmp_path, monkeypatch):
+    import sys
+    import types
+
+    from pressurepose.body.smpl_backend import SmplFileError, read_smpl_file
+
+    class csc_matrix:
+        def __init__(self):
+            self.data, self.indices, self.indptr = np.ones(1), np.zeros(1, np.int64), np.array([0, 1])
+            self._shape = shape
+
+    for name in ("scipy", "scipy.sparse"):
+        monkeypatch.setitem(sys.modules, name, types.ModuleType(name))
+    module = types.ModuleType("scipy.sparse.csc")
+    module.csc_matrix = csc_matrix
+    csc_matrix.__module__, csc_matrix.__qualname__ = "scipy.sparse.csc", "csc_matrix"
+    monkeypatch.setitem(sys.modules, "scipy.sparse.csc", module)
+    payload = {k: np.zeros((2, 2)) for k in ("v_template", "shapedirs", "posedirs", "weights", "kintree_table", "f")}
+    payload["J_regressor"] = csc_matrix()
+    path = tmp_path / "SMPL_NEUTRAL.pkl"
+    path.write_bytes(pickle.dumps(payload, protocol=2))
+    with pytest.raises(SmplFileError, match="sparse matrix") as info:
+        read_smpl_file(path)
+    assert str(path) in str(info.value)
+
+
+def test_smpl_pickle_with_an_allocation_bomb_is_refused(tmp_path):
+    from pressurepose.body.smpl_backend import SmplFileError, read_smpl_file
+
+    path = tmp_path / "SMPL_NEUTRAL.pkl"
+    path.write_bytes(ARRAY_BOMB)
+    with pytest.raises(SmplFileError, match="asks for an array of 1.1e"):
+        read_smpl_file(path)

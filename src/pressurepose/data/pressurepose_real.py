@@ -67,10 +67,7 @@ def _load_dict(path: Path, what: str) -> dict:
         data = path.read_bytes()
     except FileNotFoundError:
         raise UserError(f"no {what} at {path}") from None
-    try:
-        doc = load_restricted(data)
-    except ValueError as exc:
-        raise UserError(f"{path}: {exc}") from None
+    doc = load_restricted(data, path)  # a UserError naming the file
     if not isinstance(doc, dict):
         raise UserError(f"{path}: expected a dict ({what}), got {type(doc).__name__}")
     return {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in doc.items()}
