@@ -368,3 +368,61 @@ def test_smpl_pickle_with_an_allocation_bomb_is_refused(tmp_path):
     path.write_bytes(ARRAY_BOMB)
     with pytest.raises(SmplFileError, match="asks for an array of 1.1e"):
         read_smpl_file(path)
+
+
+# --- pressure images -------------------------------------------------------------------------
+
+def _predict(tmp_path, *files, extra=()):
+    return main(["predict", "--out", str(tmp_path / "p"), "--no-figures", "--no-meshes", *extra,
+                 *[str(f) for f in files]])
+
+
+def test_predict_refuses_a_corrupted_shard_of_a_dataset(dataset, tmp_path, capsys):
+    bad = tmp_path / "ds"
+    shutil.copytree(dataset, bad)
+    shard = sorted((bad / "shards").glob("test-*.parquet"))[0]
+    data = bytearray(shard.read_bytes())
+    data[len(data) // 2] ^= 0x40  # one flipped bit in the middle of the pressure column
+    shard.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert _predict(tmp_path, shard) == 2
+    one_line_error(capsys, str(shard), "sha256")
+    # Without the manifest, the shard's own record still catches it.
+    (bad / "manifest.json").unlink()
+    assert _predict(tmp_path, shard) == 2
+    one_line_error(capsys, str(shard), "sha256")
+    assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize("value,dtype", [(1e30, np.float32), (1e36, np.float32), (1e300, np.float64),
+                                         (2000, np.int64)])
+def test_implausible_pressures_are_refused_unless_forced(value, dtype, tmp_path, capsys):
+    import warnings
+
+    image = np.full((64, 27), value, dtype)
+    np.save(tmp_path / "high.npy", image)
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no numpy RuntimeWarning (overflow in a cast) before the error
+        assert _predict(tmp_path, tmp_path / "high.npy") == 2
+    one_line_error(capsys, "high.npy", "more than 1000 mmHg", "--force")
+    assert not (tmp_path / "p").exists()
+
+
+def test_forced_implausible_pressures_run(tmp_path, capsys):
+    np.save(tmp_path / "high.npy", np.full((64, 27), 1e30, np.float32))
+    assert _predict(tmp_path, tmp_path / "high.npy", extra=["--force"]) == 0
+    assert json.loads((tmp_path / "p" / "high.json").read_text())["height_m"] > 0
+
+
+def test_pressure_file_messages_name_what_was_given(tmp_path, capsys):
+    np.save(tmp_path / "small.npy", np.ones((10, 10)))
+    assert _predict(tmp_path, tmp_path / "small.npy") == 2
+    one_line_error(capsys, "small.npy", "got shape (10, 10)")
+    (tmp_path / "folder").mkdir()
+    assert _predict(tmp_path, tmp_path / "folder") == 2
+    one_line_error(capsys, "folder", "is a folder")
+    good = good_image(tmp_path / "good.npy")
+    (tmp_path / "p").write_text("a file")
+    assert _predict(tmp_path, good) == 2
+    one_line_error(capsys, "--out", "is a file")
