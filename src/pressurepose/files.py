@@ -33,3 +33,14 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write `data` to `path` atomically."""
     return atomic_write(Path(path), lambda tmp: Path(tmp).write_bytes(data))
+
+
+def save_figure(fig, path, **kwargs):
+    """`fig.savefig` to `path` atomically (format from the suffix unless given); a file-like
+    `path` (an in-memory buffer) is written directly."""
+    if not isinstance(path, (str, os.PathLike)):
+        fig.savefig(path, **kwargs)
+        return path
+    path = Path(path)
+    kwargs.setdefault("format", path.suffix.lstrip(".").lower() or "png")
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, **kwargs))

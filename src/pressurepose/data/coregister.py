@@ -30,6 +30,7 @@ import numpy as np
 from pressurepose.errors import UserError
 from pressurepose.validate import read_json, read_npy
 from pressurepose.mat import MatSpec
+from pressurepose.files import save_figure
 
 FORMAT = "pressurepose.coregistration/1"
 CUBE_M = 0.0254  # the seed's 1" tungsten cubes; a marker sits at the cube's centre
@@ -366,7 +367,7 @@ def _plot(path, mk: Markers, pose: CameraPose, cloud: np.ndarray | None) -> None
     ax.invert_yaxis()
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, format="png", dpi=90)
+    save_figure(fig, path, format="png", dpi=90)
     plt.close(fig)
 
 

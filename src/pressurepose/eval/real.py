@@ -31,7 +31,7 @@ import torch
 
 from pressurepose.errors import UserError
 from pressurepose.eval.metrics import CAMERA_M
-from pressurepose.files import atomic_write
+from pressurepose.files import atomic_write, save_figure
 
 POSTURES = ("supine", "left", "right", "prone")
 GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
@@ -187,7 +187,7 @@ def _plot(path, rows: list[dict], summary: dict) -> None:
             ax.plot([lo, hi], [lo, hi], "k--", lw=0.8)
             ax.set(xlabel=f"subject ({unit})", ylabel=f"estimated ({unit})", title=f"{name}: {key.split('_')[0]}")
     fig.tight_layout()
-    fig.savefig(path, format="png", dpi=80)
+    save_figure(fig, path, format="png", dpi=80)
     plt.close(fig)
 
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from pressurepose.errors import UserError
-from pressurepose.files import atomic_write
+from pressurepose.files import atomic_write, save_figure
 
 REQUIRED = ("pressure_mmhg", "subject", "cloud_points", "cloud_offsets")
 
@@ -156,7 +156,7 @@ def _plot(path, rows: list[dict], by_subject: dict) -> None:
     b.hist([r["vpe_m"] * 100 for r in rows], bins=30)
     b.set(xlabel="3DVPE (cm)", ylabel="frames", title="per frame")
     fig.tight_layout()
-    fig.savefig(path, format="png", dpi=80)
+    save_figure(fig, path, format="png", dpi=80)
     plt.close(fig)
 
 
