@@ -426,3 +426,16 @@ def test_pressure_file_messages_name_what_was_given(tmp_path, capsys):
     (tmp_path / "p").write_text("a file")
     assert _predict(tmp_path, good) == 2
     one_line_error(capsys, "--out", "is a file")
+
+
+# --- command-line arguments ---------------------------------------------------------------
+
+@pytest.mark.parametrize("argv,message", [
+    (["generate", "--out", "x", "--partition", "sitting"], "unknown partition 'sitting'"),
+    (["generate", "--out", "x", "--n", "0"], "n must be >= 1"),
+    (["sample", "--out", "x", "--n", "0"], "n must be >= 1"),
+])
+def test_config_check_failures_are_one_line_without_tyro_internals(argv, message, capsys):
+    assert main(argv) == 2
+    line = one_line_error(capsys, message)
+    assert "tyro" not in line and "dummy" not in line
