@@ -112,8 +112,9 @@ def test_shard_with_fewer_rows_than_its_record_is_corrupt(dataset, tmp_path):
     from pressurepose.data.shards import CorruptShardError
 
     m = json.loads((dataset / "manifest.json").read_text())
-    m["shards"][0]["count"] += 1
+    m["shards"][0]["count"] += 1  # the manifest consistent with itself, but not with the shard's footer
     m["total"] += 1
+    m["counts"]["train"]["supine"]["female"] += 1
     bad = edit_manifest(dataset, tmp_path / "bad", lambda _: m)
     with pytest.raises(CorruptShardError, match="holds 70 rows but the manifest records 71"):
         PressurePoseDataset(bad, verify=False)[0]
@@ -222,6 +223,10 @@ def test_malformed_model_file_is_one_line_in_predict_and_evaluate(case, default_
 
 @pytest.fixture(scope="module")
 def finished_run(dataset, tmp_path_factory):
+    return make_run(dataset, tmp_path_factory.mktemp("runs") / "run")
+
+
+def make_run(dataset, run):
     """A one-epoch smoke run folder made without training: config.json, checkpoint, model, metrics."""
     import torch
 
@@ -229,7 +234,6 @@ def finished_run(dataset, tmp_path_factory):
     from pressurepose.train.config import TrainConfig
     from pressurepose.train.loop import build_network
 
-    run = tmp_path_factory.mktemp("runs") / "run"
     run.mkdir()
     cfg = TrainConfig(data=dataset, out=run, preset="smoke", epochs=1).resolved()
     net = build_network(cfg, torch.device("cpu"))

@@ -376,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
         _parse_and_run(argv)
     except UserError as exc:
         # Our input checks raise UserError naming the file, the field and what was expected.
-        print(f"pressurepose: error: {exc}", file=sys.stderr)
+        print(f"pressurepose: error: {' '.join(str(exc).split())}", file=sys.stderr)  # one line
         return 2
     except OSError as exc:
         # Unreadable, unwritable or missing files: not a bug either.

@@ -87,7 +87,7 @@ def read_npy(path: str | os.PathLike, missing: str = "", what: str = "array"):
         arr = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise UserError(missing or f"no file {path}") from None
-    except (OSError, ValueError, EOFError) as exc:
+    except Exception as exc:  # noqa: BLE001 - numpy's header parser raises SyntaxError, TokenError... on garbage
         raise UserError(f"{path} is not a readable .npy: not a numpy array file without pickles ({exc})") from None
     if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiu":
         raise UserError(f"{path} must hold a numeric {what}, got {getattr(arr, 'dtype', type(arr).__name__)}")

@@ -92,7 +92,7 @@ def load_restricted(data: bytes, source: str | Path = "pickle"):
         raise
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, IndexError, KeyError, AttributeError,
             OverflowError, MemoryError, RecursionError, UnicodeError) as exc:
-        raise UserError(f"{source}: not a readable pickle ({type(exc).__name__}: {exc})") from None
+        raise UserError(f"{source}: not a readable pickle ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
 
 
 def _leaves(value, limit: int) -> int:

@@ -70,6 +70,15 @@ def check_manifest(manifest, path: Path) -> dict:
     total = sum(r["count"] for r in manifest["shards"])
     if total != manifest["total"]:
         raise UserError(f"{path}: field 'total' is {manifest['total']} but the shards hold {total} samples")
+    counts: dict = {}
+    for r in manifest["shards"]:
+        leaf = counts.setdefault(r["split"], {}).setdefault(r["partition"], {})
+        leaf[r["gender"]] = leaf.get(r["gender"], 0) + r["count"]
+    if manifest["counts"] != counts:
+        raise UserError(f"{path}: field 'counts' does not match the shards' records (expected {counts})")
+    for key in ("rejections", "sampling_rejections"):
+        for reason in manifest[key]:
+            field(manifest[key], reason, "count", path, f"{key}.")
     return manifest
 
 

@@ -117,7 +117,7 @@ def check_images(images: np.ndarray, path: Path, force: bool = False) -> np.ndar
 def _load_npy(path: Path) -> np.ndarray:
     try:
         return np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
+    except Exception as exc:  # noqa: BLE001 - numpy's header parser raises SyntaxError, TokenError... on garbage
         raise UserError(f"{path}: not a numpy array file without pickles ({exc})") from None
 
 
@@ -127,12 +127,10 @@ def _load_npz(path: Path) -> np.ndarray:
             if "pressure_mmhg" not in f.files:
                 raise UserError(f"{path}: no array 'pressure_mmhg' (holds {', '.join(f.files) or 'nothing'})")
             return f["pressure_mmhg"]
-    except (OSError, EOFError) as exc:
-        raise UserError(f"{path}: not a readable .npz file ({exc})") from None
-    except ValueError as exc:
-        if str(exc).startswith(str(path)):
-            raise
-        raise UserError(f"{path}: not a readable .npz file ({exc})") from None
+    except UserError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - zipfile and numpy's header parser raise many types on garbage
+        raise UserError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
 
 
 def _load_parquet(path: Path) -> np.ndarray:
