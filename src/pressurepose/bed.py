@@ -17,6 +17,7 @@ import math
 import numpy as np
 import torch
 
+from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 
 MAX_HEAD_ANGLE_DEG = 70.0
@@ -30,9 +31,9 @@ class BedShape:
     def __post_init__(self) -> None:
         a = float(self.head_angle_deg)
         if not (math.isfinite(a) and 0.0 <= a <= MAX_HEAD_ANGLE_DEG):
-            raise ValueError(f"head_angle_deg must be in [0, {MAX_HEAD_ANGLE_DEG:g}], got {self.head_angle_deg}")
+            raise UserError(f"head_angle_deg must be in [0, {MAX_HEAD_ANGLE_DEG:g}], got {self.head_angle_deg}")
         if not (isinstance(self.hinge_row_from_foot, int) and 0 < self.hinge_row_from_foot < 200):
-            raise ValueError(f"hinge_row_from_foot must be a positive row count, got {self.hinge_row_from_foot}")
+            raise UserError(f"hinge_row_from_foot must be a positive row count, got {self.hinge_row_from_foot}")
 
     @property
     def flat(self) -> bool:

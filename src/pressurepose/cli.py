@@ -1,11 +1,13 @@
 """`pressurepose` command line: one subcommand per pipeline stage.
 
-User errors (bad input, missing files) print one line and exit with status 2; anything else
-is a bug and keeps its traceback.
+User errors (`pressurepose.errors.UserError`: bad input, bad files; OSError: missing,
+unreadable or unwritable files) print one line and exit with status 2; anything else is a bug
+and keeps its traceback.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import sys
@@ -18,6 +20,7 @@ from pressurepose.calib.run import CalibrateConfig
 from pressurepose.commands.realism import RealismConfig
 from pressurepose.data.coregister import CoregisterConfig
 from pressurepose.demo import DemoConfig
+from pressurepose.errors import UserError
 from pressurepose.eval.real import RealEvalConfig
 from pressurepose.eval.report import EvaluateConfig
 from pressurepose.generate.plan import GenerateConfig
@@ -354,16 +357,42 @@ COMMANDS = {
 }
 
 
+def _argument_error(event) -> None:
+    """tyro's parse-error hook: a config's own check (a UserError from __post_init__) is one
+    line, like any other user error, not a box naming tyro's internal field names."""
+    if type(event).__name__ == "InstantiationFailure":
+        raise UserError(str(event.message).strip())
+
+
+def _parse_and_run(argv: list[str] | None) -> None:
+    hook = getattr(getattr(tyro, "_errors", None), "on_parse_error", None)
+    context = hook(_argument_error) if hook is not None else contextlib.nullcontext()
+    with context:
+        run = tyro.extras.subcommand_cli_from_dict(
+            COMMANDS, prog="pressurepose", args=argv, config=(tyro.conf.OmitArgPrefixes,)
+        )
+    return run
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for a missing, unreadable or unwritable file, naming it."""
+    if exc.filename is None or exc.strerror is None:
+        return str(exc)
+    where = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 else "")
+    return f"{where}: {exc.strerror.lower()}"
+
+
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
-        tyro.extras.subcommand_cli_from_dict(
-            COMMANDS, prog="pressurepose", args=argv, config=(tyro.conf.OmitArgPrefixes,)
-        )
-    except (ValueError, OSError) as exc:
-        # Our checks raise ValueError naming the problem; OSError covers unreadable,
-        # unwritable or missing files. Neither deserves a traceback.
-        print(f"pressurepose: error: {exc}", file=sys.stderr)
+        _parse_and_run(argv)
+    except UserError as exc:
+        # Our input checks raise UserError naming the file, the field and what was expected.
+        print(f"pressurepose: error: {' '.join(str(exc).split())}", file=sys.stderr)  # one line
+        return 2
+    except OSError as exc:
+        # Unreadable, unwritable or missing files: not a bug either.
+        print(f"pressurepose: error: {describe_os_error(exc)}", file=sys.stderr)
         return 2
     return 0
 

@@ -1,9 +1,12 @@
-"""Writing outputs so that a partial file never sits under a final name; reading the JSON
-files users hand us with one clear message when they are missing or broken."""
+"""Writing outputs so that a partial file never sits under a final name.
+
+Every output file of every command is written through `atomic_write` (or the helpers built on
+it, `write_text` and `write_bytes`): the data goes to a temporary name in the same folder, then
+is renamed, so a crash never leaves a partial file under the final name. A test greps src/ for
+writes that bypass these helpers. Reading users' files is `pressurepose.validate`'s job."""
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -22,31 +25,22 @@ def atomic_write(path: Path, write) -> Path:
     return path
 
 
-def read_json(path: str | os.PathLike, what: str, hint: str = ""):
-    """The decoded JSON of a user's file; ValueError "<what> <path> does not exist" or
-    "... is not readable JSON (<why>)<hint>" instead of a traceback."""
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write `text` to `path` atomically."""
+    return atomic_write(Path(path), lambda tmp: Path(tmp).write_text(text))
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write `data` to `path` atomically."""
+    return atomic_write(Path(path), lambda tmp: Path(tmp).write_bytes(data))
+
+
+def save_figure(fig, path, **kwargs):
+    """`fig.savefig` to `path` atomically (format from the suffix unless given); a file-like
+    `path` (an in-memory buffer) is written directly."""
+    if not isinstance(path, (str, os.PathLike)):
+        fig.savefig(path, **kwargs)
+        return path
     path = Path(path)
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{what} {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{what} {path} is not readable JSON ({exc}){hint}") from None
-
-
-def read_npy(path: str | os.PathLike, missing: str = "", what: str = "array"):
-    """The numeric array of a user's .npy file, never unpickled; ValueError `missing` (default
-    "no file <path>") when absent, or one line naming the file when it is unreadable, pickled or
-    not a numeric `what` - instead of a traceback."""
-    import numpy as np
-
-    path = Path(path)
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise ValueError(missing or f"no file {path}") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path} is not a readable .npy: not a numpy array file without pickles ({exc})") from None
-    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiu":
-        raise ValueError(f"{path} must hold a numeric {what}, got {getattr(arr, 'dtype', type(arr).__name__)}")
-    return arr
+    kwargs.setdefault("format", path.suffix.lstrip(".").lower() or "png")
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, **kwargs))

@@ -13,6 +13,8 @@ import dataclasses
 import numpy as np
 import torch
 
+from pressurepose.errors import UserError
+
 ArrayLike = np.ndarray | torch.Tensor
 
 
@@ -42,17 +44,17 @@ class MatSpec:
         for name in ("rows", "cols", "covered_rows", "covered_cols"):
             value = getattr(self, name)
             if not isinstance(value, int) or value <= 0:
-                raise ValueError(f"MatSpec.{name} must be a positive int, got {value!r}")
+                raise UserError(f"MatSpec.{name} must be a positive int, got {value!r}")
         for name in ("pitch_row_m", "pitch_col_m", "max_pressure_mmhg"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
-                raise ValueError(f"MatSpec.{name} must be a positive number, got {value!r}")
+                raise UserError(f"MatSpec.{name} must be a positive number, got {value!r}")
         for covered, inner, what in (
             (self.covered_rows, self.rows, "rows"),
             (self.covered_cols, self.cols, "cols"),
         ):
             if covered < inner or (covered - inner) % 2:
-                raise ValueError(
+                raise UserError(
                     f"MatSpec.covered_{what} must be >= {what} and differ from it by an even "
                     f"number (sensing area centred), got covered_{what}={covered}, {what}={inner}"
                 )

@@ -16,6 +16,7 @@ import torch
 
 from pressurepose.body import BodyParams, load_body_model
 from pressurepose.body.joints import J24_NAMES
+from pressurepose.files import write_text
 from pressurepose.mat import MatSpec
 
 log = logging.getLogger(__name__)
@@ -79,7 +80,6 @@ def run_pose(cfg: PoseConfig) -> dict[str, Path]:
         "height_m": measures.height_m.item(),
         "mass_kg": measures.mass_kg.item(),
     }
-    path = cfg.out / "body.json"
-    path.write_text(json.dumps(record, indent=1))
+    path = write_text(cfg.out / "body.json", json.dumps(record, indent=1))
     log.info("wrote %s and %s", png, path)
     return {"png": png, "json": path}

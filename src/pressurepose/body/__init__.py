@@ -7,6 +7,7 @@ import torch
 from pressurepose.body.joints import J24_NAMES, J24_PARENTS, NUM_JOINTS, NUM_POSE_JOINTS
 from pressurepose.body.model import BodyMeasurements, BodyModel
 from pressurepose.body.params import BodyOutput, BodyParams
+from pressurepose.errors import UserError
 
 BACKENDS = ("anny", "smpl")
 
@@ -27,7 +28,7 @@ def load_body_model(
         from pressurepose.body.smpl_backend import SmplBody
 
         return SmplBody(dtype=dtype, device=device, **options)
-    raise ValueError(f"unknown body backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+    raise UserError(f"unknown body backend {backend!r}; expected one of {', '.join(BACKENDS)}")
 
 
 __all__ = [

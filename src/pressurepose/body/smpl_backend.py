@@ -9,6 +9,7 @@ else, so neither chumpy nor arbitrary code is ever loaded.
 
 from __future__ import annotations
 
+import io
 import os
 import pickle
 from pathlib import Path
@@ -20,14 +21,18 @@ from pressurepose.body.joints import J24_PARENTS, NUM_JOINTS
 from pressurepose.body.model import BodyModel
 from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.cache import cache_dir
+from pressurepose.errors import UserError
+from pressurepose.files import atomic_write
+from pressurepose.validate import BoundedUnpickler
 
 ENV_VAR = "PRESSUREPOSE_SMPL_DIR"
 GENDERS = ("neutral", "male", "female")
 NUM_BETAS = 10
+MAX_DENSE = 64 * 200_000  # values of the largest dense matrix a model file can need (joints x vertices)
 _KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
 
 
-class SmplFileError(ValueError):
+class SmplFileError(UserError):
     """An SMPL model file is missing, unreadable or malformed (a user error)."""
 
 
@@ -71,9 +76,24 @@ class _SparseState(_State):
         s = self.state if isinstance(self.state, dict) else {}
         if not {"data", "indices", "indptr"} <= set(s):
             raise SmplFileError("SMPL file holds a sparse matrix without data/indices/indptr")
-        shape = tuple(s.get("_shape", s.get("shape")))
-        dense = np.zeros(shape, dtype=np.float64)
+        shape = s.get("_shape", s.get("shape"))
+        if not (isinstance(shape, (tuple, list)) and len(shape) == 2
+                and all(isinstance(d, (int, np.integer)) and not isinstance(d, bool) and d >= 0 for d in shape)):
+            raise SmplFileError(f"SMPL file holds a sparse matrix whose shape {shape!r} is not two sizes")
+        shape = (int(shape[0]), int(shape[1]))
+        if shape[0] * shape[1] > MAX_DENSE:
+            raise SmplFileError(f"SMPL file holds a sparse matrix of shape {shape}, larger than any SMPL model "
+                                f"needs ({MAX_DENSE} values); not a valid model file")
         data, indices, indptr = (np.asarray(s[k]) for k in ("data", "indices", "indptr"))
+        major_size = shape[1] if self.compressed_axis == 1 else shape[0]
+        minor_size = shape[0] if self.compressed_axis == 1 else shape[1]
+        if (indptr.ndim != 1 or len(indptr) != major_size + 1 or indices.shape != data.shape or data.ndim != 1
+                or indptr.dtype.kind not in "iu" or indices.dtype.kind not in "iu" or data.dtype.kind not in "fiu"
+                or indptr[0] != 0 or indptr[-1] != len(data) or (np.diff(indptr) < 0).any()
+                or (len(indices) and (indices.min() < 0 or indices.max() >= minor_size))):
+            raise SmplFileError(f"SMPL file holds a sparse matrix of shape {shape} whose data/indices/indptr "
+                                "do not describe it")
+        dense = np.zeros(shape, dtype=np.float64)
         major = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
         where = (indices, major) if self.compressed_axis == 1 else (major, indices)
         np.add.at(dense, where, data)  # duplicate entries add up, as in scipy
@@ -84,7 +104,7 @@ class _CsrState(_SparseState):
     compressed_axis = 0
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
+class _RestrictedUnpickler(BoundedUnpickler):
     _ALLOWED = {
         ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
         ("numpy", "ndarray"), ("numpy", "dtype"),
@@ -94,15 +114,15 @@ class _RestrictedUnpickler(pickle.Unpickler):
         ("_codecs", "encode"),  # how protocol-2 pickles written by Python 3 store bytes
     }
 
-    def find_class(self, module: str, name: str):
+    def allowed(self, module: str, name: str):
         if module.startswith("chumpy"):
             return _ChumpyState
         if module.startswith("scipy.sparse"):
             return _CsrState if name.startswith("csr") else _SparseState
         if (module, name) in self._ALLOWED:
             module = {"copy_reg": "copyreg", "__builtin__": "builtins"}.get(module, module)
-            return super().find_class(module, name)
-        raise SmplFileError(f"SMPL file refers to {module}.{name}, which is not allowed in a model file")
+            return pickle.Unpickler.find_class(self, module, name)
+        raise SmplFileError(f"SMPL file {self.source} refers to {module}.{name}, which is not allowed in a model file")
 
 
 def read_smpl_file(path: Path) -> dict[str, np.ndarray]:
@@ -112,10 +132,10 @@ def read_smpl_file(path: Path) -> dict[str, np.ndarray]:
             with np.load(path, allow_pickle=False) as data:
                 raw = {k: data[k] for k in data.files}
         else:
-            with open(path, "rb") as handle:
-                raw = _RestrictedUnpickler(handle, encoding="latin1").load()
-    except SmplFileError:
-        raise
+            data = path.read_bytes()
+            raw = _RestrictedUnpickler(io.BytesIO(data), budget=len(data), source=path, encoding="latin1").load()
+    except UserError as exc:
+        raise SmplFileError(str(exc) if str(path) in str(exc) else f"SMPL model file {path}: {exc}") from None
     except Exception as exc:  # corrupt, truncated, or not a model file at all
         raise SmplFileError(f"cannot read SMPL model file {path}: {exc}") from None
     if not isinstance(raw, dict):
@@ -123,7 +143,13 @@ def read_smpl_file(path: Path) -> dict[str, np.ndarray]:
     missing = [k for k in _KEYS if k not in raw]
     if missing:
         raise SmplFileError(f"SMPL model file {path} lacks {', '.join(missing)}")
-    arrays = {k: raw[k].to_array() if isinstance(raw[k], _State) else np.asarray(raw[k]) for k in _KEYS}
+    try:
+        arrays = {k: raw[k].to_array() if isinstance(raw[k], _State) else np.asarray(raw[k]) for k in _KEYS}
+    except SmplFileError as exc:
+        raise SmplFileError(f"SMPL model file {path}: {exc}") from None
+    for key, a in arrays.items():
+        if a.dtype.kind not in "fiu":
+            raise SmplFileError(f"SMPL model file {path}: {key} is not numeric (dtype {a.dtype})")
     V = arrays["v_template"].shape[0]
     expected = {
         "v_template": (V, 3), "J_regressor": (NUM_JOINTS, V), "weights": (V, NUM_JOINTS),
@@ -243,10 +269,10 @@ def write_synthetic_smpl_file(path: str | Path, seed: int = 0, num_vertices: int
     faces = np.stack([rng.permutation(np.flatnonzero(owner == owner[i]))[:3] for i in range(0, num_vertices, 3)])
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(
-        path, v_template=v, f=faces.astype(np.int64), weights=weights, J_regressor=J_regressor,
+    atomic_write(path, lambda tmp: np.savez(
+        tmp, v_template=v, f=faces.astype(np.int64), weights=weights, J_regressor=J_regressor,
         kintree_table=np.stack([np.r_[4294967295, parents[1:]], np.arange(NUM_JOINTS)]).astype(np.int64),
         shapedirs=rng.normal(0, 0.01, (num_vertices, 3, NUM_BETAS)),
         posedirs=rng.normal(0, 0.001, (num_vertices, 3, 207)),
-    )
+    ))
     return path

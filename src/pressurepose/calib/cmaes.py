@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 
 log = logging.getLogger(__name__)
@@ -53,12 +54,12 @@ class CMASettings:
     def __post_init__(self) -> None:
         for name in ("popsize", "max_iter", "max_fevals", "tolstagnation", "tolflatfitness"):
             if int(getattr(self, name)) < 1:
-                raise ValueError(f"CMA setting {name} must be >= 1, got {getattr(self, name)}")
+                raise UserError(f"CMA setting {name} must be >= 1, got {getattr(self, name)}")
         if self.popsize < 2:
-            raise ValueError(f"popsize must be >= 2, got {self.popsize}")
+            raise UserError(f"popsize must be >= 2, got {self.popsize}")
         for name in ("cmean", "tolfun", "tolx", "maxstd", "sigma0"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"CMA setting {name} must be > 0, got {getattr(self, name)}")
+                raise UserError(f"CMA setting {name} must be > 0, got {getattr(self, name)}")
 
     def options(self, randn) -> dict:
         return {
@@ -178,27 +179,27 @@ def _replay(es, path: Path, signature: dict):
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError) as exc:
-        raise ValueError(f"CMA state file {path} is unreadable ({exc}); delete it or run with --restart") from None
+        raise UserError(f"CMA state file {path} is unreadable ({exc}); delete it or run with --restart") from None
     if str(data.get("format", "")) != STATE_FORMAT:
-        raise ValueError(f"{path} is not a pressurepose CMA state file; delete it or run with --restart")
+        raise UserError(f"{path} is not a pressurepose CMA state file; delete it or run with --restart")
     stored = json.loads(str(data["signature"]))
     if stored != json.loads(json.dumps(signature, sort_keys=True)):
         diff = sorted(k for k in set(stored) | set(signature) if stored.get(k) != json.loads(json.dumps(signature.get(k))))
-        raise ValueError(f"{path} was written by a run with other settings ({', '.join(diff)} differ); "
+        raise UserError(f"{path} was written by a run with other settings ({', '.join(diff)} differ); "
                          "use the same settings to resume, or --restart to start over")
     X_all, F_all = data["candidates"], data["losses"]
     means, sigmas = [], []
     for g in range(X_all.shape[0]):
         X = es.ask()
         if not np.array_equal(np.asarray(X), X_all[g]):
-            raise ValueError(f"{path}: replaying generation {g} drew other candidates than were stored (another "
+            raise UserError(f"{path}: replaying generation {g} drew other candidates than were stored (another "
                              "cma or numpy version?); use --restart to start over")
         es.tell(X, F_all[g].tolist())
         means.append(np.asarray(es.mean, dtype=np.float64).copy())
         sigmas.append(float(np.max(es.stds)))
     if (int(es.countiter) != int(data["iteration"]) or not np.array_equal(np.asarray(es.mean), data["mean"])
             or float(es.sigma) != float(data["sigma"]) or not np.array_equal(_covariance(es), data["covariance"])):
-        raise ValueError(f"{path}: the replayed strategy does not match the stored mean, sigma and covariance; "
+        raise UserError(f"{path}: the replayed strategy does not match the stored mean, sigma and covariance; "
                          "use --restart to start over")
     return [x for x in X_all], [f for f in F_all], means, sigmas
 

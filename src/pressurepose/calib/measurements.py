@@ -24,7 +24,9 @@ import numpy as np
 import torch
 
 from pressurepose.calib.objects import CalibObject, SceneSimulator
-from pressurepose.files import atomic_write, read_json
+from pressurepose.errors import UserError
+from pressurepose.files import atomic_write
+from pressurepose.validate import read_json
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
 
@@ -80,30 +82,30 @@ def load_measurements(path: str | os.PathLike, mat: MatSpec | None = None) -> Me
 def parse_measurements(doc, mat: MatSpec | None = None, source: str = "measurements") -> Measurements:
     mat = mat or MatSpec()
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise ValueError(f"{source}: not a pressurepose measurement file (expected \"format\": \"{FORMAT}\"; "
+        raise UserError(f"{source}: not a pressurepose measurement file (expected \"format\": \"{FORMAT}\"; "
                          "see docs/calibration.md)")
     scenes = doc.get("scenes")
     if not isinstance(scenes, list) or not scenes:
-        raise ValueError(f"{source}: \"scenes\" must be a non-empty list")
+        raise UserError(f"{source}: \"scenes\" must be a non-empty list")
     out = []
     for i, s in enumerate(scenes):
         where = f"{source}: scene {i}"
         if not isinstance(s, dict):
-            raise ValueError(f"{where} must be an object with \"pressure_mmhg\" and \"objects\"")
+            raise UserError(f"{where} must be an object with \"pressure_mmhg\" and \"objects\"")
         for key in ("pressure_mmhg", "objects"):
             if key not in s:
-                raise ValueError(f"{where} is missing \"{key}\"")
+                raise UserError(f"{where} is missing \"{key}\"")
         try:
             image = np.asarray(s["pressure_mmhg"], dtype=np.float64)
         except (TypeError, ValueError):
-            raise ValueError(f"{where}: pressure_mmhg must be a {mat.rows} x {mat.cols} array of numbers") from None
+            raise UserError(f"{where}: pressure_mmhg must be a {mat.rows} x {mat.cols} array of numbers") from None
         if image.shape != mat.shape:
-            raise ValueError(f"{where}: pressure_mmhg must have shape {mat.shape} (rows along the bed, head first), "
+            raise UserError(f"{where}: pressure_mmhg must have shape {mat.shape} (rows along the bed, head first), "
                              f"got {image.shape}")
         if not np.isfinite(image).all() or image.min() < 0 or image.max() > mat.max_pressure_mmhg:
-            raise ValueError(f"{where}: pressure_mmhg must be finite and within [0, {mat.max_pressure_mmhg:g}] mmHg")
+            raise UserError(f"{where}: pressure_mmhg must be finite and within [0, {mat.max_pressure_mmhg:g}] mmHg")
         if not isinstance(s["objects"], list) or not s["objects"]:
-            raise ValueError(f"{where}: \"objects\" must be a non-empty list")
+            raise UserError(f"{where}: \"objects\" must be a non-empty list")
         objects, q = [], []
         for j, o in enumerate(s["objects"]):
             obj, comp = _parse_object(o, f"{where}, object {j}", mat)
@@ -115,32 +117,32 @@ def parse_measurements(doc, mat: MatSpec | None = None, source: str = "measureme
 
 def _parse_object(o, where: str, mat: MatSpec) -> tuple[CalibObject, float]:
     if not isinstance(o, dict):
-        raise ValueError(f"{where} must be an object")
+        raise UserError(f"{where} must be an object")
     shape = o.get("shape", "capsule")
     if shape != "capsule":
-        raise ValueError(f"{where}: shape {shape!r} is not supported (only \"capsule\")")
+        raise UserError(f"{where}: shape {shape!r} is not supported (only \"capsule\")")
     for key in _OBJECT_FIELDS:
         if key not in o:
-            raise ValueError(f"{where} is missing \"{key}\"")
+            raise UserError(f"{where} is missing \"{key}\"")
         v = o[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ValueError(f"{where}: {key} must be a finite number, got {v!r}")
+            raise UserError(f"{where}: {key} must be a finite number, got {v!r}")
     if o["mass_kg"] <= 0:
-        raise ValueError(f"{where}: mass_kg must be > 0 (a weight in kg), got {o['mass_kg']}")
+        raise UserError(f"{where}: mass_kg must be > 0 (a weight in kg), got {o['mass_kg']}")
     if o["compression_m"] < 0 or o["compression_m"] > 1.0:
-        raise ValueError(f"{where}: compression_m is the sinking depth in metres, >= 0 (and < 1), "
+        raise UserError(f"{where}: compression_m is the sinking depth in metres, >= 0 (and < 1), "
                          f"got {o['compression_m']}")
     yaw = o.get("yaw_deg", 90.0)
     try:
         obj = CalibObject(float(o["length_m"]), float(o["radius_m"]), float(o["mass_kg"]), float(o["x_m"]),
                           float(o["y_m"]), yaw, str(o.get("name", "")))
     except ValueError as exc:
-        raise ValueError(f"{where}: {exc}") from None
+        raise UserError(f"{where}: {exc}") from None
     (xa, ya), (xb, yb) = obj.axis_ends_m()
     (x0, x1), (y0, y1) = mat.mattress_bounds_m
     r = obj.radius_m
     if min(xa, xb) - r < x0 or max(xa, xb) + r > x1 or min(ya, yb) - r < y0 or max(ya, yb) + r > y1:
-        raise ValueError(f"{where}: the capsule at ({obj.x_m}, {obj.y_m}) m does not lie wholly on the mattress "
+        raise UserError(f"{where}: the capsule at ({obj.x_m}, {obj.y_m}) m does not lie wholly on the mattress "
                          f"(x in [{x0:.3f}, {x1:.3f}], y in [{y0:.3f}, {y1:.3f}] m in the mat frame)")
     return obj, float(o["compression_m"])
 
@@ -157,7 +159,7 @@ def synthetic_measurements(scenes: list[list[CalibObject]], params: MattressPara
     res = sim(params.replace(noise_mmhg=noise_mmhg), generator=gen)
     bad = [f"{o.name or i}: {f}" for i, (o, f) in enumerate(zip(sim.objects, res.failure)) if f]
     if bad:
-        raise ValueError(f"the hidden parameters give no rest for some objects ({'; '.join(bad)})")
+        raise UserError(f"the hidden parameters give no rest for some objects ({'; '.join(bad)})")
     q = res.compression_m.numpy() + compression_noise_m * torch.randn(len(sim.objects), generator=gen,
                                                                       dtype=torch.float64).numpy()
     q = np.maximum(q, 0.0)

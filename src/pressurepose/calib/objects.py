@@ -16,6 +16,7 @@ import math
 
 import torch
 
+from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.sim.foundation import simulate_pressure
 from pressurepose.sim.mattress import MattressParams
@@ -52,11 +53,11 @@ class CalibObject:
         for field in ("length_m", "radius_m", "mass_kg", "x_m", "y_m", "yaw_deg"):
             v = getattr(self, field)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f"{label}: {field} must be a finite number, got {v!r}")
+                raise UserError(f"{label}: {field} must be a finite number, got {v!r}")
         if self.mass_kg <= 0:
-            raise ValueError(f"{label}: mass_kg must be > 0, got {self.mass_kg}")
+            raise UserError(f"{label}: mass_kg must be > 0, got {self.mass_kg}")
         if self.radius_m <= 0 or self.length_m < 0:
-            raise ValueError(f"{label}: need radius_m > 0 and length_m >= 0, got {self.radius_m}, {self.length_m}")
+            raise UserError(f"{label}: need radius_m > 0 and length_m >= 0, got {self.radius_m}, {self.length_m}")
 
     def axis_ends_m(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """(x, y) of the two end-sphere centres."""
@@ -109,7 +110,7 @@ class SceneSimulator:
     def __init__(self, scenes: list[list[CalibObject]], mat: MatSpec | None = None, sub: int = 2,
                  dtype=torch.float64):
         if not scenes or any(not s for s in scenes):
-            raise ValueError("need at least one scene, each with at least one object")
+            raise UserError("need at least one scene, each with at least one object")
         self.mat = mat or MatSpec()
         self.sub = sub
         self.objects = [o for s in scenes for o in s]

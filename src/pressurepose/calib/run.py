@@ -23,6 +23,7 @@ import numpy as np
 from pressurepose.calib.cmaes import CMAResult, CMASettings, minimise
 from pressurepose.calib.loss import DEFAULT_FREE, CalibrationLoss, ParamSpace
 from pressurepose.calib.measurements import Measurements, load_measurements
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
@@ -142,7 +143,7 @@ def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> dict[str, Path
     space = ParamSpace(tuple(cfg.free), base)
     settings = cfg.settings()
     if cfg.workers < 0 or cfg.sub < 1 or cfg.stop_after < 0:
-        raise ValueError("workers and stop_after must be >= 0 and sub >= 1")
+        raise UserError("workers and stop_after must be >= 0 and sub >= 1")
     loss = CalibrationLoss(measurements, space, cfg.margin_m, mat, cfg.sub)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -27,8 +27,10 @@ from typing import Literal
 
 import numpy as np
 
-from pressurepose.files import read_json, read_npy
+from pressurepose.errors import UserError
+from pressurepose.validate import read_json, read_npy
 from pressurepose.mat import MatSpec
+from pressurepose.files import save_figure
 
 FORMAT = "pressurepose.coregistration/1"
 CUBE_M = 0.0254  # the seed's 1" tungsten cubes; a marker sits at the cube's centre
@@ -96,42 +98,42 @@ class CameraPose:
 # --- reading -------------------------------------------------------------------------------
 def _number(value, what: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{what} must be a finite number, got {value!r}")
+        raise UserError(f"{what} must be a finite number, got {value!r}")
     return float(value)
 
 
 def _vector(value, n: int, what: str) -> np.ndarray:
     if not isinstance(value, (list, tuple)) or len(value) != n:
-        raise ValueError(f"{what} must be a list of {n} numbers, got {value!r}")
+        raise UserError(f"{what} must be a list of {n} numbers, got {value!r}")
     return np.array([_number(v, what) for v in value])
 
 
 def parse_markers(data: dict, mat: MatSpec | None = None) -> Markers:
     """Markers from the decoded JSON (see the module doc); ValueError naming what is wrong."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise ValueError(f'not a marker file: expected {{"format": "{FORMAT}", ...}}')
+        raise UserError(f'not a marker file: expected {{"format": "{FORMAT}", ...}}')
     intr = data.get("intrinsics")
     if not isinstance(intr, dict):
-        raise ValueError('marker file has no "intrinsics" {"fx", "fy", "cx", "cy"}')
+        raise UserError('marker file has no "intrinsics" {"fx", "fy", "cx", "cy"}')
     K = Intrinsics(*(_number(intr.get(k), f"intrinsics.{k}") for k in ("fx", "fy", "cx", "cy")))
     if K.fx <= 0 or K.fy <= 0:
-        raise ValueError(f"focal lengths must be > 0, got fx={K.fx}, fy={K.fy}")
+        raise UserError(f"focal lengths must be > 0, got fx={K.fx}, fy={K.fy}")
     items = data.get("markers")
     if not isinstance(items, list) or len(items) < 4:
-        raise ValueError(f'marker file needs "markers": a list of at least 4 (the mat corners), '
+        raise UserError(f'marker file needs "markers": a list of at least 4 (the mat corners), '
                          f"got {0 if not isinstance(items, list) else len(items)}")
     corners = corner_markers(mat)
     names, xyz, pix, depth = [], [], [], []
     for k, m in enumerate(items):
         if not isinstance(m, dict) or "pixel" not in m:
-            raise ValueError(f'marker {k} needs a "pixel": [u, v]')
+            raise UserError(f'marker {k} needs a "pixel": [u, v]')
         name = str(m.get("name", f"marker{k}"))
         if "mat_xyz_m" in m:
             xyz.append(_vector(m["mat_xyz_m"], 3, f"marker {name} mat_xyz_m"))
         elif name in corners:
             xyz.append(corners[name])
         else:
-            raise ValueError(f"marker {name!r} is not a named corner ({', '.join(corners)}); give its mat_xyz_m")
+            raise UserError(f"marker {name!r} is not a named corner ({', '.join(corners)}); give its mat_xyz_m")
         pix.append(_vector(m["pixel"], 2, f"marker {name} pixel"))
         d = m.get("depth_m")
         if d is None:
@@ -139,21 +141,21 @@ def parse_markers(data: dict, mat: MatSpec | None = None) -> Markers:
         else:
             d = _number(d, f"marker {name} depth_m")
             if d <= 0:
-                raise ValueError(f"marker {name} depth_m must be > 0, got {d}")
+                raise UserError(f"marker {name} depth_m must be > 0, got {d}")
             depth.append(d)
         names.append(name)
     if len(set(names)) != len(names):
-        raise ValueError("marker names repeat")
+        raise UserError("marker names repeat")
     xyz = np.stack(xyz)
     if np.linalg.matrix_rank(xyz[1:] - xyz[0], tol=1e-3) < 2:
-        raise ValueError("markers are collinear: they cannot fix the camera pose")
+        raise UserError("markers are collinear: they cannot fix the camera pose")
     return Markers(tuple(names), xyz, np.stack(pix), np.array(depth), K)
 
 
 def read_markers(path: str | Path, mat: MatSpec | None = None) -> Markers:
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"no marker file at {path}")
+        raise UserError(f"no marker file at {path}")
     return parse_markers(read_json(path, "marker file"), mat)
 
 
@@ -202,7 +204,7 @@ def _initial_pose(mk: Markers) -> tuple[np.ndarray, np.ndarray]:
     n = np.cross(e1, e2)  # a right-handed plane frame, so R below is a rotation
     ab = np.stack([(X - c) @ e1, (X - c) @ e2], 1)
     if np.abs((X - c) @ n).max() > 0.05:
-        raise ValueError("markers are not coplanar and have no depth: give depth_m for at least 3, "
+        raise UserError("markers are not coplanar and have no depth: give depth_m for at least 3, "
                          "or use markers on the mat")
     A = []
     for (a, b), (x, y, _) in zip(ab, rays):
@@ -272,12 +274,12 @@ def solve_camera_pose(mk: Markers, method: str = "lm") -> CameraPose:
     """The camera pose from N >= 4 markers: a direct solution refined by Levenberg-Marquardt
     ("lm") or CMA-ES ("cma", the seed's search, started from the direct solution)."""
     if method not in ("lm", "cma"):
-        raise ValueError(f"method must be 'lm' or 'cma', got {method!r}")
+        raise UserError(f"method must be 'lm' or 'cma', got {method!r}")
     R, t = _initial_pose(mk)
     R, t = _refine_lm(mk, R, t) if method == "lm" else _refine_cma(mk, R, t)
     res = project(mk.intrinsics.K, R, t, mk.mat_xyz_m) - mk.pixel
     if not np.isfinite(res).all():
-        raise ValueError("no camera pose puts every marker in front of the camera: check the pixels and names")
+        raise UserError("no camera pose puts every marker in front of the camera: check the pixels and names")
     per = np.linalg.norm(res, axis=1)
     return CameraPose(R=R, t=t, rms_px=float(np.sqrt((per**2).mean())), residual_px=per)
 
@@ -286,7 +288,7 @@ def depth_to_points(depth_m: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """(H, W) depth image (m; 0 or non-finite = no reading) -> (N, 3) camera-frame points."""
     depth_m = np.asarray(depth_m, dtype=np.float64)
     if depth_m.ndim != 2:
-        raise ValueError(f"depth image must be 2-D (H, W), got shape {depth_m.shape}")
+        raise UserError(f"depth image must be 2-D (H, W), got shape {depth_m.shape}")
     v, u = np.nonzero(np.isfinite(depth_m) & (depth_m > 0))
     z = depth_m[v, u]
     return np.stack([(u - intr.cx) * z / intr.fx, (v - intr.cy) * z / intr.fy, z], 1)
@@ -314,7 +316,7 @@ def _load_cloud(path: Path, intr: Intrinsics) -> np.ndarray:
         return pts[np.isfinite(pts).all(1)]
     if arr.ndim == 2:
         return depth_to_points(arr, intr)
-    raise ValueError(f"{path} must be an (N, 3) point cloud or an (H, W) depth image, got shape {arr.shape}")
+    raise UserError(f"{path} must be an (N, 3) point cloud or an (H, W) depth image, got shape {arr.shape}")
 
 
 def run_coregister(cfg: CoregisterConfig) -> dict[str, Path]:
@@ -365,7 +367,7 @@ def _plot(path, mk: Markers, pose: CameraPose, cloud: np.ndarray | None) -> None
     ax.invert_yaxis()
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, format="png", dpi=90)
+    save_figure(fig, path, format="png", dpi=90)
     plt.close(fig)
 
 

@@ -22,6 +22,7 @@ import torch
 from pressurepose.data.manifest import load_manifest
 from pressurepose.data.schema import FIELD_BY_NAME, NAMES, from_table
 from pressurepose.data.shards import CorruptShardError
+from pressurepose.errors import UserError
 
 DEFAULT_COLUMNS = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose",
                    "joints_m", "mass_kg", "height_m", "head_angle_deg")
@@ -50,9 +51,9 @@ class PressurePoseDataset(torch.utils.data.Dataset):
         self.manifest = manifest
         unknown = [c for c in columns if c not in FIELD_BY_NAME]
         if unknown:
-            raise ValueError(f"unknown columns {unknown}; columns: {', '.join(NAMES)}")
+            raise UserError(f"unknown columns {unknown}; columns: {', '.join(NAMES)}")
         if split not in (None, "train", "test"):
-            raise ValueError(f"split must be 'train', 'test' or None, got {split!r}")
+            raise UserError(f"split must be 'train', 'test' or None, got {split!r}")
         self.columns = tuple(columns)
         self.cache_row_groups = max(1, int(cache_row_groups))
         keep = []
@@ -110,7 +111,12 @@ class PressurePoseDataset(torch.utils.data.Dataset):
         """Start rows of shard s's row groups, plus its row count at the end (footer only)."""
         if s not in self._groups:
             meta = self._file(s).metadata
-            self._groups[s] = np.cumsum([0] + [meta.row_group(g).num_rows for g in range(meta.num_row_groups)]).tolist()
+            starts = np.cumsum([0] + [meta.row_group(g).num_rows for g in range(meta.num_row_groups)]).tolist()
+            if starts[-1] != self.shards[s]["count"]:
+                raise CorruptShardError(f"shard {self.root / self.shards[s]['file']} holds {starts[-1]} rows but the "
+                                        f"manifest records {self.shards[s]['count']}; re-run `pressurepose generate` "
+                                        "with the same arguments to regenerate the dataset")
+            self._groups[s] = starts
         return self._groups[s]
 
     def __getitem__(self, i: int) -> dict:
@@ -137,7 +143,7 @@ class BlockShuffleSampler(torch.utils.data.Sampler):
 
     def __init__(self, dataset: PressurePoseDataset, blocks_in_memory: int = 8, seed: int = 0) -> None:
         if blocks_in_memory < 1:
-            raise ValueError(f"blocks_in_memory must be >= 1, got {blocks_in_memory}")
+            raise UserError(f"blocks_in_memory must be >= 1, got {blocks_in_memory}")
         self.dataset, self.blocks_in_memory, self.seed, self.epoch = dataset, blocks_in_memory, seed, 0
         self.blocks = []  # (first item, end item) of every row group, in dataset order
         for s in range(len(dataset.shards)):

@@ -25,6 +25,8 @@ import numpy as np
 from pressurepose.data.manifest import write_manifest
 from pressurepose.data.schema import COLS, ROWS, SampleBatch, to_table
 from pressurepose.data.shards import table_bytes, write_shard
+from pressurepose.errors import UserError
+from pressurepose.validate import BoundedUnpickler
 
 log = logging.getLogger(__name__)
 
@@ -69,31 +71,43 @@ _ALLOWED = {
 _CONTAINERS = {"set", "frozenset", "list", "dict", "tuple", "complex", "bytearray"}
 
 
-class RefusedGlobal(pickle.UnpicklingError):
-    """A pickle asked for a global outside the allowed set."""
+class RestrictedUnpickler(BoundedUnpickler):
+    """Loads only numpy arrays/scalars/dtypes and plain containers; refuses any other global,
+    and any allocation beyond the file's size (`validate.BoundedUnpickler`)."""
 
-
-class RestrictedUnpickler(pickle.Unpickler):
-    """Loads only numpy arrays/scalars/dtypes and plain containers; refuses any other global."""
-
-    def find_class(self, module: str, name: str):
+    def allowed(self, module: str, name: str):
         if (module, name) in _ALLOWED:
             return _resolve(_ALLOWED[(module, name)])
         if module in ("builtins", "__builtin__") and name in _CONTAINERS:
             return getattr(__import__("builtins"), name)
-        raise RefusedGlobal(
-            f"refusing to load the global {module}.{name}: only numpy arrays and plain containers are "
-            "allowed in PressurePose files (a pickle can run code when loaded)")
+        return None
 
 
-def load_restricted(data: bytes):
-    """Unpickle bytes with RestrictedUnpickler (Python 2 strings decoded as latin-1)."""
+def load_restricted(data: bytes, source: str | Path = "pickle"):
+    """Unpickle bytes with RestrictedUnpickler (Python 2 strings decoded as latin-1); any
+    failure is a UserError naming `source`."""
     try:
-        return RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
-    except RefusedGlobal as exc:
-        raise ValueError(str(exc)) from None
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, IndexError, KeyError, AttributeError) as exc:
-        raise ValueError(f"not a readable pickle ({type(exc).__name__}: {exc})") from None
+        return RestrictedUnpickler(io.BytesIO(data), budget=len(data), source=source, encoding="latin1").load()
+    except UserError:
+        raise
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, IndexError, KeyError, AttributeError,
+            OverflowError, MemoryError, RecursionError, UnicodeError) as exc:
+        raise UserError(f"{source}: not a readable pickle ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+
+
+def _leaves(value, limit: int) -> int:
+    """Numbers in a nested list/tuple/array, counted up to `limit` + 1 (a pickle can share one
+    list many times over, so a small file can describe a huge nest)."""
+    count, stack = 0, [value]
+    while stack and count <= limit:
+        v = stack.pop()
+        if isinstance(v, np.ndarray):
+            count += v.size
+        elif isinstance(v, (list, tuple)):
+            stack.extend(v)
+        else:
+            count += 1
+    return count
 
 
 def _text(key) -> str:
@@ -117,24 +131,26 @@ def read_original(path: str | Path, split: str | None = None, gender: str | None
                   partition: str | None = None) -> tuple[SampleBatch, list[str]]:
     """One original file -> (SampleBatch, original keys it lacked)."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ValueError(f"no file at {path}") from None
-    doc = load_restricted(data)
+    if not path.is_file():
+        raise UserError(f"{path}: no such file" + (" (a folder: give the .p files in it)" if path.is_dir() else ""))
+    data = path.read_bytes()
+    doc = load_restricted(data, path)
     if not isinstance(doc, dict):
-        raise ValueError(f"{path}: expected a dict of lists, got {type(doc).__name__}")
+        raise UserError(f"{path}: expected a dict of lists, got {type(doc).__name__}")
     doc = {_text(k): v for k, v in doc.items()}
     missing_required = [k for k in REQUIRED if k not in doc]
     if missing_required:
-        raise ValueError(f"{path}: missing keys {missing_required}; an original PressurePose file has "
+        raise UserError(f"{path}: missing keys {missing_required}; an original PressurePose file has "
                          f"{', '.join(ORIGINAL_KEYS)}")
     labels = infer_labels(path)
     split, gender = split or labels["split"] or "train", gender or labels["gender"]
     partition = partition or labels["partition"] or "unknown"
     if gender not in ("female", "male"):
-        raise ValueError(f"{path}: cannot tell the gender from the file name; pass --gender female or male")
+        raise UserError(f"{path}: cannot tell the gender from the file name; pass --gender female or male")
+    if not isinstance(doc["images"], (list, tuple, np.ndarray)):
+        raise UserError(f"{path}: key 'images' must be a list of images, got {type(doc['images']).__name__}")
     n = len(doc["images"])
+    budget = len(data)  # numbers the file can hold: each takes at least one byte of it
     arrays, missing = {}, []
     for key, (field, shape) in ORIGINAL_KEYS.items():
         if key not in doc:
@@ -142,14 +158,20 @@ def read_original(path: str | Path, split: str | None = None, gender: str | None
             arrays[field] = np.zeros((n, *shape))
             continue
         values = doc[key]
+        if not isinstance(values, (list, tuple, np.ndarray)):
+            raise UserError(f"{path}: key {key!r} must be a list with one entry per image, got {type(values).__name__}")
         if len(values) != n:
-            raise ValueError(f"{path}: key {key!r} has {len(values)} entries but 'images' has {n}")
+            raise UserError(f"{path}: key {key!r} has {len(values)} entries but 'images' has {n}")
+        size = n * int(np.prod(shape))
+        if size > budget or _leaves(values, size) != size:
+            raise UserError(f"{path}: key {key!r} entries are not numbers of shape {shape} (or the file asks for "
+                            f"more numbers than its {len(data)} bytes hold)")
         try:
             a = np.asarray([np.asarray(v, dtype=np.float64).reshape(shape) for v in values]).reshape(n, *shape)
         except (ValueError, TypeError):
-            raise ValueError(f"{path}: key {key!r} entries are not numbers of shape {shape}") from None
+            raise UserError(f"{path}: key {key!r} entries are not numbers of shape {shape}") from None
         if not np.isfinite(a).all():
-            raise ValueError(f"{path}: key {key!r} holds NaN or infinite values")
+            raise UserError(f"{path}: key {key!r} holds NaN or infinite values")
         arrays[field] = a
     pose72 = arrays.pop("pose72")
     batch = SampleBatch(
@@ -172,7 +194,7 @@ def import_original(paths: list[Path], out: Path, split: str | None = None, gend
     from pressurepose import __version__
 
     if not paths:
-        raise ValueError("give at least one original PressurePose file")
+        raise UserError("give at least one original PressurePose file")
     out = Path(out)
     records, sources = [], []
     for k, path in enumerate(paths):

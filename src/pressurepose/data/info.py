@@ -36,6 +36,9 @@ def dataset_info(root: str | Path, sheet: int = 24, seed: int = 0) -> dict:
     stats: dict[str, dict] = {}
     for r in manifest["shards"]:
         p = _read_columns(root / r["file"], ["pressure_mmhg"])["pressure_mmhg"].astype(np.float64)  # (B, 64, 27)
+        if len(p) != r["count"]:
+            raise CorruptShardError(f"shard {root / r['file']} holds {len(p)} samples but the manifest records "
+                                    f"{r['count']}; re-run `pressurepose generate` to regenerate the dataset")
         s = stats.setdefault(r["partition"], {"n": 0, "sum": 0.0, "contact_taxels": 0, "contact_sum": 0.0,
                                               "peaks": [], "nan": 0})
         touching = p > 0

@@ -14,8 +14,10 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from pressurepose.data.shards import verify_shard
+from pressurepose.data.shards import check_shard_record, verify_shard
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
+from pressurepose.validate import field, read_json
 
 MANIFEST = "manifest.json"
 FORMAT = "pressurepose-dataset"
@@ -47,26 +49,56 @@ def write_manifest(root: Path, header: dict, records: list[dict]) -> Path:
     return atomic_write(Path(root) / MANIFEST, lambda tmp: Path(tmp).write_text(text))
 
 
+# Fields every manifest has, with their kinds (pressurepose.validate.KINDS).
+TOP_FIELDS = {"total": "count", "counts": "dict", "candidates": "count", "rejected": "int",
+              "rejections": "dict", "sampling_rejections": "dict", "config": "dict", "shards": "list"}
+SPLITS, GENDERS = ("train", "test"), ("female", "male")
+
+
+def check_manifest(manifest, path: Path) -> dict:
+    """The manifest's fields, checked (UserError naming the file and the field): every shard
+    record complete, its file inside the dataset folder, its counts adding up to the total."""
+    if not isinstance(manifest, dict):
+        raise UserError(f"{path}: expected a JSON object (a {FORMAT} manifest), got {type(manifest).__name__}")
+    if manifest.get("format") != FORMAT or manifest.get("format_version") != FORMAT_VERSION:
+        raise UserError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest (fields 'format' and "
+                        "'format_version')")
+    for key, kind in TOP_FIELDS.items():
+        field(manifest, key, kind, path)
+    for k, record in enumerate(manifest["shards"]):
+        check_shard_record(record, path, Path(path).parent, where=f"shards[{k}].")
+    total = sum(r["count"] for r in manifest["shards"])
+    if total != manifest["total"]:
+        raise UserError(f"{path}: field 'total' is {manifest['total']} but the shards hold {total} samples")
+    counts: dict = {}
+    for r in manifest["shards"]:
+        leaf = counts.setdefault(r["split"], {}).setdefault(r["partition"], {})
+        leaf[r["gender"]] = leaf.get(r["gender"], 0) + r["count"]
+    if manifest["counts"] != counts:
+        raise UserError(f"{path}: field 'counts' does not match the shards' records (expected {counts})")
+    for key in ("rejections", "sampling_rejections"):
+        for reason in manifest[key]:
+            field(manifest[key], reason, "count", path, f"{key}.")
+    return manifest
+
+
 def load_manifest(root: Path, verify: bool = True) -> dict:
-    """The manifest of a finished dataset folder; with `verify`, every shard's sha256 is
-    checked (CorruptShardError names the bad shard)."""
+    """The manifest of a finished dataset folder, checked (`check_manifest`); with `verify`,
+    every shard's sha256 is checked (CorruptShardError names the bad shard)."""
     root = Path(root)
     path = root / MANIFEST
+    if not root.is_dir():
+        raise UserError(f"{root}: no such dataset folder")
     if not path.exists():
         if (root / "generate.json").exists():
-            raise ValueError(f"{root} holds an unfinished dataset (no {MANIFEST}); re-run the same "
-                             "`pressurepose generate` command to finish it")
-        raise ValueError(f"{root} is not a pressurepose dataset (no {MANIFEST})")
-    try:
-        manifest = json.loads(path.read_text())
-    except ValueError:
-        raise ValueError(f"{path} is not valid JSON; re-run `pressurepose generate` to rewrite it") from None
-    if manifest.get("format") != FORMAT or manifest.get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest")
+            raise UserError(f"{root} holds an unfinished dataset (no {MANIFEST}); re-run the same "
+                            "`pressurepose generate` command to finish it")
+        raise UserError(f"{root} is not a pressurepose dataset (no {MANIFEST})")
+    manifest = check_manifest(read_json(path, "manifest", "; re-run `pressurepose generate` to rewrite it"), path)
     if verify:
         for record in manifest["shards"]:
             verify_shard(root, record)
     return manifest
 
 
-__all__ = ["MANIFEST", "load_manifest", "summarise", "write_manifest"]
+__all__ = ["MANIFEST", "check_manifest", "load_manifest", "summarise", "write_manifest"]

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pressurepose.errors import UserError
 from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA
 
 ROWS, COLS = 64, 27
@@ -27,18 +28,18 @@ def read_frame(path: str | Path) -> np.ndarray:
     try:
         text = path.read_text()
     except FileNotFoundError:
-        raise ValueError(f"no PmatData frame at {path}") from None
+        raise UserError(f"no PmatData frame at {path}") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path} is not a readable PmatData text frame ({exc})") from None
+        raise UserError(f"{path} is not a readable PmatData text frame ({exc})") from None
     rows = [line.split() for line in text.strip().splitlines() if line.strip()]
     if len(rows) != ROWS or any(len(r) != COLS for r in rows):
-        raise ValueError(f"{path}: expected {ROWS} lines of {COLS} numbers, got {len(rows)} lines")
+        raise UserError(f"{path}: expected {ROWS} lines of {COLS} numbers, got {len(rows)} lines")
     try:
         raw = np.array(rows, dtype=np.float64)
     except ValueError:
-        raise ValueError(f"{path}: non-numeric values in a PmatData frame") from None
+        raise UserError(f"{path}: non-numeric values in a PmatData frame") from None
     if not np.isfinite(raw).all() or (raw < 0).any():
-        raise ValueError(f"{path}: readings must be finite and >= 0")
+        raise UserError(f"{path}: readings must be finite and >= 0")
     return raw[::-1].copy()
 
 
@@ -51,12 +52,12 @@ def empty_level(raw: np.ndarray) -> float:
 def normalise(raw: np.ndarray, mass_kg: float, threshold: float = 10.0) -> np.ndarray:
     """Raw frame -> pressure in mmHg whose summed force equals m g (see module doc)."""
     if not mass_kg > 0:
-        raise ValueError(f"mass_kg must be > 0, got {mass_kg}")
+        raise UserError(f"mass_kg must be > 0, got {mass_kg}")
     p = raw - empty_level(raw)
     p[p <= threshold] = 0.0
     total = p.sum() * PMAT_TAXEL_AREA_M2
     if total <= 0:
-        raise ValueError("frame has no loaded taxels")
+        raise UserError("frame has no loaded taxels")
     return p * (mass_kg * GRAVITY_M_S2 / total) / MMHG_PA
 
 
@@ -78,7 +79,7 @@ def load_index(root: str | Path) -> list[PmatRecord]:
     root = Path(root)
     path = root / "index.csv"
     if not path.is_file():
-        raise ValueError(f"no index.csv in {root}; point at the pmatdata folder")
+        raise UserError(f"no index.csv in {root}; point at the pmatdata folder")
     out = []
     with path.open() as fh:
         for row in csv.DictReader(fh):
@@ -113,10 +114,10 @@ def import_pmatdata(root: str | Path, out: str | Path, groups: str | None = None
         records = [r for r in records if r.group in groups]
     if mattress is not None:
         if mattress not in ("air", "sponge"):
-            raise ValueError(f"mattress must be 'air' or 'sponge', got {mattress!r}")
+            raise UserError(f"mattress must be 'air' or 'sponge', got {mattress!r}")
         records = [r for r in records if r.mattress == mattress]
     if not records:
-        raise ValueError(f"no PmatData frames under {root} match groups={groups!r}, mattress={mattress!r}")
+        raise UserError(f"no PmatData frames under {root} match groups={groups!r}, mattress={mattress!r}")
     arrays = {
         "pressure_mmhg": load_images(records, threshold),
         "path": np.array([str(r.path.relative_to(Path(root))) for r in records]),

@@ -28,6 +28,7 @@ from typing import Literal
 import numpy as np
 
 from pressurepose.data.importer import load_restricted
+from pressurepose.errors import UserError
 from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA
 
 log = logging.getLogger(__name__)
@@ -65,13 +66,10 @@ def _load_dict(path: Path, what: str) -> dict:
     try:
         data = path.read_bytes()
     except FileNotFoundError:
-        raise ValueError(f"no {what} at {path}") from None
-    try:
-        doc = load_restricted(data)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+        raise UserError(f"no {what} at {path}") from None
+    doc = load_restricted(data, path)  # a UserError naming the file
     if not isinstance(doc, dict):
-        raise ValueError(f"{path}: expected a dict ({what}), got {type(doc).__name__}")
+        raise UserError(f"{path}: expected a dict ({what}), got {type(doc).__name__}")
     return {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in doc.items()}
 
 
@@ -85,17 +83,17 @@ def read_participant_info(folder: Path) -> dict:
     info = _load_dict(path, "participant info")
     missing = [k for k in ("gender", "height_in", "weight_lbs") if k not in info]
     if missing:
-        raise ValueError(f"{path}: missing keys {missing}; participant_info_red.p holds gender, height_in, weight_lbs")
+        raise UserError(f"{path}: missing keys {missing}; participant_info_red.p holds gender, height_in, weight_lbs")
     gender = {"f": "female", "female": "female", "m": "male", "male": "male"}.get(_text(info["gender"]).lower())
     if gender is None:
-        raise ValueError(f"{path}: gender must be 'f' or 'm', got {_text(info['gender'])!r}")
+        raise UserError(f"{path}: gender must be 'f' or 'm', got {_text(info['gender'])!r}")
     try:
         height_in, weight_lbs = float(info["height_in"]), float(info["weight_lbs"])
     except (TypeError, ValueError):
-        raise ValueError(f"{path}: height_in and weight_lbs must be numbers") from None
+        raise UserError(f"{path}: height_in and weight_lbs must be numbers") from None
     # Plausible adults only: a file in other units (cm, kg) fails here instead of downstream.
     if not (40 <= height_in <= 90 and 60 <= weight_lbs <= 500):
-        raise ValueError(f"{path}: height {height_in} in / weight {weight_lbs} lbs are not plausible (the release "
+        raise UserError(f"{path}: height {height_in} in / weight {weight_lbs} lbs are not plausible (the release "
                          "stores inches and pounds)")
     return {"gender": gender, "height_m": height_in * INCH_M, "mass_kg": weight_lbs * POUND_KG}
 
@@ -113,7 +111,7 @@ def scale_images(images: np.ndarray, mode: PressureScale, mass_kg: float, max_mm
     elif mode == "stored":
         out = images
     else:
-        raise ValueError(f"pressure scale must be 'release', 'weight' or 'stored', got {mode!r}")
+        raise UserError(f"pressure scale must be 'release', 'weight' or 'stored', got {mode!r}")
     return np.minimum(out, max_mmhg)
 
 
@@ -123,14 +121,14 @@ def read_pose_set(folder: Path, pose_set: str) -> dict:
     doc = _load_dict(path, f"{pose_set} poses")
     missing = [k for k in ("images", "pc") if k not in doc]
     if missing:
-        raise ValueError(f"{path}: missing keys {missing}; a PressurePose real file holds images, pc, pose_type, "
+        raise UserError(f"{path}: missing keys {missing}; a PressurePose real file holds images, pc, pose_type, "
                          "pmat_corners, RGB, depth")
     frames, clouds = doc["images"], doc["pc"]
     if not isinstance(frames, (list, tuple, np.ndarray)) or not isinstance(clouds, (list, tuple)):
-        raise ValueError(f"{path}: 'images' and 'pc' must be per-frame lists")
+        raise UserError(f"{path}: 'images' and 'pc' must be per-frame lists")
     n = len(frames)
     if len(clouds) != n:
-        raise ValueError(f"{path}: 'pc' has {len(clouds)} entries but 'images' has {n}")
+        raise UserError(f"{path}: 'pc' has {len(clouds)} entries but 'images' has {n}")
     images = np.zeros((n, ROWS, COLS))
     for i, f in enumerate(frames):
         try:
@@ -138,14 +136,14 @@ def read_pose_set(folder: Path, pose_set: str) -> dict:
         except (TypeError, ValueError):
             a = None
         if a is None or a.size != ROWS * COLS:
-            raise ValueError(f"{path}: image {i} is not {ROWS} x {COLS} = {ROWS * COLS} numbers "
+            raise UserError(f"{path}: image {i} is not {ROWS} x {COLS} = {ROWS * COLS} numbers "
                              f"(got shape {None if a is None else a.shape})")
         images[i] = a.reshape(ROWS, COLS)
     if not np.isfinite(images).all() or (images < 0).any():
-        raise ValueError(f"{path}: images must be finite and >= 0")
+        raise UserError(f"{path}: images must be finite and >= 0")
     empty = ~(images > 0).any((1, 2))
     if empty.any():
-        raise ValueError(f"{path}: image {int(np.argmax(empty))} is empty (no loaded taxel)")
+        raise UserError(f"{path}: image {int(np.argmax(empty))} is empty (no loaded taxel)")
     cloud_list = []
     for i, c in enumerate(clouds):
         try:
@@ -153,11 +151,11 @@ def read_pose_set(folder: Path, pose_set: str) -> dict:
         except (TypeError, ValueError):
             a = None
         if a is None or a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
-            raise ValueError(f"{path}: point cloud {i} must be a non-empty (P, 3) array, got "
+            raise UserError(f"{path}: point cloud {i} must be a non-empty (P, 3) array, got "
                              f"{None if a is None else a.shape}")
         a = a[np.isfinite(a).all(1)]
         if a.shape[0] == 0:
-            raise ValueError(f"{path}: point cloud {i} has no finite points")
+            raise UserError(f"{path}: point cloud {i} has no finite points")
         cloud_list.append(a)
     pose_types = doc.get("pose_type")
     if pose_types is None or len(pose_types) != n:
@@ -169,12 +167,12 @@ def participant_folders(src: str | Path) -> list[Path]:
     """The participant folders under `src` (or `src` itself when it is one)."""
     src = Path(src)
     if not src.is_dir():
-        raise ValueError(f"no folder at {src}; give the release's real/ folder or one participant's (S103, ...)")
+        raise UserError(f"no folder at {src}; give the release's real/ folder or one participant's (S103, ...)")
     if (src / INFO_FILE).is_file():
         return [src]
     found = sorted(p for p in src.iterdir() if p.is_dir() and (p / INFO_FILE).is_file())
     if not found:
-        raise ValueError(f"no participant folders (with {INFO_FILE}) under {src}")
+        raise UserError(f"no participant folders (with {INFO_FILE}) under {src}")
     return found
 
 
@@ -190,9 +188,9 @@ def import_pressurepose_real(src: str | Path, out: str | Path, pose_sets: tuple[
 
     bad = [s for s in pose_sets if s not in POSE_SETS]
     if bad or not pose_sets:
-        raise ValueError(f"pose sets must be among {POSE_SETS}, got {list(pose_sets)}")
+        raise UserError(f"pose sets must be among {POSE_SETS}, got {list(pose_sets)}")
     if not np.isfinite(bed_angle_deg) or not 0 <= bed_angle_deg <= 90:
-        raise ValueError(f"bed angle must lie in [0, 90] degrees, got {bed_angle_deg}")
+        raise UserError(f"bed angle must lie in [0, 90] degrees, got {bed_angle_deg}")
     frame = cloud_frame or CloudFrame()
     cols: dict[str, list] = {k: [] for k in ("pressure_mmhg", "subject", "pose_set", "pose_type", "index", "gender",
                                              "height_m", "mass_kg")}
@@ -216,7 +214,7 @@ def import_pressurepose_real(src: str | Path, out: str | Path, pose_sets: tuple[
             cols["mass_kg"] += [info["mass_kg"]] * n
             clouds += [frame.to_mat(c) for c in d["clouds"]]
     if not clouds:
-        raise ValueError(f"no frames of {list(pose_sets)} under {src}")
+        raise UserError(f"no frames of {list(pose_sets)} under {src}")
     counts = np.array([len(c) for c in clouds], dtype=np.int64)
     arrays = {
         "pressure_mmhg": np.concatenate(cols["pressure_mmhg"]).astype(np.float32),

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 
 
@@ -32,13 +33,13 @@ def resample_to_mat(image: np.ndarray, pitch_row_m: float, pitch_col_m: float, m
     mat = mat or MatSpec()
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2 or min(img.shape) < 1:
-        raise ValueError(f"pressure image must be 2-D (rows, columns), got shape {img.shape}")
+        raise UserError(f"pressure image must be 2-D (rows, columns), got shape {img.shape}")
     if not np.isfinite(img).all():
-        raise ValueError("pressure image holds NaN or infinite values")
+        raise UserError("pressure image holds NaN or infinite values")
     if (img < 0).any():
-        raise ValueError("pressure image has negative values: subtract the empty level and clip first")
+        raise UserError("pressure image has negative values: subtract the empty level and clip first")
     if not (pitch_row_m > 0 and pitch_col_m > 0):
-        raise ValueError(f"taxel pitches must be > 0 m, got {pitch_row_m}, {pitch_col_m}")
+        raise UserError(f"taxel pitches must be > 0 m, got {pitch_row_m}, {pitch_col_m}")
     H, W = img.shape
     if offset_m is None:
         offset_m = ((mat.sensing_length_m - H * pitch_row_m) / 2, (mat.sensing_width_m - W * pitch_col_m) / 2)
@@ -51,7 +52,7 @@ def orient(image: np.ndarray, head_row: str = "first", flip_columns: bool = Fals
     """An image with row 0 at the head end: head_row 'first' (already) or 'last' (PmatData
     files, which run foot to head); flip_columns mirrors left-right (a mat turned over)."""
     if head_row not in ("first", "last"):
-        raise ValueError(f"head_row must be 'first' or 'last', got {head_row!r}")
+        raise UserError(f"head_row must be 'first' or 'last', got {head_row!r}")
     img = np.asarray(image)
     if head_row == "last":
         img = img[::-1]

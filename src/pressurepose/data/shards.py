@@ -15,13 +15,15 @@ import json
 import os
 from pathlib import Path
 
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
+from pressurepose.validate import field, inside
 
 SHARD_DIR = "shards"
 ROW_GROUP_ROWS = 32  # rows per Parquet row group: the unit the Dataset reads lazily
 
 
-class CorruptShardError(ValueError):
+class CorruptShardError(UserError):
     """A shard whose bytes do not match its recorded sha256 (or that cannot be parsed)."""
 
 
@@ -89,22 +91,39 @@ def _write_synced(tmp, write) -> None:
         os.close(fd)
 
 
+# The fields of a shard record (its .json, and its entry in the manifest) and their kinds.
+RECORD_FIELDS = {"file": "str", "sha256": "sha256", "bytes": "count", "count": "count", "split": "name",
+                 "partition": "name", "gender": "name", "over_bed": "bool"}
+
+
+def check_shard_record(record, path: Path, root: Path, where: str = "") -> dict:
+    """UserError naming `path` and the field unless `record` is a complete shard record whose
+    file lies inside the dataset folder `root` (never read a path like ../../etc/passwd)."""
+    for key, kind in RECORD_FIELDS.items():
+        field(record, key, kind, path, where)
+    inside(root, record["file"], path, f"{where}file")
+    for key, allowed in (("split", ("train", "test")), ("gender", ("female", "male"))):
+        if record[key] not in allowed:
+            raise UserError(f"{path}: field '{where}{key}' must be one of {', '.join(allowed)}, got {record[key]!r}")
+    return record
+
+
 def read_record(root: Path, shard_id: str) -> dict | None:
     """The shard's record, or None when the shard is not finished (no record, or unreadable)."""
     _, meta = shard_paths(root, shard_id)
     try:
-        return json.loads(meta.read_text())
+        return check_shard_record(json.loads(meta.read_text()), meta, root)
     except FileNotFoundError:
         return None
-    except (OSError, ValueError):
+    except (OSError, ValueError):  # unreadable or incomplete: the shard is made again
         return None
 
 
 def verify_shard(root: Path, record: dict, contents: bool = True) -> None:
     """CorruptShardError unless the shard file exists and hashes to its recorded sha256;
     `contents=False` checks only its recorded size (a stat, for a quick look: the viewer)."""
-    path = Path(root) / record["file"]
-    if not path.exists():
+    path = inside(root, record["file"], f"the record of shard {record.get('id', '?')}", "file")
+    if not path.is_file():
         raise CorruptShardError(f"shard {path} is missing; re-run `pressurepose generate` with the same "
                                 "arguments to regenerate it")
     size = path.stat().st_size
@@ -115,5 +134,5 @@ def verify_shard(root: Path, record: dict, contents: bool = True) -> None:
             "re-run `pressurepose generate` with the same arguments to regenerate it")
 
 
-__all__ = ["CorruptShardError", "explain_os_error", "ROW_GROUP_ROWS", "SHARD_DIR", "read_record", "sha256_bytes", "sha256_file",
+__all__ = ["CorruptShardError", "RECORD_FIELDS", "check_shard_record", "explain_os_error", "ROW_GROUP_ROWS", "SHARD_DIR", "read_record", "sha256_bytes", "sha256_file",
            "shard_paths", "table_bytes", "verify_shard", "write_shard"]

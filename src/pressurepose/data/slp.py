@@ -23,7 +23,8 @@ from typing import Literal
 import numpy as np
 
 from pressurepose.data.real import orient, resample_to_mat
-from pressurepose.files import read_npy
+from pressurepose.errors import UserError
+from pressurepose.validate import read_npy
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA
 
@@ -44,12 +45,12 @@ def read_physique(root: Path) -> np.ndarray:
     path = Path(root) / "physiqueData.npy"
     arr = read_npy(path, f"no physiqueData.npy in {root}; point at SLP's danaLab folder")
     if arr.ndim != 2 or arr.shape[1] < 3 or not np.issubdtype(arr.dtype, np.number):
-        raise ValueError(f"{path}: expected a numeric (subjects, >= 3) array, got {arr.dtype} {arr.shape}")
+        raise UserError(f"{path}: expected a numeric (subjects, >= 3) array, got {arr.dtype} {arr.shape}")
     gender, height_cm, mass_kg = arr[:, 0].astype(float), arr[:, 1].astype(float), arr[:, 2].astype(float)
     # The column order is read from SLP's reader, not from a data description: check it.
     if not (np.isin(gender, (0, 1)).all() and ((height_cm > 100) & (height_cm < 230)).all()
             and ((mass_kg > 25) & (mass_kg < 250)).all()):
-        raise ValueError(f"{path}: columns 0-2 are not gender (0/1), height (cm), weight (kg) as SLP's reader "
+        raise UserError(f"{path}: columns 0-2 are not gender (0/1), height (cm), weight (kg) as SLP's reader "
                          "implies; check the file")
     return np.stack([1.0 - gender, height_cm / 100, mass_kg], 1)
 
@@ -59,10 +60,10 @@ def _subject_folders(root: Path, subjects: list[int] | None) -> list[tuple[int, 
     if subjects is not None:
         missing = [s for s in subjects if s not in found]
         if missing:
-            raise ValueError(f"no SLP subject folders {['%05d' % s for s in missing]} under {root}")
+            raise UserError(f"no SLP subject folders {['%05d' % s for s in missing]} under {root}")
         found = {s: found[s] for s in subjects}
     if not found:
-        raise ValueError(f"no subject folders (00001, ...) under {root}; point at SLP's danaLab folder")
+        raise UserError(f"no subject folders (00001, ...) under {root}; point at SLP's danaLab folder")
     return sorted(found.items())
 
 
@@ -70,10 +71,10 @@ def read_pm(path: Path) -> np.ndarray:
     """One PMarray frame (192, 84), finite and >= 0."""
     arr = read_npy(path)
     if arr.shape != SLP_SHAPE or not np.issubdtype(arr.dtype, np.number):
-        raise ValueError(f"{path}: expected an SLP pressure map of shape {SLP_SHAPE}, got {arr.dtype} {arr.shape}")
+        raise UserError(f"{path}: expected an SLP pressure map of shape {SLP_SHAPE}, got {arr.dtype} {arr.shape}")
     arr = arr.astype(np.float64)
     if not np.isfinite(arr).all() or (arr < 0).any():
-        raise ValueError(f"{path}: readings must be finite and >= 0")
+        raise UserError(f"{path}: readings must be finite and >= 0")
     return arr
 
 
@@ -82,7 +83,7 @@ def read_calibration(folder: Path) -> np.ndarray:
     path = folder / "PMcali.npy"
     cali = read_npy(path, f"no PMcali.npy in {folder}; use --calibration weight")
     if cali.ndim != 2 or cali.shape[0] != len(COVERS) or not np.isfinite(cali).all() or (cali <= 0).any():
-        raise ValueError(f"{path}: expected positive factors of shape (3, frames), got {cali.shape}")
+        raise UserError(f"{path}: expected positive factors of shape (3, frames), got {cali.shape}")
     return cali.astype(np.float64)
 
 
@@ -98,10 +99,10 @@ def frame_to_mat(pm: np.ndarray, mass_kg: float, calibration: Calibration, cali_
         p = resample_to_mat(p, pitch_m, pitch_m, mat)
         total = p.sum() * mat.pitch_row_m * mat.pitch_col_m
         if total <= 0:
-            raise ValueError("an SLP frame has no load on the BT3510 area")
+            raise UserError("an SLP frame has no load on the BT3510 area")
         p = p * (mass_kg * GRAVITY_M_S2 / total) / MMHG_PA
     else:
-        raise ValueError(f"calibration must be 'weight' or 'pmcali', got {calibration!r}")
+        raise UserError(f"calibration must be 'weight' or 'pmcali', got {calibration!r}")
     return np.minimum(p, mat.max_pressure_mmhg)
 
 
@@ -115,20 +116,20 @@ def import_slp(root: str | Path, out: str | Path, covers: tuple[str, ...] = COVE
 
     root = Path(root)
     if not root.is_dir():
-        raise ValueError(f"no folder at {root}; point at SLP's danaLab folder")
+        raise UserError(f"no folder at {root}; point at SLP's danaLab folder")
     bad = [c for c in covers if c not in COVERS]
     if bad or not covers:
-        raise ValueError(f"covers must be among {COVERS}, got {list(covers)}")
+        raise UserError(f"covers must be among {COVERS}, got {list(covers)}")
     if calibration not in ("weight", "pmcali"):
-        raise ValueError(f"calibration must be 'weight' or 'pmcali', got {calibration!r}")
+        raise UserError(f"calibration must be 'weight' or 'pmcali', got {calibration!r}")
     if not pitch_m > 0:
-        raise ValueError(f"pitch must be > 0 m, got {pitch_m}")
+        raise UserError(f"pitch must be > 0 m, got {pitch_m}")
     physique = read_physique(root)
     rows: dict[str, list] = {k: [] for k in ("pressure_mmhg", "subject", "cover", "frame", "gender", "height_m",
                                              "mass_kg")}
     for subject, folder in _subject_folders(root, subjects):
         if subject > len(physique):
-            raise ValueError(f"subject {subject:05d} has no row in physiqueData.npy ({len(physique)} rows)")
+            raise UserError(f"subject {subject:05d} has no row in physiqueData.npy ({len(physique)} rows)")
         gender, height_m, mass_kg = physique[subject - 1]
         cali = read_calibration(folder) if calibration == "pmcali" else None
         for c, cover in enumerate(COVERS):
@@ -140,13 +141,13 @@ def import_slp(root: str | Path, out: str | Path, covers: tuple[str, ...] = COVE
             for f in files:
                 k = int(f.stem)
                 if cali is not None and k > cali.shape[1]:
-                    raise ValueError(f"{folder / 'PMcali.npy'} has {cali.shape[1]} frames; {f} needs frame {k}")
+                    raise UserError(f"{folder / 'PMcali.npy'} has {cali.shape[1]} frames; {f} needs frame {k}")
                 try:
                     img = frame_to_mat(read_pm(f), mass_kg, calibration, None if cali is None else cali[c, k - 1],
                                        pitch_m, head_row, flip_columns)
                 except ValueError as exc:
                     msg = str(exc)
-                    raise ValueError(msg if msg.startswith(str(f)) else f"{f}: {msg}") from None
+                    raise UserError(msg if msg.startswith(str(f)) else f"{f}: {msg}") from None
                 rows["pressure_mmhg"].append(img)
                 rows["subject"].append(subject)
                 rows["cover"].append(cover)
@@ -155,7 +156,7 @@ def import_slp(root: str | Path, out: str | Path, covers: tuple[str, ...] = COVE
                 rows["height_m"].append(height_m)
                 rows["mass_kg"].append(mass_kg)
     if not rows["subject"]:
-        raise ValueError(f"no SLP frames of covers {list(covers)} under {root}")
+        raise UserError(f"no SLP frames of covers {list(covers)} under {root}")
     arrays = {"pressure_mmhg": np.stack(rows["pressure_mmhg"]).astype(np.float32),
               "subject": np.array(rows["subject"], dtype=np.int64), "cover": np.array(rows["cover"]),
               "frame": np.array(rows["frame"], dtype=np.int64), "gender": np.array(rows["gender"]),

@@ -29,8 +29,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.errors import UserError
 from pressurepose.eval.metrics import CAMERA_M
-from pressurepose.files import atomic_write
+from pressurepose.files import atomic_write, save_figure
 
 POSTURES = ("supine", "left", "right", "prone")
 GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
@@ -82,7 +83,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> dict[str, Path]:
         from pressurepose.eval.real_cloud import run_evaluate_cloud
 
         if not cfg.voxel_m > 0:
-            raise ValueError(f"voxel size must be > 0 m, got {cfg.voxel_m}")
+            raise UserError(f"voxel size must be > 0 m, got {cfg.voxel_m}")
         return run_evaluate_cloud(cfg)
     from pressurepose.data.pmatdata import load_images, load_index
     from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
@@ -93,11 +94,11 @@ def run_evaluate_real(cfg: RealEvalConfig) -> dict[str, Path]:
 
     groups = [g for g in cfg.groups if g in GROUP_POSTURE]
     if not groups or len(groups) != len(cfg.groups):
-        raise ValueError(f"groups must be letters of {''.join(GROUP_POSTURE)} (B supine, C right, D left), "
+        raise UserError(f"groups must be letters of {''.join(GROUP_POSTURE)} (B supine, C right, D left), "
                          f"got {cfg.groups!r}")
     records = [r for r in load_index(cfg.pmatdata) if r.group in groups]
     if not records:
-        raise ValueError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
+        raise UserError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
     net, _ = load_network(cfg.model)
     images = torch.from_numpy(load_images(records, cfg.threshold))
     heights = [r.height_cm / 100 for r in records]
@@ -186,7 +187,7 @@ def _plot(path, rows: list[dict], summary: dict) -> None:
             ax.plot([lo, hi], [lo, hi], "k--", lw=0.8)
             ax.set(xlabel=f"subject ({unit})", ylabel=f"estimated ({unit})", title=f"{name}: {key.split('_')[0]}")
     fig.tight_layout()
-    fig.savefig(path, format="png", dpi=80)
+    save_figure(fig, path, format="png", dpi=80)
     plt.close(fig)
 
 

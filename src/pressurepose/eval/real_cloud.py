@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pressurepose.files import atomic_write
+from pressurepose.errors import UserError
+from pressurepose.files import atomic_write, save_figure
 
 REQUIRED = ("pressure_mmhg", "subject", "cloud_points", "cloud_offsets")
 
@@ -30,22 +31,22 @@ def load_cloud_file(path: Path) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as f:
             arrays = {k: f[k] for k in f.files}
     except FileNotFoundError:
-        raise ValueError(f"no file at {path}") from None
+        raise UserError(f"no file at {path}") from None
     except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path}: not a readable .npz file without pickles ({exc})") from None
+        raise UserError(f"{path}: not a readable .npz file without pickles ({exc})") from None
     missing = [k for k in REQUIRED if k not in arrays]
     if missing:
-        raise ValueError(f"{path}: missing arrays {missing}; write it with `pressurepose import-pressurepose-real`")
+        raise UserError(f"{path}: missing arrays {missing}; write it with `pressurepose import-pressurepose-real`")
     n = len(arrays["pressure_mmhg"])
     off = arrays["cloud_offsets"]
     pts = arrays["cloud_points"]
     if (off.shape != (n + 1,) or off[0] != 0 or off[-1] != len(pts) or (np.diff(off) <= 0).any()
             or pts.ndim != 2 or pts.shape[1:] != (3,)):
-        raise ValueError(f"{path}: cloud_offsets must be (N + 1,) increasing from 0 to len(cloud_points), every "
+        raise UserError(f"{path}: cloud_offsets must be (N + 1,) increasing from 0 to len(cloud_points), every "
                          "frame with at least one point, and cloud_points (P, 3)")
     for k in ("subject", "gender", "height_m", "mass_kg"):
         if k in arrays and len(arrays[k]) != n:
-            raise ValueError(f"{path}: {k} has {len(arrays[k])} entries for {n} images")
+            raise UserError(f"{path}: {k} has {len(arrays[k])} entries for {n} images")
     return arrays
 
 
@@ -66,7 +67,7 @@ def run_evaluate_cloud(cfg) -> dict[str, Path]:
     height = torch.tensor(arrays["height_m"], dtype=torch.float32) if "height_m" in arrays else None
     mass = torch.tensor(arrays["mass_kg"], dtype=torch.float32) if "mass_kg" in arrays else None
     if net.config.height_weight and (height is None or mass is None):
-        raise ValueError(f"{cfg.data}: this network takes height and mass; the file has no height_m / mass_kg")
+        raise UserError(f"{cfg.data}: this network takes height and mass; the file has no height_m / mass_kg")
     faces = net.faces
     t0 = time.perf_counter()
     vpes, est_h, est_m = [], [], []
@@ -155,7 +156,7 @@ def _plot(path, rows: list[dict], by_subject: dict) -> None:
     b.hist([r["vpe_m"] * 100 for r in rows], bins=30)
     b.set(xlabel="3DVPE (cm)", ylabel="frames", title="per frame")
     fig.tight_layout()
-    fig.savefig(path, format="png", dpi=80)
+    save_figure(fig, path, format="png", dpi=80)
     plt.close(fig)
 
 

@@ -23,6 +23,7 @@ import torch
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.params import BodyParams
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from pressurepose.errors import UserError
 from pressurepose.eval import metrics as M
 from pressurepose.files import atomic_write
 
@@ -101,10 +102,10 @@ def _check_backend(net, dataset, data: Path, shape_dim: int) -> None:
     manifest = getattr(dataset, "manifest", None)  # generated datasets record their body model
     backend = manifest.get("config", {}).get("backend") if isinstance(manifest, dict) else None
     if backend is not None and backend != net.config.backend:
-        raise ValueError(f"the network estimates {net.config.backend} bodies but {data} holds {backend} bodies; "
+        raise UserError(f"the network estimates {net.config.backend} bodies but {data} holds {backend} bodies; "
                          f"evaluate on a dataset generated with --backend {net.config.backend}")
     if shape_dim != len(net.body.shape_names):
-        raise ValueError(f"the dataset's shapes have {shape_dim} parameters but the network's {net.config.backend} "
+        raise UserError(f"the dataset's shapes have {shape_dim} parameters but the network's {net.config.backend} "
                          f"model has {len(net.body.shape_names)}: a dataset of another body model")
 
 
@@ -161,14 +162,14 @@ def run_evaluate(cfg: EvaluateConfig) -> dict[str, Path]:
     from pressurepose.train.checkpoint import load_network
 
     if cfg.batch < 1:
-        raise ValueError(f"batch must be >= 1, got {cfg.batch}")
+        raise UserError(f"batch must be >= 1, got {cfg.batch}")
     net, _ = load_network(cfg.model)
     body = net.body
     dtype = torch.float32
     test = _open(cfg.data, cfg.split)
     n = len(test) if cfg.limit is None else min(cfg.limit, len(test))
     if n == 0:
-        raise ValueError(f"{cfg.data} has no {cfg.split} samples to evaluate")
+        raise UserError(f"{cfg.data} has no {cfg.split} samples to evaluate")
     first = next(_batches(test, 1, 1))[1]
     _check_backend(net, test, cfg.data, first["shape"].shape[-1])
     train = None
@@ -268,14 +269,14 @@ def read_predictions(path: Path) -> tuple[np.ndarray, BodyParams]:
         with np.load(path, allow_pickle=False) as f:
             arrays = {k: f[k] for k in f.files}
     except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path} is not a readable predictions file ({exc}); re-run `pressurepose evaluate`") from None
+        raise UserError(f"{path} is not a readable predictions file ({exc}); re-run `pressurepose evaluate`") from None
     missing = [k for k in ("index", *PARAM_KEYS) if k not in arrays]
     if missing:
-        raise ValueError(f"{path} lacks arrays {missing}; re-run `pressurepose evaluate` to rewrite it")
+        raise UserError(f"{path} lacks arrays {missing}; re-run `pressurepose evaluate` to rewrite it")
     index = arrays["index"].astype(np.int64)
     params = BodyParams(**{k: torch.from_numpy(arrays[k].astype(np.float32)) for k in PARAM_KEYS})
     if len({len(index), *(len(getattr(params, k)) for k in PARAM_KEYS)}) != 1:
-        raise ValueError(f"{path}: arrays of different lengths; re-run `pressurepose evaluate` to rewrite it")
+        raise UserError(f"{path}: arrays of different lengths; re-run `pressurepose evaluate` to rewrite it")
     return index, params
 
 

@@ -16,6 +16,7 @@ import math
 from pathlib import Path
 from typing import Literal
 
+from pressurepose.errors import UserError
 from pressurepose.sampling.partitions import PARTITIONS, get_partition
 
 SPLITS = ("train", "test")
@@ -73,7 +74,7 @@ class ShardSpec:
 
     def replacement_index(self, r: int) -> int:
         if r >= REPLACEMENT_SPAN:
-            raise ValueError(f"shard {self.id} needed more than {REPLACEMENT_SPAN} replacement samples")
+            raise UserError(f"shard {self.id} needed more than {REPLACEMENT_SPAN} replacement samples")
         split = 0 if self.group.split == "train" else 1
         return REPLACEMENT_BASE * (1 + split) + self.number * REPLACEMENT_SPAN + r
 
@@ -114,16 +115,16 @@ class GenerateConfig:
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
-            raise ValueError(f"unknown preset {self.preset!r}; presets: {', '.join(PRESETS)}")
+            raise UserError(f"unknown preset {self.preset!r}; presets: {', '.join(PRESETS)}")
         if self.partition is not None:
             get_partition(self.partition)
         if self.n is not None and self.n < 1:
-            raise ValueError(f"n must be >= 1, got {self.n}")
+            raise UserError(f"n must be >= 1, got {self.n}")
         for name in ("workers", "shard_size", "batch"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+                raise UserError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+            raise UserError(f"seed must be >= 0, got {self.seed}")
 
     def identity(self) -> dict:
         """The fields that define the dataset's content (not how fast it is made)."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 
+from pressurepose.errors import UserError
 from pressurepose.generate.plan import ShardSpec
 from pressurepose.generate.worker import WorkContext, make_shard
 
@@ -20,7 +21,7 @@ def _import_ray():
     try:
         import ray
     except ImportError:
-        raise ValueError("--engine ray needs Ray: pip install 'pressurepose[ray]'") from None
+        raise UserError("--engine ray needs Ray: pip install 'pressurepose[ray]'") from None
     return ray
 
 

@@ -20,6 +20,7 @@ from pressurepose.data.manifest import MANIFEST, write_manifest
 from pressurepose.data.shards import (
     SHARD_DIR, CorruptShardError, explain_os_error, read_record, verify_shard, write_shard,
 )
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.generate.plan import (
     REPLACEMENT_BASE, REPLACEMENT_SPAN, TEST_INDEX_BASE, GenerateConfig, ShardSpec, plan_shards,
@@ -57,11 +58,11 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
             diff = sorted(k for k in set(settings["config"]) | set((old or {}).get("config", {}))
                           if settings["config"].get(k) != (old or {}).get("config", {}).get(k))
             what = ", ".join(diff) if diff else "mattress parameters or package version"
-            raise ValueError(f"{out} holds a dataset made with other settings ({what} differ, see {path}); "
+            raise UserError(f"{out} holds a dataset made with other settings ({what} differ, see {path}); "
                              "re-run with the same settings to resume, or choose another --out")
         return
     if any((out / SHARD_DIR).iterdir()) or (out / MANIFEST).exists():
-        raise ValueError(f"{out} is not empty and has no {SETTINGS}; choose another --out")
+        raise UserError(f"{out} is not empty and has no {SETTINGS}; choose another --out")
     try:
         atomic_write(path, lambda tmp: Path(tmp).write_text(text))
     except OSError as exc:
@@ -111,7 +112,7 @@ def _exclusive(out: Path):
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise ValueError(f"another `pressurepose generate` is writing {out}; wait for it or stop it first") from None
+            raise UserError(f"another `pressurepose generate` is writing {out}; wait for it or stop it first") from None
         yield
     finally:
         fh.close()

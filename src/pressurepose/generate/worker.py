@@ -19,6 +19,7 @@ import torch
 
 from pressurepose.data.schema import SampleBatch, to_table
 from pressurepose.data.shards import table_bytes
+from pressurepose.errors import UserError
 from pressurepose.generate.plan import ShardSpec
 
 log = logging.getLogger(__name__)
@@ -101,7 +102,7 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
         if on_chunk is not None:
             on_chunk(0 if batch is None else len(batch), sum(1 for r in reasons if r))
         if candidates - n_kept > MAX_REJECTED_FRACTION * candidates and candidates >= max(4 * ctx.batch, 32):
-            raise ValueError(f"shard {spec.id}: {candidates - n_kept} of {candidates} samples rejected "
+            raise UserError(f"shard {spec.id}: {candidates - n_kept} of {candidates} samples rejected "
                              f"({dict(rejections)}); check the mattress parameters (--params)")
     data = SampleBatch.concat(kept)
     record = {"split": g.split, "partition": g.partition, "gender": g.gender, "over_bed": g.over_bed,

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from pressurepose.errors import UserError
+
 DEFAULT = "default"
 """The model name that resolves to the packaged network."""
 
@@ -27,7 +29,7 @@ def resolve_model(path: str | Path) -> Path:
     if not path.exists() and str(path) == DEFAULT:
         folder = default_model_dir()
         if not (folder / "model.safetensors").is_file():
-            raise ValueError("no default model in this installation (pressurepose/models/default/"
+            raise UserError("no default model in this installation (pressurepose/models/default/"
                              "model.safetensors missing); reinstall pressurepose or pass --model RUN")
         return folder
     return path

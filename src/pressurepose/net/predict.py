@@ -21,6 +21,7 @@ import torch
 import tyro
 
 from pressurepose.body.joints import J24_NAMES
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.net.inputs import read_pressure_file
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
@@ -46,6 +47,7 @@ class PredictConfig:
         meshes: write one .ply mesh per image.
         refine_steps: test-time refinement steps through sim #2 (0 = off; ~50 ms per image and step).
         device: auto (CUDA when present), cpu or cuda.
+        force: use images reading more than 1000 mmHg (the plausibility bound, net.inputs), clipped there.
     """
 
     files: tyro.conf.Positional[tuple[Path, ...]] = ()
@@ -60,20 +62,21 @@ class PredictConfig:
     meshes: bool = True
     refine_steps: int = 0
     device: Literal["auto", "cpu", "cuda"] = "auto"
+    force: bool = False
 
 
 def read_inputs(cfg: PredictConfig) -> list[tuple[str, np.ndarray]]:
     """[(name, (64, 27) image)] of every file, all checked (ValueError on the first bad one)."""
     if not cfg.files:
-        raise ValueError("no input files; give pressure images after the options")
+        raise UserError("no input files; give pressure images after the options")
     items = []
     for path in cfg.files:
-        images = read_pressure_file(path, cfg.text_units, cfg.mass_kg or 70.0)
+        images = read_pressure_file(path, cfg.text_units, cfg.mass_kg or 70.0, cfg.force)
         for k, image in enumerate(images):
             items.append((path.stem if len(images) == 1 else f"{path.stem}_{k:04d}", image))
     names = [n for n, _ in items]
     if len(set(names)) != len(names):
-        raise ValueError("two inputs would write the same output name; give files with different names")
+        raise UserError("two inputs would write the same output name; give files with different names")
     return items
 
 
@@ -83,13 +86,15 @@ def run_predict(cfg: PredictConfig) -> dict:
     from pressurepose.train.loop import pick_device
 
     if cfg.batch_size < 1:
-        raise ValueError(f"batch_size must be >= 1, got {cfg.batch_size}")
+        raise UserError(f"batch_size must be >= 1, got {cfg.batch_size}")
+    out = Path(cfg.out)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file; give a folder for the outputs")
     items = read_inputs(cfg)
     device = pick_device(cfg.device)
     net, _ = load_network(cfg.model, device)
     if net.config.height_weight and (cfg.height_m is None or cfg.mass_kg is None):
-        raise ValueError("this network takes height and mass as inputs: give --height-m and --mass-kg")
-    out = Path(cfg.out)
+        raise UserError("this network takes height and mass as inputs: give --height-m and --mass-kg")
     out.mkdir(parents=True, exist_ok=True)
     t_net = 0.0
     for start in range(0, len(items), cfg.batch_size):

@@ -22,6 +22,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from pressurepose.errors import UserError
+
 LEG_CELLS = 4
 ARM_CELLS = 8
 HEIGHT_TOLERANCE_M = 0.10  # seed A.1: distal joint within +-10 cm of the proximal joint's height
@@ -124,7 +126,7 @@ def get_partition(name: str) -> Partition:
     try:
         return PARTITIONS[name]
     except KeyError:
-        raise ValueError(f"unknown partition {name!r}; valid partitions: {', '.join(PARTITIONS)}") from None
+        raise UserError(f"unknown partition {name!r}; valid partitions: {', '.join(PARTITIONS)}") from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,16 +157,16 @@ class SamplingConfig:
     def __post_init__(self) -> None:
         part = get_partition(self.partition)
         if self.gender not in GENDERS:
-            raise ValueError(f"unknown gender {self.gender!r}; expected one of {', '.join(GENDERS)}")
+            raise UserError(f"unknown gender {self.gender!r}; expected one of {', '.join(GENDERS)}")
         if self.over_bed not in part.over_bed_choices:
-            raise ValueError(
+            raise UserError(
                 f"partition {self.partition!r} exists only with over_bed={part.over_bed_choices[0]} (seed Table 4)"
             )
         for name in ("max_failures", "max_shapes", "max_limb_draws"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+                raise UserError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+            raise UserError(f"seed must be >= 0, got {self.seed}")
 
     @property
     def spec(self) -> Partition:

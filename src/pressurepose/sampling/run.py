@@ -22,6 +22,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.sampling.partitions import SamplingConfig
 from pressurepose.sampling.sampler import REJECTION_KEYS, InitialPoses, PoseSampler
@@ -61,11 +62,11 @@ class SampleConfig:
 
 def run_sample(cfg: SampleConfig) -> dict[str, Path]:
     if cfg.n < 1:
-        raise ValueError(f"n must be >= 1, got {cfg.n}")
+        raise UserError(f"n must be >= 1, got {cfg.n}")
     if cfg.batch < 1:
-        raise ValueError(f"batch must be >= 1, got {cfg.batch}")
+        raise UserError(f"batch must be >= 1, got {cfg.batch}")
     if cfg.start < 0:
-        raise ValueError(f"start must be >= 0, got {cfg.start}")
+        raise UserError(f"start must be >= 0, got {cfg.start}")
     sampling = SamplingConfig(partition=cfg.partition, gender=cfg.gender, over_bed=cfg.over_bed, seed=cfg.seed)
     from pressurepose.body import load_body_model
 
@@ -159,9 +160,9 @@ def load_poses(path: str | Path) -> dict[str, np.ndarray]:
     """Arrays of a poses.npz written by `pressurepose sample` (no pickles are loaded)."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"no poses file at {path}; run `pressurepose sample --out DIR` first")
+        raise UserError(f"no poses file at {path}; run `pressurepose sample --out DIR` first")
     try:
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path} is not a readable poses file ({exc}); write it again with `pressurepose sample`") from None
+        raise UserError(f"{path} is not a readable poses file ({exc}); write it again with `pressurepose sample`") from None

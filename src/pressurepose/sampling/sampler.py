@@ -50,6 +50,7 @@ from pressurepose.body.kinematics import forward_kinematics, pose_in_mat
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
+from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import (
     ARM_CELLS, HEIGHT_TOLERANCE_M, LEG_CELLS, Partition, SamplingConfig, limb_cells,
@@ -242,7 +243,7 @@ class InitialPoses:
         return [BedShape(float(a)) for a in self.head_angle_deg]
 
 
-class UnreachableConstraints(ValueError):
+class UnreachableConstraints(UserError):
     """Raised when a sample cannot satisfy its partition within the attempt limits."""
 
 
@@ -349,7 +350,7 @@ class PoseSampler:
         self.mat = mat or MatSpec()
         gender = getattr(model, "gender", None)
         if model.name == "smpl" and gender not in (None, "neutral", config.gender):
-            raise ValueError(
+            raise UserError(
                 f"the SMPL model is {gender} but the sampling asks for {config.gender}; "
                 f"load the {config.gender} SMPL model or the neutral one"
             )

@@ -15,6 +15,8 @@ import math
 import os
 from pathlib import Path
 
+from pressurepose.errors import UserError
+
 GRAVITY_M_S2 = 9.81
 MMHG_PA = 133.322
 
@@ -56,14 +58,14 @@ class MattressParams:
             try:
                 v = _scalar(value)
             except (TypeError, ValueError):
-                raise ValueError(f"MattressParams.{f.name} must be a number, got {value!r}") from None
+                raise UserError(f"MattressParams.{f.name} must be a number, got {value!r}") from None
             if not math.isfinite(v):
-                raise ValueError(f"MattressParams.{f.name} must be finite, got {v}")
+                raise UserError(f"MattressParams.{f.name} must be finite, got {v}")
             if f.name not in ("c0_mmhg",) and v < 0:
-                raise ValueError(f"MattressParams.{f.name} must be >= 0, got {v}")
+                raise UserError(f"MattressParams.{f.name} must be >= 0, got {v}")
         for name in ("k1_pa_per_m", "thickness_m", "mat_stiffness_pa_per_mm"):
             if _scalar(getattr(self, name)) <= 0:
-                raise ValueError(f"MattressParams.{name} must be > 0, got {getattr(self, name)}")
+                raise UserError(f"MattressParams.{name} must be > 0, got {getattr(self, name)}")
 
     def replace(self, **changes) -> "MattressParams":
         return dataclasses.replace(self, **changes)
@@ -87,18 +89,18 @@ class MattressParams:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "MattressParams":
-        from pressurepose.files import read_json
+        from pressurepose.validate import read_json
 
         path = Path(path)
         doc = read_json(path, "mattress parameter file",
                         "; write one with `pressurepose calibrate` or MattressParams.save")
         if not isinstance(doc, dict) or doc.get("format") != "pressurepose.mattress/1" or not isinstance(doc.get("params"), dict):
-            raise ValueError(f"{path} is not a pressurepose mattress parameter file "
+            raise UserError(f"{path} is not a pressurepose mattress parameter file "
                              "(expected {'format': 'pressurepose.mattress/1', 'params': {...}})")
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(doc["params"]) - known)
         if unknown:
-            raise ValueError(f"{path}: unknown mattress parameters {', '.join(unknown)}; "
+            raise UserError(f"{path}: unknown mattress parameters {', '.join(unknown)}; "
                              f"valid ones: {', '.join(sorted(known))}")
         return cls(**doc["params"])
 
@@ -107,7 +109,7 @@ def _scalar(value) -> float:
     """A float from a number or a one-element tensor (detached, for checks only)."""
     if hasattr(value, "detach"):
         if value.numel() != 1:
-            raise ValueError("expected one value")
+            raise UserError("expected one value")
         return float(value.detach())
     return float(value)
 

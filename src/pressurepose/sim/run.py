@@ -19,6 +19,7 @@ import torch
 
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.mat import MatSpec
 from pressurepose.bed import BedShape
@@ -77,7 +78,7 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
         return _simulate_one_bed(model, params, mattress, mat, seed, bed or BedShape(), settle_config, **options)
     beds = list(bed)
     if len(beds) != params.batch_size or not all(isinstance(b, BedShape) for b in beds):
-        raise ValueError(f"bed must be one BedShape or a sequence of {params.batch_size} (one per sample), "
+        raise UserError(f"bed must be one BedShape or a sequence of {params.batch_size} (one per sample), "
                          f"got {len(beds)} items")
     groups: dict[BedShape, list[int]] = {}
     for i, b in enumerate(beds):
@@ -198,7 +199,7 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
     from pressurepose.sampling.sampler import PoseSampler
 
     if cfg.index < 0:
-        raise ValueError(f"index must be >= 0, got {cfg.index}")
+        raise UserError(f"index must be >= 0, got {cfg.index}")
     mattress = MattressParams.load(cfg.params) if cfg.params is not None else MattressParams()
     options = {"model_dir": cfg.smpl_dir} if cfg.backend == "smpl" else {}
     model = load_body_model(cfg.backend, dtype=torch.float64, **options)
@@ -209,7 +210,7 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
     bed = initial.beds()[0]
     if cfg.head_angle_deg is not None:
         if sampling.spec.raised and cfg.head_angle_deg != bed.head_angle_deg:
-            raise ValueError(f"partition {cfg.partition!r} sits sample {cfg.index} up on a bed raised "
+            raise UserError(f"partition {cfg.partition!r} sits sample {cfg.index} up on a bed raised "
                              f"{bed.head_angle_deg:g} deg; leave out --head-angle-deg (or pick another index)")
         bed = BedShape(cfg.head_angle_deg)
     sim = simulate_poses(model, initial.params, mattress, seed=cfg.seed * 1_000_003 + cfg.index, bed=bed,
@@ -260,7 +261,7 @@ def run_simulate(cfg: SimulateConfig) -> dict[str, Path]:
     record["files"] = {k: v.name for k, v in paths.items()}
     paths["record"] = atomic_write(cfg.out / "simulate.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
     if reason:
-        raise ValueError(f"sample {cfg.index} of {cfg.partition}/{cfg.gender} was rejected ({reason}); "
+        raise UserError(f"sample {cfg.index} of {cfg.partition}/{cfg.gender} was rejected ({reason}); "
                          f"the generator skips such samples - try another --index (details in {paths['record']})")
     return paths
 

@@ -59,6 +59,7 @@ from pressurepose.body.params import R_SUPINE, BodyParams, root_matrix
 from pressurepose.body.rotations import (
     axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_quaternion, quaternion_to_axis_angle,
 )
+from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.bed import BedShape
 from pressurepose.sim.fixed_order import atan2_each, matvec3, sq_norm3, sum_last
@@ -105,14 +106,14 @@ class SettleConfig:
 
     def __post_init__(self) -> None:
         if not (self.timestep_s > 0 and math.isfinite(self.timestep_s)):
-            raise ValueError(f"timestep_s must be > 0, got {self.timestep_s}")
+            raise UserError(f"timestep_s must be > 0, got {self.timestep_s}")
         for name in ("max_steps", "grid_sub"):
             if int(getattr(self, name)) < 1:
-                raise ValueError(f"SettleConfig.{name} must be >= 1")
+                raise UserError(f"SettleConfig.{name} must be >= 1")
         for name in ("hold_roll_m", "hold_time_s"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
-                raise ValueError(f"SettleConfig.{name} must be finite and >= 0, got {v}")
+                raise UserError(f"SettleConfig.{name} must be finite and >= 0, got {v}")
 
 
 @dataclasses.dataclass
@@ -870,10 +871,10 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
     if body is None:
         body = build_capsule_body(as_float64(model), params.shape, volume_points=SIM_VOLUME_POINTS, one_by_one=True)
     if body.capsules.batch_size != B:
-        raise ValueError(f"capsule body batch ({body.capsules.batch_size}) != params batch ({B})")
+        raise UserError(f"capsule body batch ({body.capsules.batch_size}) != params batch ({B})")
     masses = body.mass_kg.sum(-1)
     if not torch.isfinite(masses).all() or bool((masses <= 0).any()):
-        raise ValueError("every body needs a finite mass > 0 (check the shape parameters)")
+        raise UserError("every body needs a finite mass > 0 (check the shape parameters)")
     root_rot = params.root_rotation.clone()
     root_t = params.root_translation.clone()
     pose = params.pose.clone()

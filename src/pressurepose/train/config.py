@@ -13,6 +13,8 @@ import json
 from pathlib import Path
 from typing import Literal
 
+from pressurepose.errors import UserError
+
 PRESETS: dict[str, dict] = {
     "paper": {"arch": "paper", "epochs": 100, "batch_size": 128, "lr": 2e-5, "weight_decay": 5e-4},
     "fast": {"arch": "fast", "epochs": 100, "batch_size": 128, "lr": 1e-3, "weight_decay": 5e-4},
@@ -113,7 +115,7 @@ class TrainConfig:
     def resolved(self) -> "TrainConfig":
         """The config with every None filled from the preset, checked."""
         if self.preset not in PRESETS:
-            raise ValueError(f"unknown preset {self.preset!r}; expected one of {', '.join(PRESETS)}")
+            raise UserError(f"unknown preset {self.preset!r}; expected one of {', '.join(PRESETS)}")
         filled = {k: v for k, v in PRESETS[self.preset].items() if getattr(self, k) is None}
         cfg = dataclasses.replace(self, **filled)
         cfg._check()
@@ -121,28 +123,28 @@ class TrainConfig:
 
     def _check(self) -> None:
         if self.module not in (1, 2):
-            raise ValueError(f"module must be 1 or 2, got {self.module}")
+            raise UserError(f"module must be 1 or 2, got {self.module}")
         if self.module == 2 and self.mod1 is None:
-            raise ValueError("module 2 trains on a trained Mod1: give --mod1 RUN (a `--module 1` run folder)")
+            raise UserError("module 2 trains on a trained Mod1: give --mod1 RUN (a `--module 1` run folder)")
         for name in ("epochs", "batch_size", "save_every"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+                raise UserError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.lr > 0 or self.weight_decay < 0:
-            raise ValueError(f"lr must be > 0 and weight_decay >= 0, got {self.lr}, {self.weight_decay}")
+            raise UserError(f"lr must be > 0 and weight_decay >= 0, got {self.lr}, {self.weight_decay}")
         if not (0 <= self.shift_rows < 64 and 0 <= self.shift_cols < 27):
-            raise ValueError(f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, "
+            raise UserError(f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, "
                              f"{self.shift_cols}")
         for name in ("mirror", "repress", "bands"):
             if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
+                raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 < self.lr_gamma <= 1:
-            raise ValueError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
+            raise UserError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:
-            raise ValueError(f"val_fraction must lie in [0, 1), got {self.val_fraction}")
+            raise UserError(f"val_fraction must lie in [0, 1), got {self.val_fraction}")
         if self.synthesis_weight < 0 or (self.synthesis_weight > 0 and self.module != 2):
-            raise ValueError("synthesis_weight must be >= 0 and is a Mod2 loss (use it with --module 2)")
+            raise UserError("synthesis_weight must be >= 0 and is a Mod2 loss (use it with --module 2)")
         if self.backend == "smpl" and not self.smpl_dir:
-            raise ValueError("backend smpl needs --smpl-dir (the folder holding your SMPL model file)")
+            raise UserError("backend smpl needs --smpl-dir (the folder holding your SMPL model file)")
 
     def to_json(self) -> dict:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}

@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.errors import UserError
+
 KEYS = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose", "joints",
         "gender", "mass_kg", "height_m")
 SHAPES = {"pressure_mmhg": (64, 27), "depth_mm": (64, 27), "contact": (64, 27), "root_rotation": (3,),
@@ -32,7 +34,7 @@ GENDER_VALUE = {"female": 1.0, "male": 0.0}
 def _gender(value) -> float:
     if isinstance(value, str):
         if value not in GENDER_VALUE:
-            raise ValueError(f"gender must be 'female' or 'male', got {value!r}")
+            raise UserError(f"gender must be 'female' or 'male', got {value!r}")
         return GENDER_VALUE[value]
     return float(value)
 
@@ -44,14 +46,14 @@ def standardise(item: dict) -> dict[str, torch.Tensor]:
         item["joints"] = item["joints_m"]
     missing = [k for k in KEYS if k not in item]
     if missing:
-        raise ValueError(f"training samples lack {missing}; a dataset item needs {', '.join(KEYS)}")
+        raise UserError(f"training samples lack {missing}; a dataset item needs {', '.join(KEYS)}")
     out = {}
     for k in KEYS:
         v = torch.tensor(_gender(item[k])) if k == "gender" else torch.as_tensor(np.asarray(item[k]))
         v = v.to(torch.float32)
         want = SHAPES.get(k)
         if want is not None and tuple(v.shape) != want:
-            raise ValueError(f"sample field {k} must have shape {want}, got {tuple(v.shape)}")
+            raise UserError(f"sample field {k} must have shape {want}, got {tuple(v.shape)}")
         out[k] = v
     return out
 
@@ -68,7 +70,7 @@ class TensorDictDataset(torch.utils.data.Dataset):
     def __init__(self, arrays: dict[str, torch.Tensor]) -> None:
         sizes = {k: len(v) for k, v in arrays.items()}
         if len(set(sizes.values())) != 1:
-            raise ValueError(f"arrays have different sample counts: {sizes}")
+            raise UserError(f"arrays have different sample counts: {sizes}")
         self.arrays = arrays
         self.n = next(iter(sizes.values()))
 
@@ -93,10 +95,10 @@ class NpzDataset(TensorDictDataset):
             with np.load(path, allow_pickle=False) as f:
                 arrays = {k: torch.from_numpy(f[k]) for k in f.files}
         except (OSError, ValueError) as exc:
-            raise ValueError(f"{path} is not a readable .npz dataset ({exc})") from None
+            raise UserError(f"{path} is not a readable .npz dataset ({exc})") from None
         missing = [k for k in KEYS if k not in arrays and not (k == "joints" and "joints_m" in arrays)]
         if missing:
-            raise ValueError(f"{path} lacks arrays {missing}; a .npz dataset holds {', '.join(KEYS)}")
+            raise UserError(f"{path} lacks arrays {missing}; a .npz dataset holds {', '.join(KEYS)}")
         super().__init__(arrays)
 
 
@@ -105,14 +107,14 @@ def open_dataset(root: str | Path, split: str = "train", extra_columns: tuple[st
     `extra_columns`: further shard columns to load (e.g. "partition"; .npz files have none)."""
     root = Path(root)
     if not root.exists():
-        raise ValueError(f"no dataset at {root}")
+        raise UserError(f"no dataset at {root}")
     if root.is_file() and root.suffix == ".npz":
         return NpzDataset(root)
     if (root / "manifest.json").is_file():
         try:
             from pressurepose.data.dataset import PressurePoseDataset
         except ImportError:
-            raise ValueError(f"{root} holds dataset shards, but this install cannot read them "
+            raise UserError(f"{root} holds dataset shards, but this install cannot read them "
                              "(pressurepose.data.dataset missing)") from None
         columns = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose",
                    "joints_m", "gender", "mass_kg", "height_m") + tuple(extra_columns)
@@ -124,7 +126,7 @@ def open_dataset(root: str | Path, split: str = "train", extra_columns: tuple[st
         sets = [open_dataset(d, split, extra_columns) for d in sorted(root.iterdir())
                 if d.is_dir() and (d / "manifest.json").is_file()]
     if not sets:
-        raise ValueError(f"{root} holds neither a manifest.json (generated shards), .npz files, nor dataset "
+        raise UserError(f"{root} holds neither a manifest.json (generated shards), .npz files, nor dataset "
                          "folders with a manifest.json")
     return sets[0] if len(sets) == 1 else torch.utils.data.ConcatDataset(sets)
 

@@ -20,15 +20,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
 from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
 from pressurepose.train.checkpoint import (
-    CHECKPOINT_FILE, load_checkpoint, net_config_from_record, read_model, save_checkpoint, save_model,
+    CHECKPOINT_FILE, MODEL_FILE, load_checkpoint, net_config_from_record, read_model, save_checkpoint, save_model,
 )
 from pressurepose.train.config import RESUMABLE_CHANGES, TrainConfig
 from pressurepose.train.data import collate, open_dataset
+from pressurepose.validate import check_tensor_shapes, field, read_json_object, read_jsonl
 
 log = logging.getLogger(__name__)
 METRICS = "metrics.jsonl"
@@ -38,7 +40,7 @@ def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device cuda asked for, but torch sees no CUDA device; use --device cpu")
+        raise UserError("device cuda asked for, but torch sees no CUDA device; use --device cpu")
     return torch.device(name)
 
 
@@ -175,7 +177,7 @@ def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainC
         inputs, targets = mirror_batch(inputs, targets, cfg.mirror, generator)
     if augment and cfg.repress > 0:
         if targets.depth_mm is None:
-            raise ValueError("--repress needs the depth maps (depth_mm) of the training samples")
+            raise UserError("--repress needs the depth maps (depth_mm) of the training samples")
         inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
     if augment and cfg.bands > 0:
         inputs = bands_batch(inputs, cfg.bands, generator)
@@ -201,18 +203,19 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
                        dropout=cfg.dropout, width=cfg.width)
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
-        m1 = net_config_from_record(record)
+        m1 = net_config_from_record(record, Path(cfg.mod1) / MODEL_FILE)
         if m1.modules != 1:
-            raise ValueError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
+            raise UserError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
         mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight", "width")
                     if getattr(m1, f) != getattr(netcfg, f)]
         if mismatch:
-            raise ValueError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
+            raise UserError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
     body = netcfg.load_body(device=device)
     torch.manual_seed(cfg.seed)  # the initial weights
     net = PressureNet(netcfg, body=body)
     if cfg.module == 2:
         mod1 = {k[len("mod1."):]: v for k, v in weights.items() if k.startswith("mod1.")}
+        check_tensor_shapes(mod1, {k: v.shape for k, v in net.mod1.state_dict().items()}, Path(cfg.mod1) / MODEL_FILE)
         net.mod1.load_state_dict(mod1)
         net.freeze_mod1()
     if cfg.init is not None:
@@ -224,12 +227,13 @@ def _load_init(net: PressureNet, init: Path) -> None:
     """Start from the weights of another run's network (fine-tuning), which must be the same
     network: same arch, width, modules, inputs and body model."""
     weights, record = read_model(init)
-    other = net_config_from_record(record)
+    other = net_config_from_record(record, Path(init) / MODEL_FILE)
     fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight")
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
     if mismatch:
-        raise ValueError(f"--init {init} is a different network ({', '.join(mismatch)} differ); "
+        raise UserError(f"--init {init} is a different network ({', '.join(mismatch)} differ); "
                          "train with the same settings or drop --init")
+    check_tensor_shapes(weights, {k: v.shape for k, v in net.trainable_state().items()}, Path(init) / MODEL_FILE)
     net.load_trainable_state(weights)
 
 
@@ -240,15 +244,17 @@ def _split(n: int, cfg: TrainConfig) -> tuple[list[int], list[int]]:
 
 
 def _check_resume(run: Path, cfg: TrainConfig) -> None:
-    saved = json.loads((run / "config.json").read_text())["train"] if (run / "config.json").is_file() else None
-    if saved is None:
+    path = run / "config.json"
+    if not path.is_file():
         return
+    hint = "; resume with an intact run folder or train into a new --out folder"
+    saved = field(read_json_object(path, "run config", hint), "train", "dict", path, hint=hint)
     now = cfg.to_json()
     # A field added after the run was saved counts at its default (older runs resume).
     defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
     differ = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k, defaults.get(k)) != now[k]]
     if differ:
-        raise ValueError(f"{run} holds a run with different settings ({', '.join(differ)}); "
+        raise UserError(f"{run} holds a run with different settings ({', '.join(differ)}); "
                          "resume with the same settings or train into a new --out folder")
 
 
@@ -258,10 +264,10 @@ def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> 
     run = Path(cfg.out)
     if dataset is None:
         if cfg.data is None:
-            raise ValueError("no training data: give --data DIR")
+            raise UserError("no training data: give --data DIR")
         dataset = open_dataset(cfg.data)
     if len(dataset) == 0:
-        raise ValueError("the training dataset is empty")
+        raise UserError("the training dataset is empty")
     device = pick_device(cfg.device)
     run.mkdir(parents=True, exist_ok=True)
     resuming = (run / CHECKPOINT_FILE).is_file()
@@ -364,10 +370,12 @@ class _progress:
 
 
 def _read_metrics(run: Path) -> list[dict]:
+    """The rows of a run's metrics.jsonl, each with its epoch (UserError naming the file)."""
     path = run / METRICS
-    if not path.is_file():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = read_jsonl(path, "training metrics", "; delete it to resume without the earlier epochs' metrics")
+    for number, row in enumerate(rows, 1):
+        field(row, "epoch", "count", path, f"line {number}: ")
+    return rows
 
 
 def _write_metrics(run: Path, history: list[dict]) -> None:

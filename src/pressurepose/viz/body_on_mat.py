@@ -13,6 +13,7 @@ from matplotlib.patches import Rectangle  # noqa: E402
 
 from pressurepose.body.joints import J24_NAMES, J24_PARENTS  # noqa: E402
 from pressurepose.mat import MatSpec  # noqa: E402
+from pressurepose.files import save_figure
 
 
 def plot_body_on_mat(
@@ -53,7 +54,7 @@ def plot_body_on_mat(
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

@@ -42,7 +42,9 @@ import numpy as np
 from pressurepose.data.coregister import (
     FORMAT, _number, _vector, corner_markers, parse_markers, project, solve_camera_pose,
 )
-from pressurepose.files import atomic_write, read_json, read_npy
+from pressurepose.errors import UserError
+from pressurepose.files import atomic_write
+from pressurepose.validate import read_json, read_npy
 from pressurepose.viz.viewer import LocalHandler, LocalServer
 
 log = logging.getLogger(__name__)
@@ -102,22 +104,22 @@ def load_image(path: Path, depth_unit: str = "auto") -> ClickImage:
     """Read IMAGE; ValueError naming the problem (missing, unreadable, wrong shape or type)."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"no image at {path}")
+        raise UserError(f"no image at {path}")
     suffix = path.suffix.lower()
     if suffix == ".npy":
         return _load_depth(path, depth_unit)
     if suffix not in IMAGE_SUFFIXES:
-        raise ValueError(f"{path}: IMAGE must be a .png or .jpg picture or a depth image .npy (H, W)")
+        raise UserError(f"{path}: IMAGE must be a .png or .jpg picture or a depth image .npy (H, W)")
     import matplotlib.image
 
     try:
         img = np.asarray(matplotlib.image.imread(path))
     except (OSError, ValueError, SyntaxError, EOFError) as exc:  # PIL's errors for corrupt files
-        raise ValueError(f"{path} is not a readable image ({exc})") from None
+        raise UserError(f"{path} is not a readable image ({exc})") from None
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
     if img.ndim != 3 or img.shape[2] not in (3, 4) or min(img.shape[:2]) < 2:
-        raise ValueError(f"{path}: expected a grey, RGB or RGBA picture, got an array of shape {img.shape}")
+        raise UserError(f"{path}: expected a grey, RGB or RGBA picture, got an array of shape {img.shape}")
     img = img[..., :3]
     if img.dtype.kind == "f":  # PNGs come as floats in [0, 1]
         img = np.clip(img * 255 + 0.5, 0, 255)
@@ -126,14 +128,14 @@ def load_image(path: Path, depth_unit: str = "auto") -> ClickImage:
 
 def _load_depth(path: Path, unit: str) -> ClickImage:
     if unit not in ("auto", "m", "mm"):
-        raise ValueError(f"--depth-unit must be auto, m or mm, got {unit!r}")
+        raise UserError(f"--depth-unit must be auto, m or mm, got {unit!r}")
     arr = read_npy(path, what="depth image (H, W)")
     if arr.ndim != 2 or min(arr.shape) < 2:
-        raise ValueError(f"depth image {path} must be 2-D (H, W), got shape {arr.shape}")
+        raise UserError(f"depth image {path} must be 2-D (H, W), got shape {arr.shape}")
     depth = arr.astype(np.float64)
     valid = np.isfinite(depth) & (depth > 0)
     if not valid.any():
-        raise ValueError(f"depth image {path} has no valid reading (all 0, negative or non-finite)")
+        raise UserError(f"depth image {path} has no valid reading (all 0, negative or non-finite)")
     if unit == "mm" or (unit == "auto" and (arr.dtype.kind in "iu" or np.median(depth[valid]) > 20)):
         depth = depth / 1000.0  # a camera 20 m away from a bed is not a setup we expect
     depth = np.where(valid, depth, 0.0).astype(np.float32)
@@ -151,7 +153,7 @@ def _intrinsics_from(data, what: str) -> dict[str, float]:
     if isinstance(data, dict) and isinstance(data.get("intrinsics"), dict):
         data = data["intrinsics"]
     if not isinstance(data, dict):
-        raise ValueError(f"{what} must be a JSON object with fx, fy, cx, cy")
+        raise UserError(f"{what} must be a JSON object with fx, fy, cx, cy")
     return {k: _number(data[k], f"{what}: {k}") for k in INTRINSIC_KEYS if data.get(k) is not None}
 
 
@@ -159,10 +161,10 @@ def check_intrinsics(values: dict[str, float], what: str = "intrinsics") -> dict
     """All four numbers, focal lengths > 0 (as coregister's loader demands)."""
     missing = [k for k in INTRINSIC_KEYS if k not in values]
     if missing:
-        raise ValueError(f"{what}: {', '.join(missing)} missing; give --fx --fy --cx --cy or --intrinsics FILE.json")
+        raise UserError(f"{what}: {', '.join(missing)} missing; give --fx --fy --cx --cy or --intrinsics FILE.json")
     out = {k: _number(values[k], f"{what}: {k}") for k in INTRINSIC_KEYS}
     if out["fx"] <= 0 or out["fy"] <= 0:
-        raise ValueError(f"{what}: focal lengths must be > 0, got fx={out['fx']}, fy={out['fy']}")
+        raise UserError(f"{what}: focal lengths must be > 0, got fx={out['fx']}, fy={out['fy']}")
     return out
 
 
@@ -171,14 +173,14 @@ def _read_existing(out: Path) -> tuple[list[dict], dict[str, float]]:
     fewer than 4 markers is still editable)."""
     data = read_json(out, "marker file")
     if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise ValueError(f"{out} exists and is not a marker file ({FORMAT}); choose another --out")
+        raise UserError(f"{out} exists and is not a marker file ({FORMAT}); choose another --out")
     items = data.get("markers", [])
     if not isinstance(items, list):
-        raise ValueError(f'{out}: "markers" must be a list')
+        raise UserError(f'{out}: "markers" must be a list')
     markers = []
     for k, m in enumerate(items):
         if not isinstance(m, dict) or "pixel" not in m:
-            raise ValueError(f'{out}: marker {k} needs a "pixel": [u, v]')
+            raise UserError(f'{out}: marker {k} needs a "pixel": [u, v]')
         name = str(m.get("name", f"marker{k}"))
         item = {"name": name, "pixel": _vector(m["pixel"], 2, f"{out}: marker {name} pixel").tolist()}
         if m.get("depth_m") is not None:
@@ -197,7 +199,7 @@ class ClickSession:
         self.cfg = cfg
         self.out = Path(cfg.out)
         if self.out.is_dir():
-            raise ValueError(f"--out {self.out} is a folder; give the marker file's name, e.g. {self.out}/markers.json")
+            raise UserError(f"--out {self.out} is a folder; give the marker file's name, e.g. {self.out}/markers.json")
         self.image = load_image(cfg.image, cfg.depth_unit)
         markers, intr = _read_existing(self.out) if self.out.exists() else ([], {})
         if cfg.intrinsics is not None:
@@ -238,26 +240,26 @@ class ClickSession:
         """The marker file for a save request; ValueError (nothing written) if coregister's
         loader would refuse it or a pixel lies outside the image."""
         if not isinstance(payload, dict):
-            raise ValueError('expected {"intrinsics": {...}, "markers": [...]}')
+            raise UserError('expected {"intrinsics": {...}, "markers": [...]}')
         intr = payload.get("intrinsics")
         if not isinstance(intr, dict) or not intr:
-            raise ValueError("intrinsics missing: fill in fx, fy, cx, cy")
+            raise UserError("intrinsics missing: fill in fx, fy, cx, cy")
         intr = check_intrinsics(_intrinsics_from(intr, "intrinsics"))
         items = payload.get("markers")
         if not isinstance(items, list):
-            raise ValueError('"markers" must be a list')
+            raise UserError('"markers" must be a list')
         w, h = self.image.size
         markers = []
         for k, m in enumerate(items):
             if not isinstance(m, dict):
-                raise ValueError(f"marker {k} must be an object with name and pixel")
+                raise UserError(f"marker {k} must be an object with name and pixel")
             name = m.get("name")
             if not isinstance(name, str) or not name.strip():
-                raise ValueError(f"marker {k} needs a name")
+                raise UserError(f"marker {k} needs a name")
             name = name.strip()
             u, v = _vector(m.get("pixel"), 2, f"marker {name} pixel")
             if not (-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5):
-                raise ValueError(f"marker {name} pixel ({u:.1f}, {v:.1f}) lies outside the {w} x {h} image")
+                raise UserError(f"marker {name} pixel ({u:.1f}, {v:.1f}) lies outside the {w} x {h} image")
             item = {"name": name, "pixel": [round(float(u), 3), round(float(v), 3)]}
             if self.image.depth_m is not None:
                 d = self.image.depth_at(u, v)

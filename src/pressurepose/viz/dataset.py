@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pressurepose.files import save_figure
+
 
 def plot_contact_sheet(path: Path, images: np.ndarray, labels: list[str], max_pressure: float = 100.0,
                        cols: int = 8) -> Path:
@@ -29,7 +31,7 @@ def plot_contact_sheet(path: Path, images: np.ndarray, labels: list[str], max_pr
             ax.set_title(labels[k], fontsize=6)
     if im is not None:
         fig.colorbar(im, ax=axes, fraction=0.02, label="mmHg")
-    fig.savefig(path, dpi=90, format="png")
+    save_figure(fig, path, dpi=90, format="png")
     plt.close(fig)
     return Path(path)
 

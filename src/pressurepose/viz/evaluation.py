@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pressurepose.files import save_figure
+
 
 def plot_cases(path, cases: list[tuple], faces: np.ndarray, points: int = 4000) -> None:
     """cases: [(title, pressure (64, 27), true vertices (V, 3), estimated vertices (V, 3))]."""
@@ -29,7 +31,7 @@ def plot_cases(path, cases: list[tuple], faces: np.ndarray, points: int = 4000) 
                 ax.invert_yaxis()
         row[1].legend(loc="upper right", fontsize=7, markerscale=8)
     fig.tight_layout()
-    fig.savefig(path, format="png", dpi=80)
+    save_figure(fig, path, format="png", dpi=80)
     plt.close(fig)
 
 

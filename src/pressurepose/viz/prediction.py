@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 
 from pressurepose.body.joints import J24_PARENTS  # noqa: E402
 from pressurepose.mat import MatSpec  # noqa: E402
+from pressurepose.files import save_figure
 
 
 def _bones(ax, u: np.ndarray, v: np.ndarray, color: str = "crimson") -> None:
@@ -53,6 +54,6 @@ def plot_prediction(path: str | Path, pressure_mmhg: np.ndarray, vertices: np.nd
     ax_side.set_ylabel("z (m)")
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(Path(path), dpi=90, format="png")
+    save_figure(fig, Path(path), dpi=90, format="png")
     plt.close(fig)
     return Path(path)

@@ -16,6 +16,7 @@ from matplotlib.patches import Rectangle  # noqa: E402
 from pressurepose.body.joints import J24_NAMES  # noqa: E402
 from pressurepose.mat import MatSpec  # noqa: E402
 from pressurepose.sampling.partitions import ARM_CELLS, LEG_CELLS  # noqa: E402
+from pressurepose.files import save_figure
 
 _J = J24_NAMES.index
 _LIMBS = (("left leg", "left_hip", "left_knee", "left_ankle", LEG_CELLS),
@@ -112,6 +113,6 @@ def posed_vertices(model, params, batch: int = 16) -> np.ndarray:
 def _save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pressurepose.files import save_figure
+
 
 def plot_sample(path: Path, pressure_mmhg: np.ndarray, depth_mm: np.ndarray, vertices: np.ndarray,
                 title: str = "", max_pressure: float = 100.0, bed_profile: np.ndarray | None = None) -> Path:
@@ -46,9 +48,6 @@ def plot_sample(path: Path, pressure_mmhg: np.ndarray, depth_mm: np.ndarray, ver
     axes[3].set_title("top view")
     fig.suptitle(title)
     fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=90)
+    path = save_figure(fig, Path(path), dpi=90, format="png")
     plt.close(fig)
-    tmp.replace(path)
     return path

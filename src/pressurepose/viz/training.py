@@ -9,6 +9,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from pressurepose.files import save_figure
+
 
 def plot_metrics(history: list[dict], path: str | Path) -> Path:
     """Loss (left) and MPJPE in mm (right) per epoch, train and validation. Writes a PNG."""
@@ -28,6 +30,6 @@ def plot_metrics(history: list[dict], path: str | Path) -> Path:
     ax_err.set_ylabel("MPJPE (mm)")
     ax_err.legend()
     fig.tight_layout()
-    fig.savefig(Path(path), dpi=100, format="png")
+    save_figure(fig, Path(path), dpi=100, format="png")
     plt.close(fig)
     return Path(path)

@@ -27,6 +27,7 @@ import torch
 
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.params import BodyParams
+from pressurepose.errors import UserError
 
 PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
 LABEL_KEYS = ("split", "partition", "gender", "over_bed", "index")
@@ -47,10 +48,10 @@ class NpzImages(torch.utils.data.Dataset):
             with np.load(path, allow_pickle=False) as f:
                 arrays = {k: f[k] for k in f.files}
         except (OSError, ValueError, EOFError) as exc:
-            raise ValueError(f"{path} is not a readable .npz ({exc}); {HINT}") from None
+            raise UserError(f"{path} is not a readable .npz ({exc}); {HINT}") from None
         p = arrays.get("pressure_mmhg")
         if p is None or p.ndim != 3 or p.shape[1:] != (64, 27):
-            raise ValueError(f"{path} holds no pressure_mmhg array of shape (N, 64, 27); {HINT}")
+            raise UserError(f"{path} holds no pressure_mmhg array of shape (N, 64, 27); {HINT}")
         n = len(p)
         self.arrays = {k: v for k, v in arrays.items() if v.ndim >= 1 and len(v) == n}
         self.n = n
@@ -109,7 +110,7 @@ class Browser:
                  smpl_dir: Path | None = None, model: Path | None = None, cache: int = 8) -> None:
         path = Path(path)
         if not path.exists():
-            raise ValueError(f"{path} does not exist; {HINT}")
+            raise UserError(f"{path} does not exist; {HINT}")
         self.path, self.kind, self.note = path, "", ""
         self.dataset = None
         self.split: str | None = None
@@ -128,7 +129,7 @@ class Browser:
         self._cache_size = cache
         if path.is_file():
             if path.suffix != ".npz":
-                raise ValueError(f"{path} is a file but not a .npz; {HINT}")
+                raise UserError(f"{path} is a file but not a .npz; {HINT}")
             self.kind, self.dataset = "images", NpzImages(path)
         elif (path / "manifest.json").is_file():
             self.kind, self.dataset = "dataset", _open_samples(path, None)
@@ -140,23 +141,23 @@ class Browser:
         elif path.is_dir() and any(path.glob("*.npz")):
             self.kind, self.dataset = "dataset", _open_samples(path, None)
         elif path.is_dir() and (path / "real.json").is_file():
-            raise ValueError(f"{path} is an `evaluate-real` report (no bodies to show); view the PmatData images with "
+            raise UserError(f"{path} is an `evaluate-real` report (no bodies to show); view the PmatData images with "
                              "`pressurepose import-pmatdata --out pmat.npz` and `pressurepose view pmat.npz --model RUN`")
         elif path.is_dir() and (path / "generate.json").is_file():
-            raise ValueError(f"{path} holds an unfinished dataset (no manifest.json); re-run the same "
+            raise UserError(f"{path} holds an unfinished dataset (no manifest.json); re-run the same "
                              "`pressurepose generate` command to finish it")
         else:
             empty = path.is_dir() and not any(path.iterdir())
-            raise ValueError(f"{path} is {'an empty folder' if empty else 'none of what the viewer reads'}; {HINT}")
+            raise UserError(f"{path} is {'an empty folder' if empty else 'none of what the viewer reads'}; {HINT}")
         if model is not None:
             from pressurepose.models import resolve_model
             from pressurepose.train.checkpoint import read_model
 
             if self.kind == "report":
-                raise ValueError("--model is for datasets, runs and .npz images; a report has its own estimates")
+                raise UserError("--model is for datasets, runs and .npz images; a report has its own estimates")
             run = resolve_model(model)  # "default": the packaged network
             if not (run / "model.safetensors").is_file():
-                raise ValueError(f"--model {model} is not a training run folder (no model.safetensors)")
+                raise UserError(f"--model {model} is not a training run folder (no model.safetensors)")
             self._net_run = run
             self.backend = self.backend or read_model(run)[1].get("net", {}).get("backend")
         if self.backend is None:
@@ -167,35 +168,35 @@ class Browser:
 
     def _open_report(self, path: Path, data: Path | None) -> None:
         from pressurepose.eval.report import PREDICTIONS, read_predictions
-        from pressurepose.files import read_json
+        from pressurepose.validate import read_json
 
         record = read_json(path / "report.json", "report")
         if not isinstance(record, dict) or "per_sample" not in record or "config" not in record:
-            raise ValueError(f"{path / 'report.json'} is not a `pressurepose evaluate` report; {HINT}")
+            raise UserError(f"{path / 'report.json'} is not a `pressurepose evaluate` report; {HINT}")
         self.kind = "report"
         self.split = record["config"].get("split", "test")
         self.per_sample = record["per_sample"]
         self.summary = {k: v.get("mean") for k, v in record.get("overall", {}).items()}
         root = data or _resolve(record["config"].get("data"), path)
         if root is None:
-            raise ValueError(f"the report's dataset {record['config'].get('data')!r} is not found; "
+            raise UserError(f"the report's dataset {record['config'].get('data')!r} is not found; "
                              "give it with --data DIR")
         self.dataset = _open_samples(Path(root), self.split)
         n = len(self.per_sample.get("vpe_m", []))
         if len(self.dataset) < n:
-            raise ValueError(f"{root} has {len(self.dataset)} {self.split} samples but the report evaluated {n}: "
+            raise UserError(f"{root} has {len(self.dataset)} {self.split} samples but the report evaluated {n}: "
                              "not the report's dataset; give the right one with --data DIR")
         if (path / PREDICTIONS).is_file():
             index, params = read_predictions(path / PREDICTIONS)
             if not np.array_equal(index, np.arange(len(index))) or len(index) != n:
-                raise ValueError(f"{path / PREDICTIONS} does not match report.json; re-run `pressurepose evaluate`")
+                raise UserError(f"{path / PREDICTIONS} does not match report.json; re-run `pressurepose evaluate`")
             self.estimates = params
         else:
             self.note = f"no {PREDICTIONS} in the report (made before the viewer existed): true bodies only"
         self._limit = n
 
     def _open_run(self, path: Path, data: Path | None) -> None:
-        from pressurepose.files import read_json
+        from pressurepose.validate import read_json
 
         record = read_json(path / "config.json", "run config")
         self.kind = "run"

@@ -29,6 +29,7 @@ from importlib import resources
 from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
+from pressurepose.errors import UserError
 from pressurepose.viz.view_data import IMAGES, Browser
 
 log = logging.getLogger(__name__)
@@ -164,13 +165,13 @@ class LocalServer(ThreadingHTTPServer):
 
     def __init__(self, port: int, handler: type[LocalHandler]) -> None:
         if not 0 <= port <= 65535:
-            raise ValueError(f"--port must be in 0..65535, got {port}")
+            raise UserError(f"--port must be in 0..65535, got {port}")
         try:
             super().__init__(("127.0.0.1", port), handler)
         except OSError as exc:
             if exc.errno in (errno.EADDRINUSE, errno.EACCES):
                 why = "in use" if exc.errno == errno.EADDRINUSE else "not allowed"
-                raise ValueError(f"port {port} on 127.0.0.1 is {why}; "
+                raise UserError(f"port {port} on 127.0.0.1 is {why}; "
                                  "choose another with --port N (--port 0 picks a free one)") from None
             raise
 
