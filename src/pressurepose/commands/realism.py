@@ -22,8 +22,9 @@ from typing import Literal
 import numpy as np
 import torch
 
+from pressurepose.errors import UserError
 from pressurepose.eval import realism as R
-from pressurepose.files import atomic_write
+from pressurepose.files import write_text
 
 POSTURES = ("supine", "left", "right")
 ROLL_RAD = {"supine": 0.0, "left": -math.pi / 2, "right": math.pi / 2}
@@ -63,7 +64,7 @@ def load_real(root: Path, threshold: float) -> tuple[dict[tuple[str, str], tuple
     root = resolve_pmatdata(root)
     records = [r for r in load_index(root) if r.bed_incline_deg == 0 and r.posture in POSTURES and r.group != "E"]
     if not records:
-        raise ValueError(f"{root / 'index.csv'}: no flat-bed supine, left or right frames (columns posture, "
+        raise UserError(f"{root / 'index.csv'}: no flat-bed supine, left or right frames (columns posture, "
                          "bed_incline_deg); see docs/realism.md for the format")
     out = {}
     for posture in POSTURES:
@@ -166,8 +167,8 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {"command": "realism", "config": {k: str(v) for k, v in dataclasses.asdict(cfg).items()},
               "rows": rows, "ceilings": ceilings}
-    paths = {"json": atomic_write(cfg.out / "report.json", lambda t: Path(t).write_text(json.dumps(record, indent=1)))}
-    paths["markdown"] = atomic_write(cfg.out / "report.md", lambda t: Path(t).write_text(_markdown(record)))
+    paths = {"json": write_text(cfg.out / "report.json", json.dumps(record, indent=1))}
+    paths["markdown"] = write_text(cfg.out / "report.md", _markdown(record))
     from pressurepose.viz.realism import plot_realism
 
     for (posture, mattress), (a, b) in figures.items():

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pressurepose.files import atomic_write
+from pressurepose.files import save_figure
 
 
 def plot_realism(path: Path, real, sim, title: str) -> Path:
@@ -42,6 +42,6 @@ def plot_realism(path: Path, real, sim, title: str) -> Path:
         a.legend()
     fig.suptitle(title)
     fig.tight_layout()
-    out = atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=70, format="png"))
+    out = save_figure(fig, Path(path), dpi=70)
     plt.close(fig)
     return out
