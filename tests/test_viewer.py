@@ -223,7 +223,7 @@ def test_bad_paths_and_ports(folders, tmp_path, capsys):
     (tmp_path / "broken").mkdir()
     (tmp_path / "broken" / "manifest.json").write_text("{ not json")
     cases = {tmp_path / "missing": "does not exist", tmp_path / "empty": "empty folder",
-             tmp_path / "notes.txt": "not a .npz", tmp_path / "broken": "not valid JSON"}
+             tmp_path / "notes.txt": "not a .npz", tmp_path / "broken": "not readable JSON"}
     # a report whose dataset is gone, a dataset whose shard is cut short
     shutil.copytree(folders["report"], tmp_path / "report")
     rec = json.loads((tmp_path / "report" / "report.json").read_text())
