@@ -130,6 +130,8 @@ def test_hessian_from_moments_matches_autograd(anny64):
 
     mat, mp = MatSpec(), MattressParams()
     p = _bodies(anny64, 1)
+    lowest = float(surface_points(anny64(p).vertices, anny64.faces)[..., 2].min())
+    p = p.replace(root_translation=p.root_translation - torch.tensor([[0.0, 0.0, lowest]], dtype=torch.float64))
     out = anny64(p)
     faces = anny64.faces
     face_part = anny64.part_labels[faces[:, 0]]
@@ -142,7 +144,11 @@ def test_hessian_from_moments_matches_autograd(anny64):
     X, Y = cell_centres(mat, 2, covered=True, dtype=torch.float64)
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
     k = _stiffness(mass.sum(1), ArticulatedConfig(), dofs)
-    lin = _Linearised(h, part, xy, a, mass, com, e + 0.05, k, dofs, mat.pitch_row_m * mat.pitch_col_m / 4, 3e5)
+    # Hinge limits active on every DoF: a range of +-0.005 rad about 0.
+    n = dofs.n
+    limits = (torch.zeros(1, n, dtype=torch.float64), torch.full((n,), -0.005, dtype=torch.float64),
+              torch.full((n,), 0.005, dtype=torch.float64), 100 * k)
+    lin = _Linearised(h, part, xy, a, mass, com, e + 0.05, k, dofs, mat.pitch_row_m * mat.pitch_col_m / 4, 3e5, limits)
     lowest = float(lin.h[lin.mask.bool()].min())
     q = torch.zeros(1, dofs.n, dtype=torch.float64)
     q[0, 0] = -lowest - 0.03

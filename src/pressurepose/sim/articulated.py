@@ -36,7 +36,7 @@ import dataclasses
 import torch
 
 from pressurepose.body.joints import J24_NAMES, J24_PARENTS, NUM_JOINTS
-from pressurepose.body.kinematics import forward_kinematics, rest_joints
+from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BODY_DENSITY_KG_M3, BodyModel
 from pressurepose.body.params import BodyParams, root_matrix, supine_rotation
@@ -74,10 +74,15 @@ class ArticulatedConfig:
     outer: int = 10
     """Re-posings of the mesh (each re-linearises the kinematics)."""
     inner: int = 25
-    """Newton steps per linearisation."""
+    """Newton steps of the last linearisation (the rest itself)."""
+    inner_reposing: int = 6
+    """Newton steps of the linearisations before each re-posing."""
     max_rotation_rad: float = 0.25
     """Largest joint rotation per re-posing (the linearisation's trust region)."""
-    max_shift_m: float = 0.03
+    max_shift_m: float = 0.05
+    settled_rotation_rad: float = 5e-3
+    """Re-posing stops once no joint turns more than this (5 mrad: 1.5 mm at a forearm's end)."""
+    settled_shift_m: float = 3e-4
     sub: int = 2
     """Grid cells per taxel side."""
     tol: float = 1e-4
@@ -119,6 +124,7 @@ class _Dofs:
                     axis_world.append(ax)
         self.joint = torch.tensor(joint, device=device)
         self.axis_body = axis_body
+        self.hinge_axis = torch.tensor([-1 if a is None else a for a in axis_body], device=device)
         self.axis_world = axis_world
         self.n = len(joint)
         # desc[j, s] = 1 when part s moves with joint j (s in j's subtree); joint 0 moves all.
@@ -206,24 +212,37 @@ def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | Non
         return k1 * w + k3 * w**3, k1 + 3 * k3 * w**2, 0.5 * k1 * w**2 + 0.25 * k3 * w**4
     kt = tissue_pa_per_m
     u = w * (kt / (kt + k1))  # the linear split: an upper bound of the root
-    for _ in range(30):
-        g = u + (k1 * u + k3 * u**3) / kt - w
-        u = u - g / (1 + (k1 + 3 * k3 * u**2) / kt)
-        if bool((g.abs() <= 1e-13 + 1e-10 * w).all()):
-            break
+    for _ in range(_SERIES_NEWTON):
+        u2 = u * u
+        u = u - (u + (k1 * u + k3 * u2 * u) / kt - w) / (1 + (k1 + 3 * k3 * u2) / kt)
     p = k1 * u + k3 * u**3
     kf = k1 + 3 * k3 * u**2
     return p, kf * kt / (kf + kt), 0.5 * k1 * u**2 + 0.25 * k3 * u**4 + p**2 / (2 * kt)
+
+
+# Newton steps of the series split: from the linear split's upper bound the iteration is
+# monotone and quadratic; 8 steps reach round-off for compressions up to the mattress's
+# thickness at the stiffest tissue the fit allows (tests/test_articulated.py checks the law).
+_SERIES_NEWTON = 8
+# Cells whose lowest point lies higher than this above the mattress top cannot touch within
+# one re-posing's trust region (3 cm of shift, 0.25 rad on a limb); they join when they come
+# closer. Gravity acts on the parts' masses whatever cells are kept.
+_REACH_M = 0.12
+# A hinge pushed beyond its limit meets a spring this many times its own stiffness.
+_LIMIT_STIFFNESS_RATIO = 100.0
 
 
 class _Linearised:
     """Everything the Newton steps need at one posing of the mesh: the cells under the body
     (packed, K per body), their height h, part, and d(height)/dq (B, K, N)."""
 
-    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: _Dofs, area, tissue):
+    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: _Dofs, area, tissue, limits=None):
         B = h.shape[0]
         self.tissue = tissue
-        valid = h < EMPTY_HEIGHT_M
+        # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
+        # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
+        self.limits = limits
+        valid = h < _REACH_M
         K = max(int(valid.sum(1).max()), 1)
         self.index = torch.argsort((~valid).to(torch.int8), dim=1, stable=True)[:, :K]
         self.h = h.gather(1, self.index)
@@ -231,8 +250,8 @@ class _Linearised:
         self.part = part.gather(1, self.index)
         self.area, self.dofs, self.dof_a = area, dofs, dof_a
         self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
-        in_sub = dofs.desc[dofs.joint][:, self.part].permute(1, 2, 0)  # (B, K, N): cell moves with DoF
-        self.J = torch.einsum("bnt,bkt->bkn", dof_a, self.basis) * in_sub * self.mask[..., None]
+        self.dof_parts = dofs.desc[dofs.joint]  # (N, 24): parts each DoF moves
+        self.cell_basis = self.basis * self.mask[..., None]
         # Gravity: d(sum m g z)/d(theta_n) over the parts in the subtree, constant.
         gb = torch.cat([torch.ones_like(com[..., :1]), com[..., :2]], -1) * (mass * GRAVITY_M_S2)[..., None]
         sub_g = torch.einsum("js,bst->bjt", dofs.desc, gb)  # (B, 24, 3)
@@ -242,12 +261,27 @@ class _Linearised:
         self.deeper = dofs.deeper.clamp(min=0)
 
     def compression(self, q):
-        return torch.relu(-(self.h + torch.bmm(self.J, q[..., None])[..., 0])) * self.mask
+        # The height change of a cell is affine in its (x, y) with per-part coefficients
+        # A_s = sum over the DoFs that move part s of q_n a_n: no (cells x DoFs) matrix.
+        A = torch.einsum("ns,bn,bnt->bst", self.dof_parts, q, self.dof_a)  # (B, 24, 3)
+        dz = (A.gather(1, self.part[..., None].expand(-1, -1, 3)) * self.cell_basis).sum(-1)
+        return torch.relu(-(self.h + dz)) * self.mask
 
     def energy(self, q, mp: MattressParams):
         w = self.compression(q)
         _, _, phi = series_law(w, mp, self.tissue)
-        return (self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
+        return ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
+                + self._limit(q)[0])
+
+    def _limit(self, q):
+        """Energy (B,), gradient (B, N) and curvature (B, N) of the hinge-limit springs."""
+        if self.limits is None:
+            return q.new_zeros(q.shape[0]), torch.zeros_like(q), torch.zeros_like(q)
+        angle, lo, hi, k_lim = self.limits
+        a = angle + q
+        over = torch.relu(a - hi) - torch.relu(lo - a)  # signed excess beyond the range
+        active = (over != 0).to(q.dtype)
+        return 0.5 * (k_lim * over**2).sum(1), k_lim * over, k_lim * active
 
     def newton_step(self, q, mp: MattressParams):
         """Gradient (B, N), Hessian (B, N, N), cell forces (B, K) N and compressions (B, K) m."""
@@ -255,16 +289,20 @@ class _Linearised:
         p, dp, _ = series_law(w, mp, self.tissue)
         f = p * self.area
         c = dp * self.area * (w > 0)
-        grad = self.g_grav + self.k * (self.e + q) - torch.bmm(f[:, None], self.J)[:, 0]
+        B = q.shape[0]
+        f_part = q.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, self.part[..., None].expand(-1, -1, 3),
+                                                           f[..., None] * self.cell_basis)
+        _, g_lim, c_lim = self._limit(q)
+        grad = (self.g_grav + self.k * (self.e + q) + g_lim
+                - torch.einsum("bnt,ns,bst->bn", self.dof_a, self.dof_parts, f_part))
         # Hessian from the parts' stiffness moments sum c (1, x, y)(1, x, y)^T, summed over
         # subtrees: H_nl = a_n^T M[overlap(n, l)] a_l.
-        B = q.shape[0]
         outer = (c[..., None, None] * self.basis[..., :, None] * self.basis[..., None, :]).reshape(B, -1, 9)
         m_part = q.new_zeros(B, NUM_JOINTS, 9).scatter_add_(1, self.part[..., None].expand(-1, -1, 9), outer)
         m_sub = torch.einsum("js,bsx->bjx", self.dofs.desc, m_part).view(B, NUM_JOINTS, 3, 3)
         M = m_sub[:, self.deeper]  # (B, N, N, 3, 3)
         H = torch.einsum("bns,bnlst,blt->bnl", self.dof_a, M, self.dof_a) * self.deeper_ok
-        H = H + torch.diag_embed(self.k)
+        H = H + torch.diag_embed(self.k + c_lim)
         return grad, H, f, w
 
     def unpack(self, values, cells):
@@ -292,43 +330,58 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
     area = mat.pitch_row_m * mat.pitch_col_m / cfg.sub**2
     lo, hi = _hinge_bounds(dtype, device)
+    jj, ax = dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)
+    is_hinge = dofs.hinge_axis >= 0
+    dof_lo = torch.where(is_hinge, lo[jj, ax], torch.full_like(lo[jj, ax], -float("inf")))
+    dof_hi = torch.where(is_hinge, hi[jj, ax], torch.full_like(hi[jj, ax], float("inf")))
     rest = rest_joints(model, params.shape)
     out = model(params)
-    mass, _ = part_mass_and_com(out.vertices, faces, face_part)
     total_mass = (model.measure(params.shape).mass_kg if mass_kg is None
                   else torch.as_tensor(mass_kg, dtype=dtype, device=device).reshape(-1))
-    mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     weight = total_mass * GRAVITY_M_S2
     k = _stiffness(total_mass, cfg, dofs)
     ref_local = axis_angle_to_matrix(params.pose)
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).
-    lowest = surface_points(out.vertices, faces)[..., 2].amin(1)
-    cur = params.replace(root_translation=params.root_translation
-                         - torch.stack([torch.zeros_like(lowest), torch.zeros_like(lowest), lowest], -1))
+    pts = surface_points(out.vertices, faces)
+    lowest = pts[..., 2].amin(1)
+    drop = torch.stack([torch.zeros_like(lowest), torch.zeros_like(lowest), lowest], -1)
+    cur = params.replace(root_translation=params.root_translation - drop)
+    # The parts ride their joints rigidly while the rest is found: their surface points and
+    # centres of mass are kept in each part's joint frame; the mesh is skinned once at the end.
+    mass, com = part_mass_and_com(out.vertices - drop[:, None], faces, face_part)
+    mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
+    rot, joints = pose_in_mat(rest, cur)
+    local_pts = _to_part_frames(pts - drop[:, None], labels, rot, joints)
+    local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     q = None
     for outer in range(cfg.outer + 1):
-        last = outer == cfg.outer
-        out = model(cur)
-        _, com = part_mass_and_com(out.vertices, faces, face_part)
-        body_com = (mass[..., None] * com).sum(1) / total_mass[:, None]
-        rot, _ = forward_kinematics(rest, cur.pose, root_matrix(cur.root_rotation))
-        pts = surface_points(out.vertices, faces)
-        h, part = _cells(pts, labels, mat, cfg.sub)
-        dof_a, e = _dof_geometry(dofs, rot, out.joints, body_com, cur.pose, ref_local)
-        lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, float(mp.tissue_pa_per_m) or None)
-        q = h.new_zeros(B, dofs.n)
-        q, it = _minimise(lin, q, mp, weight, cfg)
+        if outer > 0:
+            rot, joints = pose_in_mat(rest, cur)
+        com = (rot @ local_com[..., None])[..., 0] + joints
+        body_com = (mass[..., None] * com).sum(1) / mass.sum(1)[:, None]
+        h, part = _cells(_from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub)
+        dof_a, e = _dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
+        hinge_angle = cur.pose[:, dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)]
+        lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, float(mp.tissue_pa_per_m) or None,
+                          (hinge_angle, dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k))
+        q, it = _minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
+                          max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing)
         iters += it
-        if last:
+        if outer == cfg.outer:
             break
-        cur = _apply(cur, q, dofs, rot, out.joints, body_com, lo, hi)
+        if bool((q[:, 0].abs() < cfg.settled_shift_m).all() and (q[:, 1:].abs() < cfg.settled_rotation_rad).all()):
+            # Nothing moves any more: finish this linearisation's solve; it is the rest.
+            q, it = _minimise(lin, q, mp, weight, cfg, max_steps=cfg.inner)
+            iters += it
+            break
+        cur = _apply(cur, q, dofs, rot, joints, body_com)
     # The last linearised solve is the rest: its field balances the weight; the mesh is moved
     # by its (small) motion exactly.
     grad, _, f, w = lin.newton_step(q, mp)
     if lin.tissue is not None:
         w = (w - f / area / lin.tissue).clamp(min=0)  # the foam's share of the compression
-    final = _apply(cur, q, dofs, rot, out.joints, body_com, lo, hi, clamp=False)
+    final = _apply(cur, q, dofs, rot, joints, body_com)
     out = model(final)
     nr, nc = grid_shape(mat, cfg.sub, True)
     foundation = (lin.unpack(f, nr * nc) / area).view(B, nr, nc)
@@ -349,6 +402,25 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     return ArticulatedRest(params=final, vertices=out.vertices, joints=out.joints, foundation_pa=foundation,
                            force_n=force, max_compression_m=w.amax(1), part_force_n=part_force,
                            iterations=iters, failure=failure, sub=cfg.sub)
+
+
+def _part_index(labels: torch.Tensor) -> list[torch.Tensor]:
+    return [torch.nonzero(labels == j)[:, 0] for j in range(NUM_JOINTS)]
+
+
+def _to_part_frames(points, labels, rot, joints):
+    """(B, P, 3) mat-frame points of the parts `labels` (P,) -> each part's joint frame."""
+    out = torch.empty_like(points)
+    for j, idx in enumerate(_part_index(labels)):
+        out[:, idx] = (points[:, idx] - joints[:, j, None]) @ rot[:, j]
+    return out
+
+
+def _from_part_frames(local, labels, rot, joints):
+    out = torch.empty_like(local)
+    for j, idx in enumerate(_part_index(labels)):
+        out[:, idx] = local[:, idx] @ rot[:, j].transpose(-1, -2) + joints[:, j, None]
+    return out
 
 
 def _hinge_bounds(dtype, device):
@@ -391,7 +463,7 @@ def _dof_geometry(dofs: _Dofs, rot, joints, body_com, pose, ref_local):
     return a, e
 
 
-def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig):
+def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps: int):
     """Newton with backtracking on the (convex) linearised energy. Returns q and step counts."""
     B, n = q.shape
     iters = torch.zeros(B, dtype=torch.long, device=q.device)
@@ -399,7 +471,7 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig):
     cap[0] = cfg.max_shift_m
     done = torch.zeros(B, dtype=torch.bool, device=q.device)
     eye = torch.eye(n, dtype=q.dtype, device=q.device)
-    for _ in range(cfg.inner):
+    for _ in range(max_steps):
         grad, H, f, _ = lin.newton_step(q, mp)
         scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
         # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
@@ -430,7 +502,7 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig):
     return q, iters
 
 
-def _apply(params: BodyParams, q, dofs: _Dofs, rot, joints, body_com, lo, hi, clamp=True) -> BodyParams:
+def _apply(params: BodyParams, q, dofs: _Dofs, rot, joints, body_com) -> BodyParams:
     """Turn the DoF motion q into new pose parameters: world rotations applied top-down about
     the joints (the root's about the centre of mass), plus the vertical shift."""
     B = q.shape[0]
@@ -454,8 +526,6 @@ def _apply(params: BodyParams, q, dofs: _Dofs, rot, joints, body_com, lo, hi, cl
     par = [max(p, 0) for p in J24_PARENTS[1:]]
     local = new_rot[:, par].transpose(-1, -2) @ new_rot[:, 1:]
     pose = matrix_to_axis_angle(local)
-    if clamp:
-        pose = torch.maximum(torch.minimum(pose, hi), lo)
     root_m = new_rot[:, 0] @ supine_rotation(dtype, device).T
     root = matrix_to_axis_angle(root_m)
     pelvis = params.root_translation
