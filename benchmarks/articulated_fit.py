@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pressurepose.commands.realism import POSTURES, RealismConfig, load_real, simulate_subjects
+from pressurepose.commands.realism import POSTURES, RealismConfig, load_real, real_scenes, simulate_subjects
 from pressurepose.eval import realism as R
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import ArticulatedConfig
@@ -30,7 +30,8 @@ from pressurepose.sim.mattress import MattressParams
 
 # name, start, low, high (searched in log space)
 SPACE = (("k1_pa_per_m", 2.77e4, 5e3, 1.5e5), ("k3_pa_per_m3", 5.89e7, 1e6, 1e9),
-         ("tissue_pa_per_m", 3e5, 3e4, 3e6), ("spread_m", 0.008, 0.001, 0.02), ("neck", 0.1, 0.01, 1.0))
+         ("tissue_pa_per_m", 3e5, 3e4, 3e6), ("spread_m", 0.008, 0.001, 0.02), ("neck", 0.1, 0.01, 1.0),
+         ("spine", 1.0, 0.1, 10.0))
 
 
 def decode(x):
@@ -51,6 +52,8 @@ def main() -> None:
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
     real, subjects = load_real(Path("pmatdata"), 20.0)
     real_sets = {p: R.summarise(real[(p, args.mattress)][0], real[(p, args.mattress)][1], *pitch) for p in POSTURES}
+    # One simulated body per real frame, where that frame's load lies (docs/realism.md).
+    scenes = {k: v for k, v in real_scenes(real, RealismConfig()).items() if k[1] == args.mattress}
     args.out.mkdir(parents=True, exist_ok=True)
     log = (args.out / "evals.jsonl").open("a")
     best = (float("inf"), None)
@@ -62,17 +65,20 @@ def main() -> None:
                             tissue_pa_per_m=v["tissue_pa_per_m"], spread_m=v["spread_m"])
         t0 = time.perf_counter()
         sims = simulate_subjects(subjects, RealismConfig(settle="none"), mp,
-                                 ArticulatedConfig(neck_stiffness_scale=v["neck"]))
+                                 ArticulatedConfig(neck_stiffness_scale=v["neck"], spine_stiffness_scale=v["spine"]), scenes=scenes)
         total, parts = 0.0, {}
         for p in POSTURES:
-            imgs, hts = sims[p][0], sims[p][1]
-            if len(imgs) < len(subjects) // 2:
+            imgs, hts = sims[(p, args.mattress)][0], sims[(p, args.mattress)][1]
+            if len(imgs) < len(scenes[(p, args.mattress)][0]) // 2:
                 total += 4.0
                 continue
-            c = R.compare(real_sets[p], R.summarise(imgs, hts, *pitch))
-            l = (1 - c.along) + (1 - c.across) + abs(math.log(c.area_ratio)) + 0.5 * abs(math.log(c.coverage_ratio))
+            sim_set = R.summarise(imgs, hts, *pitch)
+            c = R.compare(real_sets[p], sim_set)
+            regions = sum(abs(sim_set.regions[k] - real_sets[p].regions[k]) for k in R.REGION_NAMES)
+            l = ((1 - c.along) + (1 - c.across) + abs(math.log(c.area_ratio)) + 0.5 * abs(math.log(c.coverage_ratio))
+                 + 0.5 * regions)
             parts[p] = {"along": round(c.along, 3), "across": round(c.across, 3), "area": round(c.area_ratio, 3),
-                        "coverage": round(c.coverage_ratio, 3)}
+                        "coverage": round(c.coverage_ratio, 3), "regions": round(regions, 3)}
             total += l
         total /= len(POSTURES)
         log.write(json.dumps({"loss": total, "params": v, "parts": parts, "seconds": time.perf_counter() - t0}) + "\n")

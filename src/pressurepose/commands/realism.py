@@ -28,6 +28,7 @@ from pressurepose.files import write_text
 
 POSTURES = ("supine", "left", "right")
 ROLL_RAD = {"supine": 0.0, "left": -math.pi / 2, "right": math.pi / 2}
+SIDE_MARGIN_M = 0.10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +47,9 @@ class RealismConfig:
     """Mattress/sensor parameter file (default: built-in)."""
     threshold: float = 20.0
     """Noise threshold (raw units) of the real frames."""
+    placement: Literal["real", "centre"] = "real"
+    """Where the simulated bodies lie: one per real frame at that frame's centre of pressure and
+    long-axis angle (the same scene), or all at the mat's centre, straight."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,36 +102,94 @@ def resting_pose(posture: str, batch: int) -> torch.Tensor:
     return pose
 
 
-def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=None, articulated=None):
-    """Per posture: sensor images (N, 64, 27) mmHg of the accepted bodies, their heights (N,),
-    and the rejection reasons."""
+def frame_placement(images: np.ndarray, pitch_row_m: float, pitch_col_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centre of pressure (N, 2) (x along, y across, m, mat frame) and the angle (N,) rad of the
+    load's long axis from the bed's axis (principal axis of the pressure's second moments)."""
+    rows, cols = images.shape[1:]
+    x = (np.arange(rows) + 0.5) * pitch_row_m
+    y = (np.arange(cols) + 0.5) * pitch_col_m
+    w = images / images.sum((1, 2), keepdims=True)
+    cx = (w.sum(2) * x).sum(1)
+    cy = (w.sum(1) * y).sum(1)
+    dx, dy = x[None, :, None] - cx[:, None, None], y[None, None, :] - cy[:, None, None]
+    sxx, syy, sxy = (w * dx**2).sum((1, 2)), (w * dy**2).sum((1, 2)), (w * dx * dy).sum((1, 2))
+    return np.stack([cx, cy], 1), 0.5 * np.arctan2(2 * sxy, sxx - syy)
+
+
+def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=None, articulated=None,
+                      scenes: dict | None = None):
+    """Side-lying bodies hold their trunk's roll (sampling.partitions.HOLD_ROLL_M, in both
+    simulations), as the generator's `lateral_straight` partition does. Per posture (or per (posture, mattress) with `scenes`): sensor images (N, 64, 27) mmHg of
+    the accepted bodies, their heights (N,), the rejection reasons and the seconds it took.
+    `scenes[(posture, mattress)] = (subject ids (N,), centres (N, 2) m, angles (N,) rad)`: one
+    body per real frame, its centre of mass over the frame's centre of pressure, turned by its
+    angle; without it one body per subject at the mat's centre."""
     from pressurepose.body import load_body_model
     from pressurepose.body.fit_shape import shape_for_height_mass
     from pressurepose.body.params import BodyParams
+    from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
     from pressurepose.mat import MatSpec
+    from pressurepose.sim.foundation import mesh_centroid
     from pressurepose.sim.mattress import MattressParams
+    from pressurepose.sampling.partitions import HOLD_ROLL_M
+    from pressurepose.sim.articulated import ArticulatedConfig
     from pressurepose.sim.run import simulate_poses
+    from pressurepose.sim.settle import SettleConfig
 
     mattress = mattress or (MattressParams.load(cfg.params) if cfg.params else MattressParams())
     mat = MatSpec()
     model = load_body_model("anny", dtype=torch.float64)
     heights = torch.tensor([s.height_m for s in subjects], dtype=torch.float64)
     masses = torch.tensor([s.mass_kg for s in subjects], dtype=torch.float64)
-    shape, h, _ = shape_for_height_mass(model, heights, masses, female=0.0)
-    B = len(subjects)
+    shapes, h, _ = shape_for_height_mass(model, heights, masses, female=0.0)
+    row_of = {s.subject: i for i, s in enumerate(subjects)}
+    if scenes is None:
+        centre = np.array([[0.85, mat.sensing_width_m / 2]] * len(subjects))
+        scenes = {(p, None): (np.array([s.subject for s in subjects]), centre, np.zeros(len(subjects))) for p in POSTURES}
     out = {}
-    for posture in POSTURES:
-        params = BodyParams.zeros(B, shape).replace(
-            pose=resting_pose(posture, B),
-            root_rotation=torch.tensor([[ROLL_RAD[posture], 0.0, 0.0]] * B, dtype=torch.float64),
-            root_translation=torch.tensor([[0.85, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64))
+    for (posture, mattress_name), (ids, centres, angles) in scenes.items():
+        idx = torch.tensor([row_of[int(i)] for i in ids])
+        B = len(idx)
+        roll = axis_angle_to_matrix(torch.tensor([[ROLL_RAD[posture], 0.0, 0.0]] * B, dtype=torch.float64))
+        yaw = axis_angle_to_matrix(torch.from_numpy(np.stack([np.zeros(B), np.zeros(B), angles], 1)))
+        params = BodyParams.zeros(B, shapes[idx]).replace(pose=resting_pose(posture, B),
+                                                          root_rotation=matrix_to_axis_angle(yaw @ roll))
+        # The centre of mass over the target point (the rest keeps the horizontal placement).
+        com = mesh_centroid(model(params).vertices, model.faces)
+        # Real subjects lie up to 0.22 m off the mat's centre line; the simulated mattress is
+        # only 8 cm wider than the mat on each side, so a side-lying body placed that far out
+        # would hang its knees and arms over the edge and roll off. Keep the centre of mass
+        # within SIDE_MARGIN_M of the centre line.
+        target = torch.from_numpy(np.asarray(centres, dtype=np.float64)).clone()
+        mid = mat.sensing_width_m / 2
+        target[:, 1] = target[:, 1].clamp(mid - SIDE_MARGIN_M, mid + SIDE_MARGIN_M)
+        params = params.replace(root_translation=torch.cat([target - com[:, :2], torch.full((B, 1), 0.3, dtype=torch.float64)], 1))
         t0 = time.perf_counter()
-        sim = simulate_poses(model, params, mattress, mat, settle=cfg.settle, sim2=cfg.sim2,
-                             articulated=articulated)
+        art = articulated or ArticulatedConfig()
+        if posture != "supine" and art.hold_roll_m == 0:
+            art = dataclasses.replace(art, hold_roll_m=HOLD_ROLL_M)
+        settle_config = SettleConfig(hold_roll_m=HOLD_ROLL_M) if posture != "supine" else None
+        sim = simulate_poses(model, params, mattress, mat, settle=cfg.settle, sim2=cfg.sim2, articulated=art,
+                             settle_config=settle_config)
         ok = [i for i, r in enumerate(sim.reason) if not r]
-        out[posture] = (sim.pressure_mmhg[ok].numpy(), h.numpy()[ok], [r for r in sim.reason if r],
-                        time.perf_counter() - t0)
+        out[(posture, mattress_name)] = (sim.pressure_mmhg[ok].numpy(), h.numpy()[idx.numpy()][ok],
+                                         [r for r in sim.reason if r], time.perf_counter() - t0)
     return out
+
+
+def real_scenes(real: dict, cfg: RealismConfig) -> dict | None:
+    """The simulated scenes matching the real frames (`simulate_subjects`' scenes), or None for
+    placement "centre"."""
+    if cfg.placement == "centre":
+        return None
+    from pressurepose.mat import MatSpec
+
+    mat = MatSpec()
+    scenes = {}
+    for key, (imgs, _, subj) in real.items():
+        centres, angles = frame_placement(imgs, mat.pitch_row_m, mat.pitch_col_m)
+        scenes[key] = (subj, centres, angles)
+    return scenes
 
 
 def run_realism(cfg: RealismConfig) -> dict[str, Path]:
@@ -135,15 +197,16 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
 
     mat = MatSpec()
     real, subjects = load_real(cfg.real, cfg.threshold)
-    sims = simulate_subjects(subjects, cfg)
+    scenes = real_scenes(real, cfg)
+    sims = simulate_subjects(subjects, cfg, scenes=scenes)
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
     rows, ceilings, figures = [], [], {}
     for posture in POSTURES:
-        images, heights, reasons, seconds = sims[posture]
-        sim_set = R.summarise(images, heights, *pitch) if len(images) else None
         for (p, mattress), (imgs, hts, subj) in real.items():
             if p != posture:
                 continue
+            images, heights, reasons, seconds = sims[(posture, mattress if scenes else None)]
+            sim_set = R.summarise(images, heights, *pitch) if len(images) else None
             real_set = R.summarise(imgs, hts, *pitch)
             row = {"posture": posture, "mattress": mattress, "real": _set_dict(real_set),
                    "simulated": _set_dict(sim_set) if sim_set else None, "rejected": reasons,
@@ -186,6 +249,7 @@ def _set_dict(s: R.FrameSet) -> dict:
 def _markdown(record: dict) -> str:
     lines = ["# Realism: simulated vs real pressure images", "",
              f"sim #2 `{record['config']['sim2']}`, sim #1 `{record['config']['settle']}`, "
+             f"placement `{record['config']['placement']}`, "
              f"real frames `{record['config']['real']}`", "",
              "| posture | mattress | along | across | area sim/real | coverage sim (real) | mean mmHg sim (real) "
              "| peak mmHg sim (real) | bodies |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -210,4 +274,5 @@ def _markdown(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["RealismConfig", "load_real", "resting_pose", "run_realism", "simulate_subjects"]
+__all__ = ["RealismConfig", "frame_placement", "load_real", "real_scenes", "resting_pose", "run_realism",
+           "simulate_subjects"]

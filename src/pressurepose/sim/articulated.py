@@ -40,7 +40,7 @@ from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BODY_DENSITY_KG_M3, BodyModel
 from pressurepose.body.params import BodyParams, root_matrix, supine_rotation
-from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, grid_origin, grid_shape, surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
@@ -48,6 +48,8 @@ from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
+FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
+MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
 
 # Seed A.2 stiffness (N m / rad at 70.45 kg) per J24 joint, the same table sim #1 uses.
 _STIFFNESS_BY_KIND = {
@@ -70,6 +72,8 @@ class ArticulatedConfig:
     stiffness_scale: float = 1.0
     """Multiplies every joint's seed stiffness (1 = sim #1's springs)."""
     neck_stiffness_scale: float = 0.1
+    spine_stiffness_scale: float = 1.0
+    """Extra factor on the spine's springs (spine1-3)."""
     """Extra factor on the neck and head springs (a relaxed neck lets the head rest)."""
     outer: int = 10
     """Re-posings of the mesh (each re-linearises the kinematics)."""
@@ -83,6 +87,10 @@ class ArticulatedConfig:
     settled_rotation_rad: float = 5e-3
     """Re-posing stops once no joint turns more than this (5 mrad: 1.5 mm at a forearm's end)."""
     settled_shift_m: float = 3e-4
+    hold_roll_m: float = 0.0
+    """Trunk roll hold: a spring on the body's roll about the bed's long axis of this many metres
+    x its weight per radian (0: none; side-lying bodies need ~0.5 to stay on their side, as in
+    sim #1's `lateral_straight`)."""
     sub: int = 2
     """Grid cells per taxel side."""
     tol: float = 1e-4
@@ -154,6 +162,8 @@ def _stiffness(mass_kg: torch.Tensor, cfg: ArticulatedConfig, dofs: _Dofs) -> to
         k = _STIFFNESS_BY_KIND[_kind(name)] * cfg.stiffness_scale
         if name in ("neck", "head"):
             k *= cfg.neck_stiffness_scale
+        if name.startswith("spine"):
+            k *= cfg.spine_stiffness_scale
         base.append(k)
     base_t = torch.tensor(base, dtype=mass_kg.dtype, device=mass_kg.device)
     return base_t[None] * (mass_kg / _REFERENCE_MASS_KG)[:, None]
@@ -340,6 +350,10 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
                   else torch.as_tensor(mass_kg, dtype=dtype, device=device).reshape(-1))
     weight = total_mass * GRAVITY_M_S2
     k = _stiffness(total_mass, cfg, dofs)
+    # The trunk's roll hold (a person's muscle tone on a side; sim #1's SettleConfig.hold_roll_m):
+    # a spring on the root's roll about the bed's long axis, back to the roll it starts with.
+    k[:, 1] = cfg.hold_roll_m * total_mass * GRAVITY_M_S2
+    root_start = root_matrix(params.root_rotation)
     ref_local = axis_angle_to_matrix(params.pose)
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).
@@ -362,6 +376,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         body_com = (mass[..., None] * com).sum(1) / mass.sum(1)[:, None]
         h, part = _cells(_from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub)
         dof_a, e = _dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
+        e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
         hinge_angle = cur.pose[:, dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)]
         lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, float(mp.tissue_pa_per_m) or None,
                           (hinge_angle, dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k))
@@ -388,9 +403,12 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     part_force = h.new_zeros(B, NUM_JOINTS).scatter_add_(1, lin.part, f * lin.mask)
     failure = []
     force = f.sum(1)
+    turned = rotation_angle(root_matrix(params.root_rotation), root_matrix(final.root_rotation))
     for i in range(B):
         if not bool(lin.mask[i].any()) or float(force[i]) <= 0:
             failure.append(FAIL_NO_SUPPORT)
+        elif float(turned[i]) > MAX_ROLL_RAD:
+            failure.append(FAIL_TILT)
         elif float(w[i].max()) > float(mp.thickness_m):
             failure.append(FAIL_BOTTOM)
         elif abs(float(force[i]) - float(weight[i])) > 1e-3 * float(weight[i]):
