@@ -44,6 +44,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("out/articulated_fit"))
     ap.add_argument("--popsize", type=int, default=8)
     ap.add_argument("--max-iter", type=int, default=6)
+    ap.add_argument("--frames", type=int, default=24, help="real frames simulated per posture (evenly picked)")
     args = ap.parse_args()
     import cma
 
@@ -53,7 +54,11 @@ def main() -> None:
     real, subjects = load_real(Path("pmatdata"), 20.0)
     real_sets = {p: R.summarise(real[(p, args.mattress)][0], real[(p, args.mattress)][1], *pitch) for p in POSTURES}
     # One simulated body per real frame, where that frame's load lies (docs/realism.md).
-    scenes = {k: v for k, v in real_scenes(real, RealismConfig()).items() if k[1] == args.mattress}
+    scenes = {}
+    for k, (ids, centres, angles) in real_scenes(real, RealismConfig()).items():
+        if k[1] == args.mattress:
+            pick = np.linspace(0, len(ids) - 1, min(args.frames, len(ids))).round().astype(int)
+            scenes[k] = (ids[pick], centres[pick], angles[pick])
     args.out.mkdir(parents=True, exist_ok=True)
     log = (args.out / "evals.jsonl").open("a")
     best = (float("inf"), None)

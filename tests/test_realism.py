@@ -100,7 +100,8 @@ def test_realism_command_on_a_tiny_folder(tmp_path, capsys):
     rows = {(r["posture"], r["mattress"]): r for r in record["rows"]}
     assert set(rows) == {("supine", "sponge"), ("left", "sponge"), ("right", "sponge")}
     for r in rows.values():
-        assert r["simulated_bodies"] == 2
+        # one simulated body per real frame (placement "real"): 2 supine, 3 per side and subject
+        assert r["simulated_bodies"] == r["real"]["frames"] == (2 if r["posture"] == "supine" else 6)
         assert 0 < r["comparison"]["along"] <= 1 and 0 < r["comparison"]["across"] <= 1
         assert abs(sum(r["simulated"]["regions"].values()) - 1) < 1e-2
     assert (tmp_path / "out" / "realism_left_sponge.png").stat().st_size > 0
@@ -122,3 +123,14 @@ def test_realism_bad_input_is_one_line(tmp_path, capsys, case):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
     assert not (tmp_path / "out" / "report.md").exists()
+
+
+def test_frame_placement_by_hand():
+    from pressurepose.commands.realism import frame_placement
+
+    img = np.zeros((1, 10, 5))
+    img[0, 2, 1] = 1.0
+    img[0, 6, 3] = 1.0  # centre at row 4.5, col 2.5; the axis from (2, 1) to (6, 3)
+    centre, angle = frame_placement(img, 0.1, 0.2)
+    np.testing.assert_allclose(centre[0], [0.45, 0.5])
+    assert angle[0] == pytest.approx(np.arctan2(0.4, 0.4))  # dx = 0.4 m, dy = 0.4 m: 45 deg

@@ -112,6 +112,10 @@ class GenerateConfig:
     """Samples simulated together inside a shard (part of the dataset's definition)."""
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: Path | None = None
+    sim2: Literal["rigid", "articulated"] = "rigid"
+    """Sim #2: the whole mesh at rigid rest, or every body part on its own contact with
+    compliant joints and soft tissue (images closer to real mats, docs/realism.md; raised
+    beds keep the rigid rest)."""
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -129,7 +133,10 @@ class GenerateConfig:
     def identity(self) -> dict:
         """The fields that define the dataset's content (not how fast it is made)."""
         keep = ("preset", "partition", "n", "seed", "shard_size", "batch", "backend")
-        return {k: getattr(self, k) for k in keep}
+        ident = {k: getattr(self, k) for k in keep}
+        if self.sim2 != "rigid":  # absent for the rigid rest, so datasets made before it resume
+            ident["sim2"] = self.sim2
+        return ident
 
 
 def preset_rows(preset: str) -> list[Group]:

@@ -134,7 +134,7 @@ def _generate(cfg: GenerateConfig, out: Path, settings: dict, mattress: dict, pr
     if resumed:
         log.info("resuming: %d of %d samples already in %s", resumed, total, out)
     ctx = WorkContext(seed=cfg.seed, batch=cfg.batch, backend=cfg.backend,
-                      smpl_dir=str(cfg.smpl_dir) if cfg.smpl_dir else None, mattress=mattress)
+                      smpl_dir=str(cfg.smpl_dir) if cfg.smpl_dir else None, mattress=mattress, sim2=cfg.sim2)
 
     t0 = time.perf_counter()
     made = 0

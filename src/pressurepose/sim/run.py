@@ -68,7 +68,8 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     samples on the same bed are simulated together, results come back in input order).
     `settle_config`: sim #1's settings (default `SettleConfig()`; `settle_config_for` gives a
     partition's). `settle="none"` skips sim #1 (the poses rest as drawn); `sim2`: the whole mesh
-    at rigid rest, or every body part on its own contact (`sim.articulated`, flat beds)."""
+    at rigid rest, or every body part on its own contact (`sim.articulated`; on flat beds,
+    raised beds keep the rigid rest)."""
     if settle not in ("mujoco", "none") or sim2 not in ("rigid", "articulated"):
         raise ValueError(f"settle must be 'mujoco' or 'none' and sim2 'rigid' or 'articulated', got {settle!r}, {sim2!r}")
     options = {"settle": settle, "sim2": sim2, "articulated": articulated}
@@ -125,9 +126,7 @@ def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressPa
         rest, reason1, steps, settle_ms = params.to(dtype=torch.float64), [""] * B, np.zeros(B, dtype=np.int64), np.zeros(B)
     mass = model64.measure(rest.shape).mass_kg
     t0 = time.perf_counter()
-    if sim2 == "articulated":
-        if not bed.flat:
-            raise ValueError("the articulated sim #2 rests bodies on a flat bed only; use sim2='rigid' on a raised bed")
+    if sim2 == "articulated" and bed.flat:  # raised beds keep the rigid rest (docs/physics.md)
         from pressurepose.sim.articulated import rest_articulated
 
         art = rest_articulated(model64, rest, mass, mattress, mat, articulated)
