@@ -10,9 +10,8 @@ from pressurepose.body.capsules import home_pose
 from pressurepose.body.joints import joint_index
 from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
-from pressurepose.sim.articulated import (
-    ArticulatedConfig, _Dofs, _Linearised, part_mass_and_com, rest_articulated, series_law,
-)
+from pressurepose.sim.articulated import FAIL_TILT, ArticulatedConfig, _Linearised, rest_articulated, series_law
+from pressurepose.sim.articulation import Dofs, part_mass_and_com
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 
@@ -92,8 +91,9 @@ def test_mirrored_side_gives_mirrored_image(anny64):
     from pressurepose.commands.realism import resting_pose
 
     pose = resting_pose("left", 1)
-    left = rest_articulated(anny64, _bodies(anny64, 1, roll=-math.pi / 2, pose=pose))
-    right = rest_articulated(anny64, _bodies(anny64, 1, roll=math.pi / 2, pose=pose))
+    held = ArticulatedConfig(hold_roll_m=0.5)
+    left = rest_articulated(anny64, _bodies(anny64, 1, roll=-math.pi / 2, pose=pose), config=held)
+    right = rest_articulated(anny64, _bodies(anny64, 1, roll=math.pi / 2, pose=pose), config=held)
     a, b = left.foundation_pa[0], right.foundation_pa[0].flip(-1)
     assert left.failure == right.failure == [""]
     # Profiles along the bed agree; across, one is the other's mirror.
@@ -126,7 +126,8 @@ def test_hessian_from_moments_matches_autograd(anny64):
     from pressurepose.body.params import root_matrix
     from pressurepose.body.rotations import axis_angle_to_matrix
     from pressurepose.maps import cell_centres, surface_points
-    from pressurepose.sim.articulated import _cells, _dof_geometry, _stiffness
+    from pressurepose.sim.articulated import _cells
+    from pressurepose.sim.articulation import dof_geometry, joint_stiffness
 
     mat, mp = MatSpec(), MattressParams()
     p = _bodies(anny64, 1)
@@ -136,14 +137,14 @@ def test_hessian_from_moments_matches_autograd(anny64):
     faces = anny64.faces
     face_part = anny64.part_labels[faces[:, 0]]
     mass, com = part_mass_and_com(out.vertices, faces, face_part)
-    dofs = _Dofs("cpu", torch.float64)
+    dofs = Dofs("cpu", torch.float64)
     rot, _ = forward_kinematics(rest_joints(anny64, p.shape), p.pose, root_matrix(p.root_rotation))
     h, part = _cells(surface_points(out.vertices, faces), torch.cat([anny64.part_labels, face_part]), mat, 2)
     body_com = (mass[..., None] * com).sum(1) / mass.sum(1, keepdim=True)
-    a, e = _dof_geometry(dofs, rot, out.joints, body_com, p.pose, axis_angle_to_matrix(p.pose))
+    a, e = dof_geometry(dofs, rot, out.joints, body_com, p.pose, axis_angle_to_matrix(p.pose))
     X, Y = cell_centres(mat, 2, covered=True, dtype=torch.float64)
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
-    k = _stiffness(mass.sum(1), ArticulatedConfig(), dofs)
+    k = joint_stiffness(mass.sum(1), dofs)
     # Hinge limits active on every DoF: a range of +-0.005 rad about 0.
     n = dofs.n
     limits = (torch.zeros(1, n, dtype=torch.float64), torch.full((n,), -0.005, dtype=torch.float64),
@@ -171,3 +172,19 @@ def test_part_mass_shares_are_anthropometric(anny64):
     assert bool((mass >= 0).all()) and torch.isfinite(com).all()
     for name, lo, hi in (("head", 0.071, 0.094), ("left_hip", 0.083, 0.105), ("left_knee", 0.045, 0.055)):
         assert 0.6 * lo < float(share[joint_index(name)]) < 1.4 * hi, (name, float(share[joint_index(name)]))
+
+
+def test_side_lying_body_rolls_over_unless_its_trunk_is_held(anny64):
+    """On a side with bent knees and the arms forward the passive body tips towards prone
+    (reported, not kept); with the trunk's roll held it stays within 10 deg of its side."""
+    from pressurepose.body.params import root_matrix
+    from pressurepose.body.rotations import rotation_angle
+    from pressurepose.commands.realism import resting_pose
+
+    p = _bodies(anny64, 1, roll=-math.pi / 2, pose=resting_pose("left", 1))
+    free = rest_articulated(anny64, p)
+    held = rest_articulated(anny64, p, config=ArticulatedConfig(hold_roll_m=0.5))
+    assert free.failure == [FAIL_TILT]
+    assert held.failure == [""]
+    turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(held.params.root_rotation))
+    assert float(turned[0]) < math.radians(10)

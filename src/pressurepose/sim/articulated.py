@@ -35,14 +35,17 @@ import dataclasses
 
 import torch
 
-from pressurepose.body.joints import J24_NAMES, J24_PARENTS, NUM_JOINTS
+from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
-from pressurepose.body.limits import JointLimits
-from pressurepose.body.model import BODY_DENSITY_KG_M3, BodyModel
-from pressurepose.body.params import BodyParams, root_matrix, supine_rotation
+from pressurepose.body.model import BodyModel
+from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, grid_origin, grid_shape, surface_points
 from pressurepose.mat import MatSpec
+from pressurepose.sim.articulation import (
+    Dofs, apply_motion, dof_geometry, from_part_frames, hinge_bounds, joint_stiffness, part_mass_and_com,
+    to_part_frames,
+)
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
@@ -50,20 +53,6 @@ FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
 FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
 MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
-
-# Seed A.2 stiffness (N m / rad at 70.45 kg) per J24 joint, the same table sim #1 uses.
-_STIFFNESS_BY_KIND = {
-    "hip": 6.0, "knee": 3.0, "ankle": 6.0, "foot": 6.0, "collar": 12.0, "shoulder": 6.0, "elbow": 2.0,
-    "wrist": 4.0, "hand": 4.0, "spine1": 200.0, "spine2": 200.0, "spine3": 200.0, "neck": 200.0, "head": 200.0,
-}
-_REFERENCE_MASS_KG = 70.45
-# Hinge axes in SMPL body axes (knees flex about x, elbows about y), as sim #1's hinges.
-_HINGE_AXIS = {"left_knee": 0, "right_knee": 0, "left_elbow": 1, "right_elbow": 1}
-
-
-def _kind(name: str) -> str:
-    return name.split("_", 1)[1] if name.startswith(("left_", "right_")) else name
-
 
 @dataclasses.dataclass(frozen=True)
 class ArticulatedConfig:
@@ -112,84 +101,6 @@ class ArticulatedRest:
     iterations: torch.Tensor      # (B,) Newton steps
     failure: list[str]
     sub: int
-
-
-class _Dofs:
-    """The N degrees of freedom: joint index (subtree), stiffness index, pivot and axis."""
-
-    def __init__(self, device, dtype):
-        joint, axis_body, axis_world = [0, 0, 0], [None, None, None], [None, (1.0, 0.0), (0.0, 1.0)]
-        for j in range(1, NUM_JOINTS):
-            name = J24_NAMES[j]
-            if name in _HINGE_AXIS:
-                joint.append(j)
-                axis_body.append(_HINGE_AXIS[name])
-                axis_world.append(None)
-            else:
-                for ax in ((1.0, 0.0), (0.0, 1.0)):
-                    joint.append(j)
-                    axis_body.append(None)
-                    axis_world.append(ax)
-        self.joint = torch.tensor(joint, device=device)
-        self.axis_body = axis_body
-        self.hinge_axis = torch.tensor([-1 if a is None else a for a in axis_body], device=device)
-        self.axis_world = axis_world
-        self.n = len(joint)
-        # desc[j, s] = 1 when part s moves with joint j (s in j's subtree); joint 0 moves all.
-        desc = torch.zeros(NUM_JOINTS, NUM_JOINTS)
-        for s in range(NUM_JOINTS):
-            j = s
-            while j >= 0:
-                desc[j, s] = 1.0
-                j = J24_PARENTS[j]
-        self.desc = desc.to(device=device, dtype=dtype)
-        # deeper[k, l]: the joint whose subtree is the overlap of DoF k's and l's (-1: none).
-        jk = self.joint
-        related_kl = desc[jk][:, jk].bool().to(device)  # l's joint in k's subtree
-        related_lk = related_kl.T
-        deeper = torch.where(related_kl, jk[None, :].expand(self.n, self.n),
-                             torch.where(related_lk, jk[:, None].expand(self.n, self.n), torch.full_like(related_kl, -1, dtype=torch.long)))
-        self.deeper = deeper
-
-
-def _stiffness(mass_kg: torch.Tensor, cfg: ArticulatedConfig, dofs: _Dofs) -> torch.Tensor:
-    base = []
-    for j in dofs.joint.tolist():
-        if j == 0:
-            base.append(0.0)
-            continue
-        name = J24_NAMES[j]
-        k = _STIFFNESS_BY_KIND[_kind(name)] * cfg.stiffness_scale
-        if name in ("neck", "head"):
-            k *= cfg.neck_stiffness_scale
-        if name.startswith("spine"):
-            k *= cfg.spine_stiffness_scale
-        base.append(k)
-    base_t = torch.tensor(base, dtype=mass_kg.dtype, device=mass_kg.device)
-    return base_t[None] * (mass_kg / _REFERENCE_MASS_KG)[:, None]
-
-
-def part_mass_and_com(vertices: torch.Tensor, faces: torch.Tensor, face_part: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mass (B, 24) kg and centre of mass (B, 24, 3) of each J24 part of a closed mesh: each
-    part's triangles with tetrahedra to the part's own centre (the mean of its triangles'
-    centroids, inside the part), density BODY_DENSITY_KG_M3. The part surfaces are open where
-    parts meet, so the parts' masses add up to the body's within a few per cent; callers
-    scale them to the body's mass."""
-    B = vertices.shape[0]
-    tri = vertices[:, faces]  # (B, F, 3, 3)
-    centroid = tri.mean(2)
-    idx = face_part[None].expand(B, -1)
-    count = vertices.new_zeros(NUM_JOINTS).scatter_add_(0, face_part, torch.ones_like(face_part, dtype=vertices.dtype))
-    apex = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), centroid)
-    apex = apex / count.clamp(min=1)[None, :, None]
-    rel = tri - apex[:, face_part][:, :, None]
-    vol = torch.linalg.det(rel) / 6.0  # (B, F): rows are the corners relative to the apex
-    cen = apex[:, face_part] + rel.sum(2) / 4.0
-    mass = vertices.new_zeros(B, NUM_JOINTS).scatter_add_(1, idx, vol) * BODY_DENSITY_KG_M3
-    moment = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), vol[..., None] * cen)
-    com = torch.where(mass[..., None] > 0, moment * BODY_DENSITY_KG_M3 / mass.clamp(min=1e-12)[..., None], apex)
-    return mass.clamp(min=0), com
 
 
 def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int):
@@ -244,10 +155,10 @@ _LIMIT_STIFFNESS_RATIO = 100.0
 
 class _Linearised:
     """Everything the Newton steps need at one posing of the mesh: the cells under the body
-    (packed, K per body), their height h, part, and d(height)/dq (B, K, N)."""
+    (packed, K per body), their height h, part and (1, x, y), the DoFs' geometry, gravity's
+    gradient, the springs and the limits."""
 
-    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: _Dofs, area, tissue, limits=None):
-        B = h.shape[0]
+    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue, limits=None):
         self.tissue = tissue
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
         # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
@@ -331,7 +242,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     cfg = config or ArticulatedConfig()
     dtype, device = model.dtype, model.device
     B = params.batch_size
-    dofs = _Dofs(device, dtype)
+    dofs = Dofs(device, dtype)
     faces = model.faces
     labels_v = model.part_labels
     face_part = labels_v[faces[:, 0]]
@@ -339,7 +250,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     X, Y = cell_centres(mat, cfg.sub, covered=True, dtype=dtype, device=device)
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
     area = mat.pitch_row_m * mat.pitch_col_m / cfg.sub**2
-    lo, hi = _hinge_bounds(dtype, device)
+    lo, hi = hinge_bounds(dtype, device)
     jj, ax = dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)
     is_hinge = dofs.hinge_axis >= 0
     dof_lo = torch.where(is_hinge, lo[jj, ax], torch.full_like(lo[jj, ax], -float("inf")))
@@ -349,7 +260,8 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     total_mass = (model.measure(params.shape).mass_kg if mass_kg is None
                   else torch.as_tensor(mass_kg, dtype=dtype, device=device).reshape(-1))
     weight = total_mass * GRAVITY_M_S2
-    k = _stiffness(total_mass, cfg, dofs)
+    k = joint_stiffness(total_mass, dofs, cfg.stiffness_scale, cfg.neck_stiffness_scale,
+                        cfg.spine_stiffness_scale)
     # The trunk's roll hold (a person's muscle tone on a side; sim #1's SettleConfig.hold_roll_m):
     # a spring on the root's roll about the bed's long axis, back to the roll it starts with.
     k[:, 1] = cfg.hold_roll_m * total_mass * GRAVITY_M_S2
@@ -366,7 +278,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     mass, com = part_mass_and_com(out.vertices - drop[:, None], faces, face_part)
     mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     rot, joints = pose_in_mat(rest, cur)
-    local_pts = _to_part_frames(pts - drop[:, None], labels, rot, joints)
+    local_pts = to_part_frames(pts - drop[:, None], labels, rot, joints)
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     q = None
     for outer in range(cfg.outer + 1):
@@ -374,8 +286,8 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
             rot, joints = pose_in_mat(rest, cur)
         com = (rot @ local_com[..., None])[..., 0] + joints
         body_com = (mass[..., None] * com).sum(1) / mass.sum(1)[:, None]
-        h, part = _cells(_from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub)
-        dof_a, e = _dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
+        h, part = _cells(from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub)
+        dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
         hinge_angle = cur.pose[:, dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)]
         lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, float(mp.tissue_pa_per_m) or None,
@@ -390,13 +302,13 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
             q, it = _minimise(lin, q, mp, weight, cfg, max_steps=cfg.inner)
             iters += it
             break
-        cur = _apply(cur, q, dofs, rot, joints, body_com)
+        cur = apply_motion(cur, q, dofs, rot, joints, body_com)
     # The last linearised solve is the rest: its field balances the weight; the mesh is moved
     # by its (small) motion exactly.
     grad, _, f, w = lin.newton_step(q, mp)
     if lin.tissue is not None:
         w = (w - f / area / lin.tissue).clamp(min=0)  # the foam's share of the compression
-    final = _apply(cur, q, dofs, rot, joints, body_com)
+    final = apply_motion(cur, q, dofs, rot, joints, body_com)
     out = model(final)
     nr, nc = grid_shape(mat, cfg.sub, True)
     foundation = (lin.unpack(f, nr * nc) / area).view(B, nr, nc)
@@ -420,65 +332,6 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     return ArticulatedRest(params=final, vertices=out.vertices, joints=out.joints, foundation_pa=foundation,
                            force_n=force, max_compression_m=w.amax(1), part_force_n=part_force,
                            iterations=iters, failure=failure, sub=cfg.sub)
-
-
-def _part_index(labels: torch.Tensor) -> list[torch.Tensor]:
-    return [torch.nonzero(labels == j)[:, 0] for j in range(NUM_JOINTS)]
-
-
-def _to_part_frames(points, labels, rot, joints):
-    """(B, P, 3) mat-frame points of the parts `labels` (P,) -> each part's joint frame."""
-    out = torch.empty_like(points)
-    for j, idx in enumerate(_part_index(labels)):
-        out[:, idx] = (points[:, idx] - joints[:, j, None]) @ rot[:, j]
-    return out
-
-
-def _from_part_frames(local, labels, rot, joints):
-    out = torch.empty_like(local)
-    for j, idx in enumerate(_part_index(labels)):
-        out[:, idx] = local[:, idx] @ rot[:, j].transpose(-1, -2) + joints[:, j, None]
-    return out
-
-
-def _hinge_bounds(dtype, device):
-    """(23, 3) lower and upper pose bounds: the joint limits on the knees' and elbows' hinge
-    angle (no hyperextension), unbounded elsewhere (the springs hold the ball joints)."""
-    limits = JointLimits.default(dtype, device)
-    lo = torch.full_like(limits.lower, -float("inf"))
-    hi = torch.full_like(limits.upper, float("inf"))
-    for name, axis in _HINGE_AXIS.items():
-        j = J24_NAMES.index(name) - 1
-        lo[j, axis], hi[j, axis] = limits.lower[j, axis], limits.upper[j, axis]
-    return lo, hi
-
-
-def _dof_geometry(dofs: _Dofs, rot, joints, body_com, pose, ref_local):
-    """Per DoF: a_k (B, N, 3) with d(height)/d(theta_k) = a_k . (1, x, y) inside its subtree,
-    and e_k (B, N) the spring's present deflection about the DoF's axis."""
-    B = rot.shape[0]
-    n = dofs.n
-    u = rot.new_zeros(B, n, 3)
-    pivot = rot.new_zeros(B, n, 3)
-    for i in range(n):
-        j = int(dofs.joint[i])
-        pivot[:, i] = body_com if j == 0 else joints[:, j]
-        if dofs.axis_world[i] is not None:
-            u[:, i, 0], u[:, i, 1] = dofs.axis_world[i]
-        elif dofs.axis_body[i] is not None:
-            u[:, i] = rot[:, j, :, dofs.axis_body[i]]  # the hinge axis in the joint's own frame
-    # dz: height + theta; rotation: (u x (r - p))_z = u_x (y - p_y) - u_y (x - p_x)
-    a = torch.stack([u[..., 1] * pivot[..., 0] - u[..., 0] * pivot[..., 1], -u[..., 1], u[..., 0]], -1)
-    a[:, 0] = torch.tensor([1.0, 0.0, 0.0], dtype=a.dtype, device=a.device)
-    # Deflection from the reference pose, in the world frame: parent's rotation applied to
-    # the rotation vector of (local @ reference^T), then its component along u.
-    local = axis_angle_to_matrix(pose)
-    dev = matrix_to_axis_angle(local @ ref_local.transpose(-1, -2))  # (B, 23, 3) local frame
-    par = torch.tensor([max(p, 0) for p in J24_PARENTS[1:]], device=rot.device)
-    dev_world = (rot[:, par] @ dev[..., None])[..., 0]  # (B, 23, 3)
-    jj = dofs.joint.clamp(min=1) - 1
-    e = (dev_world[:, jj] * u).sum(-1) * (dofs.joint > 0)
-    return a, e
 
 
 def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps: int):
@@ -518,38 +371,6 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps
         if bool(done.all()):
             break
     return q, iters
-
-
-def _apply(params: BodyParams, q, dofs: _Dofs, rot, joints, body_com) -> BodyParams:
-    """Turn the DoF motion q into new pose parameters: world rotations applied top-down about
-    the joints (the root's about the centre of mass), plus the vertical shift."""
-    B = q.shape[0]
-    dtype, device = q.dtype, q.device
-    delta = q.new_zeros(B, NUM_JOINTS, 3)
-    for i in range(1, dofs.n):
-        j = int(dofs.joint[i])
-        if dofs.axis_world[i] is not None:
-            u = torch.tensor([*dofs.axis_world[i], 0.0], dtype=dtype, device=device).expand(B, 3)
-        else:
-            u = rot[:, j, :, dofs.axis_body[i]]
-        delta[:, j] = delta[:, j] + q[:, i, None] * u
-    D = axis_angle_to_matrix(delta)  # (B, 24, 3, 3) world-frame rotation at each joint
-    U = [None] * NUM_JOINTS
-    U[0] = D[:, 0]
-    new_rot = rot.clone()
-    new_rot[:, 0] = U[0] @ rot[:, 0]
-    for j in range(1, NUM_JOINTS):
-        U[j] = D[:, j] @ U[J24_PARENTS[j]]
-        new_rot[:, j] = U[j] @ rot[:, j]
-    par = [max(p, 0) for p in J24_PARENTS[1:]]
-    local = new_rot[:, par].transpose(-1, -2) @ new_rot[:, 1:]
-    pose = matrix_to_axis_angle(local)
-    root_m = new_rot[:, 0] @ supine_rotation(dtype, device).T
-    root = matrix_to_axis_angle(root_m)
-    pelvis = params.root_translation
-    moved = body_com + (U[0] @ (pelvis - body_com)[..., None])[..., 0]
-    moved = moved + torch.stack([torch.zeros_like(q[:, 0]), torch.zeros_like(q[:, 0]), q[:, 0]], -1)
-    return params.replace(pose=pose, root_rotation=root, root_translation=moved)
 
 
 __all__ = ["ArticulatedConfig", "ArticulatedRest", "part_mass_and_com", "rest_articulated"]
