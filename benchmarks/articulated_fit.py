@@ -31,7 +31,7 @@ from pressurepose.sim.mattress import MattressParams
 # name, start, low, high (searched in log space)
 SPACE = (("k1_pa_per_m", 2.77e4, 5e3, 1.5e5), ("k3_pa_per_m3", 5.89e7, 1e6, 1e9),
          ("tissue_pa_per_m", 3e5, 3e4, 3e6), ("spread_m", 0.008, 0.001, 0.02), ("neck", 0.1, 0.01, 1.0),
-         ("spine", 1.0, 0.1, 10.0))
+         ("spine", 1.0, 0.1, 10.0), ("belly", 0.3, 0.05, 1.5))
 
 
 def decode(x):
@@ -70,7 +70,8 @@ def main() -> None:
                             tissue_pa_per_m=v["tissue_pa_per_m"], spread_m=v["spread_m"])
         t0 = time.perf_counter()
         sims = simulate_subjects(subjects, RealismConfig(settle="none"), mp,
-                                 ArticulatedConfig(neck_stiffness_scale=v["neck"], spine_stiffness_scale=v["spine"]), scenes=scenes)
+                                 ArticulatedConfig(neck_stiffness_scale=v["neck"], spine_stiffness_scale=v["spine"],
+                                                   tissue_by_part=(("spine1", v["belly"]), ("spine2", v["belly"]))), scenes=scenes)
         total, parts = 0.0, {}
         for p in POSTURES:
             imgs, hts = sims[(p, args.mattress)][0], sims[(p, args.mattress)][1]

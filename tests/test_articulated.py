@@ -188,3 +188,26 @@ def test_side_lying_body_rolls_over_unless_its_trunk_is_held(anny64):
     assert held.failure == [""]
     turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(held.params.root_rotation))
     assert float(turned[0]) < math.radians(10)
+
+
+def test_mattress_presets_load_by_name(tmp_path):
+    from pressurepose.errors import UserError
+    from pressurepose.sim.mattress import PRESETS
+
+    assert set(PRESETS) == {"sponge", "air"}
+    for name in PRESETS:
+        p = MattressParams.load(name)
+        assert p == MattressParams.preset(name) and p.tissue_pa_per_m > 0
+    # a file of that name wins over the preset
+    (tmp_path / "air").write_text("not json")
+    import os
+
+    here = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        with pytest.raises(UserError, match="air"):
+            MattressParams.load("air")
+    finally:
+        os.chdir(here)
+    with pytest.raises(UserError, match="unknown mattress preset 'foam'"):
+        MattressParams.preset("foam")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 
 from pressurepose.body.model import BodyModel
+from pressurepose.errors import UserError
 
 
 def shape_for_height_mass(model: BodyModel, height_m, mass_kg, female: bool | float = 0.0,
@@ -19,9 +20,9 @@ def shape_for_height_mass(model: BodyModel, height_m, mass_kg, female: bool | fl
     height = torch.as_tensor(height_m, dtype=model.dtype).reshape(-1)
     mass = torch.as_tensor(mass_kg, dtype=model.dtype).reshape(-1)
     if height.shape != mass.shape:
-        raise ValueError("height_m and mass_kg need the same number of values")
+        raise UserError("height_m and mass_kg need the same number of values")
     if not (torch.isfinite(height).all() and torch.isfinite(mass).all()) or (height <= 0).any() or (mass <= 0).any():
-        raise ValueError("height_m and mass_kg must be finite and > 0")
+        raise UserError("height_m and mass_kg must be finite and > 0")
     B = height.shape[0]
     base = model.default_shape(B).detach().clone()
     if model.name == "anny":

@@ -31,6 +31,7 @@ import numpy as np
 
 from pressurepose.calib.measurements import Measurements
 from pressurepose.calib.objects import CalibObject, SceneSimulator
+from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
 
@@ -103,7 +104,7 @@ class ParamSpace:
         known = {f.name for f in dataclasses.fields(MattressParams)}
         bad = [n for n in self.free if n not in known]
         if bad or not self.free or len(set(self.free)) != len(self.free):
-            raise ValueError(f"free parameters must be distinct MattressParams fields ({', '.join(sorted(known))}), "
+            raise UserError(f"free parameters must be distinct MattressParams fields ({', '.join(sorted(known))}), "
                              f"got {list(self.free)}")
 
     @property
@@ -154,7 +155,7 @@ class CalibrationLoss:
     def __init__(self, measurements: Measurements, space: ParamSpace, margin_m: float = 0.06,
                  mat: MatSpec | None = None, sub: int = 2):
         if not margin_m >= 0:
-            raise ValueError(f"region margin must be >= 0 m, got {margin_m}")
+            raise UserError(f"region margin must be >= 0 m, got {margin_m}")
         self.mat = mat or MatSpec()
         self.space = space
         self.measurements = measurements
@@ -168,11 +169,11 @@ class CalibrationLoss:
             masks = [object_region(o, self.mat, margin_m) for o in scene.objects]
             for j in range(len(masks)):
                 if not masks[j].any():
-                    raise ValueError(f"scene {i}, object {j}: its region holds no sensing taxel; place it over "
+                    raise UserError(f"scene {i}, object {j}: its region holds no sensing taxel; place it over "
                                      "the sensing area")
                 for k in range(j):
                     if (masks[j] & masks[k]).any():
-                        raise ValueError(f"scene {i}: objects {k} and {j} lie within {2 * margin_m:.3f} m of each "
+                        raise UserError(f"scene {i}: objects {k} and {j} lie within {2 * margin_m:.3f} m of each "
                                          "other, so their loss regions overlap; place them further apart or lower "
                                          "the region margin")
             self.regions += masks

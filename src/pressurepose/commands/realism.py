@@ -28,7 +28,9 @@ from pressurepose.files import write_text
 
 POSTURES = ("supine", "left", "right")
 ROLL_RAD = {"supine": 0.0, "left": -math.pi / 2, "right": math.pi / 2}
-SIDE_MARGIN_M = 0.10
+SIDE_MARGIN_M = 0.20
+# The side-lying resting pose (rad): shoulders forward, elbows, hips and knees bent.
+SIDE_POSE = {"shoulder": 1.2, "elbow": 0.9, "hip": 0.6, "knee": 0.9}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,9 +46,14 @@ class RealismConfig:
     settle: Literal["none", "mujoco"] = "none"
     """Sim #1 before sim #2 (MuJoCo settling of the capsule body) or none (the pose as drawn)."""
     params: Path | None = None
-    """Mattress/sensor parameter file (default: built-in)."""
+    """Mattress/sensor parameter file or preset (sponge, air) for every set; default: each real
+    set's own mattress preset (articulated sim #2) or the built-in bed (rigid)."""
     threshold: float = 20.0
     """Noise threshold (raw units) of the real frames."""
+    bed_width_cols: int = 37
+    """Width of the simulated mattress in taxel columns (the mat's 27 centred on it): PmatData's
+    bed is wider than its mat (side-lying subjects' knees reach the mat's edge); the
+    generator's default is the seed's 33."""
     placement: Literal["real", "centre"] = "real"
     """Where the simulated bodies lie: one per real frame at that frame's centre of pressure and
     long-axis angle (the same scene), or all at the mat's centre, straight."""
@@ -92,13 +99,13 @@ def resting_pose(posture: str, batch: int) -> torch.Tensor:
     pose = home_pose(batch)
     if posture == "supine":
         return pose
-    forward = axis_angle_to_matrix(torch.tensor([-1.2, 0.0, 0.0], dtype=pose.dtype))
+    forward = axis_angle_to_matrix(torch.tensor([-SIDE_POSE["shoulder"], 0.0, 0.0], dtype=pose.dtype))
     for side, sign in (("left", -1.0), ("right", 1.0)):
         j = joint_index(f"{side}_shoulder") - 1
         pose[:, j] = matrix_to_axis_angle(forward @ axis_angle_to_matrix(pose[:, j]))
-        pose[:, joint_index(f"{side}_elbow") - 1, 1] = sign * 0.9
-        pose[:, joint_index(f"{side}_hip") - 1, 0] = -0.6
-        pose[:, joint_index(f"{side}_knee") - 1, 0] = 0.9
+        pose[:, joint_index(f"{side}_elbow") - 1, 1] = sign * SIDE_POSE["elbow"]
+        pose[:, joint_index(f"{side}_hip") - 1, 0] = -SIDE_POSE["hip"]
+        pose[:, joint_index(f"{side}_knee") - 1, 0] = SIDE_POSE["knee"]
     return pose
 
 
@@ -119,8 +126,8 @@ def frame_placement(images: np.ndarray, pitch_row_m: float, pitch_col_m: float) 
 def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=None, articulated=None,
                       scenes: dict | None = None):
     """Side-lying bodies hold their trunk's roll (sampling.partitions.HOLD_ROLL_M, in both
-    simulations), as the generator's `lateral_straight` partition does. Per posture (or per (posture, mattress) with `scenes`): sensor images (N, 64, 27) mmHg of
-    the accepted bodies, their heights (N,), the rejection reasons and the seconds it took.
+    simulations), as the generator's `lateral_straight` partition does. Per posture (or per
+    (posture, mattress) with `scenes`): sensor images (N, 64, 27) mmHg of the accepted bodies, their heights (N,), the rejection reasons and the seconds it took.
     `scenes[(posture, mattress)] = (subject ids (N,), centres (N, 2) m, angles (N,) rad)`: one
     body per real frame, its centre of mass over the frame's centre of pressure, turned by its
     angle; without it one body per subject at the mat's centre."""
@@ -129,15 +136,25 @@ def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=
     from pressurepose.body.params import BodyParams
     from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
     from pressurepose.mat import MatSpec
-    from pressurepose.sim.foundation import mesh_centroid
-    from pressurepose.sim.mattress import MattressParams
     from pressurepose.sampling.partitions import HOLD_ROLL_M
     from pressurepose.sim.articulated import ArticulatedConfig
+    from pressurepose.sim.foundation import mesh_centroid
+    from pressurepose.sim.mattress import PRESETS, MattressParams
     from pressurepose.sim.run import simulate_poses
     from pressurepose.sim.settle import SettleConfig
 
-    mattress = mattress or (MattressParams.load(cfg.params) if cfg.params else MattressParams())
-    mat = MatSpec()
+    fixed = mattress or (MattressParams.load(cfg.params) if cfg.params else None)
+
+    def bed_for(name):
+        # Without --params: the articulated sim #2 rests each real set on its mattress's preset
+        # (air, sponge), the rigid one on the class defaults (its own fit).
+        if fixed is not None:
+            return fixed
+        if cfg.sim2 == "articulated" and name in PRESETS:
+            return MattressParams.preset(name)
+        return MattressParams()
+
+    mat = MatSpec(covered_cols=cfg.bed_width_cols)
     model = load_body_model("anny", dtype=torch.float64)
     heights = torch.tensor([s.height_m for s in subjects], dtype=torch.float64)
     masses = torch.tensor([s.mass_kg for s in subjects], dtype=torch.float64)
@@ -156,10 +173,9 @@ def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=
                                                           root_rotation=matrix_to_axis_angle(yaw @ roll))
         # The centre of mass over the target point (the rest keeps the horizontal placement).
         com = mesh_centroid(model(params).vertices, model.faces)
-        # Real subjects lie up to 0.22 m off the mat's centre line; the simulated mattress is
-        # only 8 cm wider than the mat on each side, so a side-lying body placed that far out
-        # would hang its knees and arms over the edge and roll off. Keep the centre of mass
-        # within SIDE_MARGIN_M of the centre line.
+        # Real subjects lie up to 0.22 m off the mat's centre line; a side-lying body placed
+        # that far out on the simulated mattress would hang its knees and arms over the edge
+        # and roll off. Keep the centre of mass within SIDE_MARGIN_M of the centre line.
         target = torch.from_numpy(np.asarray(centres, dtype=np.float64)).clone()
         mid = mat.sensing_width_m / 2
         target[:, 1] = target[:, 1].clamp(mid - SIDE_MARGIN_M, mid + SIDE_MARGIN_M)
@@ -169,7 +185,7 @@ def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=
         if posture != "supine" and art.hold_roll_m == 0:
             art = dataclasses.replace(art, hold_roll_m=HOLD_ROLL_M)
         settle_config = SettleConfig(hold_roll_m=HOLD_ROLL_M) if posture != "supine" else None
-        sim = simulate_poses(model, params, mattress, mat, settle=cfg.settle, sim2=cfg.sim2, articulated=art,
+        sim = simulate_poses(model, params, bed_for(mattress_name), mat, settle=cfg.settle, sim2=cfg.sim2, articulated=art,
                              settle_config=settle_config)
         ok = [i for i, r in enumerate(sim.reason) if not r]
         out[(posture, mattress_name)] = (sim.pressure_mmhg[ok].numpy(), h.numpy()[idx.numpy()][ok],

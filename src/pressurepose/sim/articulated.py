@@ -35,7 +35,7 @@ import dataclasses
 
 import torch
 
-from pressurepose.body.joints import NUM_JOINTS
+from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
@@ -61,7 +61,7 @@ class ArticulatedConfig:
     stiffness_scale: float = 1.0
     """Multiplies every joint's seed stiffness (1 = sim #1's springs)."""
     neck_stiffness_scale: float = 0.1
-    spine_stiffness_scale: float = 1.0
+    spine_stiffness_scale: float = 1.1
     """Extra factor on the spine's springs (spine1-3)."""
     """Extra factor on the neck and head springs (a relaxed neck lets the head rest)."""
     outer: int = 10
@@ -76,6 +76,9 @@ class ArticulatedConfig:
     settled_rotation_rad: float = 5e-3
     """Re-posing stops once no joint turns more than this (5 mrad: 1.5 mm at a forearm's end)."""
     settled_shift_m: float = 3e-4
+    tissue_by_part: tuple[tuple[str, float], ...] = (("spine1", 0.15), ("spine2", 0.15))
+    """Factors on the tissue modulus per J24 part: the belly and flanks (spine1-2 parts), soft
+    tissue with no bone beneath, are softer than the rest."""
     hold_roll_m: float = 0.0
     """Trunk roll hold: a spring on the body's roll about the bed's long axis of this many metres
     x its weight per radian (0: none; side-lying bodies need ~0.5 to stay on their side, as in
@@ -122,12 +125,12 @@ def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int):
     return h[:, :-1], part[:, :-1]
 
 
-def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | None):
+def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
     """Soft tissue (linear, modulus k_t in Pa/m) in series with the foam (p = k1 u + k3 u^3):
     for a total compression w (m) returns the pressure p (Pa), dp/dw (Pa/m) and the stored
     energy per unit area (J/m^2). The split w = u + p / k_t is solved by Newton on u (the
     function u + p(u)/k_t is increasing and convex, so Newton from above converges
-    monotonically). tissue None: the foam alone."""
+    monotonically). tissue: a number or a tensor broadcasting with w; None: the foam alone."""
     k1, k3 = mp.k1_pa_per_m, mp.k3_pa_per_m3
     if tissue_pa_per_m is None:
         return k1 * w + k3 * w**3, k1 + 3 * k3 * w**2, 0.5 * k1 * w**2 + 0.25 * k3 * w**4
@@ -158,8 +161,8 @@ class _Linearised:
     (packed, K per body), their height h, part and (1, x, y), the DoFs' geometry, gravity's
     gradient, the springs and the limits."""
 
-    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue, limits=None):
-        self.tissue = tissue
+    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue, limits=None,
+                 tissue_by_part=None):
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
         # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
         self.limits = limits
@@ -169,7 +172,10 @@ class _Linearised:
         self.h = h.gather(1, self.index)
         self.mask = valid.gather(1, self.index).to(h.dtype)
         self.part = part.gather(1, self.index)
+        if tissue is not None and tissue_by_part is not None:
+            tissue = tissue * tissue_by_part[self.part]  # (B, K) per cell, from its part
         self.area, self.dofs, self.dof_a = area, dofs, dof_a
+        self.tissue = tissue
         self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
         self.dof_parts = dofs.desc[dofs.joint]  # (N, 24): parts each DoF moves
         self.cell_basis = self.basis * self.mask[..., None]
@@ -251,6 +257,9 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
     area = mat.pitch_row_m * mat.pitch_col_m / cfg.sub**2
     lo, hi = hinge_bounds(dtype, device)
+    tissue_by_part = torch.ones(NUM_JOINTS, dtype=dtype, device=device)
+    for name, factor in cfg.tissue_by_part:
+        tissue_by_part[J24_NAMES.index(name)] = factor
     jj, ax = dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)
     is_hinge = dofs.hinge_axis >= 0
     dof_lo = torch.where(is_hinge, lo[jj, ax], torch.full_like(lo[jj, ax], -float("inf")))
@@ -291,7 +300,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
         hinge_angle = cur.pose[:, dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)]
         lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, float(mp.tissue_pa_per_m) or None,
-                          (hinge_angle, dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k))
+                          (hinge_angle, dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), tissue_by_part)
         q, it = _minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
                           max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing)
         iters += it

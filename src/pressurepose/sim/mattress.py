@@ -88,9 +88,20 @@ class MattressParams:
         atomic_write(Path(path), lambda tmp: Path(tmp).write_text(text))
 
     @classmethod
+    def preset(cls, name: str) -> "MattressParams":
+        """A named bed: `PRESETS` (PmatData's mattresses fitted through the articulated sim #2,
+        docs/realism.md)."""
+        if name not in PRESETS:
+            raise UserError(f"unknown mattress preset {name!r}; presets: {', '.join(PRESETS)}")
+        return cls(**PRESETS[name])
+
+    @classmethod
     def load(cls, path: str | os.PathLike) -> "MattressParams":
+        """A parameter file, or a preset's name (`PRESETS`) when no such file exists."""
         from pressurepose.validate import read_json
 
+        if str(path) in PRESETS and not Path(path).exists():
+            return cls.preset(str(path))
         path = Path(path)
         doc = read_json(path, "mattress parameter file",
                         "; write one with `pressurepose calibrate` or MattressParams.save")
@@ -103,6 +114,15 @@ class MattressParams:
             raise UserError(f"{path}: unknown mattress parameters {', '.join(unknown)}; "
                              f"valid ones: {', '.join(sorted(known))}")
         return cls(**doc["params"])
+
+
+# PmatData experiment II's two mattresses, fitted through the articulated sim #2 with
+# benchmarks/articulated_fit.py (docs/realism.md). The class defaults stay the rigid sim #2's
+# fit (docs/calibration.md), which the generator's default uses.
+PRESETS: dict[str, dict[str, float]] = {
+    "sponge": {"k1_pa_per_m": 68730.0, "k3_pa_per_m3": 18760000.0, "tissue_pa_per_m": 203200.0, "spread_m": 0.008318},
+    "air": {"k1_pa_per_m": 26250.0, "k3_pa_per_m3": 199200000.0, "tissue_pa_per_m": 204800.0, "spread_m": 0.001694},
+}
 
 
 def _scalar(value) -> float:
