@@ -113,6 +113,15 @@ def test_series_law_derivatives():
         span = (w + eps) - (w - eps).clamp(min=0)
         np.testing.assert_allclose(((hi[0] - lo[0]) / span).numpy(), dp.numpy(), rtol=1e-5, atol=1.0)
         np.testing.assert_allclose(((hi[2] - lo[2]) / span).numpy(), p.numpy(), rtol=1e-5, atol=0.05)
+    # Against a naive reference: bisection on u + p(u) / k_t = w, value by value.
+    kt = 3e5
+    p_t, _, _ = series_law(w, mp, kt)
+    for wi, pi in zip(w.tolist()[::7], p_t.tolist()[::7]):
+        lo, hi = 0.0, wi
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if mid + mp.foundation_pressure(mid) / kt < wi else (lo, mid)
+        assert pi == pytest.approx(mp.foundation_pressure(lo), rel=1e-9, abs=1e-6)
     # Tissue in series is softer than the foam alone, and both are 0 at w = 0.
     p_t, _, _ = series_law(w, mp, 3e5)
     p_f, _, _ = series_law(w, mp, None)

@@ -128,26 +128,27 @@ def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int):
 def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
     """Soft tissue (linear, modulus k_t in Pa/m) in series with the foam (p = k1 u + k3 u^3):
     for a total compression w (m) returns the pressure p (Pa), dp/dw (Pa/m) and the stored
-    energy per unit area (J/m^2). The split w = u + p / k_t is solved by Newton on u (the
-    function u + p(u)/k_t is increasing and convex, so Newton from above converges
-    monotonically). tissue: a number or a tensor broadcasting with w; None: the foam alone."""
+    energy per unit area (J/m^2). The split w = u + p / k_t has u as the root of a cubic (the
+    function u + p(u)/k_t is increasing: one root, in closed form below). tissue: a number or
+    a tensor broadcasting with w; None: the foam alone."""
     k1, k3 = mp.k1_pa_per_m, mp.k3_pa_per_m3
     if tissue_pa_per_m is None:
         return k1 * w + k3 * w**3, k1 + 3 * k3 * w**2, 0.5 * k1 * w**2 + 0.25 * k3 * w**4
     kt = tissue_pa_per_m
-    u = w * (kt / (kt + k1))  # the linear split: an upper bound of the root
-    for _ in range(_SERIES_NEWTON):
-        u2 = u * u
-        u = u - (u + (k1 * u + k3 * u2 * u) / kt - w) / (1 + (k1 + 3 * k3 * u2) / kt)
+    # The foam's share u solves a u^3 + b u = w with a = k3 / k_t, b = 1 + k1 / k_t > 0: one real
+    # root, u = 2 s sinh(asinh(w / (2 a s^3)) / 3) with s^2 = b / (3 a) (exact, stable at w = 0).
+    a = k3 / kt
+    b = 1 + k1 / kt
+    if k3 > 0:
+        s = (b / (3 * a)) ** 0.5
+        u = 2 * s * torch.sinh(torch.asinh(w / (2 * a * s**3)) / 3)
+    else:
+        u = w / b
     p = k1 * u + k3 * u**3
     kf = k1 + 3 * k3 * u**2
     return p, kf * kt / (kf + kt), 0.5 * k1 * u**2 + 0.25 * k3 * u**4 + p**2 / (2 * kt)
 
 
-# Newton steps of the series split: from the linear split's upper bound the iteration is
-# monotone and quadratic; 8 steps reach round-off for compressions up to the mattress's
-# thickness at the stiffest tissue the fit allows (tests/test_articulated.py checks the law).
-_SERIES_NEWTON = 8
 # Cells whose lowest point lies higher than this above the mattress top cannot touch within
 # one re-posing's trust region (3 cm of shift, 0.25 rad on a limb); they join when they come
 # closer. Gravity acts on the parts' masses whatever cells are kept.
@@ -252,7 +253,11 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     faces = model.faces
     labels_v = model.part_labels
     face_part = labels_v[faces[:, 0]]
-    labels = torch.cat([labels_v, face_part])
+    # Surface points (vertices, then triangle centroids) sorted by part, so each part is a
+    # contiguous slice when the parts are moved.
+    labels_all = torch.cat([labels_v, face_part])
+    order = torch.argsort(labels_all, stable=True)
+    labels = labels_all[order]
     X, Y = cell_centres(mat, cfg.sub, covered=True, dtype=dtype, device=device)
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
     area = mat.pitch_row_m * mat.pitch_col_m / cfg.sub**2
@@ -264,6 +269,11 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     is_hinge = dofs.hinge_axis >= 0
     dof_lo = torch.where(is_hinge, lo[jj, ax], torch.full_like(lo[jj, ax], -float("inf")))
     dof_hi = torch.where(is_hinge, hi[jj, ax], torch.full_like(hi[jj, ax], float("inf")))
+    # A pose may start beyond a limit (the sampler's ranges are not the limits'): the limit
+    # then sits where the joint starts, so the spring stops it going further, never pushes.
+    start_angle = params.pose[:, jj, ax]
+    dof_lo = torch.minimum(dof_lo[None], start_angle)
+    dof_hi = torch.maximum(dof_hi[None], start_angle)
     rest = rest_joints(model, params.shape)
     out = model(params)
     total_mass = (model.measure(params.shape).mass_kg if mass_kg is None
@@ -278,7 +288,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     ref_local = axis_angle_to_matrix(params.pose)
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).
-    pts = surface_points(out.vertices, faces)
+    pts = surface_points(out.vertices, faces)[:, order]
     lowest = pts[..., 2].amin(1)
     drop = torch.stack([torch.zeros_like(lowest), torch.zeros_like(lowest), lowest], -1)
     cur = params.replace(root_translation=params.root_translation - drop)
@@ -357,23 +367,35 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps
         # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
         # or spring (the root's roll and pitch in the air) from taking arbitrary steps.
         reg = 1e-9 * scale + 1e-7 * weight
-        step = -torch.linalg.solve(H + reg[:, None, None] * eye, grad[..., None])[..., 0]
+        H = H + reg[:, None, None] * eye
+        # Levenberg-Marquardt damping on the unknowns whose step would leave the trust region
+        # (a limb falling freely): they take a shorter step, the others their Newton step.
+        damp = torch.zeros_like(q)
+        for _ in range(4):
+            step = -torch.linalg.solve(H + torch.diag_embed(damp), grad[..., None])[..., 0]
+            room = torch.where(step > 0, cap - q, cap + q).clamp(min=0)
+            over = step.abs() > room * 1.0001
+            if not bool(over.any()):
+                break
+            damp = torch.where(over, 4 * damp + H.diagonal(dim1=-2, dim2=-1), damp)
         # Nothing touches yet (no contact stiffness on dz): fall by the cap, no tilt.
         free = H[:, 0, 0] <= 1e-6 * weight
         step[:, 0] = torch.where(free, torch.full_like(step[:, 0], -cfg.max_shift_m), step[:, 0])
         step[:, 1:3] = torch.where(free[:, None], torch.zeros_like(step[:, 1:3]), step[:, 1:3])
-        step = step * torch.clamp(cfg.max_shift_m / step[:, :1].abs().clamp(min=1e-12), max=1.0)
-        step[:, 1:] = step[:, 1:].clamp(-cfg.max_rotation_rad, cfg.max_rotation_rad)
         step = torch.where(done[:, None], torch.zeros_like(step), step)
+        # Trust region: the largest t <= 1 that keeps q + t step within the caps, the step's
+        # direction kept (clipping components one by one can turn it uphill).
+        room = torch.where(step > 0, cap - q, cap + q).clamp(min=0)
+        t = (room / step.abs().clamp(min=1e-15)).amin(-1).clamp(max=1.0)
         e0 = lin.energy(q, mp)
-        t = torch.ones(B, dtype=q.dtype, device=q.device)
-        for _ in range(8):
+        for _ in range(10):
             better = (lin.energy(q + t[:, None] * step, mp) <= e0) | done | free
             if bool(better.all()):
                 break
             t = torch.where(better, t, t / 2)
+        t = torch.where(better, t, torch.zeros_like(t))  # no descent found: stay (counted as done)
         q = q + t[:, None] * step
-        q = torch.maximum(torch.minimum(q, cap), -cap)  # the linearisation's trust region
+        done = done | ~better
         iters += (~done).long()
         imbalance = (f.sum(1) - weight).abs() / weight
         done = done | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))

@@ -115,22 +115,33 @@ def part_mass_and_com(vertices: torch.Tensor, faces: torch.Tensor, face_part: to
     return mass.clamp(min=0), com
 
 
-def _part_index(labels: torch.Tensor) -> list[torch.Tensor]:
-    return [torch.nonzero(labels == j)[:, 0] for j in range(NUM_JOINTS)]
+def _part_slices(labels: torch.Tensor) -> list[tuple[int, slice]]:
+    """(part, slice) of each part's points; `labels` (P,) sorted by part."""
+    counts = torch.bincount(labels, minlength=NUM_JOINTS).tolist()
+    out, start = [], 0
+    for j, n in enumerate(counts):
+        if n:
+            out.append((j, slice(start, start + n)))
+        start += n
+    return out
 
 
 def to_part_frames(points, labels, rot, joints):
-    """(B, P, 3) mat-frame points of the parts `labels` (P,) -> each part's joint frame."""
+    """(B, P, 3) mat-frame points of the parts `labels` (P,, sorted by part) -> each part's
+    joint frame (rot (B, 24, 3, 3), joints (B, 24, 3))."""
+    if bool((labels[1:] < labels[:-1]).any()):
+        raise ValueError("labels must be sorted by part")
     out = torch.empty_like(points)
-    for j, idx in enumerate(_part_index(labels)):
-        out[:, idx] = (points[:, idx] - joints[:, j, None]) @ rot[:, j]
+    for j, sl in _part_slices(labels):
+        out[:, sl] = (points[:, sl] - joints[:, j, None]) @ rot[:, j]
     return out
 
 
 def from_part_frames(local, labels, rot, joints):
+    """Inverse of `to_part_frames`: joint-frame points back to the mat frame."""
     out = torch.empty_like(local)
-    for j, idx in enumerate(_part_index(labels)):
-        out[:, idx] = local[:, idx] @ rot[:, j].transpose(-1, -2) + joints[:, j, None]
+    for j, sl in _part_slices(labels):
+        out[:, sl] = local[:, sl] @ rot[:, j].transpose(-1, -2) + joints[:, j, None]
     return out
 
 
