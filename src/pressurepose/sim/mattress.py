@@ -103,6 +103,8 @@ class MattressParams:
         if str(path) in PRESETS and not Path(path).exists():
             return cls.preset(str(path))
         path = Path(path)
+        if not path.exists():
+            raise UserError(f"mattress parameter file {path} does not exist (presets: {', '.join(PRESETS)})")
         doc = read_json(path, "mattress parameter file",
                         "; write one with `pressurepose calibrate` or MattressParams.save")
         if not isinstance(doc, dict) or doc.get("format") != "pressurepose.mattress/1" or not isinstance(doc.get("params"), dict):
