@@ -151,7 +151,7 @@ def test_bad_settings_are_clear(tmp_path, capsys):
 def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkeypatch):
     """A shard keeps exactly `count` samples: rejected primary indices are replaced by
     replacement indices, the same ones every time."""
-    def fake(model, sampler, indices, mattress, seed, split):
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid"):
         rng = np.random.default_rng(seed)
         keep = [i for i in indices if i % 3 != 0]  # index 0, 3, 6, ... and some replacements rejected
         n = len(keep)
