@@ -148,7 +148,7 @@ def test_hessian_from_moments_matches_autograd(anny64):
     mass, com = part_mass_and_com(out.vertices, faces, face_part)
     dofs = Dofs("cpu", torch.float64)
     rot, _ = forward_kinematics(rest_joints(anny64, p.shape), p.pose, root_matrix(p.root_rotation))
-    h, part = _cells(surface_points(out.vertices, faces), torch.cat([anny64.part_labels, face_part]), mat, 2)
+    h, part, _ = _cells(surface_points(out.vertices, faces), torch.cat([anny64.part_labels, face_part]), mat, 2)
     body_com = (mass[..., None] * com).sum(1) / mass.sum(1, keepdim=True)
     a, e = dof_geometry(dofs, rot, out.joints, body_com, p.pose, axis_angle_to_matrix(p.pose))
     X, Y = cell_centres(mat, 2, covered=True, dtype=torch.float64)
@@ -220,3 +220,24 @@ def test_mattress_presets_load_by_name(tmp_path):
         os.chdir(here)
     with pytest.raises(UserError, match="unknown mattress preset 'foam'"):
         MattressParams.preset("foam")
+
+
+def test_tissue_depth_by_hand():
+    """Distance to the part's bone: segments from the joint to its children (the pelvis has
+    three), a leaf part to its points' centroid."""
+    from pressurepose.body.joints import joint_index
+    from pressurepose.sim.articulation import tissue_depth
+
+    joints = torch.zeros(1, 24, 3, dtype=torch.float64)
+    joints[0, joint_index("left_hip")] = torch.tensor([0.0, 0.1, 0.0])
+    joints[0, joint_index("right_hip")] = torch.tensor([0.0, -0.1, 0.0])
+    joints[0, joint_index("spine1")] = torch.tensor([-0.1, 0.0, 0.0])
+    joints[0, joint_index("head")] = torch.tensor([-0.6, 0.0, 0.0])
+    head = joint_index("head")
+    points = torch.tensor([[[0.0, 0.05, -0.04],    # pelvis: 4 cm below the left hip segment
+                            [0.05, 0.0, 0.0],      # pelvis: 5 cm beyond the joint, past every segment's start
+                            [-0.6, 0.0, 0.03],     # head: points at +-3 cm around x = -0.6
+                            [-0.6, 0.0, -0.03]]], dtype=torch.float64)
+    labels = torch.tensor([0, 0, head, head])
+    d = tissue_depth(points, labels, joints)
+    np.testing.assert_allclose(d[0].numpy(), [0.04, 0.05, 0.03, 0.03], atol=1e-12)

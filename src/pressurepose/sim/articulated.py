@@ -44,7 +44,7 @@ from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, grid_origin, grid_sh
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulation import (
     Dofs, apply_motion, dof_geometry, from_part_frames, hinge_bounds, joint_stiffness, part_mass_and_com,
-    to_part_frames,
+    tissue_depth, to_part_frames,
 )
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
@@ -79,6 +79,10 @@ class ArticulatedConfig:
     tissue_by_part: tuple[tuple[str, float], ...] = (("spine1", 0.15), ("spine2", 0.15))
     """Factors on the tissue modulus per J24 part: the belly and flanks (spine1-2 parts), soft
     tissue with no bone beneath, are softer than the rest."""
+    tissue_depth: bool = True
+    """Tissue modulus inversely proportional to the local tissue depth over the bone (the
+    modulus `MattressParams.tissue_pa_per_m` is that of a TISSUE_REFERENCE_DEPTH_M layer):
+    stiff over bony prominences, soft over muscle and fat. False: uniform tissue."""
     hold_roll_m: float = 0.0
     """Trunk roll hold: a spring on the body's roll about the bed's long axis of this many metres
     x its weight per radian (0: none; side-lying bodies need ~0.5 to stay on their side, as in
@@ -106,9 +110,10 @@ class ArticulatedRest:
     sub: int
 
 
-def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int):
+def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int, values: torch.Tensor | None = None):
     """Lowest point height (B, C) and its part (B, C) per covered grid cell (flattened);
-    cells with no point hold EMPTY_HEIGHT_M and part 0."""
+    cells with no point hold EMPTY_HEIGHT_M and part 0. With `values` (B, P), also the lowest
+    point's value per cell (else None)."""
     B = points.shape[0]
     nr, nc = grid_shape(mat, sub, True)
     x0, y0 = grid_origin(mat, True)
@@ -121,8 +126,12 @@ def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int):
     h = h.scatter_reduce(1, flat, z, "amin", include_self=True)
     lowest = (z == h.gather(1, flat)) & inside
     part = torch.zeros(B, nr * nc + 1, dtype=torch.long, device=points.device)
-    part = part.scatter(1, torch.where(lowest, flat, nr * nc), labels[None].expand(B, -1))
-    return h[:, :-1], part[:, :-1]
+    target = torch.where(lowest, flat, nr * nc)
+    part = part.scatter(1, target, labels[None].expand(B, -1))
+    if values is None:
+        return h[:, :-1], part[:, :-1], None
+    value = torch.ones_like(h).scatter(1, target, values)
+    return h[:, :-1], part[:, :-1], value[:, :-1]
 
 
 def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
@@ -155,6 +164,9 @@ def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | tor
 _REACH_M = 0.12
 # A hinge pushed beyond its limit meets a spring this many times its own stiffness.
 _LIMIT_STIFFNESS_RATIO = 100.0
+# The tissue modulus MattressParams.tissue_pa_per_m is that of a layer this deep over the bone;
+# depths below 1 cm count as 1 cm.
+TISSUE_REFERENCE_DEPTH_M = 0.05
 
 
 class _Linearised:
@@ -163,7 +175,7 @@ class _Linearised:
     gradient, the springs and the limits."""
 
     def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue, limits=None,
-                 tissue_by_part=None):
+                 tissue_by_part=None, cell_tissue=None):
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
         # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
         self.limits = limits
@@ -175,6 +187,8 @@ class _Linearised:
         self.part = part.gather(1, self.index)
         if tissue is not None and tissue_by_part is not None:
             tissue = tissue * tissue_by_part[self.part]  # (B, K) per cell, from its part
+        if tissue is not None and cell_tissue is not None:
+            tissue = tissue * cell_tissue.gather(1, self.index)  # from the lowest point's depth
         self.area, self.dofs, self.dof_a = area, dofs, dof_a
         self.tissue = tissue
         self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
@@ -298,6 +312,12 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     rot, joints = pose_in_mat(rest, cur)
     local_pts = to_part_frames(pts - drop[:, None], labels, rot, joints)
+    point_tissue = None
+    if cfg.tissue_depth:
+        # Tissue modulus ~ 1 / its depth over the bone: stiff over bony prominences, soft over
+        # the belly and the flanks (depth from the part's bone, `tissue_depth`).
+        depth = tissue_depth(pts - drop[:, None], labels, joints)
+        point_tissue = TISSUE_REFERENCE_DEPTH_M / depth.clamp(min=0.01)
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     q = None
     for outer in range(cfg.outer + 1):
@@ -305,12 +325,13 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
             rot, joints = pose_in_mat(rest, cur)
         com = (rot @ local_com[..., None])[..., 0] + joints
         body_com = (mass[..., None] * com).sum(1) / mass.sum(1)[:, None]
-        h, part = _cells(from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub)
+        h, part, cell_tissue = _cells(from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub,
+                                      point_tissue)
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
         hinge_angle = cur.pose[:, dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)]
         lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, float(mp.tissue_pa_per_m) or None,
-                          (hinge_angle, dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), tissue_by_part)
+                          (hinge_angle, dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), tissue_by_part, cell_tissue)
         q, it = _minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
                           max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing)
         iters += it

@@ -145,6 +145,25 @@ def from_part_frames(local, labels, rot, joints):
     return out
 
 
+def tissue_depth(points: torch.Tensor, labels: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+    """(B, P) distance (m) of each surface point to its part's bone: the segments from the
+    part's joint to its children's joints (leaf parts: to the part's point centroid)."""
+    out = torch.empty(points.shape[:2], dtype=points.dtype, device=points.device)
+    children = {j: [c for c in range(NUM_JOINTS) if J24_PARENTS[c] == j] for j in range(NUM_JOINTS)}
+    for j, sl in _part_slices(labels):
+        pts = points[:, sl]
+        ends = [joints[:, c] for c in children[j]] or [pts.mean(1)]
+        a = joints[:, j, None]
+        best = None
+        for e in ends:
+            ab = (e - joints[:, j])[:, None]
+            t = (((pts - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-12)).clamp(0, 1)
+            d = (pts - a - t[..., None] * ab).norm(dim=-1)
+            best = d if best is None else torch.minimum(best, d)
+        out[:, sl] = best
+    return out
+
+
 def hinge_bounds(dtype, device):
     """(23, 3) lower and upper pose bounds: the joint limits on the knees' and elbows' hinge
     angle (no hyperextension), unbounded elsewhere (the springs hold the ball joints)."""
@@ -218,4 +237,4 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
 
 
 __all__ = ["Dofs", "apply_motion", "dof_geometry", "from_part_frames", "hinge_bounds", "joint_stiffness",
-           "part_mass_and_com", "to_part_frames"]
+           "part_mass_and_com", "tissue_depth", "to_part_frames"]
