@@ -34,8 +34,14 @@ SPACE = (("k1_pa_per_m", 2.77e4, 5e3, 1.5e5), ("k3_pa_per_m3", 5.89e7, 1e6, 1e9)
          ("spine", 1.0, 0.1, 10.0), ("belly", 0.3, 0.05, 1.5))
 
 
-def decode(x):
-    return {name: float(np.exp(np.clip(xi, np.log(lo), np.log(hi)))) for (name, _, lo, hi), xi in zip(SPACE, x)}
+def decode(x, space=SPACE):
+    out = {name: float(np.exp(np.clip(xi, np.log(lo), np.log(hi)))) for (name, _, lo, hi), xi in zip(space, x)}
+    d = ArticulatedConfig()
+    belly = dict(d.tissue_by_part).get("spine1", 1.0)
+    out.setdefault("neck", d.neck_stiffness_scale)
+    out.setdefault("spine", d.spine_stiffness_scale)
+    out.setdefault("belly", belly)
+    return out
 
 
 def main() -> None:
@@ -45,6 +51,8 @@ def main() -> None:
     ap.add_argument("--popsize", type=int, default=8)
     ap.add_argument("--max-iter", type=int, default=6)
     ap.add_argument("--frames", type=int, default=24, help="real frames simulated per posture (evenly picked)")
+    ap.add_argument("--bed-only", action="store_true",
+                    help="fit the bed (k1, k3, tissue, spread) alone, the body's factors at ArticulatedConfig's defaults")
     args = ap.parse_args()
     import cma
 
@@ -65,7 +73,7 @@ def main() -> None:
 
     def loss(x):
         nonlocal best
-        v = decode(x)
+        v = decode(x, space)
         mp = MattressParams(k1_pa_per_m=v["k1_pa_per_m"], k3_pa_per_m3=v["k3_pa_per_m3"],
                             tissue_pa_per_m=v["tissue_pa_per_m"], spread_m=v["spread_m"])
         t0 = time.perf_counter()
@@ -97,7 +105,8 @@ def main() -> None:
         print(f"loss {total:.4f} {parts} {v}", flush=True)
         return total
 
-    x0 = [math.log(s) for _, s, _, _ in SPACE]
+    space = SPACE[:4] if args.bed_only else SPACE
+    x0 = [math.log(s) for _, s, _, _ in space]
     es = cma.CMAEvolutionStrategy(x0, 0.5, {"popsize": args.popsize, "maxiter": args.max_iter, "seed": 1, "verbose": -9})
     while not es.stop():
         xs = es.ask()

@@ -122,8 +122,8 @@ class MattressParams:
 # benchmarks/articulated_fit.py (docs/realism.md). The class defaults stay the rigid sim #2's
 # fit (docs/calibration.md), which the generator's default uses.
 PRESETS: dict[str, dict[str, float]] = {
-    "sponge": {"k1_pa_per_m": 68730.0, "k3_pa_per_m3": 18760000.0, "tissue_pa_per_m": 203200.0, "spread_m": 0.008318},
-    "air": {"k1_pa_per_m": 26250.0, "k3_pa_per_m3": 199200000.0, "tissue_pa_per_m": 204800.0, "spread_m": 0.001694},
+    "sponge": {"k1_pa_per_m": 114500.0, "k3_pa_per_m3": 14090000.0, "tissue_pa_per_m": 197500.0, "spread_m": 0.003138},
+    "air": {"k1_pa_per_m": 77440.0, "k3_pa_per_m3": 40550000.0, "tissue_pa_per_m": 687200.0, "spread_m": 0.003631},
 }
 
 
