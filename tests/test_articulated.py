@@ -10,7 +10,8 @@ from pressurepose.body.capsules import home_pose
 from pressurepose.body.joints import joint_index
 from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
-from pressurepose.sim.articulated import FAIL_TILT, ArticulatedConfig, _Linearised, rest_articulated, series_law
+from pressurepose.sim.articulated import FAIL_TILT, ArticulatedConfig, _Linearised, rest_articulated
+from pressurepose.sim.soft_contact import series_law
 from pressurepose.sim.articulation import Dofs, part_mass_and_com
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
@@ -135,7 +136,7 @@ def test_hessian_from_moments_matches_autograd(anny64):
     from pressurepose.body.params import root_matrix
     from pressurepose.body.rotations import axis_angle_to_matrix
     from pressurepose.maps import cell_centres, surface_points
-    from pressurepose.sim.articulated import _cells
+    from pressurepose.sim.soft_contact import lowest_points
     from pressurepose.sim.articulation import dof_geometry, joint_stiffness
 
     mat, mp = MatSpec(), MattressParams()
@@ -148,7 +149,7 @@ def test_hessian_from_moments_matches_autograd(anny64):
     mass, com = part_mass_and_com(out.vertices, faces, face_part)
     dofs = Dofs("cpu", torch.float64)
     rot, _ = forward_kinematics(rest_joints(anny64, p.shape), p.pose, root_matrix(p.root_rotation))
-    h, part, _ = _cells(surface_points(out.vertices, faces), torch.cat([anny64.part_labels, face_part]), mat, 2)
+    h, part, _ = lowest_points(surface_points(out.vertices, faces), torch.cat([anny64.part_labels, face_part]), mat, 2)
     body_com = (mass[..., None] * com).sum(1) / mass.sum(1, keepdim=True)
     a, e = dof_geometry(dofs, rot, out.joints, body_com, p.pose, axis_angle_to_matrix(p.pose))
     X, Y = cell_centres(mat, 2, covered=True, dtype=torch.float64)

@@ -40,13 +40,14 @@ from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle
-from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, grid_origin, grid_shape, surface_points
+from pressurepose.maps import cell_centres, grid_shape, surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulation import (
     Dofs, apply_motion, dof_geometry, from_part_frames, hinge_bounds, joint_stiffness, part_mass_and_com,
     tissue_depth, to_part_frames,
 )
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
+from pressurepose.sim.soft_contact import lowest_points, series_law
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
@@ -108,54 +109,6 @@ class ArticulatedRest:
     iterations: torch.Tensor      # (B,) Newton steps
     failure: list[str]
     sub: int
-
-
-def _cells(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int, values: torch.Tensor | None = None):
-    """Lowest point height (B, C) and its part (B, C) per covered grid cell (flattened);
-    cells with no point hold EMPTY_HEIGHT_M and part 0. With `values` (B, P), also the lowest
-    point's value per cell (else None)."""
-    B = points.shape[0]
-    nr, nc = grid_shape(mat, sub, True)
-    x0, y0 = grid_origin(mat, True)
-    r = torch.floor((points[..., 0] - x0) * (sub / mat.pitch_row_m)).long()
-    c = torch.floor((points[..., 1] - y0) * (sub / mat.pitch_col_m)).long()
-    inside = (r >= 0) & (r < nr) & (c >= 0) & (c < nc)
-    flat = torch.where(inside, r * nc + c, nr * nc)
-    z = points[..., 2].clamp(max=EMPTY_HEIGHT_M)
-    h = torch.full((B, nr * nc + 1), EMPTY_HEIGHT_M, dtype=points.dtype, device=points.device)
-    h = h.scatter_reduce(1, flat, z, "amin", include_self=True)
-    lowest = (z == h.gather(1, flat)) & inside
-    part = torch.zeros(B, nr * nc + 1, dtype=torch.long, device=points.device)
-    target = torch.where(lowest, flat, nr * nc)
-    part = part.scatter(1, target, labels[None].expand(B, -1))
-    if values is None:
-        return h[:, :-1], part[:, :-1], None
-    value = torch.ones_like(h).scatter(1, target, values)
-    return h[:, :-1], part[:, :-1], value[:, :-1]
-
-
-def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
-    """Soft tissue (linear, modulus k_t in Pa/m) in series with the foam (p = k1 u + k3 u^3):
-    for a total compression w (m) returns the pressure p (Pa), dp/dw (Pa/m) and the stored
-    energy per unit area (J/m^2). The split w = u + p / k_t has u as the root of a cubic (the
-    function u + p(u)/k_t is increasing: one root, in closed form below). tissue: a number or
-    a tensor broadcasting with w; None: the foam alone."""
-    k1, k3 = mp.k1_pa_per_m, mp.k3_pa_per_m3
-    if tissue_pa_per_m is None:
-        return k1 * w + k3 * w**3, k1 + 3 * k3 * w**2, 0.5 * k1 * w**2 + 0.25 * k3 * w**4
-    kt = tissue_pa_per_m
-    # The foam's share u solves a u^3 + b u = w with a = k3 / k_t, b = 1 + k1 / k_t > 0: one real
-    # root, u = 2 s sinh(asinh(w / (2 a s^3)) / 3) with s^2 = b / (3 a) (exact, stable at w = 0).
-    a = k3 / kt
-    b = 1 + k1 / kt
-    if k3 > 0:
-        s = (b / (3 * a)) ** 0.5
-        u = 2 * s * torch.sinh(torch.asinh(w / (2 * a * s**3)) / 3)
-    else:
-        u = w / b
-    p = k1 * u + k3 * u**3
-    kf = k1 + 3 * k3 * u**2
-    return p, kf * kt / (kf + kt), 0.5 * k1 * u**2 + 0.25 * k3 * u**4 + p**2 / (2 * kt)
 
 
 # Cells whose lowest point lies higher than this above the mattress top cannot touch within
@@ -325,7 +278,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
             rot, joints = pose_in_mat(rest, cur)
         com = (rot @ local_com[..., None])[..., 0] + joints
         body_com = (mass[..., None] * com).sum(1) / mass.sum(1)[:, None]
-        h, part, cell_tissue = _cells(from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub,
+        h, part, cell_tissue = lowest_points(from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub,
                                       point_tissue)
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
