@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from pressurepose.body import load_body_model
+from pressurepose.body.params import BodyParams
 from pressurepose.sampling.partitions import SamplingConfig
 from pressurepose.sampling.sampler import PoseSampler
 from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
@@ -51,8 +52,6 @@ def main() -> None:
         for gender in ("female", "male"):
             cfg = SamplingConfig(partition=part, gender=gender, seed=0)
             params.append(PoseSampler(model, cfg).sample(range(args.n // 2)).params)
-        from pressurepose.body.params import BodyParams
-
         initial = BodyParams.cat(params)
         hold = settle_config_for(part).hold_roll_m
         settled = settle(model, initial, config=settle_config_for(part))

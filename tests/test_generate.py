@@ -347,6 +347,15 @@ def test_a_second_run_on_the_same_folder_is_refused(tmp_path):
     assert not (out / "manifest.json").exists() and not list((out / "shards").iterdir())
 
 
+def test_rigid_dataset_settings_leave_out_the_tissue(reference):
+    """The rigid rest ignores soft tissue: its settings stay those of datasets made before the
+    field existed (they resume)."""
+    import json
+
+    out, _ = reference
+    assert "tissue_pa_per_m" not in json.loads((out / "manifest.json").read_text())["mattress"]
+
+
 def test_articulated_sim2_dataset(tmp_path):
     """`generate --sim2 articulated`: the manifest records it, images carry the weight, the
     stored parameters reproduce the stored joints; the rigid default's identity is unchanged."""
@@ -357,6 +366,7 @@ def test_articulated_sim2_dataset(tmp_path):
 
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["config"]["sim2"] == "articulated"
+    assert manifest["mattress"]["tissue_pa_per_m"] > 0
     assert "sim2" not in GenerateConfig(partition="supine", n=2).identity()
     data = read_all(out)
     assert len(data["index"]) == 2

@@ -27,6 +27,11 @@ def test_profile_similarity_by_hand():
     assert sim == pytest.approx(1.0) and shift == -1
     # disjoint profiles score 0; scale does not matter
     assert R.profile_similarity(np.array([1.0, 0, 0]), np.array([0, 0, 7.0]), 0)[0] == pytest.approx(0.0)
+    # shifted along either axis of an image, zero-filled
+    img = np.arange(6.0).reshape(2, 3)
+    np.testing.assert_array_equal(R.shifted(img, 1, axis=1), [[0, 0, 1], [0, 3, 4]])
+    np.testing.assert_array_equal(R.shifted(img, -1, axis=0), [[3, 4, 5], [0, 0, 0]])
+    np.testing.assert_array_equal(R.shifted(img, 5, axis=0), np.zeros((2, 3)))
     with pytest.raises(ValueError, match="same length"):
         R.profile_similarity(a, b[:3], 1)
 

@@ -42,9 +42,8 @@ def demo(cfg: DemoConfig) -> None:
 
 
 def realism(cfg: RealismConfig) -> None:
-    """Simulated pressure images against real frames of known posture, height and weight
-    (PmatData experiment II by default): area, pressure, coverage, profile similarity along and
-    across the bed, load per body region, the real-vs-real ceiling; report.md and figures."""
+    """Simulated pressure images against real ones of known posture, height and weight (PmatData
+    by default): area, pressure, coverage, profiles, load per region, the real-vs-real ceiling."""
     from pressurepose.commands.realism import run_realism
 
     paths = run_realism(cfg)

@@ -4,9 +4,9 @@ height and weight (docs/realism.md).
 Real frames: PmatData experiment II by default (flat bed: supine group B, right C, left D),
 or any folder in its layout (`index.csv` with the columns file, subject, mattress, group,
 index, posture, body_roll_deg, bed_incline_deg, height_cm, weight_kg; frames as text files of
-64 lines of 27 raw readings, row 0 at the foot). Simulated: one body per subject (Anny,
-fitted to the subject's height and weight) in the posture's resting pose, through the
-generator's simulations. Writes report.md, report.json and figures (mean real vs mean
+64 lines of 27 raw readings, row 0 at the foot). Simulated: one body per real frame (Anny,
+fitted to the subject's height and weight) in the posture's resting pose, lying where that
+frame's load lay, through the generator's simulations. Writes report.md, report.json and figures (mean real vs mean
 simulated image, profiles along and across the bed) to --out.
 """
 
@@ -216,6 +216,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
     scenes = real_scenes(real, cfg)
     sims = simulate_subjects(subjects, cfg, scenes=scenes)
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
+    real_sets = {key: R.summarise(imgs, hts, *pitch) for key, (imgs, hts, _) in real.items()}
     rows, ceilings, figures = [], [], {}
     for posture in POSTURES:
         for (p, mattress), (imgs, hts, subj) in real.items():
@@ -223,7 +224,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
                 continue
             images, heights, reasons, seconds = sims[(posture, mattress if scenes else None)]
             sim_set = R.summarise(images, heights, *pitch) if len(images) else None
-            real_set = R.summarise(imgs, hts, *pitch)
+            real_set = real_sets[(p, mattress)]
             row = {"posture": posture, "mattress": mattress, "real": _set_dict(real_set),
                    "simulated": _set_dict(sim_set) if sim_set else None, "rejected": reasons,
                    "simulated_bodies": int(len(images)), "sim_seconds": round(seconds, 2)}
@@ -240,8 +241,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
                                  **dataclasses.asdict(c)})
         mats = sorted(m for (p, m) in real if p == posture)
         if len(mats) == 2:
-            a, b = (real[(posture, m)] for m in mats)
-            c = R.compare(R.summarise(a[0], a[1], *pitch), R.summarise(b[0], b[1], *pitch))
+            c = R.compare(real_sets[(posture, mats[0])], real_sets[(posture, mats[1])])
             ceilings.append({"posture": posture, "between": f"{mats[0]} vs {mats[1]}", **dataclasses.asdict(c)})
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {"command": "realism", "config": {k: str(v) for k, v in dataclasses.asdict(cfg).items()},

@@ -82,13 +82,11 @@ def region_shares(image: np.ndarray, height_m: float, pitch_row_m: float, pitch_
     arms[np.ix_(arm_rows, beside)] = True
     out["arms"] = float(img[arms].sum() / total)
     rest = np.where(arms, 0.0, img)
-    for name, a, b in REGIONS:
-        sel = (frac >= a) & (frac < b)
-        if name == REGIONS[-1][0]:
-            sel = frac >= a
-        if name == REGIONS[0][0]:
-            sel = frac < b
-        out[name] = float(rest[sel].sum() / total)
+    for k, (name, a, b) in enumerate(REGIONS):
+        # the first and last regions are open-ended: nothing loaded falls outside the body
+        lo = -np.inf if k == 0 else a
+        hi = np.inf if k == len(REGIONS) - 1 else b
+        out[name] = float(rest[(frac >= lo) & (frac < hi)].sum() / total)
     return out
 
 
@@ -134,15 +132,18 @@ def _mean_profile(profiles: np.ndarray) -> np.ndarray:
     return m / m.sum()
 
 
-def shifted(profile: np.ndarray, shift: int) -> np.ndarray:
-    """The profile moved by `shift` bins (positive: towards higher indices), zero-filled."""
-    out = np.zeros_like(profile)
-    if abs(shift) >= profile.size:
+def shifted(values: np.ndarray, shift: int, axis: int = 0) -> np.ndarray:
+    """`values` moved by `shift` bins along `axis` (positive: towards higher indices),
+    zero-filled."""
+    values = np.asarray(values)
+    out = np.zeros_like(values)
+    n = values.shape[axis]
+    if abs(shift) >= n:
         return out
-    if shift >= 0:
-        out[shift:] = profile[: profile.size - shift]
-    else:
-        out[:shift] = profile[-shift:]
+    src = [slice(None)] * values.ndim
+    dst = [slice(None)] * values.ndim
+    src[axis], dst[axis] = (slice(0, n - shift), slice(shift, n)) if shift >= 0 else (slice(-shift, n), slice(0, n + shift))
+    out[tuple(dst)] = values[tuple(src)]
     return out
 
 

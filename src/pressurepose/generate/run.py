@@ -91,6 +91,10 @@ def run_generate(cfg: GenerateConfig, progress: bool = True) -> dict:
     from pressurepose.sim.mattress import MattressParams
 
     mattress = (MattressParams.load(cfg.params) if cfg.params is not None else MattressParams()).to_dict()
+    if cfg.sim2 == "rigid":
+        # The rigid rest has no soft tissue; leaving the field out keeps the settings of datasets
+        # made before it existed, so they resume.
+        mattress.pop("tissue_pa_per_m")
     settings = _settings(cfg, mattress)
     out = Path(cfg.out)
     _prepare_folder(cfg, settings)

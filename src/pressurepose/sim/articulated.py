@@ -16,15 +16,15 @@ point r of the subtree rises by theta_k (u_k x (r - p_k))_z, which is affine in 
 
     E(q) = sum_parts m_s g z_s(q) + sum_k 1/2 k_k (e_k + theta_k)^2 + sum_cells A Phi(w_i(q))
 
-(gravity, joint springs with e_k the deflection already in the joint, the foam's stored
-energy Phi = k1 w^2 / 2 + k3 w^4 / 4 per unit area), with w_i the compression of grid cell i
+(gravity, joint springs with e_k the deflection already in the joint, the stored energy Phi
+of the foam and the soft tissue in series per unit area, `soft_contact.series_law`), with w_i the compression of grid cell i
 under its lowest surface point. With the cells' heights linearised the problem is convex:
 Newton with a backtracking line search on E, the Hessian assembled from per-part moments of
 the contact stiffness (sum c (1, x, y)(1, x, y)^T) summed over subtrees, so a step costs one
-pass over the cells and a (N x N) solve, N = 45. Outer iterations apply the motion exactly
-(the pose parameters are updated and the mesh re-posed through the body model), clamp the
-pose to the joint limits and re-linearise; the last solve's field is the pressure (force
-balances the weight to solver tolerance).
+pass over the cells and a (N x N) solve, N = 45. Re-posings apply the motion exactly to the
+pose parameters (the parts riding their joints rigidly in between) and re-linearise; knee and
+elbow limits are stiff one-sided springs in the energy; the last solve's field is the pressure
+(force balances the weight to solver tolerance); the mesh is skinned once at the end.
 
 Batched over B bodies, float64, CPU or CUDA; flat beds (raised beds use the rigid rest).
 """
@@ -43,8 +43,8 @@ from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_ang
 from pressurepose.maps import cell_centres, grid_shape, surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulation import (
-    Dofs, apply_motion, dof_geometry, from_part_frames, hinge_bounds, joint_stiffness, part_mass_and_com,
-    tissue_depth, to_part_frames,
+    Dofs, apply_motion, dof_geometry, from_part_frames, joint_stiffness, part_mass_and_com, tissue_depth,
+    to_part_frames,
 )
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.soft_contact import lowest_points, series_law
@@ -55,6 +55,7 @@ FAIL_NOT_CONVERGED = "did not converge"
 FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
 MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
 
+
 @dataclasses.dataclass(frozen=True)
 class ArticulatedConfig:
     """Settings of the articulated rest (defaults: docs/physics.md)."""
@@ -62,9 +63,9 @@ class ArticulatedConfig:
     stiffness_scale: float = 1.0
     """Multiplies every joint's seed stiffness (1 = sim #1's springs)."""
     neck_stiffness_scale: float = 0.1
+    """Extra factor on the neck and head springs (a relaxed neck lets the head rest)."""
     spine_stiffness_scale: float = 1.1
     """Extra factor on the spine's springs (spine1-3)."""
-    """Extra factor on the neck and head springs (a relaxed neck lets the head rest)."""
     outer: int = 10
     """Re-posings of the mesh (each re-linearises the kinematics)."""
     inner: int = 25
@@ -112,7 +113,7 @@ class ArticulatedRest:
 
 
 # Cells whose lowest point lies higher than this above the mattress top cannot touch within
-# one re-posing's trust region (3 cm of shift, 0.25 rad on a limb); they join when they come
+# one re-posing's trust region (5 cm of shift, 0.25 rad on a limb); they join when they come
 # closer. Gravity acts on the parts' masses whatever cells are kept.
 _REACH_M = 0.12
 # A hinge pushed beyond its limit meets a spring this many times its own stiffness.
@@ -127,8 +128,7 @@ class _Linearised:
     (packed, K per body), their height h, part and (1, x, y), the DoFs' geometry, gravity's
     gradient, the springs and the limits."""
 
-    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue, limits=None,
-                 tissue_by_part=None, cell_tissue=None):
+    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None):
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
         # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
         self.limits = limits
@@ -138,12 +138,10 @@ class _Linearised:
         self.h = h.gather(1, self.index)
         self.mask = valid.gather(1, self.index).to(h.dtype)
         self.part = part.gather(1, self.index)
-        if tissue is not None and tissue_by_part is not None:
-            tissue = tissue * tissue_by_part[self.part]  # (B, K) per cell, from its part
-        if tissue is not None and cell_tissue is not None:
-            tissue = tissue * cell_tissue.gather(1, self.index)  # from the lowest point's depth
         self.area, self.dofs, self.dof_a = area, dofs, dof_a
-        self.tissue = tissue
+        # Tissue modulus per cell (B, K) from its lowest point (`tissue` (B, all cells)), or a
+        # number, or None (no tissue).
+        self.tissue = tissue.gather(1, self.index) if isinstance(tissue, torch.Tensor) else tissue
         self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
         self.dof_parts = dofs.desc[dofs.joint]  # (N, 24): parts each DoF moves
         self.cell_basis = self.basis * self.mask[..., None]
@@ -228,17 +226,10 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     X, Y = cell_centres(mat, cfg.sub, covered=True, dtype=dtype, device=device)
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
     area = mat.pitch_row_m * mat.pitch_col_m / cfg.sub**2
-    lo, hi = hinge_bounds(dtype, device)
-    tissue_by_part = torch.ones(NUM_JOINTS, dtype=dtype, device=device)
-    for name, factor in cfg.tissue_by_part:
-        tissue_by_part[J24_NAMES.index(name)] = factor
-    jj, ax = dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)
-    is_hinge = dofs.hinge_axis >= 0
-    dof_lo = torch.where(is_hinge, lo[jj, ax], torch.full_like(lo[jj, ax], -float("inf")))
-    dof_hi = torch.where(is_hinge, hi[jj, ax], torch.full_like(hi[jj, ax], float("inf")))
     # A pose may start beyond a limit (the sampler's ranges are not the limits'): the limit
     # then sits where the joint starts, so the spring stops it going further, never pushes.
-    start_angle = params.pose[:, jj, ax]
+    dof_lo, dof_hi = dofs.limits(dtype, device)
+    start_angle = dofs.hinge_angles(params.pose)
     dof_lo = torch.minimum(dof_lo[None], start_angle)
     dof_hi = torch.maximum(dof_hi[None], start_angle)
     rest = rest_joints(model, params.shape)
@@ -265,12 +256,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     rot, joints = pose_in_mat(rest, cur)
     local_pts = to_part_frames(pts - drop[:, None], labels, rot, joints)
-    point_tissue = None
-    if cfg.tissue_depth:
-        # Tissue modulus ~ 1 / its depth over the bone: stiff over bony prominences, soft over
-        # the belly and the flanks (depth from the part's bone, `tissue_depth`).
-        depth = tissue_depth(pts - drop[:, None], labels, joints)
-        point_tissue = TISSUE_REFERENCE_DEPTH_M / depth.clamp(min=0.01)
+    point_tissue = _tissue_modulus(pts - drop[:, None], labels, joints, mp, cfg)
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     q = None
     for outer in range(cfg.outer + 1):
@@ -282,9 +268,8 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
                                       point_tissue)
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
-        hinge_angle = cur.pose[:, dofs.joint.clamp(min=1) - 1, dofs.hinge_axis.clamp(min=0)]
-        lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, float(mp.tissue_pa_per_m) or None,
-                          (hinge_angle, dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), tissue_by_part, cell_tissue)
+        lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cell_tissue,
+                          (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k))
         q, it = _minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
                           max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing)
         iters += it
@@ -298,7 +283,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         cur = apply_motion(cur, q, dofs, rot, joints, body_com)
     # The last linearised solve is the rest: its field balances the weight; the mesh is moved
     # by its (small) motion exactly.
-    grad, _, f, w = lin.newton_step(q, mp)
+    _, _, f, w = lin.newton_step(q, mp)
     if lin.tissue is not None:
         w = (w - f / area / lin.tissue).clamp(min=0)  # the foam's share of the compression
     final = apply_motion(cur, q, dofs, rot, joints, body_com)
@@ -325,6 +310,21 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     return ArticulatedRest(params=final, vertices=out.vertices, joints=out.joints, foundation_pa=foundation,
                            force_n=force, max_compression_m=w.amax(1), part_force_n=part_force,
                            iterations=iters, failure=failure, sub=cfg.sub)
+
+
+def _tissue_modulus(points, labels, joints, mp: MattressParams, cfg: ArticulatedConfig):
+    """(B, P) the tissue modulus (Pa/m) under each surface point: MattressParams.tissue_pa_per_m
+    x its part's factor x (TISSUE_REFERENCE_DEPTH_M / its depth over the bone) with
+    `cfg.tissue_depth`: stiff over bony prominences, soft over muscle and fat. None: no tissue."""
+    if not float(mp.tissue_pa_per_m) > 0:
+        return None
+    factor = torch.ones(NUM_JOINTS, dtype=points.dtype, device=points.device)
+    for name, value in cfg.tissue_by_part:
+        factor[J24_NAMES.index(name)] = value
+    modulus = float(mp.tissue_pa_per_m) * factor[labels].expand(points.shape[0], -1)
+    if cfg.tissue_depth:
+        modulus = modulus * (TISSUE_REFERENCE_DEPTH_M / tissue_depth(points, labels, joints).clamp(min=0.01))
+    return modulus
 
 
 def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps: int):
@@ -378,4 +378,4 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps
     return q, iters
 
 
-__all__ = ["ArticulatedConfig", "ArticulatedRest", "part_mass_and_com", "rest_articulated"]
+__all__ = ["ArticulatedConfig", "ArticulatedRest", "rest_articulated"]

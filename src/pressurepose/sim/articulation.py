@@ -13,24 +13,18 @@ from __future__ import annotations
 
 import torch
 
+from pressurepose.body.capsules import HINGE_JOINTS, JOINT_STIFFNESS, STIFFNESS_REFERENCE_MASS_KG
 from pressurepose.body.joints import J24_NAMES, J24_PARENTS, NUM_JOINTS
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BODY_DENSITY_KG_M3
 from pressurepose.body.params import BodyParams, supine_rotation
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
-# Seed A.2 stiffness (N m / rad at 70.45 kg) per J24 joint, the same table sim #1 uses.
-_STIFFNESS_BY_KIND = {
-    "hip": 6.0, "knee": 3.0, "ankle": 6.0, "foot": 6.0, "collar": 12.0, "shoulder": 6.0, "elbow": 2.0,
-    "wrist": 4.0, "hand": 4.0, "spine1": 200.0, "spine2": 200.0, "spine3": 200.0, "neck": 200.0, "head": 200.0,
-}
-_REFERENCE_MASS_KG = 70.45
-# Hinge axes in SMPL body axes (knees flex about x, elbows about y), as sim #1's hinges.
-_HINGE_AXIS = {"left_knee": 0, "right_knee": 0, "left_elbow": 1, "right_elbow": 1}
-
-
-def _kind(name: str) -> str:
-    return name.split("_", 1)[1] if name.startswith(("left_", "right_")) else name
+# Sim #1's springs (seed A.2, body.capsules): the capsule chain has no foot or hand joint, so
+# those parts here take their ankle's and wrist's stiffness.
+_STIFFNESS = {**JOINT_STIFFNESS, "foot": JOINT_STIFFNESS["ankle"], "hand": JOINT_STIFFNESS["wrist"]}
+# Hinge joint -> the index of its axis in SMPL body axes (knees about x, elbows about y).
+_HINGE_AXIS = {j: axis.index(1.0) for j, axis in HINGE_JOINTS.items()}
 
 
 class Dofs:
@@ -39,10 +33,9 @@ class Dofs:
     def __init__(self, device, dtype):
         joint, axis_body, axis_world = [0, 0, 0], [None, None, None], [None, (1.0, 0.0), (0.0, 1.0)]
         for j in range(1, NUM_JOINTS):
-            name = J24_NAMES[j]
-            if name in _HINGE_AXIS:
+            if j in _HINGE_AXIS:
                 joint.append(j)
-                axis_body.append(_HINGE_AXIS[name])
+                axis_body.append(_HINGE_AXIS[j])
                 axis_world.append(None)
             else:
                 for ax in ((1.0, 0.0), (0.0, 1.0)):
@@ -70,6 +63,31 @@ class Dofs:
                              torch.where(related_lk, jk[:, None].expand(self.n, self.n), torch.full_like(related_kl, -1, dtype=torch.long)))
         self.deeper = deeper
 
+    def axes(self, rot: torch.Tensor) -> torch.Tensor:
+        """(B, N, 3) each DoF's rotation axis in the mat frame (the dz DoF: zero); rot: (B, 24,
+        3, 3) the joints' world rotations (a hinge's axis turns with its joint)."""
+        u = rot.new_zeros(rot.shape[0], self.n, 3)
+        for i in range(1, self.n):
+            if self.axis_world[i] is not None:
+                u[:, i, 0], u[:, i, 1] = self.axis_world[i]
+            else:
+                u[:, i] = rot[:, int(self.joint[i]), :, self.axis_body[i]]
+        return u
+
+    def hinge_angles(self, pose: torch.Tensor) -> torch.Tensor:
+        """(B, N) each DoF's joint angle about its hinge axis (pose (B, 23, 3)); meaningful on
+        hinge DoFs only."""
+        return pose[:, self.joint.clamp(min=1) - 1, self.hinge_axis.clamp(min=0)]
+
+    def limits(self, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N,) lower and upper bounds of each DoF's hinge angle: the joint limits on knees and
+        elbows (no hyperextension), unbounded elsewhere (the springs hold the ball joints)."""
+        limits = JointLimits.default(dtype, device)
+        jj, ax = self.joint.clamp(min=1) - 1, self.hinge_axis.clamp(min=0)
+        hinge = self.hinge_axis >= 0
+        inf = torch.full((self.n,), float("inf"), dtype=dtype, device=device)
+        return torch.where(hinge, limits.lower[jj, ax], -inf), torch.where(hinge, limits.upper[jj, ax], inf)
+
 
 def joint_stiffness(mass_kg: torch.Tensor, dofs: Dofs, scale: float = 1.0, neck_scale: float = 1.0,
                     spine_scale: float = 1.0) -> torch.Tensor:
@@ -82,14 +100,14 @@ def joint_stiffness(mass_kg: torch.Tensor, dofs: Dofs, scale: float = 1.0, neck_
             base.append(0.0)
             continue
         name = J24_NAMES[j]
-        k = _STIFFNESS_BY_KIND[_kind(name)] * scale
+        k = _STIFFNESS[name.removeprefix("left_").removeprefix("right_")] * scale
         if name in ("neck", "head"):
             k *= neck_scale
         if name.startswith("spine"):
             k *= spine_scale
         base.append(k)
     base_t = torch.tensor(base, dtype=mass_kg.dtype, device=mass_kg.device)
-    return base_t[None] * (mass_kg / _REFERENCE_MASS_KG)[:, None]
+    return base_t[None] * (mass_kg / STIFFNESS_REFERENCE_MASS_KG)[:, None]
 
 
 def part_mass_and_com(vertices: torch.Tensor, faces: torch.Tensor, face_part: torch.Tensor
@@ -164,32 +182,12 @@ def tissue_depth(points: torch.Tensor, labels: torch.Tensor, joints: torch.Tenso
     return out
 
 
-def hinge_bounds(dtype, device):
-    """(23, 3) lower and upper pose bounds: the joint limits on the knees' and elbows' hinge
-    angle (no hyperextension), unbounded elsewhere (the springs hold the ball joints)."""
-    limits = JointLimits.default(dtype, device)
-    lo = torch.full_like(limits.lower, -float("inf"))
-    hi = torch.full_like(limits.upper, float("inf"))
-    for name, axis in _HINGE_AXIS.items():
-        j = J24_NAMES.index(name) - 1
-        lo[j, axis], hi[j, axis] = limits.lower[j, axis], limits.upper[j, axis]
-    return lo, hi
-
-
 def dof_geometry(dofs: Dofs, rot, joints, body_com, pose, ref_local):
     """Per DoF: a_k (B, N, 3) with d(height)/d(theta_k) = a_k . (1, x, y) inside its subtree,
     and e_k (B, N) the spring's present deflection about the DoF's axis."""
-    B = rot.shape[0]
-    n = dofs.n
-    u = rot.new_zeros(B, n, 3)
-    pivot = rot.new_zeros(B, n, 3)
-    for i in range(n):
-        j = int(dofs.joint[i])
-        pivot[:, i] = body_com if j == 0 else joints[:, j]
-        if dofs.axis_world[i] is not None:
-            u[:, i, 0], u[:, i, 1] = dofs.axis_world[i]
-        elif dofs.axis_body[i] is not None:
-            u[:, i] = rot[:, j, :, dofs.axis_body[i]]  # the hinge axis in the joint's own frame
+    u = dofs.axes(rot)
+    pivot = joints[:, dofs.joint]
+    pivot[:, dofs.joint == 0] = body_com[:, None]  # the root turns about the centre of mass
     # dz: height + theta; rotation: (u x (r - p))_z = u_x (y - p_y) - u_y (x - p_x)
     a = torch.stack([u[..., 1] * pivot[..., 0] - u[..., 0] * pivot[..., 1], -u[..., 1], u[..., 0]], -1)
     a[:, 0] = torch.tensor([1.0, 0.0, 0.0], dtype=a.dtype, device=a.device)
@@ -209,14 +207,8 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
     the joints (the root's about the centre of mass), plus the vertical shift."""
     B = q.shape[0]
     dtype, device = q.dtype, q.device
-    delta = q.new_zeros(B, NUM_JOINTS, 3)
-    for i in range(1, dofs.n):
-        j = int(dofs.joint[i])
-        if dofs.axis_world[i] is not None:
-            u = torch.tensor([*dofs.axis_world[i], 0.0], dtype=dtype, device=device).expand(B, 3)
-        else:
-            u = rot[:, j, :, dofs.axis_body[i]]
-        delta[:, j] = delta[:, j] + q[:, i, None] * u
+    # Rotation vector per joint: the sum of its DoFs' q x axis (the dz DoF's axis is zero).
+    delta = q.new_zeros(B, NUM_JOINTS, 3).index_add_(1, dofs.joint, q[..., None] * dofs.axes(rot))
     D = axis_angle_to_matrix(delta)  # (B, 24, 3, 3) world-frame rotation at each joint
     U = [None] * NUM_JOINTS
     U[0] = D[:, 0]
@@ -236,5 +228,5 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
     return params.replace(pose=pose, root_rotation=root, root_translation=moved)
 
 
-__all__ = ["Dofs", "apply_motion", "dof_geometry", "from_part_frames", "hinge_bounds", "joint_stiffness",
+__all__ = ["Dofs", "apply_motion", "dof_geometry", "from_part_frames", "joint_stiffness",
            "part_mass_and_com", "tissue_depth", "to_part_frames"]

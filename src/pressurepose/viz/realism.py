@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from pressurepose.files import save_figure
 
 
@@ -21,7 +19,7 @@ def plot_realism(path: Path, real, sim, title: str) -> Path:
 
     along, sr = profile_similarity(real.along, sim.along, ROW_SHIFTS)
     across, sc = profile_similarity(real.across, sim.across, COL_SHIFTS)
-    img = np.roll(np.roll(sim.mean_image, sr, 0), sc, 1)
+    img = shifted(shifted(sim.mean_image, sr, 0), sc, 1)  # as the profiles: zero-filled
     fig, ax = plt.subplots(1, 4, figsize=(14, 5.5), gridspec_kw={"width_ratios": [1, 1, 1.5, 1.5]})
     vmax = max(float(real.mean_image.max()), float(img.max()), 1e-9)
     for a, im, t in ((ax[0], real.mean_image, f"real mean ({real.n})"), (ax[1], img, f"simulated mean ({sim.n}), aligned")):
