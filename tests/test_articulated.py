@@ -164,12 +164,13 @@ def test_hessian_from_moments_matches_autograd(anny64):
     q = torch.zeros(1, dofs.n, dtype=torch.float64)
     q[0, 0] = -lowest - 0.03
     q[0, 1:] = 0.01 * torch.sin(torch.arange(1, dofs.n, dtype=torch.float64))
-    grad, H, _, _ = lin.newton_step(q, mp)
+    grad, H, _, _, energy = lin.newton_step(q, mp)
     qa = q.clone().requires_grad_(True)
     g_auto = torch.autograd.grad(lin.energy(qa, mp).sum(), qa)[0]
     np.testing.assert_allclose(grad.numpy(), g_auto.numpy(), rtol=1e-6, atol=1e-6)
     H_auto = torch.autograd.functional.hessian(lambda x: lin.energy(x[None], mp).sum(), q[0])
     np.testing.assert_allclose(H[0].numpy(), H_auto.numpy(), rtol=1e-6, atol=1e-4)
+    np.testing.assert_allclose(energy.numpy(), lin.energy(q, mp).numpy(), rtol=1e-12)
 
 
 def test_part_mass_shares_are_anthropometric(anny64):

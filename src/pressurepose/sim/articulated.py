@@ -177,15 +177,18 @@ class _Linearised:
         return 0.5 * (k_lim * over**2).sum(1), k_lim * over, k_lim * active
 
     def newton_step(self, q, mp: MattressParams):
-        """Gradient (B, N), Hessian (B, N, N), cell forces (B, K) N and compressions (B, K) m."""
+        """Gradient (B, N), Hessian (B, N, N), cell forces (B, K) N, compressions (B, K) m and
+        the energy (B,) at q."""
         w = self.compression(q)
-        p, dp, _ = series_law(w, mp, self.tissue)
+        p, dp, phi = series_law(w, mp, self.tissue)
         f = p * self.area
         c = dp * self.area * (w > 0)
         B = q.shape[0]
         f_part = q.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, self.part[..., None].expand(-1, -1, 3),
                                                            f[..., None] * self.cell_basis)
-        _, g_lim, c_lim = self._limit(q)
+        e_lim, g_lim, c_lim = self._limit(q)
+        energy = ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
+                  + e_lim)
         grad = (self.g_grav + self.k * (self.e + q) + g_lim
                 - torch.einsum("bnt,ns,bst->bn", self.dof_a, self.dof_parts, f_part))
         # Hessian from the parts' stiffness moments sum c (1, x, y)(1, x, y)^T, summed over
@@ -196,7 +199,7 @@ class _Linearised:
         M = m_sub[:, self.deeper]  # (B, N, N, 3, 3)
         H = torch.einsum("bns,bnlst,blt->bnl", self.dof_a, M, self.dof_a) * self.deeper_ok
         H = H + torch.diag_embed(self.k + c_lim)
-        return grad, H, f, w
+        return grad, H, f, w, energy
 
     def unpack(self, values, cells):
         out = values.new_zeros(values.shape[0], cells)
@@ -283,7 +286,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         cur = apply_motion(cur, q, dofs, rot, joints, body_com)
     # The last linearised solve is the rest: its field balances the weight; the mesh is moved
     # by its (small) motion exactly.
-    _, _, f, w = lin.newton_step(q, mp)
+    _, _, f, w, _ = lin.newton_step(q, mp)
     if lin.tissue is not None:
         w = (w - f / area / lin.tissue).clamp(min=0)  # the foam's share of the compression
     final = apply_motion(cur, q, dofs, rot, joints, body_com)
@@ -335,8 +338,8 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps
     cap[0] = cfg.max_shift_m
     done = torch.zeros(B, dtype=torch.bool, device=q.device)
     eye = torch.eye(n, dtype=q.dtype, device=q.device)
+    grad, H, f, _, e0 = lin.newton_step(q, mp)
     for _ in range(max_steps):
-        grad, H, f, _ = lin.newton_step(q, mp)
         scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
         # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
         # or spring (the root's roll and pitch in the air) from taking arbitrary steps.
@@ -361,17 +364,24 @@ def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps
         # direction kept (clipping components one by one can turn it uphill).
         room = torch.where(step > 0, cap - q, cap + q).clamp(min=0)
         t = (room / step.abs().clamp(min=1e-15)).amin(-1).clamp(max=1.0)
-        e0 = lin.energy(q, mp)
-        for _ in range(10):
-            better = (lin.energy(q + t[:, None] * step, mp) <= e0) | done | free
-            if bool(better.all()):
-                break
-            t = torch.where(better, t, t / 2)
-        t = torch.where(better, t, torch.zeros_like(t))  # no descent found: stay (counted as done)
+        # Backtracking: the full step's evaluation (energy, and the next step's gradient and
+        # Hessian) is usually accepted at once; only if some body's energy rose, their step is
+        # halved (energies alone) and the evaluation redone where they end.
+        imbalance = (f.sum(1) - weight).abs() / weight
+        trial = lin.newton_step(q + t[:, None] * step, mp)
+        better = (trial[4] <= e0) | done | free
+        if not bool(better.all()):
+            for _ in range(9):
+                t = torch.where(better, t, t / 2)
+                better = (lin.energy(q + t[:, None] * step, mp) <= e0) | done | free
+                if bool(better.all()):
+                    break
+            t = torch.where(better, t, torch.zeros_like(t))  # no descent found: stay (counted as done)
+            trial = lin.newton_step(q + t[:, None] * step, mp)
         q = q + t[:, None] * step
+        grad, H, f, _, e0 = trial
         done = done | ~better
         iters += (~done).long()
-        imbalance = (f.sum(1) - weight).abs() / weight
         done = done | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))
         if bool(done.all()):
             break
