@@ -193,12 +193,20 @@ def test_side_lying_body_rolls_over_unless_its_trunk_is_held(anny64):
     from pressurepose.commands.realism import resting_pose
 
     p = _bodies(anny64, 1, roll=-math.pi / 2, pose=resting_pose("left", 1))
-    free = rest_articulated(anny64, p)
-    held = rest_articulated(anny64, p, config=ArticulatedConfig(hold_roll_m=0.5))
+    free = rest_articulated(anny64, p, config=ArticulatedConfig(self_contact=False))
+    held = rest_articulated(anny64, p, config=ArticulatedConfig(hold_roll_m=0.5, self_contact=False))
     assert free.failure == [FAIL_TILT]
     assert held.failure == [""]
     turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(held.params.root_rotation))
     assert float(turned[0]) < math.radians(10)
+    # With self-contact the top leg rests on the bottom one: the free body no longer rolls
+    # over, the held one still turns less.
+    free = rest_articulated(anny64, p)
+    held = rest_articulated(anny64, p, config=ArticulatedConfig(hold_roll_m=0.5))
+    assert free.failure == [""] and held.failure == [""]
+    turned_free = rotation_angle(root_matrix(p.root_rotation), root_matrix(free.params.root_rotation))
+    turned_held = rotation_angle(root_matrix(p.root_rotation), root_matrix(held.params.root_rotation))
+    assert float(turned_held[0]) < float(turned_free[0]) < 1.0
 
 
 def test_mattress_presets_load_by_name(tmp_path):

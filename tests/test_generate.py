@@ -151,7 +151,7 @@ def test_bad_settings_are_clear(tmp_path, capsys):
 def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkeypatch):
     """A shard keeps exactly `count` samples: rejected primary indices are replaced by
     replacement indices, the same ones every time."""
-    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid"):
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco"):
         rng = np.random.default_rng(seed)
         keep = [i for i in indices if i % 3 != 0]  # index 0, 3, 6, ... and some replacements rejected
         n = len(keep)
@@ -378,3 +378,39 @@ def test_articulated_sim2_dataset(tmp_path):
     params = BodyParams(shape=torch.from_numpy(data["shape"]), root_rotation=torch.from_numpy(data["root_rotation"]),
                         root_translation=torch.from_numpy(data["root_translation"]), pose=torch.from_numpy(data["pose"]))
     np.testing.assert_allclose(model.joints(params).numpy(), data["joints_m"], atol=1e-4)
+
+
+def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
+    """`generate --settle articulated`: no MuJoCo run (sim #1 is never called), the sponge bed,
+    articulated images that carry the weight, labels consistent with the parameters; a rigid
+    sim #2 with it is refused in one line."""
+    import json
+
+    import pressurepose.sim.settle as settle_mod
+
+    def no_mujoco(*args, **kwargs):
+        raise AssertionError("MuJoCo settling ran")
+
+    monkeypatch.setattr(settle_mod, "settle", no_mujoco)
+    out = tmp_path / "one"
+    cfg = GenerateConfig(out=out, partition="general", n=3, shard_size=3, batch=3, settle="articulated")
+    assert cfg.sim2_engine == "articulated" and cfg.identity()["settle"] == "articulated"
+    run_generate(cfg, progress=False)
+    manifest = json.loads((out / "manifest.json").read_text())
+    from pressurepose.sim.mattress import MattressParams
+
+    assert manifest["mattress"] == MattressParams.preset("sponge").to_dict()
+    data = read_all(out)
+    assert len(data["index"]) == 3
+    assert (data["pressure_mmhg"].reshape(3, -1).max(1) > 5).all()
+    from pressurepose.body import load_body_model
+    from pressurepose.body.params import BodyParams
+
+    model = load_body_model("anny", dtype=torch.float64)
+    params = BodyParams(shape=torch.from_numpy(data["shape"]), root_rotation=torch.from_numpy(data["root_rotation"]),
+                        root_translation=torch.from_numpy(data["root_translation"]), pose=torch.from_numpy(data["pose"]))
+    np.testing.assert_allclose(model.joints(params).numpy(), data["joints_m"], atol=1e-4)
+    from pressurepose.errors import UserError
+
+    with pytest.raises(UserError, match="--settle articulated"):
+        GenerateConfig(out=out, settle="articulated", sim2="rigid")

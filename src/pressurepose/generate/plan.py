@@ -112,10 +112,16 @@ class GenerateConfig:
     """Samples simulated together inside a shard (part of the dataset's definition)."""
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: Path | None = None
-    sim2: Literal["rigid", "articulated"] = "rigid"
-    """Sim #2: the whole mesh at rigid rest, or every body part on its own contact with
-    compliant joints and soft tissue (images closer to real mats, docs/realism.md; raised
-    beds keep the rigid rest)."""
+    settle: Literal["mujoco", "articulated"] = "mujoco"
+    """How a drawn pose comes to rest: MuJoCo (sim #1, capsule body) then sim #2, or
+    `articulated`: one batched quasi-static engine settles the mesh part by part on the soft
+    bed (joint springs, self-contact, soft tissue; no MuJoCo) and gives the image (docs/physics.md;
+    raised beds fall back to MuJoCo)."""
+    sim2: Literal["rigid", "articulated"] | None = None
+    """Sim #2 after MuJoCo: the whole mesh at rigid rest, or every body part on its own contact
+    with compliant joints and soft tissue (images closer to real mats, docs/realism.md; raised
+    beds keep the rigid rest). Default: rigid after MuJoCo, articulated with `--settle articulated`
+    (which allows nothing else)."""
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -129,13 +135,22 @@ class GenerateConfig:
                 raise UserError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.seed < 0:
             raise UserError(f"seed must be >= 0, got {self.seed}")
+        if self.settle == "articulated" and self.sim2 == "rigid":
+            raise UserError("--settle articulated makes the image itself; drop --sim2 rigid (or use --settle mujoco)")
+
+    @property
+    def sim2_engine(self) -> str:
+        """The sim #2 in effect: `sim2`, or its default for the settling engine."""
+        return self.sim2 or ("articulated" if self.settle == "articulated" else "rigid")
 
     def identity(self) -> dict:
         """The fields that define the dataset's content (not how fast it is made)."""
         keep = ("preset", "partition", "n", "seed", "shard_size", "batch", "backend")
         ident = {k: getattr(self, k) for k in keep}
-        if self.sim2 != "rigid":  # absent for the rigid rest, so datasets made before it resume
-            ident["sim2"] = self.sim2
+        if self.sim2_engine != "rigid":  # absent for the rigid rest, so datasets made before it resume
+            ident["sim2"] = self.sim2_engine
+        if self.settle != "mujoco":
+            ident["settle"] = self.settle
         return ident
 
 

@@ -90,8 +90,11 @@ def run_generate(cfg: GenerateConfig, progress: bool = True) -> dict:
     """Generate (or finish) the dataset in cfg.out; returns the manifest's summary."""
     from pressurepose.sim.mattress import MattressParams
 
-    mattress = (MattressParams.load(cfg.params) if cfg.params is not None else MattressParams()).to_dict()
-    if cfg.sim2 == "rigid":
+    if cfg.params is not None:
+        mattress = MattressParams.load(cfg.params).to_dict()
+    else:  # the articulated engine's own bed: the sponge preset (fitted to PmatData with it)
+        mattress = (MattressParams.preset("sponge") if cfg.settle == "articulated" else MattressParams()).to_dict()
+    if cfg.sim2_engine == "rigid":
         # The rigid rest has no soft tissue; leaving the field out keeps the settings of datasets
         # made before it existed, so they resume.
         mattress.pop("tissue_pa_per_m")
@@ -138,7 +141,7 @@ def _generate(cfg: GenerateConfig, out: Path, settings: dict, mattress: dict, pr
     if resumed:
         log.info("resuming: %d of %d samples already in %s", resumed, total, out)
     ctx = WorkContext(seed=cfg.seed, batch=cfg.batch, backend=cfg.backend,
-                      smpl_dir=str(cfg.smpl_dir) if cfg.smpl_dir else None, mattress=mattress, sim2=cfg.sim2)
+                      smpl_dir=str(cfg.smpl_dir) if cfg.smpl_dir else None, mattress=mattress, sim2=cfg.sim2_engine, settle=cfg.settle)
 
     t0 = time.perf_counter()
     made = 0

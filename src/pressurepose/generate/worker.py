@@ -38,6 +38,7 @@ class WorkContext:
     smpl_dir: str | None
     mattress: dict  # MattressParams.to_dict()
     sim2: str = "rigid"  # sim #2: "rigid" or "articulated" (sim.run.simulate_poses)
+    settle: str = "mujoco"  # "mujoco" or "articulated" (sim.run.simulate_poses)
 
 
 _MODELS: dict = {}
@@ -93,7 +94,8 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
             replacements += len(indices)
         candidates += len(indices)
         batch, reasons, counts = simulate_indices(model, sampler, indices, mattress,
-                                                  noise_seed(ctx.seed, spec.id, chunk), g.split, ctx.sim2)
+                                                  noise_seed(ctx.seed, spec.id, chunk), g.split, ctx.sim2,
+                                                  ctx.settle)
         chunk += 1
         sampling_rejections.update(counts)
         rejections.update(r for r in reasons if r)
@@ -132,7 +134,8 @@ def _sample(sampler, indices: list[int]):
         return (sampler.sample(ok) if ok else None), bad
 
 
-def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, split: str, sim2: str = "rigid"):
+def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, split: str, sim2: str = "rigid",
+                     settle: str = "mujoco"):
     """Sample and simulate `indices`; (SampleBatch of the accepted ones or None, reason per
     index ("" = kept), summed sampling rejection counts)."""
     from pressurepose.sim.articulated import ArticulatedConfig
@@ -147,7 +150,7 @@ def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, sp
     cfg = sampler.config
     settle_cfg = settle_config_for(cfg.partition)
     sim = simulate_poses(model, initial.params, mattress, seed=seed, bed=initial.beds(), settle_config=settle_cfg,
-                         sim2=sim2, articulated=ArticulatedConfig(hold_roll_m=settle_cfg.hold_roll_m))
+                         settle=settle, sim2=sim2, articulated=ArticulatedConfig(hold_roll_m=settle_cfg.hold_roll_m))
     height = model.measure(sim.params.shape).height_m.detach().numpy()
     p = sim.params
     arrays = dict(

@@ -35,6 +35,7 @@ import dataclasses
 
 import torch
 
+from pressurepose.body.capsules import fit_capsules
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
@@ -43,10 +44,11 @@ from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_ang
 from pressurepose.maps import cell_centres, grid_shape, surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulation import (
-    Dofs, apply_motion, dof_geometry, from_part_frames, joint_stiffness, part_mass_and_com, tissue_depth,
+    Dofs, apply_motion, dof_axes_pivots, dof_geometry, from_part_frames, joint_stiffness, part_mass_and_com, tissue_depth,
     to_part_frames,
 )
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
+from pressurepose.sim.self_contact import SelfContact
 from pressurepose.sim.soft_contact import lowest_points, series_law
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
@@ -91,6 +93,9 @@ class ArticulatedConfig:
     sim #1's `lateral_straight`)."""
     sub: int = 2
     """Grid cells per taxel side."""
+    self_contact: bool = True
+    """Keep the body's capsules from passing through each other (`sim.self_contact`): a
+    forearm across the belly rests on it instead of sinking through to the foam."""
     tol: float = 1e-4
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
@@ -107,6 +112,7 @@ class ArticulatedRest:
     force_n: torch.Tensor         # (B,)
     max_compression_m: torch.Tensor  # (B,) deepest compression of the foam
     part_force_n: torch.Tensor    # (B, 24) contact force carried by each J24 part
+    self_penetration_m: torch.Tensor  # (B,) deepest overlap of the capsule pairs that started apart
     iterations: torch.Tensor      # (B,) Newton steps
     failure: list[str]
     sub: int
@@ -128,7 +134,10 @@ class _Linearised:
     (packed, K per body), their height h, part and (1, x, y), the DoFs' geometry, gravity's
     gradient, the springs and the limits."""
 
-    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None):
+    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None,
+                 self_contact=None):
+        # self_contact: a sim.self_contact.SelfContactLinearised or None.
+        self.self_contact = self_contact
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
         # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
         self.limits = limits
@@ -163,8 +172,9 @@ class _Linearised:
     def energy(self, q, mp: MattressParams):
         w = self.compression(q)
         _, _, phi = series_law(w, mp, self.tissue)
-        return ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
-                + self._limit(q)[0])
+        out = ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
+               + self._limit(q)[0])
+        return out if self.self_contact is None else out + self.self_contact.energy(q)
 
     def _limit(self, q):
         """Energy (B,), gradient (B, N) and curvature (B, N) of the hinge-limit springs."""
@@ -196,9 +206,15 @@ class _Linearised:
         outer = (c[..., None, None] * self.basis[..., :, None] * self.basis[..., None, :]).reshape(B, -1, 9)
         m_part = q.new_zeros(B, NUM_JOINTS, 9).scatter_add_(1, self.part[..., None].expand(-1, -1, 9), outer)
         m_sub = torch.einsum("js,bsx->bjx", self.dofs.desc, m_part).view(B, NUM_JOINTS, 3, 3)
-        M = m_sub[:, self.deeper]  # (B, N, N, 3, 3)
-        H = torch.einsum("bns,bnlst,blt->bnl", self.dof_a, M, self.dof_a) * self.deeper_ok
+        # a_n^T M_j for every subtree j, then the j = overlap(n, l) one dotted with a_l.
+        aM = torch.einsum("bns,bjst->bnjt", self.dof_a, m_sub)  # (B, N, 24, 3)
+        n = self.deeper.shape[0]
+        picked = aM.gather(2, self.deeper[None, :, :, None].expand(B, n, n, 3))  # (B, N, N, 3)
+        H = (picked * self.dof_a[:, None]).sum(-1) * self.deeper_ok
         H = H + torch.diag_embed(self.k + c_lim)
+        if self.self_contact is not None:
+            e_sc, g_sc, h_sc = self.self_contact.gradient_hessian(q)
+            energy, grad, H = energy + e_sc, grad + g_sc, H + h_sc
         return grad, H, f, w, energy
 
     def unpack(self, values, cells):
@@ -261,6 +277,9 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     local_pts = to_part_frames(pts - drop[:, None], labels, rot, joints)
     point_tissue = _tissue_modulus(pts - drop[:, None], labels, joints, mp, cfg)
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
+    contact = None
+    if cfg.self_contact:
+        contact = SelfContact(fit_capsules(model, params.shape), rot, joints, weight)
     q = None
     for outer in range(cfg.outer + 1):
         if outer > 0:
@@ -271,8 +290,10 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
                                       point_tissue)
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
+        sc = None if contact is None else contact.linearise(rot, joints, *dof_axes_pivots(dofs, rot, joints, body_com),
+                                                            dofs.desc[dofs.joint])
         lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cell_tissue,
-                          (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k))
+                          (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), sc)
         q, it = _minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
                           max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing)
         iters += it
@@ -291,6 +312,8 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         w = (w - f / area / lin.tissue).clamp(min=0)  # the foam's share of the compression
     final = apply_motion(cur, q, dofs, rot, joints, body_com)
     out = model(final)
+    penetration = (torch.zeros(B, dtype=dtype, device=device) if contact is None
+                   else contact.penetration(*pose_in_mat(rest, final)))
     nr, nc = grid_shape(mat, cfg.sub, True)
     foundation = (lin.unpack(f, nr * nc) / area).view(B, nr, nc)
     part_force = h.new_zeros(B, NUM_JOINTS).scatter_add_(1, lin.part, f * lin.mask)
@@ -312,6 +335,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     foundation = torch.where(bad[:, None, None], torch.zeros_like(foundation), foundation)
     return ArticulatedRest(params=final, vertices=out.vertices, joints=out.joints, foundation_pa=foundation,
                            force_n=force, max_compression_m=w.amax(1), part_force_n=part_force,
+                           self_penetration_m=penetration,
                            iterations=iters, failure=failure, sub=cfg.sub)
 
 

@@ -125,7 +125,8 @@ def part_mass_and_com(vertices: torch.Tensor, faces: torch.Tensor, face_part: to
     apex = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), centroid)
     apex = apex / count.clamp(min=1)[None, :, None]
     rel = tri - apex[:, face_part][:, :, None]
-    vol = torch.linalg.det(rel) / 6.0  # (B, F): rows are the corners relative to the apex
+    # (B, F) signed tetrahedron volumes: the triple product of the corners relative to the apex.
+    vol = (rel[:, :, 0] * torch.linalg.cross(rel[:, :, 1], rel[:, :, 2])).sum(-1) / 6.0
     cen = apex[:, face_part] + rel.sum(2) / 4.0
     mass = vertices.new_zeros(B, NUM_JOINTS).scatter_add_(1, idx, vol) * BODY_DENSITY_KG_M3
     moment = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), vol[..., None] * cen)
@@ -182,12 +183,18 @@ def tissue_depth(points: torch.Tensor, labels: torch.Tensor, joints: torch.Tenso
     return out
 
 
+def dof_axes_pivots(dofs: Dofs, rot, joints, body_com) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, N, 3) x 2: each DoF's axis (zero for the vertical shift) and pivot in the mat frame;
+    the root turns about the centre of mass."""
+    pivot = joints[:, dofs.joint]
+    pivot[:, dofs.joint == 0] = body_com[:, None]
+    return dofs.axes(rot), pivot
+
+
 def dof_geometry(dofs: Dofs, rot, joints, body_com, pose, ref_local):
     """Per DoF: a_k (B, N, 3) with d(height)/d(theta_k) = a_k . (1, x, y) inside its subtree,
     and e_k (B, N) the spring's present deflection about the DoF's axis."""
-    u = dofs.axes(rot)
-    pivot = joints[:, dofs.joint]
-    pivot[:, dofs.joint == 0] = body_com[:, None]  # the root turns about the centre of mass
+    u, pivot = dof_axes_pivots(dofs, rot, joints, body_com)
     # dz: height + theta; rotation: (u x (r - p))_z = u_x (y - p_y) - u_y (x - p_x)
     a = torch.stack([u[..., 1] * pivot[..., 0] - u[..., 0] * pivot[..., 1], -u[..., 1], u[..., 0]], -1)
     a[:, 0] = torch.tensor([1.0, 0.0, 0.0], dtype=a.dtype, device=a.device)
@@ -228,5 +235,5 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
     return params.replace(pose=pose, root_rotation=root, root_translation=moved)
 
 
-__all__ = ["Dofs", "apply_motion", "dof_geometry", "from_part_frames", "joint_stiffness",
+__all__ = ["Dofs", "apply_motion", "dof_axes_pivots", "dof_geometry", "from_part_frames", "joint_stiffness",
            "part_mass_and_com", "tissue_depth", "to_part_frames"]

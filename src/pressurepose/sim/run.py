@@ -60,7 +60,8 @@ def settle_config_for(partition: str) -> SettleConfig:
 def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
                    mat: MatSpec | None = None, seed: int = 0,
                    bed: BedShape | Sequence[BedShape] | None = None,
-                   settle_config: SettleConfig | None = None, settle: Literal["mujoco", "none"] = "mujoco",
+                   settle_config: SettleConfig | None = None,
+                   settle: Literal["mujoco", "articulated", "none"] = "mujoco",
                    sim2: Literal["rigid", "articulated"] = "rigid",
                    articulated: ArticulatedConfig | None = None) -> SimulatedSamples:
     """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses on a flat bed,
@@ -69,9 +70,13 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     `settle_config`: sim #1's settings (default `SettleConfig()`; `settle_config_for` gives a
     partition's). `settle="none"` skips sim #1 (the poses rest as drawn); `sim2`: the whole mesh
     at rigid rest, or every body part on its own contact (`sim.articulated`; on flat beds,
-    raised beds keep the rigid rest)."""
-    if settle not in ("mujoco", "none") or sim2 not in ("rigid", "articulated"):
-        raise ValueError(f"settle must be 'mujoco' or 'none' and sim2 'rigid' or 'articulated', got {settle!r}, {sim2!r}")
+    raised beds keep the rigid rest). `settle="articulated"`: one mechanics - the articulated
+    rest settles the drawn pose itself (joint springs, self-contact, the soft bed; no MuJoCo)
+    and its field is the image, whatever `sim2` says; raised beds fall back to MuJoCo and the
+    rigid rest."""
+    if settle not in ("mujoco", "articulated", "none") or sim2 not in ("rigid", "articulated"):
+        raise ValueError(f"settle must be 'mujoco', 'articulated' or 'none' and sim2 'rigid' or 'articulated', "
+                         f"got {settle!r}, {sim2!r}")
     options = {"settle": settle, "sim2": sim2, "articulated": articulated}
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
@@ -119,6 +124,8 @@ def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressPa
 
     model64 = as_float64(model)
     B = params.batch_size
+    if settle == "articulated":
+        settle, sim2 = ("none", "articulated") if bed.flat else ("mujoco", "rigid")
     if settle == "mujoco":
         settled = settle_bodies(model64, params, mattress, mat, config=settle_config, bed=bed)
         rest, reason1, steps, settle_ms = settled.params, settled.reason, settled.steps, settled.wall_ms

@@ -1,0 +1,129 @@
+"""Self-contact of the articulated sim #2: body capsules that must not pass through each other.
+
+The articulated rest (`sim.articulated`) lets every part settle on the bed; without this a
+forearm lying across the belly or one calf over the other would sink through the body
+beneath it to the foam. The body's capsules (`body.capsules`, the ones sim #1 collides) stand
+for its volume: the seed's distal capsules (hands, forearms, feet, calves) against every
+non-adjacent capsule, like sim #1 and the sampler, each pair only if it is apart in the
+starting pose (a pair that starts overlapped is left alone, as MuJoCo does).
+
+Per linearisation, for each pair the closest points c1, c2 of the two axes give the gap
+g = |c1 - c2| - r1 - r2 and the normal n = (c1 - c2) / |c1 - c2|; a small motion q changes the
+gap by n . (dc1 - dc2) = J q, with dc = sum_k q_k u_k x (c - p_k) over the DoFs k whose subtree
+holds the point's part (the vertical shift and the root move both points alike and drop out).
+The energy is a stiff one-sided spring 1/2 k relu(-(g + J q))^2, k = the body's weight /
+SELF_CONTACT_SINK_M: the whole weight on one contact would press it that far in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from pressurepose.body.capsules import CAPSULE_JOINTS, Capsules, collision_pairs
+
+# The whole body's weight on one capsule contact presses it this far in (a forearm's ~2%
+# of it: ~0.1 mm). Stiffer than the tissue on the foam; soft enough for Newton.
+SELF_CONTACT_SINK_M = 0.005
+# Pairs farther apart than this cannot meet within one re-posing's trust region.
+_REACH_M = 0.15
+
+
+@dataclasses.dataclass
+class SelfContactLinearised:
+    """The capsule pairs of B bodies at one posing: gap (B, P) m, Jacobian (B, P, N) of the gap
+    w.r.t. the DoFs, stiffness (B,) N/m, and a mask (B, P) of the pairs that count."""
+
+    gap: torch.Tensor
+    jac: torch.Tensor
+    stiffness: torch.Tensor
+    mask: torch.Tensor
+
+    def energy(self, q: torch.Tensor) -> torch.Tensor:
+        pen = torch.relu(-(self.gap + (self.jac @ q[..., None])[..., 0])) * self.mask
+        return 0.5 * self.stiffness * (pen**2).sum(1)
+
+    def gradient_hessian(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Energy (B,), gradient (B, N) and Hessian (B, N, N) at q (the Hessian of the active
+        pairs; piecewise quadratic)."""
+        pen = torch.relu(-(self.gap + (self.jac @ q[..., None])[..., 0])) * self.mask
+        k = self.stiffness[:, None]
+        grad = -((k * pen)[..., None] * self.jac).sum(1)
+        active = (pen > 0).to(q.dtype) * k
+        hess = (self.jac * active[..., None]).transpose(1, 2) @ self.jac
+        return 0.5 * self.stiffness * (pen**2).sum(1), grad, hess
+
+
+def closest_points(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closest points (..., 3) x 2 of segments [p1, q1] and [p2, q2] (clamped line
+    parameters, Ericson's Real-Time Collision Detection 5.1.9); point-like segments work."""
+    eps = 1e-12
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e = (d1 * d1).sum(-1), (d2 * d2).sum(-1)
+    b, c, f = (d1 * d2).sum(-1), (d1 * r).sum(-1), (d2 * r).sum(-1)
+    safe_a = torch.where(a > eps, a, torch.ones_like(a))
+    safe_e = torch.where(e > eps, e, torch.ones_like(e))
+    denom = a * e - b * b
+    s = torch.where(denom > eps * (a * e + 1.0),
+                    ((b * f - c * e) / torch.where(denom > 0, denom, torch.ones_like(denom))).clamp(0, 1),
+                    torch.zeros_like(a))
+    t = (b * s + f) / safe_e
+    s = torch.where(t < 0, (-c / safe_a).clamp(0, 1), torch.where(t > 1, ((b - c) / safe_a).clamp(0, 1), s))
+    t = t.clamp(0, 1)
+    s = torch.where(a > eps, s, torch.zeros_like(s))
+    t = torch.where(e > eps, t, torch.zeros_like(t))
+    # A point-like first segment: t from the point; then s again from t.
+    t = torch.where((a <= eps) & (e > eps), (f / safe_e).clamp(0, 1), t)
+    s = torch.where((a > eps) & (e <= eps), (-c / safe_a).clamp(0, 1), s)
+    return p1 + s[..., None] * d1, p2 + t[..., None] * d2
+
+
+class SelfContact:
+    """The capsule pairs of B bodies that self-contact keeps apart (module doc)."""
+
+    def __init__(self, caps: Capsules, rot: torch.Tensor, joints: torch.Tensor, weight_n: torch.Tensor):
+        """caps: the bodies' capsules; rot, joints: the starting pose's world rotations (B, 24, 3,
+        3) and joint positions (B, 24, 3); weight_n (B,)."""
+        self.caps = caps
+        self.pairs = collision_pairs().to(joints.device)
+        cj = torch.tensor(CAPSULE_JOINTS, device=joints.device)
+        self.part = cj[self.pairs]  # (P, 2) J24 part each capsule rides
+        self.stiffness = weight_n / SELF_CONTACT_SINK_M
+        gap, _, _ = self._gap(rot, joints)
+        self.apart = gap > 0  # (B, P)
+
+    def _gap(self, rot, joints):
+        a, b = self.caps.place(rot, joints)
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        c1, c2 = closest_points(a[:, i], b[:, i], a[:, j], b[:, j])
+        gap = (c1 - c2).norm(dim=-1) - self.caps.radius[:, i] - self.caps.radius[:, j]
+        return gap, c1, c2
+
+    def linearise(self, rot, joints, axes, pivots, dof_parts) -> SelfContactLinearised:
+        """At the posing (rot, joints): axes (B, N, 3) and pivots (B, N, 3) of the DoFs,
+        dof_parts (N, 24) the parts each DoF moves."""
+        gap, c1, c2 = self._gap(rot, joints)
+        diff = c1 - c2
+        dist = diff.norm(dim=-1, keepdim=True)
+        up = torch.zeros_like(diff)
+        up[..., 2] = 1.0
+        normal = torch.where(dist > 1e-9, diff / dist.clamp(min=1e-9), up)  # (B, P, 3)
+        # n . (u x (c - p)) = u . ((c - p) x n), per DoF; the DoF counts where it moves the part.
+        m1 = dof_parts[:, self.part[:, 0]].T  # (P, N)
+        m2 = dof_parts[:, self.part[:, 1]].T
+        r1 = torch.linalg.cross(c1[:, :, None] - pivots[:, None], normal[:, :, None].expand(-1, -1, axes.shape[1], -1))
+        r2 = torch.linalg.cross(c2[:, :, None] - pivots[:, None], normal[:, :, None].expand(-1, -1, axes.shape[1], -1))
+        u = axes[:, None]
+        jac = (u * r1).sum(-1) * m1 - (u * r2).sum(-1) * m2  # (B, P, N)
+        mask = (self.apart & (gap < _REACH_M)).to(gap.dtype)
+        return SelfContactLinearised(gap=gap, jac=jac * mask[..., None], stiffness=self.stiffness, mask=mask)
+
+    def penetration(self, rot, joints) -> torch.Tensor:
+        """(B,) deepest overlap (m, >= 0) of the pairs that started apart."""
+        gap, _, _ = self._gap(rot, joints)
+        return torch.relu(-gap * self.apart).amax(1)
+
+
+__all__ = ["SELF_CONTACT_SINK_M", "SelfContact", "SelfContactLinearised", "closest_points"]
