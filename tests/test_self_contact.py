@@ -13,7 +13,7 @@ from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
 from pressurepose.sim.articulation import Dofs, apply_motion, dof_axes_pivots
-from pressurepose.sim.self_contact import SelfContact, SelfContactLinearised, closest_points
+from pressurepose.sim.self_contact import SelfContact, LinearSprings, closest_points
 
 
 def test_closest_points_match_a_dense_search():
@@ -74,7 +74,7 @@ def test_gap_jacobian_matches_moved_poses(anny64):
 def test_energy_derivatives_match_autograd():
     g = torch.Generator().manual_seed(2)
     B, P, N = 2, 7, 5
-    lin = SelfContactLinearised(gap=0.01 * torch.randn(B, P, generator=g, dtype=torch.float64),
+    lin = LinearSprings(gap=0.01 * torch.randn(B, P, generator=g, dtype=torch.float64),
                                 jac=torch.randn(B, P, N, generator=g, dtype=torch.float64),
                                 stiffness=torch.tensor([1e4, 3e4], dtype=torch.float64),
                                 mask=(torch.rand(B, P, generator=g) > 0.2).to(torch.float64))
@@ -107,3 +107,58 @@ def test_forearm_rests_on_the_belly_instead_of_sinking_through(anny64):
     elbow = joint_index("left_elbow")
     assert float(held.part_force_n[0, elbow]) < 0.5 * float(free.part_force_n[0, elbow]) + 1e-9
     assert math.isfinite(float(held.force_n[0]))
+
+
+def test_friction_anchors_where_a_part_touches_and_slips_beyond_mu_n():
+    from pressurepose.sim.friction import Friction
+
+    B, K = 1, 3
+    rot = torch.eye(3, dtype=torch.float64).expand(B, 24, 3, 3).clone()
+    joints = torch.zeros(B, 24, 3, dtype=torch.float64)
+    part = torch.tensor([[5, 5, 7]])
+    xyz = torch.tensor([[[1.0, 0.2, -0.01], [1.2, 0.2, -0.01], [0.5, 0.5, -0.02]]], dtype=torch.float64)
+    force = torch.tensor([[10.0, 30.0, 0.0]], dtype=torch.float64)  # part 7 does not touch
+    stiff = torch.tensor([[1e3, 1e3, 0.0]], dtype=torch.float64)
+    fr = Friction(B, mu=0.5, dtype=torch.float64, device="cpu")
+    fr.update(rot, joints, part, xyz, force, stiff)
+    assert fr.anchored[0].nonzero().ravel().tolist() == [5]
+    np.testing.assert_allclose(fr.anchor[0, 5].numpy(), [1.15, 0.2])  # the centre of pressure
+    assert float(fr.stiffness[0, 5]) == 2e3
+    # The part moves 1 mm: it sticks (mu N / k = 0.5 * 40 / 2000 = 10 mm).
+    joints[0, 5, 0] = 0.001
+    fr.update(rot, joints, part, xyz, force, stiff)
+    np.testing.assert_allclose(fr.anchor[0, 5].numpy(), [1.15, 0.2])
+    springs = fr.linearise(rot, joints, torch.zeros(B, 4, 3, dtype=torch.float64),
+                           torch.zeros(B, 4, 3, dtype=torch.float64), torch.ones(4, 24, dtype=torch.float64))
+    np.testing.assert_allclose(float(springs.energy(torch.zeros(B, 4, dtype=torch.float64))[0]), 0.5 * 2e3 * 1e-6)
+    # It moves 5 cm: the anchor slides after it, the spring at mu N.
+    joints[0, 5, 0] = 0.05
+    fr.update(rot, joints, part, xyz, force, stiff)
+    np.testing.assert_allclose(fr.anchor[0, 5].numpy(), [1.15 + 0.04, 0.2])
+    # It lifts off: the anchor is forgotten.
+    fr.update(rot, joints, part, xyz, torch.zeros_like(force), stiff)
+    assert not fr.anchored.any() and float(fr.stiffness.abs().sum()) == 0
+
+
+def test_friction_jacobian_matches_moved_poses(anny64):
+    from pressurepose.sim.friction import Friction
+
+    p = _forearm_over_belly(anny64)
+    rest = rest_joints(anny64, p.shape)
+    rot, joints = pose_in_mat(rest, p)
+    dofs = Dofs("cpu", torch.float64)
+    fr = Friction(1, 0.5, torch.float64, "cpu")
+    # Every part touches at its joint (a contact point per part, unit force and stiffness).
+    part = torch.arange(24)[None]
+    fr.update(rot, joints, part, joints.clone(), torch.ones(1, 24, dtype=torch.float64),
+              torch.ones(1, 24, dtype=torch.float64))
+    com = joints.mean(1)
+    axes, pivots = dof_axes_pivots(dofs, rot, joints, com)
+    springs = fr.linearise(rot, joints, axes, pivots, dofs.desc[dofs.joint])
+    g = torch.Generator().manual_seed(3)
+    q = 1e-4 * torch.randn(1, dofs.n, generator=g, dtype=torch.float64)
+    moved = pose_in_mat(rest, apply_motion(p, q, dofs, rot, joints, com))
+    offset = (fr._points(*moved)[..., :2] - fr.anchor).reshape(1, -1)
+    predicted = springs.gap + (springs.jac @ q[..., None])[..., 0]
+    assert float(offset.abs().max()) > 1e-5
+    assert float((offset - predicted).abs().max()) < 0.02 * float(offset.abs().max())

@@ -48,7 +48,8 @@ from pressurepose.sim.articulation import (
     to_part_frames,
 )
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
-from pressurepose.sim.self_contact import SelfContact
+from pressurepose.sim.friction import Friction
+from pressurepose.sim.self_contact import SELF_CONTACT_SINK_M, SelfContact
 from pressurepose.sim.soft_contact import lowest_points, series_law
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
@@ -96,6 +97,11 @@ class ArticulatedConfig:
     self_contact: bool = True
     """Keep the body's capsules from passing through each other (`sim.self_contact`): a
     forearm across the belly rests on it instead of sinking through to the foam."""
+    self_contact_sink_m: float = SELF_CONTACT_SINK_M
+    friction: bool = True
+    """Static friction per part (`sim.friction`, MattressParams.friction): a part that touched
+    the sheet sticks there until pushed beyond mu x its load."""
+    """Self-contact stiffness: the body's whole weight on one contact would press it this far in."""
     tol: float = 1e-4
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
@@ -135,9 +141,9 @@ class _Linearised:
     gradient, the springs and the limits."""
 
     def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None,
-                 self_contact=None):
-        # self_contact: a sim.self_contact.SelfContactLinearised or None.
-        self.self_contact = self_contact
+                 springs=()):
+        # springs: sim.self_contact.LinearSprings (self-contact, friction anchors) added to the energy.
+        self.springs = tuple(springs)
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
         # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
         self.limits = limits
@@ -174,7 +180,9 @@ class _Linearised:
         _, _, phi = series_law(w, mp, self.tissue)
         out = ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
                + self._limit(q)[0])
-        return out if self.self_contact is None else out + self.self_contact.energy(q)
+        for s in self.springs:
+            out = out + s.energy(q)
+        return out
 
     def _limit(self, q):
         """Energy (B,), gradient (B, N) and curvature (B, N) of the hinge-limit springs."""
@@ -212,10 +220,19 @@ class _Linearised:
         picked = aM.gather(2, self.deeper[None, :, :, None].expand(B, n, n, 3))  # (B, N, N, 3)
         H = (picked * self.dof_a[:, None]).sum(-1) * self.deeper_ok
         H = H + torch.diag_embed(self.k + c_lim)
-        if self.self_contact is not None:
-            e_sc, g_sc, h_sc = self.self_contact.gradient_hessian(q)
-            energy, grad, H = energy + e_sc, grad + g_sc, H + h_sc
+        for s in self.springs:
+            e_s, g_s, h_s = s.gradient_hessian(q)
+            energy, grad, H = energy + e_s, grad + g_s, H + h_s
         return grad, H, f, w, energy
+
+    def contact_state(self, q, mp: MattressParams):
+        """At q: each cell's part (B, K), contact point (B, K, 3), force (B, K) N and vertical
+        stiffness (B, K) N/m (zero off contact), for `sim.friction`."""
+        w = self.compression(q)
+        p, dp, _ = series_law(w, mp, self.tissue)
+        on = (w > 0).to(w.dtype) * self.mask
+        xyz = torch.cat([self.basis[..., 1:3], -w[..., None]], -1)
+        return self.part, xyz, p * self.area * on, dp * self.area * on
 
     def unpack(self, values, cells):
         out = values.new_zeros(values.shape[0], cells)
@@ -279,8 +296,10 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     contact = None
     if cfg.self_contact:
-        contact = SelfContact(fit_capsules(model, params.shape), rot, joints, weight)
-    q = None
+        contact = SelfContact(fit_capsules(model, params.shape), rot, joints, weight, cfg.self_contact_sink_m)
+    friction = Friction(B, mp.friction, dtype, device) if cfg.friction else None
+    dof_parts = dofs.desc[dofs.joint]
+    q, solved = None, None
     for outer in range(cfg.outer + 1):
         if outer > 0:
             rot, joints = pose_in_mat(rest, cur)
@@ -290,10 +309,13 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
                                       point_tissue)
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
-        sc = None if contact is None else contact.linearise(rot, joints, *dof_axes_pivots(dofs, rot, joints, body_com),
-                                                            dofs.desc[dofs.joint])
+        axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)
+        springs = [] if contact is None else [contact.linearise(rot, joints, axes, pivots, dof_parts)]
+        if friction is not None and solved is not None:
+            friction.update(rot, joints, *solved)
+            springs.append(friction.linearise(rot, joints, axes, pivots, dof_parts))
         lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cell_tissue,
-                          (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), sc)
+                          (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), springs)
         q, it = _minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
                           max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing)
         iters += it
@@ -304,6 +326,8 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
             q, it = _minimise(lin, q, mp, weight, cfg, max_steps=cfg.inner)
             iters += it
             break
+        if friction is not None:
+            solved = lin.contact_state(q, mp)
         cur = apply_motion(cur, q, dofs, rot, joints, body_com)
     # The last linearised solve is the rest: its field balances the weight; the mesh is moved
     # by its (small) motion exactly.

@@ -12,7 +12,7 @@ g = |c1 - c2| - r1 - r2 and the normal n = (c1 - c2) / |c1 - c2|; a small motion
 gap by n . (dc1 - dc2) = J q, with dc = sum_k q_k u_k x (c - p_k) over the DoFs k whose subtree
 holds the point's part (the vertical shift and the root move both points alike and drop out).
 The energy is a stiff one-sided spring 1/2 k relu(-(g + J q))^2, k = the body's weight /
-SELF_CONTACT_SINK_M: the whole weight on one contact would press it that far in.
+`sink_m`: the whole weight on one contact would press it that far in.
 """
 
 from __future__ import annotations
@@ -23,36 +23,45 @@ import torch
 
 from pressurepose.body.capsules import CAPSULE_JOINTS, Capsules, collision_pairs
 
-# The whole body's weight on one capsule contact presses it this far in (a forearm's ~2%
-# of it: ~0.1 mm). Stiffer than the tissue on the foam; soft enough for Newton.
-SELF_CONTACT_SINK_M = 0.005
+# The whole body's weight on one capsule contact presses it this far in (a leg's ~17% of
+# it: ~3 mm). Stiffer than the tissue on the foam; soft enough for Newton.
+SELF_CONTACT_SINK_M = 0.02
 # Pairs farther apart than this cannot meet within one re-posing's trust region.
 _REACH_M = 0.15
 
 
 @dataclasses.dataclass
-class SelfContactLinearised:
-    """The capsule pairs of B bodies at one posing: gap (B, P) m, Jacobian (B, P, N) of the gap
-    w.r.t. the DoFs, stiffness (B,) N/m, and a mask (B, P) of the pairs that count."""
+class LinearSprings:
+    """Springs on quantities linear in the DoFs q: g(q) = gap + jac q, energy 1/2 k g^2 per
+    row - one-sided (only where g < 0: contacts) or two-sided (friction anchors). gap (B, M),
+    jac (B, M, N), stiffness (B,) or (B, M), mask (B, M) of the rows that count."""
 
     gap: torch.Tensor
     jac: torch.Tensor
     stiffness: torch.Tensor
     mask: torch.Tensor
+    one_sided: bool = True
+
+    def _stretch(self, q):
+        g = self.gap + (self.jac @ q[..., None])[..., 0]
+        return (torch.relu(-g) if self.one_sided else -g) * self.mask
+
+    def _k(self):
+        return self.stiffness[:, None] if self.stiffness.ndim == 1 else self.stiffness
 
     def energy(self, q: torch.Tensor) -> torch.Tensor:
-        pen = torch.relu(-(self.gap + (self.jac @ q[..., None])[..., 0])) * self.mask
-        return 0.5 * self.stiffness * (pen**2).sum(1)
+        return 0.5 * (self._k() * self._stretch(q) ** 2).sum(1)
 
     def gradient_hessian(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Energy (B,), gradient (B, N) and Hessian (B, N, N) at q (the Hessian of the active
-        pairs; piecewise quadratic)."""
-        pen = torch.relu(-(self.gap + (self.jac @ q[..., None])[..., 0])) * self.mask
-        k = self.stiffness[:, None]
+        """Energy (B,), gradient (B, N) and Hessian (B, N, N) at q (one-sided: the Hessian of
+        the active rows; piecewise quadratic)."""
+        pen = self._stretch(q)
+        k = self._k()
         grad = -((k * pen)[..., None] * self.jac).sum(1)
-        active = (pen > 0).to(q.dtype) * k
+        active = ((pen > 0).to(q.dtype) if self.one_sided else self.mask) * k
         hess = (self.jac * active[..., None]).transpose(1, 2) @ self.jac
-        return 0.5 * self.stiffness * (pen**2).sum(1), grad, hess
+        return 0.5 * (k * pen**2).sum(1), grad, hess
+
 
 
 def closest_points(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor
@@ -83,14 +92,15 @@ def closest_points(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: tor
 class SelfContact:
     """The capsule pairs of B bodies that self-contact keeps apart (module doc)."""
 
-    def __init__(self, caps: Capsules, rot: torch.Tensor, joints: torch.Tensor, weight_n: torch.Tensor):
+    def __init__(self, caps: Capsules, rot: torch.Tensor, joints: torch.Tensor, weight_n: torch.Tensor,
+                 sink_m: float = SELF_CONTACT_SINK_M):
         """caps: the bodies' capsules; rot, joints: the starting pose's world rotations (B, 24, 3,
         3) and joint positions (B, 24, 3); weight_n (B,)."""
         self.caps = caps
         self.pairs = collision_pairs().to(joints.device)
         cj = torch.tensor(CAPSULE_JOINTS, device=joints.device)
         self.part = cj[self.pairs]  # (P, 2) J24 part each capsule rides
-        self.stiffness = weight_n / SELF_CONTACT_SINK_M
+        self.stiffness = weight_n / sink_m
         gap, _, _ = self._gap(rot, joints)
         self.apart = gap > 0  # (B, P)
 
@@ -101,7 +111,7 @@ class SelfContact:
         gap = (c1 - c2).norm(dim=-1) - self.caps.radius[:, i] - self.caps.radius[:, j]
         return gap, c1, c2
 
-    def linearise(self, rot, joints, axes, pivots, dof_parts) -> SelfContactLinearised:
+    def linearise(self, rot, joints, axes, pivots, dof_parts) -> LinearSprings:
         """At the posing (rot, joints): axes (B, N, 3) and pivots (B, N, 3) of the DoFs,
         dof_parts (N, 24) the parts each DoF moves."""
         gap, c1, c2 = self._gap(rot, joints)
@@ -118,7 +128,7 @@ class SelfContact:
         u = axes[:, None]
         jac = (u * r1).sum(-1) * m1 - (u * r2).sum(-1) * m2  # (B, P, N)
         mask = (self.apart & (gap < _REACH_M)).to(gap.dtype)
-        return SelfContactLinearised(gap=gap, jac=jac * mask[..., None], stiffness=self.stiffness, mask=mask)
+        return LinearSprings(gap=gap, jac=jac * mask[..., None], stiffness=self.stiffness, mask=mask)
 
     def penetration(self, rot, joints) -> torch.Tensor:
         """(B,) deepest overlap (m, >= 0) of the pairs that started apart."""
@@ -126,4 +136,4 @@ class SelfContact:
         return torch.relu(-gap * self.apart).amax(1)
 
 
-__all__ = ["SELF_CONTACT_SINK_M", "SelfContact", "SelfContactLinearised", "closest_points"]
+__all__ = ["SELF_CONTACT_SINK_M", "LinearSprings", "SelfContact", "closest_points"]
