@@ -96,7 +96,9 @@ def test_mirrored_side_gives_mirrored_image(anny64):
     from pressurepose.commands.realism import resting_pose
 
     pose = resting_pose("left", 1)
-    held = ArticulatedConfig(hold_roll_m=0.5, outer=20)
+    # Without friction: with it the rest depends on the path (which part touches first), and
+    # the mesh's ~1 mm asymmetry sends the two sides along slightly different paths (docs/physics.md).
+    held = ArticulatedConfig(hold_roll_m=0.5, friction=False)
     left = rest_articulated(anny64, _bodies(anny64, 1, roll=-math.pi / 2, pose=pose), config=held)
     right = rest_articulated(anny64, _bodies(anny64, 1, roll=math.pi / 2, pose=pose), config=held)
     a, b = left.foundation_pa[0], right.foundation_pa[0].flip(-1)

@@ -131,6 +131,7 @@ def test_friction_anchors_where_a_part_touches_and_slips_beyond_mu_n():
     springs = fr.linearise(rot, joints, torch.zeros(B, 4, 3, dtype=torch.float64),
                            torch.zeros(B, 4, 3, dtype=torch.float64), torch.ones(4, 24, dtype=torch.float64))
     np.testing.assert_allclose(float(springs.energy(torch.zeros(B, 4, dtype=torch.float64))[0]), 0.5 * 2e3 * 1e-6)
+    assert float(springs.sliding_force[0, 5]) == 0.5 * 40
     # It moves 5 cm: the anchor slides after it, the spring at mu N.
     joints[0, 5, 0] = 0.05
     fr.update(rot, joints, part, xyz, force, stiff)
@@ -158,7 +159,42 @@ def test_friction_jacobian_matches_moved_poses(anny64):
     g = torch.Generator().manual_seed(3)
     q = 1e-4 * torch.randn(1, dofs.n, generator=g, dtype=torch.float64)
     moved = pose_in_mat(rest, apply_motion(p, q, dofs, rot, joints, com))
-    offset = (fr._points(*moved)[..., :2] - fr.anchor).reshape(1, -1)
-    predicted = springs.gap + (springs.jac @ q[..., None])[..., 0]
+    offset = fr._points(*moved)[..., :2] - fr.anchor
+    predicted = springs._s(q)
     assert float(offset.abs().max()) > 1e-5
     assert float((offset - predicted).abs().max()) < 0.02 * float(offset.abs().max())
+
+
+def test_coulomb_springs_derivatives_and_sliding_force():
+    """Energy, gradient and Hessian against autograd, sticking and sliding parts alike; a
+    sliding part's force is mu N whatever its offset."""
+    from pressurepose.sim.friction import CoulombSprings
+
+    g = torch.Generator().manual_seed(4)
+    B, N = 2, 6
+    springs = CoulombSprings(offset=0.01 * torch.randn(B, 24, 2, generator=g, dtype=torch.float64),
+                             jac=torch.randn(B, 24, 2, N, generator=g, dtype=torch.float64),
+                             stiffness=torch.rand(B, 24, generator=g, dtype=torch.float64) * 1e3,
+                             sliding_force=torch.rand(B, 24, generator=g, dtype=torch.float64) * 5.0)
+    springs.stiffness[:, :4] = 0.0  # parts without an anchor
+    q = 0.01 * torch.randn(B, N, generator=g, dtype=torch.float64)
+    s = springs._s(q).norm(dim=-1)
+    sliding = (s > springs.sliding_force / springs.stiffness.clamp(min=1e-12)) & (springs.stiffness > 0)
+    assert 0 < int(sliding.sum()) < int((springs.stiffness > 0).sum())  # both regimes present
+    e, grad, hess = springs.gradient_hessian(q)
+    np.testing.assert_allclose(e.numpy(), springs.energy(q).numpy(), rtol=1e-12)
+    qa = q.clone().requires_grad_(True)
+    np.testing.assert_allclose(grad.numpy(), torch.autograd.grad(springs.energy(qa).sum(), qa)[0].numpy(), rtol=1e-9)
+    for b in range(B):
+        def one(x):
+            qq = q.clone()
+            qq[b] = x
+            return springs.energy(qq)[b]
+        np.testing.assert_allclose(hess[b].numpy(), torch.autograd.functional.hessian(one, q[b]).numpy(),
+                                   rtol=1e-7, atol=1e-7)
+    # One sliding part alone: its force (the gradient w.r.t. its offset) has size mu N.
+    one_part = CoulombSprings(offset=torch.tensor([[[0.3, 0.4]]], dtype=torch.float64),
+                              jac=torch.eye(2, dtype=torch.float64)[None, None], stiffness=torch.tensor([[100.0]], dtype=torch.float64),
+                              sliding_force=torch.tensor([[2.0]], dtype=torch.float64))
+    _, grad, _ = one_part.gradient_hessian(torch.zeros(1, 2, dtype=torch.float64))
+    np.testing.assert_allclose(grad[0].numpy(), [1.2, 1.6])

@@ -7,9 +7,9 @@ because its foot slides freely. Per J24 part in contact: an anchor on the sheet 
 centre of pressure was when it first touched) and the material point that touched (in the
 part's frame); the part's horizontal offset from its anchor e + J q (J: the horizontal part of
 sum_k u_k x (r - p_k) over the DoFs moving the part) is held by a spring whose stiffness is the
-part's vertical contact stiffness (foam shear ~ its compression). Between re-posings a spring
-pulled beyond mu N lets the anchor slide after the part (slip, the anchor kept at mu N / k);
-a part that lifts off forgets its anchor. This is sim #1's static-friction spring
+part's vertical contact stiffness (foam shear ~ its compression) up to mu N, beyond which the
+force stays mu N (Coulomb sliding, `CoulombSprings`); between re-posings an anchor left beyond
+mu N / k slides after its part (slip); a part that lifts off forgets its anchor. This is sim #1's static-friction spring
 (`sim.settle`) per part instead of per capsule and bed section.
 """
 
@@ -17,8 +17,53 @@ from __future__ import annotations
 
 import torch
 
+import dataclasses
+
 from pressurepose.body.joints import NUM_JOINTS
-from pressurepose.sim.self_contact import LinearSprings
+
+
+@dataclasses.dataclass
+class CoulombSprings:
+    """Per part, the horizontal offset s(q) = offset + J q from its anchor (B, 24, 2), J (B, 24,
+    2, N), held by a spring k (B, 24) N/m up to the sliding force f (B, 24) = mu N; beyond it the
+    force stays f (Coulomb): energy 1/2 k |s|^2 for |s| <= f / k, f |s| - f^2 / (2 k) beyond
+    (convex, continuous gradient). Parts with k = 0 carry nothing."""
+
+    offset: torch.Tensor
+    jac: torch.Tensor
+    stiffness: torch.Tensor
+    sliding_force: torch.Tensor
+
+    def _s(self, q):
+        return self.offset + (self.jac @ q[:, None, :, None])[..., 0]
+
+    def energy(self, q: torch.Tensor) -> torch.Tensor:
+        s = self._s(q)
+        n = s.norm(dim=-1)
+        k, f = self.stiffness, self.sliding_force
+        reach = f / k.clamp(min=1e-12)
+        e = torch.where(n <= reach, 0.5 * k * n**2, f * n - 0.5 * f * reach)
+        return (e * (k > 0)).sum(1)
+
+    def gradient_hessian(self, q: torch.Tensor):
+        """Energy (B,), gradient (B, N), Hessian (B, N, N) (beyond the sliding force: f / |s|
+        times the projection across s - the force keeps its size, turns with s)."""
+        s = self._s(q)
+        n = s.norm(dim=-1)
+        k, f = self.stiffness, self.sliding_force
+        on = (k > 0).to(q.dtype)
+        reach = f / k.clamp(min=1e-12)
+        stick = (n <= reach).to(q.dtype)
+        e = (torch.where(n <= reach, 0.5 * k * n**2, f * n - 0.5 * f * reach) * on).sum(1)
+        scale = torch.where(n <= reach, k, f / n.clamp(min=1e-15)) * on  # force = scale * s
+        force = scale[..., None] * s  # (B, 24, 2)
+        grad = (force[..., None] * self.jac).sum((1, 2))
+        unit = s / n.clamp(min=1e-15)[..., None]
+        eye = torch.eye(2, dtype=q.dtype, device=q.device)
+        across = eye - (1 - stick)[..., None, None] * unit[..., :, None] * unit[..., None, :]
+        tangent = scale[..., None, None] * across  # (B, 24, 2, 2)
+        hess = torch.einsum("bpin,bpij,bpjm->bnm", self.jac, tangent, self.jac)
+        return e, grad, hess
 
 
 class Friction:
@@ -30,6 +75,7 @@ class Friction:
         self.anchor = torch.zeros(batch, NUM_JOINTS, 2, dtype=dtype, device=device)  # on the sheet, m
         self.local = torch.zeros(batch, NUM_JOINTS, 3, dtype=dtype, device=device)  # in the part's frame
         self.stiffness = torch.zeros(batch, NUM_JOINTS, dtype=dtype, device=device)
+        self.load = torch.zeros(batch, NUM_JOINTS, dtype=dtype, device=device)
 
     def _points(self, rot, joints):
         """(B, 24, 3) the anchored material points in the mat frame."""
@@ -58,20 +104,19 @@ class Friction:
         kept = offset * (cap / length.clamp(min=1e-15))[..., None]
         self.anchor = torch.where(slide[..., None], self.anchor + offset - kept, self.anchor)
         self.stiffness = k * self.anchored
+        self.load = load
 
-    def linearise(self, rot, joints, axes, pivots, dof_parts) -> LinearSprings:
-        """Springs on the anchored parts' horizontal offsets (two rows per part: x, y) at the
-        posing (rot, joints); axes, pivots (B, N, 3) of the DoFs, dof_parts (N, 24)."""
+    def linearise(self, rot, joints, axes, pivots, dof_parts) -> CoulombSprings:
+        """The anchored parts' friction at the posing (rot, joints); axes, pivots (B, N, 3) of the
+        DoFs, dof_parts (N, 24)."""
         r = self._points(rot, joints)  # (B, 24, 3)
         offset = r[..., :2] - self.anchor  # (B, 24, 2)
         # d r / d q_n = u_n x (r - p_n) where DoF n moves the part; the vertical shift moves nothing
         # horizontally (its axis is zero).
         d = r[:, :, None] - pivots[:, None]  # (B, 24, N, 3)
         move = torch.linalg.cross(axes[:, None].expand_as(d), d)[..., :2] * dof_parts.T[None, :, :, None]
-        jac = move.permute(0, 1, 3, 2).reshape(r.shape[0], NUM_JOINTS * 2, -1)  # rows: part x, part y
-        mask = self.anchored.repeat_interleave(2, 1).to(r.dtype)
-        return LinearSprings(gap=offset.reshape(r.shape[0], -1), jac=jac * mask[..., None],
-                             stiffness=self.stiffness.repeat_interleave(2, 1), mask=mask, one_sided=False)
+        jac = move.permute(0, 1, 3, 2)  # (B, 24, 2, N)
+        return CoulombSprings(offset=offset, jac=jac, stiffness=self.stiffness, sliding_force=self.mu * self.load)
 
 
-__all__ = ["Friction"]
+__all__ = ["CoulombSprings", "Friction"]
