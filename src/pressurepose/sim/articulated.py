@@ -69,8 +69,9 @@ class ArticulatedConfig:
     """Extra factor on the neck and head springs (a relaxed neck lets the head rest)."""
     spine_stiffness_scale: float = 1.1
     """Extra factor on the spine's springs (spine1-3)."""
-    outer: int = 10
-    """Re-posings of the mesh (each re-linearises the kinematics)."""
+    outer: int = 14
+    """Re-posings of the mesh at most (each re-linearises the kinematics; friction's sliding
+    and a side-lying body's roll need more than 10 to finish)."""
     inner: int = 25
     """Newton steps of the last linearisation (the rest itself)."""
     inner_reposing: int = 6
