@@ -87,8 +87,9 @@ def main() -> None:
           "| mujoco vs articulated: joint median / p95 mm, along, across, area |")
     print("| --- | --- | --- | --- | --- | --- |")
     for part in args.partitions.split(","):
-        params = BodyParams.cat([PoseSampler(model, SamplingConfig(partition=part, gender=g, seed=0)).sample(
-            range(args.n // 2)).params for g in ("female", "male")])
+        over_bed = PARTITIONS[part].over_bed_choices[0]  # the partition's first Table 4 row
+        params = BodyParams.cat([PoseSampler(model, SamplingConfig(partition=part, gender=g, seed=0, over_bed=over_bed))
+                                 .sample(range(args.n // 2)).params for g in ("female", "male")])
         shaken = perturbed(params, args.jitter_rad, seed=1)
         res = {}
         for engine in ENGINES:
