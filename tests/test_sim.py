@@ -403,11 +403,17 @@ def test_sim1_and_sim2_rest_a_half_sitting_body_on_a_raised_bed(anny64):
     from pressurepose.sim.run import simulate_poses
 
     bed = BedShape(30.0)
-    sim = simulate_poses(anny64, half_sitting_params(anny64, anny64.default_shape(1), bed, MAT), bed=bed)
+    params = half_sitting_params(anny64, anny64.default_shape(1), bed, MAT)
+    sim = simulate_poses(anny64, params, bed=bed)
     assert sim.reason == [""]
     rows = (sim.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
     assert int(rows.min()) < 16 < int(rows.max())  # loads on both sides of the hinge (row 16)
     assert (sim.depth_mm[0] < 0).sum() > 50 and torch.equal(sim.contact, (sim.depth_mm < 0).to(sim.contact.dtype))
+    # The articulated settling engine is flat-bed only: on a raised bed it falls back to MuJoCo
+    # and the rigid rest, the same result.
+    again = simulate_poses(anny64, params, bed=bed, settle="articulated")
+    assert int(again.settle_steps[0]) == int(sim.settle_steps[0]) > 0
+    assert torch.allclose(again.pressure_mmhg, sim.pressure_mmhg, atol=1e-4)
 
 
 def test_simulation_never_converts_the_callers_model(anny32):
