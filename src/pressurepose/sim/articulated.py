@@ -301,6 +301,9 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     friction = Friction(B, mp.friction, dtype, device) if cfg.friction else None
     dof_parts = dofs.desc[dofs.joint]
     q, solved = None, None
+    # A body whose re-posing no longer moves it is frozen there (its later linearisations are
+    # the same, so its rest does not depend on how long the others in its batch take).
+    settled = torch.zeros(B, dtype=torch.bool, device=device)
     for outer in range(cfg.outer + 1):
         if outer > 0:
             rot, joints = pose_in_mat(rest, cur)
@@ -313,7 +316,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)
         springs = [] if contact is None else [contact.linearise(rot, joints, axes, pivots, dof_parts)]
         if friction is not None and solved is not None:
-            friction.update(rot, joints, *solved)
+            friction.update(rot, joints, *solved, active=~settled)
             springs.append(friction.linearise(rot, joints, axes, pivots, dof_parts))
         lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cell_tissue,
                           (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), springs)
@@ -322,14 +325,15 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         iters += it
         if outer == cfg.outer:
             break
-        if bool((q[:, 0].abs() < cfg.settled_shift_m).all() and (q[:, 1:].abs() < cfg.settled_rotation_rad).all()):
+        settled = settled | ((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
+        if bool(settled.all()):
             # Nothing moves any more: finish this linearisation's solve; it is the rest.
             q, it = _minimise(lin, q, mp, weight, cfg, max_steps=cfg.inner)
             iters += it
             break
         if friction is not None:
             solved = lin.contact_state(q, mp)
-        cur = apply_motion(cur, q, dofs, rot, joints, body_com)
+        cur = apply_motion(cur, q * (~settled)[:, None].to(q.dtype), dofs, rot, joints, body_com)
     # The last linearised solve is the rest: its field balances the weight; the mesh is moved
     # by its (small) motion exactly.
     _, _, f, w, _ = lin.newton_step(q, mp)

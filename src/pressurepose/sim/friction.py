@@ -81,9 +81,20 @@ class Friction:
         """(B, 24, 3) the anchored material points in the mat frame."""
         return (rot @ self.local[..., None])[..., 0] + joints
 
-    def update(self, rot, joints, part, xyz, force, stiffness):
+    def update(self, rot, joints, part, xyz, force, stiffness, active=None):
         """After a solve, at the posing it reached (rot (B, 24, 3, 3), joints (B, 24, 3)): cells'
-        part (B, K), contact points xyz (B, K, 3) and force (B, K) N; stiffness (B, K) N/m."""
+        part (B, K), contact points xyz (B, K, 3) and force (B, K) N; stiffness (B, K) N/m.
+        `active` (B,) bool: only these bodies' anchors change (default all)."""
+        if active is not None and not bool(active.all()):
+            before = (self.anchored, self.anchor, self.local, self.stiffness, self.load)
+            self.update(rot, joints, part, xyz, force, stiffness)
+            keep = ~active
+            self.anchored = torch.where(keep[:, None], before[0], self.anchored)
+            self.anchor = torch.where(keep[:, None, None], before[1], self.anchor)
+            self.local = torch.where(keep[:, None, None], before[2], self.local)
+            self.stiffness = torch.where(keep[:, None], before[3], self.stiffness)
+            self.load = torch.where(keep[:, None], before[4], self.load)
+            return
         B = force.shape[0]
         load = force.new_zeros(B, NUM_JOINTS).scatter_add_(1, part, force)
         k = force.new_zeros(B, NUM_JOINTS).scatter_add_(1, part, stiffness)

@@ -1,0 +1,73 @@
+"""The articulated settling engine (`simulate_poses(settle="articulated")`): every partition
+rests without NaN, a sample does not depend on its batch beyond the engine's tolerance, runs
+repeat exactly."""
+
+import numpy as np
+import pytest
+import torch
+
+from pressurepose.body.params import BodyParams
+from pressurepose.sampling.partitions import PARTITIONS, SamplingConfig
+from pressurepose.sampling.sampler import PoseSampler
+from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
+from pressurepose.sim.mattress import MattressParams
+from pressurepose.sim.run import settle_config_for, simulate_poses
+
+FLAT = [p for p in PARTITIONS if p != "half_sitting"]
+
+
+def _drawn(model, partition, n, seed=0):
+    over_bed = PARTITIONS[partition].over_bed_choices[0]
+    cfg = SamplingConfig(partition=partition, gender="male", seed=seed, over_bed=over_bed)
+    return PoseSampler(model, cfg).sample(range(n)).params
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("partition", FLAT)
+def test_every_partition_rests_without_nan(anny64, partition):
+    params = _drawn(anny64, partition, 2)
+    hold = settle_config_for(partition).hold_roll_m
+    sim = simulate_poses(anny64, params, MattressParams.preset("sponge"), settle="articulated",
+                         articulated=ArticulatedConfig(hold_roll_m=hold))
+    for name in ("pressure_mmhg", "depth_mm", "joints", "vertices"):
+        assert torch.isfinite(getattr(sim, name)).all(), name
+    kept = [i for i, r in enumerate(sim.reason) if not r]
+    assert all(r.startswith("sim #2: ") for r in sim.reason if r)  # no MuJoCo on a flat bed
+    assert (sim.settle_steps == 0).all()
+    for i in kept:
+        assert float(sim.pressure_mmhg[i].max()) > 5.0
+
+
+def test_a_sample_does_not_depend_on_its_batch(anny64):
+    """Alone or with others, a body rests the same (to round-off): a body that has settled is
+    frozen while the rest of its batch goes on. Without friction: with it the rest depends on
+    the path, and round-off differences between batch sizes can send a limb along another
+    one (docs/physics.md); a dataset fixes its batches, so it still repeats exactly."""
+    params = _drawn(anny64, "supine", 3)
+    mp = MattressParams.preset("sponge")
+    cfg = ArticulatedConfig(friction=False)
+    together = rest_articulated(anny64, params, mattress=mp, config=cfg)
+    for i in range(3):
+        alone = rest_articulated(anny64, params.index(torch.tensor([i])), mattress=mp, config=cfg)
+        assert alone.failure[0] == together.failure[i]
+        assert int(alone.iterations[0]) == int(together.iterations[i])
+        d = (alone.joints[0] - together.joints[i]).norm(dim=-1)
+        assert float(d.max()) < 1e-6, float(d.max())
+        a, b = alone.foundation_pa[0], together.foundation_pa[i]
+        assert float((a - b).abs().max()) < 1e-6 * float(a.abs().max())
+
+
+def test_runs_repeat_exactly(anny64):
+    params = _drawn(anny64, "general", 2)
+    a = rest_articulated(anny64, params)
+    b = rest_articulated(anny64, params)
+    assert a.failure == b.failure
+    assert torch.equal(a.joints, b.joints) and torch.equal(a.foundation_pa, b.foundation_pa)
+    np.testing.assert_array_equal(a.iterations.numpy(), b.iterations.numpy())
+
+
+def test_batch_of_mixed_partitions_matches_its_parts_shape(anny64):
+    """BodyParams of different partitions concatenate and rest together (one batch)."""
+    params = BodyParams.cat([_drawn(anny64, "supine", 1), _drawn(anny64, "general", 1)])
+    r = rest_articulated(anny64, params)
+    assert r.joints.shape == (2, 24, 3) and len(r.failure) == 2
