@@ -11,7 +11,8 @@ from pressurepose.body.capsules import home_pose
 from pressurepose.body.joints import joint_index
 from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
-from pressurepose.sim.articulated import FAIL_TILT, ArticulatedConfig, _Linearised, rest_articulated
+from pressurepose.sim.articulated import FAIL_TILT, ArticulatedConfig, rest_articulated
+from pressurepose.sim.linearised import Linearised
 from pressurepose.sim.soft_contact import series_law
 from pressurepose.sim.articulation import Dofs, part_mass_and_com
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
@@ -165,7 +166,7 @@ def test_hessian_from_moments_matches_autograd(anny64):
     n = dofs.n
     limits = (torch.zeros(1, n, dtype=torch.float64), torch.full((n,), -0.005, dtype=torch.float64),
               torch.full((n,), 0.005, dtype=torch.float64), 100 * k)
-    lin = _Linearised(h, part, xy, a, mass, com, e + 0.05, k, dofs, mat.pitch_row_m * mat.pitch_col_m / 4, 3e5, limits)
+    lin = Linearised(h, part, xy, a, mass, com, e + 0.05, k, dofs, mat.pitch_row_m * mat.pitch_col_m / 4, 3e5, limits)
     lowest = float(lin.h[lin.mask.bool()].min())
     q = torch.zeros(1, dofs.n, dtype=torch.float64)
     q[0, 0] = -lowest - 0.03

@@ -112,7 +112,7 @@ def test_forearm_rests_on_the_belly_instead_of_sinking_through(anny64):
 def test_friction_anchors_where_a_part_touches_and_slips_beyond_mu_n():
     from pressurepose.sim.friction import Friction
 
-    B, K = 1, 3
+    B = 1
     rot = torch.eye(3, dtype=torch.float64).expand(B, 24, 3, 3).clone()
     joints = torch.zeros(B, 24, 3, dtype=torch.float64)
     part = torch.tensor([[5, 5, 7]])

@@ -49,8 +49,9 @@ from pressurepose.sim.articulation import (
 )
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.friction import Friction
+from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.self_contact import SELF_CONTACT_SINK_M, SelfContact
-from pressurepose.sim.soft_contact import lowest_points, series_law
+from pressurepose.sim.soft_contact import lowest_points
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
@@ -125,119 +126,11 @@ class ArticulatedRest:
     sub: int
 
 
-# Cells whose lowest point lies higher than this above the mattress top cannot touch within
-# one re-posing's trust region (5 cm of shift, 0.25 rad on a limb); they join when they come
-# closer. Gravity acts on the parts' masses whatever cells are kept.
-_REACH_M = 0.12
 # A hinge pushed beyond its limit meets a spring this many times its own stiffness.
 _LIMIT_STIFFNESS_RATIO = 100.0
 # The tissue modulus MattressParams.tissue_pa_per_m is that of a layer this deep over the bone;
 # depths below 1 cm count as 1 cm.
 TISSUE_REFERENCE_DEPTH_M = 0.05
-
-
-class _Linearised:
-    """Everything the Newton steps need at one posing of the mesh: the cells under the body
-    (packed, K per body), their height h, part and (1, x, y), the DoFs' geometry, gravity's
-    gradient, the springs and the limits."""
-
-    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None,
-                 springs=()):
-        # springs: sim.self_contact.LinearSprings (self-contact, friction anchors) added to the energy.
-        self.springs = tuple(springs)
-        # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
-        # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
-        self.limits = limits
-        valid = h < _REACH_M
-        K = max(int(valid.sum(1).max()), 1)
-        self.index = torch.argsort((~valid).to(torch.int8), dim=1, stable=True)[:, :K]
-        self.h = h.gather(1, self.index)
-        self.mask = valid.gather(1, self.index).to(h.dtype)
-        self.part = part.gather(1, self.index)
-        self.area, self.dofs, self.dof_a = area, dofs, dof_a
-        # Tissue modulus per cell (B, K) from its lowest point (`tissue` (B, all cells)), or a
-        # number, or None (no tissue).
-        self.tissue = tissue.gather(1, self.index) if isinstance(tissue, torch.Tensor) else tissue
-        self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
-        self.dof_parts = dofs.desc[dofs.joint]  # (N, 24): parts each DoF moves
-        self.cell_basis = self.basis * self.mask[..., None]
-        # Gravity: d(sum m g z)/d(theta_n) over the parts in the subtree, constant.
-        gb = torch.cat([torch.ones_like(com[..., :1]), com[..., :2]], -1) * (mass * GRAVITY_M_S2)[..., None]
-        sub_g = torch.einsum("js,bst->bjt", dofs.desc, gb)  # (B, 24, 3)
-        self.g_grav = (dof_a * sub_g[:, dofs.joint]).sum(-1)
-        self.e, self.k = e, k
-        self.deeper_ok = (dofs.deeper >= 0)
-        self.deeper = dofs.deeper.clamp(min=0)
-
-    def compression(self, q):
-        # The height change of a cell is affine in its (x, y) with per-part coefficients
-        # A_s = sum over the DoFs that move part s of q_n a_n: no (cells x DoFs) matrix.
-        A = torch.einsum("ns,bn,bnt->bst", self.dof_parts, q, self.dof_a)  # (B, 24, 3)
-        dz = (A.gather(1, self.part[..., None].expand(-1, -1, 3)) * self.cell_basis).sum(-1)
-        return torch.relu(-(self.h + dz)) * self.mask
-
-    def energy(self, q, mp: MattressParams):
-        w = self.compression(q)
-        _, _, phi = series_law(w, mp, self.tissue)
-        out = ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
-               + self._limit(q)[0])
-        for s in self.springs:
-            out = out + s.energy(q)
-        return out
-
-    def _limit(self, q):
-        """Energy (B,), gradient (B, N) and curvature (B, N) of the hinge-limit springs."""
-        if self.limits is None:
-            return q.new_zeros(q.shape[0]), torch.zeros_like(q), torch.zeros_like(q)
-        angle, lo, hi, k_lim = self.limits
-        a = angle + q
-        over = torch.relu(a - hi) - torch.relu(lo - a)  # signed excess beyond the range
-        active = (over != 0).to(q.dtype)
-        return 0.5 * (k_lim * over**2).sum(1), k_lim * over, k_lim * active
-
-    def newton_step(self, q, mp: MattressParams):
-        """Gradient (B, N), Hessian (B, N, N), cell forces (B, K) N, compressions (B, K) m and
-        the energy (B,) at q."""
-        w = self.compression(q)
-        p, dp, phi = series_law(w, mp, self.tissue)
-        f = p * self.area
-        c = dp * self.area * (w > 0)
-        B = q.shape[0]
-        f_part = q.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, self.part[..., None].expand(-1, -1, 3),
-                                                           f[..., None] * self.cell_basis)
-        e_lim, g_lim, c_lim = self._limit(q)
-        energy = ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
-                  + e_lim)
-        grad = (self.g_grav + self.k * (self.e + q) + g_lim
-                - torch.einsum("bnt,ns,bst->bn", self.dof_a, self.dof_parts, f_part))
-        # Hessian from the parts' stiffness moments sum c (1, x, y)(1, x, y)^T, summed over
-        # subtrees: H_nl = a_n^T M[overlap(n, l)] a_l.
-        outer = (c[..., None, None] * self.basis[..., :, None] * self.basis[..., None, :]).reshape(B, -1, 9)
-        m_part = q.new_zeros(B, NUM_JOINTS, 9).scatter_add_(1, self.part[..., None].expand(-1, -1, 9), outer)
-        m_sub = torch.einsum("js,bsx->bjx", self.dofs.desc, m_part).view(B, NUM_JOINTS, 3, 3)
-        # a_n^T M_j for every subtree j, then the j = overlap(n, l) one dotted with a_l.
-        aM = torch.einsum("bns,bjst->bnjt", self.dof_a, m_sub)  # (B, N, 24, 3)
-        n = self.deeper.shape[0]
-        picked = aM.gather(2, self.deeper[None, :, :, None].expand(B, n, n, 3))  # (B, N, N, 3)
-        H = (picked * self.dof_a[:, None]).sum(-1) * self.deeper_ok
-        H = H + torch.diag_embed(self.k + c_lim)
-        for s in self.springs:
-            e_s, g_s, h_s = s.gradient_hessian(q)
-            energy, grad, H = energy + e_s, grad + g_s, H + h_s
-        return grad, H, f, w, energy
-
-    def contact_state(self, q, mp: MattressParams):
-        """At q: each cell's part (B, K), contact point (B, K, 3), force (B, K) N and vertical
-        stiffness (B, K) N/m (zero off contact), for `sim.friction`."""
-        w = self.compression(q)
-        p, dp, _ = series_law(w, mp, self.tissue)
-        on = (w > 0).to(w.dtype) * self.mask
-        xyz = torch.cat([self.basis[..., 1:3], -w[..., None]], -1)
-        return self.part, xyz, p * self.area * on, dp * self.area * on
-
-    def unpack(self, values, cells):
-        out = values.new_zeros(values.shape[0], cells)
-        return out.scatter(1, self.index, values * self.mask)
 
 
 def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor | None = None,
@@ -318,9 +211,9 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         if friction is not None and solved is not None:
             friction.update(rot, joints, *solved, active=~settled)
             springs.append(friction.linearise(rot, joints, axes, pivots, dof_parts))
-        lin = _Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cell_tissue,
+        lin = Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cell_tissue,
                           (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), springs)
-        q, it = _minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
+        q, it = minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
                           max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing)
         iters += it
         if outer == cfg.outer:
@@ -328,7 +221,7 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         settled = settled | ((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
         if bool(settled.all()):
             # Nothing moves any more: finish this linearisation's solve; it is the rest.
-            q, it = _minimise(lin, q, mp, weight, cfg, max_steps=cfg.inner)
+            q, it = minimise(lin, q, mp, weight, cfg, max_steps=cfg.inner)
             iters += it
             break
         if friction is not None:
@@ -381,64 +274,6 @@ def _tissue_modulus(points, labels, joints, mp: MattressParams, cfg: Articulated
     if cfg.tissue_depth:
         modulus = modulus * (TISSUE_REFERENCE_DEPTH_M / tissue_depth(points, labels, joints).clamp(min=0.01))
     return modulus
-
-
-def _minimise(lin: _Linearised, q, mp, weight, cfg: ArticulatedConfig, max_steps: int):
-    """Newton with backtracking on the (convex) linearised energy. Returns q and step counts."""
-    B, n = q.shape
-    iters = torch.zeros(B, dtype=torch.long, device=q.device)
-    cap = torch.full((n,), cfg.max_rotation_rad, dtype=q.dtype, device=q.device)
-    cap[0] = cfg.max_shift_m
-    done = torch.zeros(B, dtype=torch.bool, device=q.device)
-    eye = torch.eye(n, dtype=q.dtype, device=q.device)
-    grad, H, f, _, e0 = lin.newton_step(q, mp)
-    for _ in range(max_steps):
-        scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
-        # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
-        # or spring (the root's roll and pitch in the air) from taking arbitrary steps.
-        reg = 1e-9 * scale + 1e-7 * weight
-        H = H + reg[:, None, None] * eye
-        # Levenberg-Marquardt damping on the unknowns whose step would leave the trust region
-        # (a limb falling freely): they take a shorter step, the others their Newton step.
-        damp = torch.zeros_like(q)
-        for _ in range(4):
-            step = -torch.linalg.solve(H + torch.diag_embed(damp), grad[..., None])[..., 0]
-            room = torch.where(step > 0, cap - q, cap + q).clamp(min=0)
-            over = step.abs() > room * 1.0001
-            if not bool(over.any()):
-                break
-            damp = torch.where(over, 4 * damp + H.diagonal(dim1=-2, dim2=-1), damp)
-        # Nothing touches yet (no contact stiffness on dz): fall by the cap, no tilt.
-        free = H[:, 0, 0] <= 1e-6 * weight
-        step[:, 0] = torch.where(free, torch.full_like(step[:, 0], -cfg.max_shift_m), step[:, 0])
-        step[:, 1:3] = torch.where(free[:, None], torch.zeros_like(step[:, 1:3]), step[:, 1:3])
-        step = torch.where(done[:, None], torch.zeros_like(step), step)
-        # Trust region: the largest t <= 1 that keeps q + t step within the caps, the step's
-        # direction kept (clipping components one by one can turn it uphill).
-        room = torch.where(step > 0, cap - q, cap + q).clamp(min=0)
-        t = (room / step.abs().clamp(min=1e-15)).amin(-1).clamp(max=1.0)
-        # Backtracking: the full step's evaluation (energy, and the next step's gradient and
-        # Hessian) is usually accepted at once; only if some body's energy rose, their step is
-        # halved (energies alone) and the evaluation redone where they end.
-        imbalance = (f.sum(1) - weight).abs() / weight
-        trial = lin.newton_step(q + t[:, None] * step, mp)
-        better = (trial[4] <= e0) | done | free
-        if not bool(better.all()):
-            for _ in range(9):
-                t = torch.where(better, t, t / 2)
-                better = (lin.energy(q + t[:, None] * step, mp) <= e0) | done | free
-                if bool(better.all()):
-                    break
-            t = torch.where(better, t, torch.zeros_like(t))  # no descent found: stay (counted as done)
-            trial = lin.newton_step(q + t[:, None] * step, mp)
-        q = q + t[:, None] * step
-        grad, H, f, _, e0 = trial
-        done = done | ~better
-        iters += (~done).long()
-        done = done | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))
-        if bool(done.all()):
-            break
-    return q, iters
 
 
 __all__ = ["ArticulatedConfig", "ArticulatedRest", "rest_articulated"]
