@@ -21,7 +21,13 @@ from pressurepose.data.manifest import load_manifest
 from pressurepose.data.schema import NAMES, SampleBatch, from_table
 from pressurepose.generate import worker
 from pressurepose.generate.plan import (
-    PAPER_TABLE4, REPLACEMENT_BASE, TEST_INDEX_BASE, GenerateConfig, plan_groups, plan_shards, preset_rows,
+    PAPER_TABLE4,
+    REPLACEMENT_BASE,
+    TEST_INDEX_BASE,
+    GenerateConfig,
+    plan_groups,
+    plan_shards,
+    preset_rows,
 )
 from pressurepose.generate.run import run_generate
 from pressurepose.sampling.partitions import PARTITIONS

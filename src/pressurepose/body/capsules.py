@@ -222,7 +222,7 @@ class _CapsuleVertices:
     rigid_bone: int = 0
 
 
-_FIT_PLANS: "weakref.WeakKeyDictionary[BodyModel, tuple]" = weakref.WeakKeyDictionary()
+_FIT_PLANS: weakref.WeakKeyDictionary[BodyModel, tuple] = weakref.WeakKeyDictionary()
 
 
 def _fit_plan(model: BodyModel) -> list[torch.Tensor] | list[_CapsuleVertices]:

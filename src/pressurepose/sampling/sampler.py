@@ -53,7 +53,12 @@ from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import (
-    ARM_CELLS, HEIGHT_TOLERANCE_M, LEG_CELLS, Partition, SamplingConfig, limb_cells,
+    ARM_CELLS,
+    HEIGHT_TOLERANCE_M,
+    LEG_CELLS,
+    Partition,
+    SamplingConfig,
+    limb_cells,
 )
 from pressurepose.sampling.shapes import draw_shape, shape_bounds
 from pressurepose.sampling.sitting import HIP_JOINTS, fold_params, pitch_matrix, sit_up, trunk_pitch
@@ -241,6 +246,19 @@ class InitialPoses:
     def beds(self) -> list[BedShape]:
         """The bed each sample rests on (what sim #1 and sim #2 must be given)."""
         return [BedShape(float(a)) for a in self.head_angle_deg]
+
+    @classmethod
+    def cat(cls, parts: list[InitialPoses]) -> InitialPoses:
+        """One InitialPoses from several of the same config, in order."""
+        first = parts[0]
+        return cls(
+            params=BodyParams.cat([p.params for p in parts]), joints=torch.cat([p.joints for p in parts]),
+            index=np.concatenate([p.index for p in parts]), cells=np.concatenate([p.cells for p in parts]),
+            root_draw=np.concatenate([p.root_draw for p in parts]),
+            head_angle_deg=np.concatenate([p.head_angle_deg for p in parts]),
+            rejections={k: np.concatenate([p.rejections[k] for p in parts]) for k in REJECTION_KEYS},
+            config=first.config, backend=first.backend,
+        )
 
 
 class UnreachableConstraints(UserError):

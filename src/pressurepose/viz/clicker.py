@@ -40,7 +40,13 @@ from urllib.parse import urlparse
 import numpy as np
 
 from pressurepose.data.coregister import (
-    FORMAT, _number, _vector, corner_markers, parse_markers, project, solve_camera_pose,
+    FORMAT,
+    _number,
+    _vector,
+    corner_markers,
+    parse_markers,
+    project,
+    solve_camera_pose,
 )
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
@@ -294,7 +300,7 @@ class ClickSession:
 
 
 class _Handler(LocalHandler):
-    server: "ClickServer"
+    server: ClickServer
 
     STATIC = STATIC
 

@@ -120,7 +120,7 @@ class LocalHandler(BaseHTTPRequestHandler):
 
 
 class _Handler(LocalHandler):
-    server: "ViewerServer"
+    server: ViewerServer
     STATIC = STATIC
 
     def _get(self, route: str, query: dict[str, list[str]]) -> bool:
