@@ -22,7 +22,11 @@ $(STAMP): pyproject.toml | $(BIN)/python
 demo: $(STAMP)
 	$(BIN)/pressurepose demo --out out/demo
 
+# ruff (lint + format check), then the suite; tests/test_architecture.py runs import-linter's
+# layers contract (docs/architecture.md).
 test: $(STAMP)
+	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)

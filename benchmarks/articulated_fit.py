@@ -89,11 +89,11 @@ def main() -> None:
             sim_set = R.summarise(imgs, hts, *pitch)
             c = R.compare(real_sets[p], sim_set)
             regions = sum(abs(sim_set.regions[k] - real_sets[p].regions[k]) for k in R.REGION_NAMES)
-            l = ((1 - c.along) + (1 - c.across) + abs(math.log(c.area_ratio)) + 0.5 * abs(math.log(c.coverage_ratio))
+            loss = ((1 - c.along) + (1 - c.across) + abs(math.log(c.area_ratio)) + 0.5 * abs(math.log(c.coverage_ratio))
                  + 0.5 * regions)
             parts[p] = {"along": round(c.along, 3), "across": round(c.across, 3), "area": round(c.area_ratio, 3),
                         "coverage": round(c.coverage_ratio, 3), "regions": round(regions, 3)}
-            total += l
+            total += loss
         total /= len(POSTURES)
         log.write(json.dumps({"loss": total, "params": v, "parts": parts, "seconds": time.perf_counter() - t0}) + "\n")
         log.flush()

@@ -25,7 +25,7 @@ import torch
 from pressurepose.calib.loss import CalibrationLoss, ParamSpace
 from pressurepose.calib.measurements import synthetic_measurements
 from pressurepose.calib.objects import seed_objects
-from pressurepose.calib.run import CalibrateConfig, run_calibrate
+from pressurepose.commands.calibrate import CalibrateConfig, run_calibrate
 from pressurepose.sim.mattress import MattressParams
 
 # The start: the built-in defaults before issue 5 (fixed here so that the benchmark does not

@@ -58,14 +58,14 @@ def meshes(args) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor
         with torch.no_grad():
             return (body(true).vertices, body(est).vertices, body(BodyParams.zeros(1, body.default_shape(1))).vertices
                     + torch.tensor([1.0, 0.45, 0.1]), body(posed(body, args.n, 2)).vertices, body.faces)
-    from pressurepose.eval import report as R
+    from pressurepose.eval import evaluation as R
     from pressurepose.net.model import NetInputs
     from pressurepose.train.checkpoint import load_network
 
     net, _ = load_network(Path("default"))
     body = net.body
-    _, b = next(R._batches(R._open(args.data, "test"), args.n, args.n))
-    mean, _, bodies = R._baseline_data(R._open(args.data, "train"), 512, torch.float32)
+    _, b = next(R._batches(R.open_split(args.data, "test"), args.n, args.n))
+    mean, _, bodies = R._baseline_data(R.open_split(args.data, "train"), 512, torch.float32)
     with torch.no_grad():
         est = net(NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
                             mass_kg=b["mass_kg"]), mesh=False)[-1].params

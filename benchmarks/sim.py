@@ -23,12 +23,11 @@ from pressurepose.body import load_body_model
 from pressurepose.body.capsules import build_capsule_body
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import PARTITIONS, SamplingConfig
-from pressurepose.sampling.run import concat
-from pressurepose.sampling.sampler import PoseSampler
+from pressurepose.sampling.sampler import InitialPoses, PoseSampler
 from pressurepose.sim.foundation import simulate_pressure
 from pressurepose.sim.mattress import MattressParams
-from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
 from pressurepose.sim.run import settle_config_for
+from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
 from pressurepose.sim.settle import SIM_VOLUME_POINTS, settle
 
 SEED_PER_DAY = 35_000
@@ -52,7 +51,7 @@ def main() -> None:
         over = name in ("hands_behind_head", "prone_hands_up")
         parts = [PoseSampler(model, SamplingConfig(partition=name, gender=g, over_bed=over, seed=0))
                  .sample(range(args.n // 2)) for g in ("female", "male")]
-        poses = concat(parts)
+        poses = InitialPoses.cat(parts)
         initial = poses.params
         n = initial.batch_size
         # Samples on the same bed are simulated together (half_sitting draws a bed per sample).
@@ -94,7 +93,7 @@ def main() -> None:
               + str({k: v for k, v in reasons.items() if k != 'ok'}), flush=True)
     # sim #2 alone at several batch sizes, on settled supine poses.
     print("\nsim #2 alone (mesh at rest given), one core:")
-    supine = concat([PoseSampler(model, SamplingConfig(partition="supine", gender="male", seed=1)).sample(range(32))]).params
+    supine = InitialPoses.cat([PoseSampler(model, SamplingConfig(partition="supine", gender="male", seed=1)).sample(range(32))]).params
     rest = settle(model, supine, params, mat, batch=args.batch)
     rest_params = rest.params
     for B in (1, 8, 32):

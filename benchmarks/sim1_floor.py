@@ -23,8 +23,7 @@ import torch
 from pressurepose.body import load_body_model
 from pressurepose.body.capsules import build_capsule_body
 from pressurepose.sampling.partitions import PARTITIONS, SamplingConfig
-from pressurepose.sampling.run import concat
-from pressurepose.sampling.sampler import PoseSampler
+from pressurepose.sampling.sampler import InitialPoses, PoseSampler
 from pressurepose.sim.run import settle_config_for
 from pressurepose.sim.settle import SIM_VOLUME_POINTS, settle
 
@@ -51,7 +50,7 @@ def main() -> None:
     floors = []
     for name in names:
         over = name in ("hands_behind_head", "prone_hands_up")
-        params = concat([PoseSampler(model, SamplingConfig(partition=name, gender=g, over_bed=over, seed=0))
+        params = InitialPoses.cat([PoseSampler(model, SamplingConfig(partition=name, gender=g, over_bed=over, seed=0))
                          .sample(range(args.n // 2)) for g in ("female", "male")]).params
         n = params.batch_size
         body = build_capsule_body(model, params.shape, volume_points=SIM_VOLUME_POINTS)

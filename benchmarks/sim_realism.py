@@ -23,13 +23,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.bed import BedShape
 from pressurepose.body import load_body_model
 from pressurepose.body.capsules import home_pose
 from pressurepose.body.fit_shape import shape_for_height_mass
 from pressurepose.body.params import BodyParams
 from pressurepose.data.pmatdata import PMAT_TAXEL_AREA_M2, frame_stats, load_index, normalise, read_frame
 from pressurepose.mat import MatSpec
-from pressurepose.bed import BedShape
 from pressurepose.sampling.sitting import half_sitting_params
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.run import simulate_poses

@@ -34,13 +34,13 @@ def main() -> None:
     args = ap.parse_args()
 
     import torch
+    from test_viewer import write_dataset
 
     from pressurepose.body import load_body_model
+    from pressurepose.commands.train import run_train as train
     from pressurepose.train.config import TrainConfig
     from pressurepose.train.data import synthetic_arrays, write_npz
-    from pressurepose.train.loop import train
     from pressurepose.viz.viewer import ViewConfig, make_server
-    from test_viewer import write_dataset
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)

@@ -13,9 +13,9 @@ from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import FAIL_TILT, ArticulatedConfig, rest_articulated
 from pressurepose.sim.linearised import Linearised
-from pressurepose.sim.soft_contact import series_law
 from pressurepose.sim.articulation import Dofs, part_mass_and_com
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
+from pressurepose.sim.soft_contact import series_law
 
 
 def _bodies(model, B=2, roll=0.0, pose=None, scale_weight=None):
@@ -143,8 +143,8 @@ def test_hessian_from_moments_matches_autograd(anny64):
     from pressurepose.body.params import root_matrix
     from pressurepose.body.rotations import axis_angle_to_matrix
     from pressurepose.maps import cell_centres, surface_points
-    from pressurepose.sim.soft_contact import lowest_points
     from pressurepose.sim.articulation import dof_geometry, joint_stiffness
+    from pressurepose.sim.soft_contact import lowest_points
 
     mat, mp = MatSpec(), MattressParams()
     p = _bodies(anny64, 1)

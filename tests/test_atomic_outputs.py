@@ -18,7 +18,6 @@ ALLOWED = re.compile(r"atomic_write\(|\((?:Path\()?tmp\b|\(fh\b|[(, ]buf\b|open\
 EXCEPTIONS = {
     ("cache.py", 'with open(path, "a") as handle:'): "the cache's lock file (flock), never holds data",
     ("generate/run.py", 'fh = open(out / ".lock", "a")'): "the dataset folder's lock file (flock)",
-    ("net/predict.py", 'with open(path, "wb") as fh:'): "write_ply, only called inside atomic_write (checked below)",
 }
 
 
@@ -51,9 +50,9 @@ def test_the_grep_catches_a_bare_write(tmp_path, monkeypatch):
     assert len(me.bare_writes()) == 3
 
 
-def test_write_ply_is_only_called_inside_atomic_write():
+def test_write_mesh_is_only_called_inside_atomic_write():
     calls = [line for path in SRC.rglob("*.py") for line in path.read_text().splitlines()
-             if "write_ply(" in line and "def write_ply" not in line]
+             if "write_mesh(" in line and "def write_mesh" not in line]
     assert calls and all("atomic_write(" in line for line in calls)
 
 
@@ -61,7 +60,7 @@ def test_pose_writes_nothing_under_its_final_names_when_drawing_fails(tmp_path, 
     """A crash while drawing leaves neither body.png nor body.json behind (the old pose
     wrote body.png in place, then body.json)."""
     import pressurepose.viz.body_on_mat as fig_module
-    from pressurepose.pose_figure import PoseConfig, run_pose
+    from pressurepose.commands.pose import PoseConfig, run_pose
 
     real = fig_module.plt.Figure.savefig
 

@@ -9,10 +9,10 @@ import shutil
 import numpy as np
 import pytest
 import tyro
+from test_data import GROUPS, make_fake_dataset
 
 from pressurepose.cli import main
 from pressurepose.errors import UserError
-from test_data import GROUPS, make_fake_dataset
 
 
 def one_line_error(capsys, *needles):

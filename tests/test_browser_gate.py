@@ -2,7 +2,6 @@
 where a missing browser fails them (CI must run them; .ci/run installs Chromium)."""
 
 import pytest
-
 import webdriver
 
 

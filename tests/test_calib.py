@@ -8,7 +8,13 @@ import torch
 
 from pressurepose.calib.cmaes import CMASettings, CountedNormal, minimise
 from pressurepose.calib.loss import (
-    PENALTY, CalibrationLoss, ParamSpace, compression_term, contact_term, force_term, object_region,
+    PENALTY,
+    CalibrationLoss,
+    ParamSpace,
+    compression_term,
+    contact_term,
+    force_term,
+    object_region,
 )
 from pressurepose.calib.measurements import load_measurements, parse_measurements, synthetic_measurements
 from pressurepose.calib.objects import CalibObject, SceneSimulator, seed_objects
@@ -243,8 +249,8 @@ def test_calibration_recovers_hidden_parameters_small_case():
 
 
 def test_sim1_sinks_the_calibration_capsules_like_sim2():
+    from pressurepose.calib.coupling import coupling_check
     from pressurepose.calib.loss import CalibrationLoss as _L  # noqa: F401 (same module the CLI uses)
-    from pressurepose.calib.run import coupling_check
 
     scenes = [[CalibObject(0.2, 0.05, 1.3, 0.4, 0.37, 90.0, "light"), CalibObject(0.4, 0.05, 18.0, 1.2, 0.37, 90.0,
                                                                                    "heavy")]]

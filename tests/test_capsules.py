@@ -4,9 +4,23 @@ import pytest
 import torch
 
 from pressurepose.body.capsules import (
-    CAPSULE_NAMES, CAPSULE_PARENTS, CAPSULES, DISTAL_CAPSULES, JOINT_STIFFNESS, NUM_CAPSULES, Capsules,
-    build_capsule_body, capsule_clearance, capsule_inertia, capsule_index, capsule_volumes, collision_pairs,
-    fit_capsules, home_pose, point_segment_distance, segment_distance,
+    CAPSULE_NAMES,
+    CAPSULE_PARENTS,
+    CAPSULES,
+    DISTAL_CAPSULES,
+    JOINT_STIFFNESS,
+    NUM_CAPSULES,
+    Capsules,
+    build_capsule_body,
+    capsule_clearance,
+    capsule_index,
+    capsule_inertia,
+    capsule_volumes,
+    collision_pairs,
+    fit_capsules,
+    home_pose,
+    point_segment_distance,
+    segment_distance,
 )
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.kinematics import forward_kinematics, pose_in_mat, rest_joints

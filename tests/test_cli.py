@@ -43,7 +43,7 @@ def test_sample_writes_poses_and_figures(tmp_path):
     out = tmp_path / "s"
     assert main(["sample", "--out", str(out), "--n", "12", "--partition", "supine", "--gender", "male",
                  "--batch", "5", "--figures", "4"]) == 0
-    from pressurepose.sampling.run import load_poses
+    from pressurepose.commands.sample import load_poses
 
     arrays = load_poses(out / "poses.npz")
     assert arrays["pose"].shape == (12, 23, 3) and arrays["joints"].shape == (12, 24, 3)
@@ -78,7 +78,7 @@ def test_sample_bad_input_exits_2(tmp_path):
 
 
 def test_load_poses_refuses_missing_and_corrupt_files(tmp_path):
-    from pressurepose.sampling.run import load_poses
+    from pressurepose.commands.sample import load_poses
 
     with pytest.raises(ValueError, match="no poses file"):
         load_poses(tmp_path / "none.npz")

@@ -14,14 +14,13 @@ import matplotlib.image
 import numpy as np
 import pytest
 import torch
+from served import Served, opened
+from webdriver import WebDriver, needs_chromium
 
 from pressurepose.body.rotations import rotation_angle
 from pressurepose.cli import main
 from pressurepose.data.coregister import FORMAT, corner_markers, project, read_markers, solve_camera_pose
 from pressurepose.viz.clicker import ClickConfig, load_image, make_click_server
-
-from served import Served, opened
-from webdriver import WebDriver, needs_chromium
 
 INTR = {"fx": 365.0, "fy": 365.0, "cx": 256.0, "cy": 212.0}  # a Kinect v2 depth camera
 K = np.array([[INTR["fx"], 0, INTR["cx"]], [0, INTR["fy"], INTR["cy"]], [0, 0, 1.0]])
@@ -321,7 +320,7 @@ def test_clicking_in_headless_chromium(picture, tmp_path, clicker):
         vv, uu = np.mgrid[0:H, 0:W]
         image = (matplotlib.image.imread(picture)[..., :3] * 255).round()
         for name, rgb in DOT.items():
-            on_screen = np.argwhere((np.abs(shot.astype(int) - rgb).sum(-1) < 12))  # (row, col) device px
+            on_screen = np.argwhere(np.abs(shot.astype(int) - rgb).sum(-1) < 12)  # (row, col) device px
             assert len(on_screen) > 20, name
             y, x = (on_screen.mean(0) + 0.5) / dpr
             seen = np.array([(x - left - st["offX"]) / st["scale"] - 0.5, (y - top - st["offY"]) / st["scale"] - 0.5])

@@ -10,7 +10,14 @@ import torch
 
 from pressurepose.body.rotations import rotation_angle
 from pressurepose.data.coregister import (
-    FORMAT, Intrinsics, corner_markers, depth_to_points, parse_markers, project, read_markers, solve_camera_pose,
+    FORMAT,
+    Intrinsics,
+    corner_markers,
+    depth_to_points,
+    parse_markers,
+    project,
+    read_markers,
+    solve_camera_pose,
 )
 
 K = Intrinsics(fx=365.0, fy=365.0, cx=256.0, cy=212.0)  # a Kinect v2 depth camera

@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from pressurepose.cli import main
+from pressurepose.commands.info import dataset_info
 from pressurepose.data.dataset import BlockShuffleSampler, PressurePoseDataset
 from pressurepose.data.importer import import_original, infer_labels, load_restricted, read_original
-from pressurepose.data.info import dataset_info
 from pressurepose.data.manifest import load_manifest, write_manifest
 from pressurepose.data.schema import NAMES, SampleBatch, from_table, to_table
 from pressurepose.data.shards import CorruptShardError, read_record, table_bytes, verify_shard, write_shard

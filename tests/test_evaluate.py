@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from pressurepose.eval.report import METRICS, EvaluateConfig, _as_params, _sample_metrics, run_evaluate
+from pressurepose.commands.evaluate import EvaluateConfig, run_evaluate
+from pressurepose.eval.evaluation import METRICS, _as_params, _sample_metrics
 from pressurepose.train.config import TrainConfig
 from pressurepose.train.data import open_dataset, synthetic_arrays, write_npz
 from pressurepose.train.loop import train
@@ -70,7 +71,7 @@ def test_report_numbers_equal_the_per_sample_reference(tiny, tmp_path):
     """The batched evaluate (meshes packed once per batch, the mean body's once per run, exact
     pruned nearest neighbours) against the old path: every mesh re-posed per comparison, the
     mean body once per sample, brute-force 3DVPE."""
-    from pressurepose.eval import report as R
+    from pressurepose.eval import evaluation as R
     from pressurepose.net.model import NetInputs
     from pressurepose.train.checkpoint import load_network
 
@@ -80,10 +81,10 @@ def test_report_numbers_equal_the_per_sample_reference(tiny, tmp_path):
     record = json.loads(paths["json"].read_text())
     net, _ = load_network(run)
     body, f32 = net.body, torch.float32
-    mean, images, bodies = R._baseline_data(R._open(root / "train", "train"), 4096, f32)
+    mean, images, bodies = R._baseline_data(R.open_split(root / "train", "train"), 4096, f32)
     want = {"vpe_m": [], "v2v_m": [], "mpjpe_m": [], "mean_body": [], "nearest_image": []}
     with torch.no_grad():
-        for _, b in R._batches(R._open(root / "test", "test"), 4, None):  # batches of 4 and 2
+        for _, b in R._batches(R.open_split(root / "test", "test"), 4, None):  # batches of 4 and 2
             true = body(R._as_params(b, f32))
             est = body(net(NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
                                      mass_kg=b["mass_kg"]), mesh=False)[-1].params)
@@ -236,6 +237,6 @@ def test_evaluate_real_3dvpe_against_point_clouds_per_participant(tiny, tmp_path
     np.savez(data, pressure_mmhg=images, subject=np.array(["A"] * 4), cloud_points=np.zeros((3, 3)),
              cloud_offsets=np.array([0, 1, 1, 2, 3]))
     with pytest.raises(ValueError, match="every frame with at least one point"):
-        from pressurepose.eval.real import RealEvalConfig, run_evaluate_real
+        from pressurepose.commands.evaluate_real import RealEvalConfig, run_evaluate_real
 
         run_evaluate_real(RealEvalConfig(model=run, data=data, out=tmp_path / "o"))

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_data import make_fake_dataset
 
 from pressurepose.cli import main
 from pressurepose.errors import UserError
-from test_data import make_fake_dataset
 
 EXAMPLES = {"manifest": 40, "run_config": 12, "metrics": 12, "model": 12, "measurements": 40,
             "pressure_npy": 40, "pressure_text": 30, "pressure_array": 40, "pickle": 40}

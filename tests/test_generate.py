@@ -21,7 +21,13 @@ from pressurepose.data.manifest import load_manifest
 from pressurepose.data.schema import NAMES, SampleBatch, from_table
 from pressurepose.generate import worker
 from pressurepose.generate.plan import (
-    PAPER_TABLE4, REPLACEMENT_BASE, TEST_INDEX_BASE, GenerateConfig, plan_groups, plan_shards, preset_rows,
+    PAPER_TABLE4,
+    REPLACEMENT_BASE,
+    TEST_INDEX_BASE,
+    GenerateConfig,
+    plan_groups,
+    plan_shards,
+    preset_rows,
 )
 from pressurepose.generate.run import run_generate
 from pressurepose.sampling.partitions import PARTITIONS
@@ -386,12 +392,12 @@ def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
     sim #2 with it is refused in one line."""
     import json
 
-    import pressurepose.sim.settle as settle_mod
+    import pressurepose.sim.run as sim_run
 
     def no_mujoco(*args, **kwargs):
         raise AssertionError("MuJoCo settling ran")
 
-    monkeypatch.setattr(settle_mod, "settle", no_mujoco)
+    monkeypatch.setattr(sim_run, "settle_bodies", no_mujoco)
     out = tmp_path / "one"
     cfg = GenerateConfig(out=out, partition="general", n=3, shard_size=3, batch=3, settle="articulated")
     assert cfg.sim2_engine == "articulated" and cfg.identity()["settle"] == "articulated"

@@ -8,8 +8,17 @@ import torch
 
 from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.eval.metrics import (
-    camera_facing, mpjpe, pa_mpjpe, per_vertex_error, procrustes_align, root_orientation_error,
-    root_position_error, vertex_normals_and_areas, voxel_downsample, vpe, vpe_to_cloud,
+    camera_facing,
+    mpjpe,
+    pa_mpjpe,
+    per_vertex_error,
+    procrustes_align,
+    root_orientation_error,
+    root_position_error,
+    vertex_normals_and_areas,
+    voxel_downsample,
+    vpe,
+    vpe_to_cloud,
 )
 
 D = torch.float64

@@ -1,12 +1,16 @@
 import math
 
+import pytest
 import torch
 from torch.autograd import gradcheck
 
-import pytest
-
-from pressurepose.body.rotations import (axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle,
-                                         rotation_between, swing_twist)
+from pressurepose.body.rotations import (
+    axis_angle_to_matrix,
+    matrix_to_axis_angle,
+    rotation_angle,
+    rotation_between,
+    swing_twist,
+)
 
 
 def naive_rodrigues(r):

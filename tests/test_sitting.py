@@ -19,7 +19,12 @@ from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig
 from pressurepose.sampling.partitions import HEIGHT_TOLERANCE_M
 from pressurepose.sampling.sampler import SEAT_TOLERANCE_M
 from pressurepose.sampling.sitting import (
-    TRUNK_CAPSULES, bed_lift, capsule_gaps, fold_params, half_sitting_params, trunk_pitch,
+    TRUNK_CAPSULES,
+    bed_lift,
+    capsule_gaps,
+    fold_params,
+    half_sitting_params,
+    trunk_pitch,
 )
 
 J = J24_NAMES.index

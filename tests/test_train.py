@@ -9,14 +9,21 @@ import pytest
 import torch
 
 from pressurepose.cli import main
+from pressurepose.commands.predict import read_mesh
+from pressurepose.commands.train import run_train as train  # the loop + metrics.png
 from pressurepose.net import NetConfig, NetInputs, PressureNet
-from pressurepose.net.predict import read_ply
 from pressurepose.train.checkpoint import load_network, save_model
 from pressurepose.train.config import TrainConfig
 from pressurepose.train.data import (
-    KEYS, NpzDataset, TensorDictDataset, collate, open_dataset, standardise, synthetic_arrays, write_npz,
+    KEYS,
+    NpzDataset,
+    TensorDictDataset,
+    collate,
+    open_dataset,
+    standardise,
+    synthetic_arrays,
+    write_npz,
 )
-from pressurepose.train.loop import train
 
 
 @pytest.fixture(scope="module")
@@ -245,7 +252,7 @@ def test_predict_writes_params_meshes_and_figures(trained_run, data32, tmp_path,
         record = json.loads((out / f"{n}.json").read_text())
         assert len(record["pose_axis_angle"]) == 23 and len(record["joints_m"]) == 24
         assert record["shape"]["gender"] == 1.0 and 30 < record["mass_kg"] < 160
-        v, f = read_ply(out / f"{n}.ply")
+        v, f = read_mesh(out / f"{n}.ply")
         assert v.shape == (anny32.num_vertices, 3) and f.shape == tuple(anny32.faces.shape)
         assert (out / f"{n}.png").stat().st_size > 10_000
     # The same image gives the same answer whatever file and batch it came in.

@@ -17,20 +17,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from served import Served, opened
+from webdriver import WebDriver, needs_chromium
 
 from pressurepose.body import BodyParams
 from pressurepose.cli import main
+from pressurepose.commands.evaluate import EvaluateConfig, run_evaluate
+from pressurepose.commands.train import run_train as train  # the loop + metrics.png
 from pressurepose.data.manifest import write_manifest
 from pressurepose.data.schema import SampleBatch, to_table
 from pressurepose.data.shards import table_bytes, write_shard
-from pressurepose.eval.report import EvaluateConfig, read_predictions, run_evaluate
+from pressurepose.eval.evaluation import read_predictions
 from pressurepose.train.config import TrainConfig
 from pressurepose.train.data import synthetic_arrays, write_npz
-from pressurepose.train.loop import train
 from pressurepose.viz.viewer import ViewConfig, make_server
-
-from served import Served, opened
-from webdriver import WebDriver, needs_chromium
 
 # Every test shares the module's fixture (sim #2 samples, a smoke training run and its report):
 # ~15 s of CPU, more on a loaded machine.

@@ -201,7 +201,7 @@ class AnnyBody(BodyModel):
         zeros = shape.new_zeros(shape.shape[0], 0)
         return self.anny._get_phenotype_blendshape_coefficients(shape, zeros, zeros)
 
-    def _rest_skeleton(self, coeffs: torch.Tensor, sk: "_Skeleton") -> tuple[torch.Tensor, torch.Tensor]:
+    def _rest_skeleton(self, coeffs: torch.Tensor, sk: _Skeleton) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest bone heads (B, n, 3) and orientations (B, n, 3, 3) of the bones `sk.bones`,
         computed without the rest mesh (Anny's 'cached' orientation: a special Procrustes of
         a cross-covariance that is linear in the blendshape coefficients)."""
@@ -222,7 +222,7 @@ class AnnyBody(BodyModel):
         offsets = (A[:, sk.parents] @ (heads - heads[:, sk.parents])[..., None])[..., 0]
         return A, offsets
 
-    def _t_pose_corrections(self, offsets: torch.Tensor, sk: "_Skeleton") -> torch.Tensor:
+    def _t_pose_corrections(self, offsets: torch.Tensor, sk: _Skeleton) -> torch.Tensor:
         """(B, n, 3, 3) G_b: Anny's reference pose -> T-pose, per bone (Anny axes)."""
         B, n = offsets.shape[:2]
         eye = torch.eye(3, dtype=offsets.dtype, device=offsets.device)
@@ -237,7 +237,7 @@ class AnnyBody(BodyModel):
             G[:, arm["fore"]] = G_fore[:, None]
         return G
 
-    def _local_rotations(self, pose: torch.Tensor, G: torch.Tensor, sk: "_Skeleton") -> torch.Tensor:
+    def _local_rotations(self, pose: torch.Tensor, G: torch.Tensor, sk: _Skeleton) -> torch.Tensor:
         """J24 pose (B, 23, 3) in SMPL axes -> Anny local-ref rotations (B, n, 3, 3)."""
         B, n = G.shape[:2]
         C = self.c_smpl_to_anny

@@ -65,7 +65,7 @@ class JointLimits:
     upper: torch.Tensor
 
     @classmethod
-    def default(cls, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> "JointLimits":
+    def default(cls, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> JointLimits:
         table = _table().to(dtype=dtype, device=device)
         return cls(lower=table[..., 0], upper=table[..., 1])
 

@@ -42,7 +42,7 @@ class BodyParams:
         shape: torch.Tensor,
         dtype: torch.dtype | None = None,
         device: torch.device | str | None = None,
-    ) -> "BodyParams":
+    ) -> BodyParams:
         """T-pose, supine, pelvis at the mat origin; `shape` (S,) or (B, S) is broadcast."""
         dtype = dtype or shape.dtype
         device = device or shape.device
@@ -56,20 +56,20 @@ class BodyParams:
             pose=torch.zeros(batch_size, NUM_POSE_JOINTS, 3, dtype=dtype, device=device),
         )
 
-    def replace(self, **changes: torch.Tensor) -> "BodyParams":
+    def replace(self, **changes: torch.Tensor) -> BodyParams:
         return dataclasses.replace(self, **changes)
 
-    def index(self, idx) -> "BodyParams":
+    def index(self, idx) -> BodyParams:
         """The samples `idx` (a slice, index tensor or mask over the batch)."""
         return BodyParams(**{f.name: getattr(self, f.name)[idx] for f in dataclasses.fields(self)})
 
     @staticmethod
-    def cat(parts: "list[BodyParams]") -> "BodyParams":
+    def cat(parts: list[BodyParams]) -> BodyParams:
         """One batch of several, in order."""
         return BodyParams(**{f.name: torch.cat([getattr(p, f.name) for p in parts])
                              for f in dataclasses.fields(BodyParams)})
 
-    def to(self, *args, **kwargs) -> "BodyParams":
+    def to(self, *args, **kwargs) -> BodyParams:
         return BodyParams(**{f.name: getattr(self, f.name).to(*args, **kwargs)
                              for f in dataclasses.fields(self)})
 

@@ -269,10 +269,11 @@ def write_synthetic_smpl_file(path: str | Path, seed: int = 0, num_vertices: int
     faces = np.stack([rng.permutation(np.flatnonzero(owner == owner[i]))[:3] for i in range(0, num_vertices, 3)])
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda tmp: np.savez(
-        tmp, v_template=v, f=faces.astype(np.int64), weights=weights, J_regressor=J_regressor,
-        kintree_table=np.stack([np.r_[4294967295, parents[1:]], np.arange(NUM_JOINTS)]).astype(np.int64),
-        shapedirs=rng.normal(0, 0.01, (num_vertices, 3, NUM_BETAS)),
-        posedirs=rng.normal(0, 0.001, (num_vertices, 3, 207)),
-    ))
+    arrays = {
+        "v_template": v, "f": faces.astype(np.int64), "weights": weights, "J_regressor": J_regressor,
+        "kintree_table": np.stack([np.r_[4294967295, parents[1:]], np.arange(NUM_JOINTS)]).astype(np.int64),
+        "shapedirs": rng.normal(0, 0.01, (num_vertices, 3, NUM_BETAS)),
+        "posedirs": rng.normal(0, 0.001, (num_vertices, 3, 207)),
+    }
+    atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
     return path

@@ -26,9 +26,9 @@ import torch
 from pressurepose.calib.objects import CalibObject, SceneSimulator
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
-from pressurepose.validate import read_json
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
+from pressurepose.validate import read_json
 
 FORMAT = "pressurepose.calib-measurements/1"
 _OBJECT_FIELDS = ("length_m", "radius_m", "mass_kg", "x_m", "y_m", "compression_m")

@@ -290,5 +290,13 @@ def _markdown(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["RealismConfig", "frame_placement", "load_real", "real_scenes", "resting_pose", "run_realism",
+def realism(cfg: RealismConfig) -> None:
+    """Simulated pressure images against real ones of known posture, height and weight (PmatData
+    by default): area, pressure, coverage, profiles, load per region, the real-vs-real ceiling."""
+    paths = run_realism(cfg)
+    print(Path(paths["markdown"]).read_text())
+    print(f"realism report: {paths['markdown']}")
+
+
+__all__ = ["RealismConfig", "realism", "frame_placement", "load_real", "real_scenes", "resting_pose", "run_realism",
            "simulate_subjects"]

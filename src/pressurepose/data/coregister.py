@@ -20,17 +20,14 @@ head_left (0, 0), head_right (0, W), foot_left (L, 0), foot_right (L, W), z = 1.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
 from pressurepose.errors import UserError
-from pressurepose.validate import read_json, read_npy
 from pressurepose.mat import MatSpec
-from pressurepose.files import save_figure
+from pressurepose.validate import read_json, read_npy
 
 FORMAT = "pressurepose.coregistration/1"
 CUBE_M = 0.0254  # the seed's 1" tungsten cubes; a marker sits at the cube's centre
@@ -294,22 +291,8 @@ def depth_to_points(depth_m: np.ndarray, intr: Intrinsics) -> np.ndarray:
     return np.stack([(u - intr.cx) * z / intr.fx, (v - intr.cy) * z / intr.fy, z], 1)
 
 
-@dataclasses.dataclass(frozen=True)
-class CoregisterConfig:
-    """Co-register a camera with the mat from clicked corner markers (seed A.6)."""
-
-    markers: Path
-    """Marker file (JSON, format pressurepose.coregistration/1; see docs/real_data.md)."""
-    out: Path = Path("out/coregister")
-    """Output folder: camera.json, coregister.png and, with --cloud, cloud_mat.npy."""
-    cloud: Path | None = None
-    """Camera-frame point cloud (.npy, (N, 3) m) or depth image (.npy, (H, W) m) to bring into
-    the mat frame."""
-    method: Literal["lm", "cma"] = "lm"
-    """lm (direct solution + Levenberg-Marquardt) or cma (+ CMA-ES, as the seed)."""
-
-
-def _load_cloud(path: Path, intr: Intrinsics) -> np.ndarray:
+def load_cloud(path: Path, intr: Intrinsics) -> np.ndarray:
+    """A camera-frame cloud (N, 3) m from an (N, 3) point cloud or (H, W) depth image .npy."""
     arr = read_npy(path, f"no point cloud or depth image at {path}")
     if arr.ndim == 2 and arr.shape[1] == 3:
         pts = arr.astype(np.float64)
@@ -319,58 +302,5 @@ def _load_cloud(path: Path, intr: Intrinsics) -> np.ndarray:
     raise UserError(f"{path} must be an (N, 3) point cloud or an (H, W) depth image, got shape {arr.shape}")
 
 
-def run_coregister(cfg: CoregisterConfig) -> dict[str, Path]:
-    from pressurepose.files import atomic_write
-
-    mk = read_markers(cfg.markers)
-    pose = solve_camera_pose(mk, cfg.method)
-    cloud = _load_cloud(cfg.cloud, mk.intrinsics) if cfg.cloud is not None else None
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
-    record = {**pose.to_dict(), "markers": list(mk.names), "method": cfg.method}
-    if cloud is not None:
-        in_mat = pose.to_mat(cloud)
-        paths["cloud"] = atomic_write(cfg.out / "cloud_mat.npy", lambda tmp: np.save(tmp, in_mat.astype(np.float32)))
-        record["cloud_points"] = int(in_mat.shape[0])
-    paths["figure"] = atomic_write(cfg.out / "coregister.png", lambda tmp: _plot(tmp, mk, pose, cloud))
-    paths["camera"] = atomic_write(cfg.out / "camera.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
-    return paths
-
-
-def _plot(path, mk: Markers, pose: CameraPose, cloud: np.ndarray | None) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
-    ax = axes[0]
-    uv = project(mk.intrinsics.K, pose.R, pose.t, mk.mat_xyz_m)
-    ax.scatter(*mk.pixel.T, marker="o", facecolors="none", edgecolors="k", s=80, label="clicked")
-    ax.scatter(*uv.T, marker="x", c="r", label=f"reprojected (RMS {pose.rms_px:.2f} px)")
-    for name, p in zip(mk.names, mk.pixel):
-        ax.annotate(name, p, fontsize=7, xytext=(4, 4), textcoords="offset points")
-    ax.invert_yaxis()
-    ax.set(title="markers in the image (px)", aspect="equal")
-    ax.legend(fontsize=8)
-    ax = axes[1]
-    mat = MatSpec()
-    if cloud is not None:
-        p = pose.to_mat(cloud)
-        keep = np.random.default_rng(0).permutation(len(p))[:20000]
-        ax.scatter(p[keep, 1], p[keep, 0], c=p[keep, 2], s=1, cmap="viridis", vmin=-0.05, vmax=0.4)
-    L, W = mat.sensing_length_m, mat.sensing_width_m
-    ax.plot([0, W, W, 0, 0], [0, 0, L, L, 0], "k-", lw=1)
-    cam = pose.position_m
-    ax.plot(cam[1], cam[0], "r^", label=f"camera, {cam[2]:.2f} m up")
-    ax.set(title="mat frame, top view (m; head at the top)", xlabel="y", ylabel="x", aspect="equal")
-    ax.invert_yaxis()
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    save_figure(fig, path, format="png", dpi=90)
-    plt.close(fig)
-
-
-__all__ = ["CUBE_M", "CameraPose", "CoregisterConfig", "FORMAT", "Intrinsics", "Markers",
-           "corner_markers", "depth_to_points",
-           "parse_markers", "project", "read_markers", "run_coregister", "solve_camera_pose"]
+__all__ = ["CUBE_M", "FORMAT", "CameraPose", "Intrinsics", "Markers", "corner_markers", "depth_to_points",
+           "load_cloud", "parse_markers", "project", "read_markers", "solve_camera_pose"]

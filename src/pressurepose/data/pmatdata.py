@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pressurepose.errors import UserError
-from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA
+from pressurepose.units import GRAVITY_M_S2, MMHG_PA
 
 ROWS, COLS = 64, 27
 PMAT_TAXEL_AREA_M2 = 0.0286**2

@@ -29,7 +29,8 @@ import numpy as np
 
 from pressurepose.data.importer import load_restricted
 from pressurepose.errors import UserError
-from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA
+from pressurepose.mat import MatSpec
+from pressurepose.units import GRAVITY_M_S2, MMHG_PA
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +40,8 @@ POUND_KG = 0.45359237
 POSE_SETS = ("prescribed", "p_select")
 INFO_FILE = "participant_info_red.p"
 BEDSHEET_FACTOR = 4.0  # the release multiplies real images by 4 ("because we used a sheet on the bed")
-# Taxel area used when a frame is scaled to the participant's weight (MatSpec's pitches).
-TAXEL_AREA_M2 = 0.0286 * (0.0286 / 1.04)
+# Taxel area used when a frame is scaled to the participant's weight.
+TAXEL_AREA_M2 = MatSpec().taxel_area_m2
 PressureScale = Literal["release", "weight", "stored"]
 
 
@@ -54,8 +55,11 @@ class CloudFrame:
     p1 = i * 0.0286, the mat surface at p2 = 0.075 with the camera at p2 = -1.66."""
 
     head_x_m: float = 64 * 0.0286 * 1.04
+    """Cloud frame: the head edge of the sensing area along the cloud's axis 0 (m)."""
     col0_y_m: float = 0.0
+    """Cloud frame: the column-0 edge along the cloud's axis 1 (m)."""
     mattress_z_m: float = 0.075
+    """Cloud frame: the mattress top along the cloud's (downward) axis 2 (m)."""
 
     def to_mat(self, points: np.ndarray) -> np.ndarray:
         p = np.asarray(points, dtype=np.float64)

@@ -91,12 +91,12 @@ class SampleBatch:
         return int(len(self.index))
 
     @staticmethod
-    def concat(batches: list["SampleBatch"]) -> "SampleBatch":
+    def concat(batches: list[SampleBatch]) -> SampleBatch:
         if not batches:
             raise ValueError("nothing to concatenate")
         return SampleBatch(**{n: np.concatenate([getattr(b, n) for b in batches]) for n in NAMES})
 
-    def take(self, rows) -> "SampleBatch":
+    def take(self, rows) -> SampleBatch:
         rows = np.asarray(rows, dtype=np.int64)
         return SampleBatch(**{n: getattr(self, n)[rows] for n in NAMES})
 
@@ -121,7 +121,7 @@ def to_table(batch: SampleBatch):
 
     schema = arrow_schema(batch.shape.shape[1])
     columns = []
-    for f, field in zip(FIELDS, schema):
+    for f, _field in zip(FIELDS, schema):
         value = getattr(batch, f.name)
         if f.dtype == "str":
             columns.append(pa.array([str(v) for v in value], pa.string()))

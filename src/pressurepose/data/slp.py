@@ -24,9 +24,9 @@ import numpy as np
 
 from pressurepose.data.real import orient, resample_to_mat
 from pressurepose.errors import UserError
-from pressurepose.validate import read_npy
 from pressurepose.mat import MatSpec
-from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA
+from pressurepose.units import GRAVITY_M_S2, MMHG_PA
+from pressurepose.validate import read_npy
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def _subject_folders(root: Path, subjects: list[int] | None) -> list[tuple[int, 
     if subjects is not None:
         missing = [s for s in subjects if s not in found]
         if missing:
-            raise UserError(f"no SLP subject folders {['%05d' % s for s in missing]} under {root}")
+            raise UserError(f"no SLP subject folders {[f'{s:05d}' for s in missing]} under {root}")
         found = {s: found[s] for s in subjects}
     if not found:
         raise UserError(f"no subject folders (00001, ...) under {root}; point at SLP's danaLab folder")

@@ -1,4 +1,5 @@
-"""3DVPE against real point clouds, per participant (seed B.4, Table 5 "real"; issue 9).
+"""Real frames with point clouds: the file `pressurepose evaluate-real --data` reads (seed B.4,
+Table 5 "real"; issue 9; the report: `commands.evaluate_real`).
 
 `pressurepose evaluate-real --data FILE.npz` on a file written by `import-pressurepose-real`
 (or any .npz with pressure_mmhg, subject, cloud_points, cloud_offsets): the network estimates
@@ -11,15 +12,11 @@ body shape are compared with the participants' values.
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from pressurepose.errors import UserError
-from pressurepose.files import atomic_write, save_figure
 
 REQUIRED = ("pressure_mmhg", "subject", "cloud_points", "cloud_offsets")
 
@@ -50,114 +47,4 @@ def load_cloud_file(path: Path) -> dict[str, np.ndarray]:
     return arrays
 
 
-def run_evaluate_cloud(cfg) -> dict[str, Path]:
-    """Report (real.md, real.json, real.png in cfg.out) of a RealEvalConfig with `data`."""
-    from pressurepose.eval.metrics import vpe_to_cloud
-    from pressurepose.net.inputs import check_images
-    from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
-    from pressurepose.train.checkpoint import load_network
-
-    arrays = load_cloud_file(cfg.data)
-    images = torch.from_numpy(check_images(arrays["pressure_mmhg"], Path(cfg.data)))
-    n = len(images)
-    net, _ = load_network(cfg.model)
-    genders = arrays.get("gender")
-    gender = torch.tensor([{"female": 1.0, "male": 0.0}.get(str(g), GENDER_UNKNOWN) for g in genders]
-                          if genders is not None else [GENDER_UNKNOWN] * n)
-    height = torch.tensor(arrays["height_m"], dtype=torch.float32) if "height_m" in arrays else None
-    mass = torch.tensor(arrays["mass_kg"], dtype=torch.float32) if "mass_kg" in arrays else None
-    if net.config.height_weight and (height is None or mass is None):
-        raise UserError(f"{cfg.data}: this network takes height and mass; the file has no height_m / mass_kg")
-    faces = net.faces
-    t0 = time.perf_counter()
-    vpes, est_h, est_m = [], [], []
-    with torch.no_grad():
-        for lo in range(0, n, cfg.batch):
-            sl = slice(lo, lo + cfg.batch)
-            inputs = NetInputs(pressure_mmhg=images[sl], gender=gender[sl],
-                               height_m=None if height is None else height[sl],
-                               mass_kg=None if mass is None else mass[sl])
-            est = net(inputs, mesh=True, maps=False)[-1]
-            meas = net.body.measure(est.params.shape)
-            est_h.append(meas.height_m)
-            est_m.append(meas.mass_kg)
-            for j, verts in enumerate(est.vertices):
-                i = lo + j
-                cloud = torch.from_numpy(arrays["cloud_points"][arrays["cloud_offsets"][i]:arrays["cloud_offsets"][i + 1]])
-                vpes.append(float(vpe_to_cloud(verts, faces, cloud.to(verts.dtype), camera=cfg.camera_m,
-                                               voxel_m=cfg.voxel_m)))
-    seconds = time.perf_counter() - t0
-    est_h, est_m = torch.cat(est_h).tolist(), torch.cat(est_m).tolist()
-    rows = []
-    for i in range(n):
-        r = {"subject": str(arrays["subject"][i]), "vpe_m": vpes[i], "estimated_height_m": est_h[i],
-             "estimated_mass_kg": est_m[i]}
-        for k in ("pose_set", "pose_type", "index", "height_m", "mass_kg"):
-            if k in arrays:
-                v = arrays[k][i]
-                r[k] = v.item() if hasattr(v, "item") else v
-        rows.append(r)
-    by_subject = {}
-    for s in sorted({r["subject"] for r in rows}):
-        sel = [r for r in rows if r["subject"] == s]
-        e = {"frames": len(sel), "vpe_m": float(np.mean([r["vpe_m"] for r in sel]))}
-        if "height_m" in sel[0]:
-            e["height_error_m"] = float(np.mean([r["estimated_height_m"] - r["height_m"] for r in sel]))
-            e["mass_error_kg"] = float(np.mean([r["estimated_mass_kg"] - r["mass_kg"] for r in sel]))
-        by_subject[s] = e
-    overall = {"participants": len(by_subject),
-               "vpe_m": float(np.mean([e["vpe_m"] for e in by_subject.values()])),
-               "vpe_m_over_frames": float(np.mean(vpes))}
-    if "height_m" in arrays:
-        overall["height_mae_m"] = float(np.mean([abs(r["estimated_height_m"] - r["height_m"]) for r in rows]))
-        overall["mass_mae_kg"] = float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in rows]))
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    record = {"command": "evaluate-real", "kind": "point-cloud",
-              "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(cfg).items()},
-              "frames": n, "seconds": round(seconds, 2), "overall": overall, "by_participant": by_subject,
-              "per_frame": rows}
-    paths = {"figure": atomic_write(cfg.out / "real.png", lambda tmp: _plot(tmp, rows, by_subject))}
-    paths["json"] = atomic_write(cfg.out / "real.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
-    paths["markdown"] = atomic_write(cfg.out / "real.md", lambda tmp: Path(tmp).write_text(_markdown(record)))
-    return paths
-
-
-def _markdown(r: dict) -> str:
-    o = r["overall"]
-    lines = [f"# {r['config']['model']} on {r['config']['data']} ({r['frames']} frames, {o['participants']} "
-             "participants)", "",
-             f"3DVPE against the point clouds: **{o['vpe_m'] * 100:.2f} cm** (mean of the participants' means, as "
-             f"released; {o['vpe_m_over_frames'] * 100:.2f} cm over frames).", ""]
-    if "height_mae_m" in o:
-        lines += [f"Height MAE {o['height_mae_m'] * 100:.1f} cm, mass MAE {o['mass_mae_kg']:.1f} kg.", ""]
-    has_hw = all("height_error_m" in e for e in r["by_participant"].values())
-    head = "| participant | frames | 3DVPE (cm) |" + (" height error (cm) | mass error (kg) |" if has_hw else "")
-    lines += [head, "| --- | --- | --- |" + (" --- | --- |" if has_hw else "")]
-    for s, e in r["by_participant"].items():
-        line = f"| {s} | {e['frames']} | {e['vpe_m'] * 100:.2f} |"
-        if has_hw:
-            line += f" {e['height_error_m'] * 100:+.1f} | {e['mass_error_kg']:+.1f} |"
-        lines.append(line)
-    lines += ["", "![real](real.png)", ""]
-    return "\n".join(lines)
-
-
-def _plot(path, rows: list[dict], by_subject: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = list(by_subject)
-    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 3.8))
-    a.bar(range(len(names)), [by_subject[s]["vpe_m"] * 100 for s in names])
-    a.set(xticks=range(len(names)), ylabel="3DVPE (cm)", title="per participant")
-    a.set_xticklabels(names, rotation=60, fontsize=7)
-    b.hist([r["vpe_m"] * 100 for r in rows], bins=30)
-    b.set(xlabel="3DVPE (cm)", ylabel="frames", title="per frame")
-    fig.tight_layout()
-    save_figure(fig, path, format="png", dpi=80)
-    plt.close(fig)
-
-
-__all__ = ["load_cloud_file", "run_evaluate_cloud"]
+__all__ = ["REQUIRED", "load_cloud_file"]

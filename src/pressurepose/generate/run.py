@@ -18,12 +18,22 @@ from pathlib import Path
 
 from pressurepose.data.manifest import MANIFEST, write_manifest
 from pressurepose.data.shards import (
-    SHARD_DIR, CorruptShardError, explain_os_error, read_record, verify_shard, write_shard,
+    SHARD_DIR,
+    CorruptShardError,
+    explain_os_error,
+    read_record,
+    verify_shard,
+    write_shard,
 )
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.generate.plan import (
-    REPLACEMENT_BASE, REPLACEMENT_SPAN, TEST_INDEX_BASE, GenerateConfig, ShardSpec, plan_shards,
+    REPLACEMENT_BASE,
+    REPLACEMENT_SPAN,
+    TEST_INDEX_BASE,
+    GenerateConfig,
+    ShardSpec,
+    plan_shards,
 )
 from pressurepose.generate.worker import WorkContext, make_shard
 

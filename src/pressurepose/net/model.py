@@ -24,7 +24,11 @@ from pressurepose.net.cnn import make_cnn
 from pressurepose.net.head import ParamHead
 from pressurepose.net.pmr import reconstruct_maps
 from pressurepose.net.preprocess import (
-    check_pressure, constant_planes, pressure_channels, reconstruction_channels, upsample2,
+    check_pressure,
+    constant_planes,
+    pressure_channels,
+    reconstruction_channels,
+    upsample2,
 )
 
 GENDER_UNKNOWN = 0.5  # Anny's gender phenotype: 0 male, 1 female
@@ -114,7 +118,7 @@ class PressureNet(nn.Module):
         self.mod1_frozen = True
         self.mod1.requires_grad_(False)
 
-    def train(self, mode: bool = True) -> "PressureNet":
+    def train(self, mode: bool = True) -> PressureNet:
         super().train(mode)
         if self.mod1_frozen:
             self.mod1.eval()  # no dropout / batch-statistics updates in the frozen module

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Literal
 
 from pressurepose.errors import UserError
 
@@ -134,9 +135,12 @@ class SamplingConfig:
     """Which initial poses to draw.
 
     Attributes:
-        partition: one of the seed's Table 4 partitions (see `pressurepose sample --help`).
-        gender: female or male.
-        over_bed: keep knees, ankles, feet, elbows, wrists and hands over the mattress.
+        partition: general, supine, hands_behind_head, prone_hands_up, crossed_legs,
+            straight_limbs, half_sitting (head of the bed raised 10-60 deg), lateral (on either
+            side, legs drawn up) or lateral_straight (on either side, legs nearly straight; the
+            trunk roll held in sim #1).
+        gender: Gender of the sampled bodies.
+        over_bed: Keep knees, ankles, feet, elbows, wrists and hands over the mattress.
         seed: dataset seed; a sample is a function of (seed, partition, gender, over_bed, index).
         max_failures: failed pose attempts (a limb that cannot reach its cell, or a self
             collision) before the shape and root are drawn again (seed: 20).
@@ -147,7 +151,7 @@ class SamplingConfig:
     """
 
     partition: str = "general"
-    gender: str = "female"
+    gender: Literal["female", "male"] = "female"
     over_bed: bool = False
     seed: int = 0
     max_failures: int = 20

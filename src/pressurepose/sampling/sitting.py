@@ -21,7 +21,6 @@ then settles it like any other pose.
 
 from __future__ import annotations
 
-
 import torch
 
 from pressurepose.bed import BedShape

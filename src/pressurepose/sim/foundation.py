@@ -34,9 +34,9 @@ import math
 import torch
 import torch.nn.functional as F
 
+from pressurepose.bed import BedShape
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, heights_from_points, surface_points
 from pressurepose.mat import MatSpec
-from pressurepose.bed import BedShape
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 # Why a solve can fail (per sample). Empty string: converged.

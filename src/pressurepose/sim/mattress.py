@@ -16,9 +16,7 @@ import os
 from pathlib import Path
 
 from pressurepose.errors import UserError
-
-GRAVITY_M_S2 = 9.81
-MMHG_PA = 133.322
+from pressurepose.units import GRAVITY_M_S2, MMHG_PA  # re-exported: sim's modules read them here
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import torch
 
+from pressurepose.bed import BedShape
 from pressurepose.maps import contact_map, depth_map
 from pressurepose.mat import MatSpec
-from pressurepose.bed import BedShape
 from pressurepose.sim.mattress import MattressParams
 
 

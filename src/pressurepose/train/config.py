@@ -101,18 +101,18 @@ class TrainConfig:
     save_every: int = 1
 
     @classmethod
-    def paper(cls, **changes) -> "TrainConfig":
+    def paper(cls, **changes) -> TrainConfig:
         return cls(preset="paper", **changes).resolved()
 
     @classmethod
-    def fast(cls, **changes) -> "TrainConfig":
+    def fast(cls, **changes) -> TrainConfig:
         return cls(preset="fast", **changes).resolved()
 
     @classmethod
-    def smoke(cls, **changes) -> "TrainConfig":
+    def smoke(cls, **changes) -> TrainConfig:
         return cls(preset="smoke", **changes).resolved()
 
-    def resolved(self) -> "TrainConfig":
+    def resolved(self) -> TrainConfig:
         """The config with every None filled from the preset, checked."""
         if self.preset not in PRESETS:
             raise UserError(f"unknown preset {self.preset!r}; expected one of {', '.join(PRESETS)}")
@@ -150,7 +150,7 @@ class TrainConfig:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
 
     @classmethod
-    def from_json(cls, record: dict) -> "TrainConfig":
+    def from_json(cls, record: dict) -> TrainConfig:
         fields = {f.name for f in dataclasses.fields(cls)}
         kw = {k: v for k, v in record.items() if k in fields}
         for k in ("data", "out", "mod1", "init"):

@@ -3,7 +3,8 @@
 Every epoch e draws its order, augmentation and dropout from generators seeded by
 (seed, e), so a run resumed from its checkpoint after epoch e equals one never interrupted.
 Writes RUN/config.json first, then after every epoch checkpoint.safetensors, model.safetensors,
-metrics.jsonl + metrics.csv (one row per epoch) and metrics.png - all atomically.
+metrics.jsonl + metrics.csv (one row per epoch) - all atomically (`pressurepose train` adds
+metrics.png: `commands.train`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +28,13 @@ from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
 from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
 from pressurepose.train.checkpoint import (
-    CHECKPOINT_FILE, MODEL_FILE, load_checkpoint, net_config_from_record, read_model, save_checkpoint, save_model,
+    CHECKPOINT_FILE,
+    MODEL_FILE,
+    load_checkpoint,
+    net_config_from_record,
+    read_model,
+    save_checkpoint,
+    save_model,
 )
 from pressurepose.train.config import RESUMABLE_CHANGES, TrainConfig
 from pressurepose.train.data import collate, open_dataset
@@ -258,8 +266,10 @@ def _check_resume(run: Path, cfg: TrainConfig) -> None:
                          "resume with the same settings or train into a new --out folder")
 
 
-def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> Path:
-    """Train as configured; returns the run folder. `dataset` replaces `cfg.data` (tests)."""
+def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None,
+          on_save: Callable[[Path, list[dict]], None] | None = None) -> Path:
+    """Train as configured; returns the run folder. `dataset` replaces `cfg.data` (tests);
+    `on_save(run, metrics rows)` runs after every save (the command draws metrics.png)."""
     cfg = cfg.resolved()
     run = Path(cfg.out)
     if dataset is None:
@@ -282,7 +292,7 @@ def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> 
     if resuming:
         start, _ = load_checkpoint(run, net, opt)
         log.info("resuming %s after epoch %d", run, start)
-    history = [r for r in _read_metrics(run) if r["epoch"] <= start] if resuming else []
+    history = [r for r in read_metrics(run) if r["epoch"] <= start] if resuming else []
     train_idx, val_idx = _split(len(dataset), cfg)
     for epoch in range(start + 1, cfg.epochs + 1):
         for group in opt.param_groups:  # a function of the epoch alone, so resuming keeps it
@@ -293,6 +303,8 @@ def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> 
             save_checkpoint(run, net, opt, epoch, record)
             save_model(run, net, record)
             _write_metrics(run, history)
+            if on_save is not None:
+                on_save(run, history)
         log.info("epoch %d/%d: loss %.4f, train MPJPE %.1f mm%s, %.0f img/s", epoch, cfg.epochs, row["loss"],
                  row["train_mpjpe_mm"], f", val MPJPE {row['val_mpjpe_mm']:.1f} mm" if "val_mpjpe_mm" in row else "",
                  row["images_per_s"])
@@ -369,7 +381,7 @@ class _progress:
         return False
 
 
-def _read_metrics(run: Path) -> list[dict]:
+def read_metrics(run: Path) -> list[dict]:
     """The rows of a run's metrics.jsonl, each with its epoch (UserError naming the file)."""
     path = run / METRICS
     rows = read_jsonl(path, "training metrics", "; delete it to resume without the earlier epochs' metrics")
@@ -387,9 +399,6 @@ def _write_metrics(run: Path, history: list[dict]) -> None:
     writer.writeheader()
     writer.writerows(history)
     atomic_write(run / "metrics.csv", lambda tmp: Path(tmp).write_text(buf.getvalue()))
-    from pressurepose.viz.training import plot_metrics
-
-    atomic_write(run / "metrics.png", lambda tmp: plot_metrics(history, tmp))
 
 
-__all__ = ["evaluate", "pick_device", "train"]
+__all__ = ["evaluate", "pick_device", "read_metrics", "train"]

@@ -12,8 +12,8 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
 from pressurepose.body.joints import J24_NAMES, J24_PARENTS  # noqa: E402
-from pressurepose.mat import MatSpec  # noqa: E402
 from pressurepose.files import save_figure
+from pressurepose.mat import MatSpec  # noqa: E402
 
 
 def plot_body_on_mat(

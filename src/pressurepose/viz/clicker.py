@@ -38,9 +38,16 @@ from typing import Literal
 from urllib.parse import urlparse
 
 import numpy as np
+import tyro
 
 from pressurepose.data.coregister import (
-    FORMAT, _number, _vector, corner_markers, parse_markers, project, solve_camera_pose,
+    FORMAT,
+    _number,
+    _vector,
+    corner_markers,
+    parse_markers,
+    project,
+    solve_camera_pose,
 )
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
@@ -60,20 +67,27 @@ INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
 class ClickConfig:
     """Click the mat's corner markers in a camera image and write coregister's marker file."""
 
-    image: Path
-    """RGB image (.png, .jpg) or depth image (.npy, (H, W), metres or millimetres)."""
+    image: tyro.conf.Positional[Path]
+    """RGB image (.png, .jpg) or depth image (.npy, (H, W), metres or millimetres; clicks then
+    record the marker's depth)."""
     out: Path = Path("markers.json")
-    """Marker file to write (an existing one is loaded for editing)."""
+    """Marker file to write; an existing one is loaded for editing."""
     fx: float | None = None
+    """Focal length along u (pixels)."""
     fy: float | None = None
+    """Focal length along v (pixels)."""
     cx: float | None = None
+    """Principal point u (pixels; pixel centres at integers)."""
     cy: float | None = None
+    """Principal point v (pixels)."""
     intrinsics: Path | None = None
-    """JSON with fx, fy, cx, cy (at the top level or under "intrinsics", e.g. another marker file)."""
+    """JSON with fx, fy, cx, cy (top level or under "intrinsics"); flags override it."""
     depth_unit: Literal["auto", "m", "mm"] = "auto"
-    """Unit of a depth .npy (auto: integers and values over 20 are millimetres)."""
+    """Unit of a depth .npy (auto: integers or values over 20 are millimetres)."""
     port: int = 8765
+    """Port on 127.0.0.1 (0: any free port)."""
     open: bool = True
+    """Open the page in the default web browser."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -294,7 +308,7 @@ class ClickSession:
 
 
 class _Handler(LocalHandler):
-    server: "ClickServer"
+    server: ClickServer
 
     STATIC = STATIC
 

@@ -12,8 +12,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pressurepose.body.joints import J24_PARENTS  # noqa: E402
-from pressurepose.mat import MatSpec  # noqa: E402
 from pressurepose.files import save_figure
+from pressurepose.mat import MatSpec  # noqa: E402
 
 
 def _bones(ax, u: np.ndarray, v: np.ndarray, color: str = "crimson") -> None:

@@ -14,9 +14,9 @@ import torch  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
 from pressurepose.body.joints import J24_NAMES  # noqa: E402
+from pressurepose.files import save_figure
 from pressurepose.mat import MatSpec  # noqa: E402
 from pressurepose.sampling.partitions import ARM_CELLS, LEG_CELLS  # noqa: E402
-from pressurepose.files import save_figure
 
 _J = J24_NAMES.index
 _LIMBS = (("left leg", "left_hip", "left_knee", "left_ankle", LEG_CELLS),

@@ -167,7 +167,7 @@ class Browser:
     # --- opening -------------------------------------------------------------------------------
 
     def _open_report(self, path: Path, data: Path | None) -> None:
-        from pressurepose.eval.report import PREDICTIONS, read_predictions
+        from pressurepose.eval.evaluation import PREDICTIONS, read_predictions
         from pressurepose.validate import read_json
 
         record = read_json(path / "report.json", "report")

@@ -27,7 +27,10 @@ import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
+from typing import Literal
 from urllib.parse import parse_qs, urlparse
+
+import tyro
 
 from pressurepose.errors import UserError
 from pressurepose.viz.view_data import IMAGES, Browser
@@ -43,8 +46,9 @@ MAX_LIST = 500  # list entries per request: the page pages through big datasets
 class ViewConfig:
     """Browse samples and predictions in a local web page."""
 
-    path: Path
-    """Dataset folder, `pressurepose evaluate` report folder, training run folder or .npz of images."""
+    path: tyro.conf.Positional[Path]
+    """Dataset folder (manifest.json), `evaluate` report folder, training run folder, or a .npz
+    of pressure images (import-pmatdata)."""
     port: int = 8765
     """Port on 127.0.0.1 (0: any free port; the address is printed)."""
     open: bool = True
@@ -53,10 +57,10 @@ class ViewConfig:
     """Dataset of a report or run, when the path recorded in it is not found."""
     model: Path | None = None
     """Training run whose network estimates the bodies shown (datasets, .npz images)."""
-    backend: str | None = None
+    backend: Literal["anny", "smpl"] | None = None
     """Body model (default: the dataset's or run's, else anny)."""
     smpl_dir: Path | None = None
-    """Folder with the SMPL files for backend smpl."""
+    """Folder with the SMPL files for --backend smpl."""
 
 
 def static_file(name: str) -> bytes:
@@ -120,7 +124,7 @@ class LocalHandler(BaseHTTPRequestHandler):
 
 
 class _Handler(LocalHandler):
-    server: "ViewerServer"
+    server: ViewerServer
     STATIC = STATIC
 
     def _get(self, route: str, query: dict[str, list[str]]) -> bool:

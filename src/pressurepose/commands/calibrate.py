@@ -8,27 +8,27 @@ terms, and the sim #1 / sim #2 sinking check of every object).
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import dataclasses
 import hashlib
 import json
-import logging
-import multiprocessing as mp
 import os
 import time
 from pathlib import Path
 
 import numpy as np
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from pressurepose.calib.cmaes import CMAResult, CMASettings, minimise
+from pressurepose.calib.coupling import coupling_check
+from pressurepose.calib.evaluator import Evaluator
 from pressurepose.calib.loss import DEFAULT_FREE, CalibrationLoss, ParamSpace
-from pressurepose.calib.measurements import Measurements, load_measurements
+from pressurepose.calib.measurements import load_measurements
+from pressurepose.commands.outputs import Written
 from pressurepose.errors import UserError
-from pressurepose.files import atomic_write
+from pressurepose.files import write_text
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
-
-log = logging.getLogger(__name__)
+from pressurepose.viz.calibration import convergence_plot
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,54 +89,7 @@ class CalibrateConfig:
                            maxstd=self.maxstd, tolstagnation=self.tolstagnation, sigma0=self.sigma0, seed=self.seed)
 
 
-# One loss per worker process, built once by the pool initializer (the meshes and regions).
-_WORKER_LOSS: CalibrationLoss | None = None
-
-
-def _init_worker(measurements: Measurements, space: ParamSpace, margin_m: float, sub: int) -> None:
-    import torch
-
-    torch.set_num_threads(1)
-    global _WORKER_LOSS
-    _WORKER_LOSS = CalibrationLoss(measurements, space, margin_m, sub=sub)
-
-
-def _worker_eval(x: np.ndarray) -> float:
-    return _WORKER_LOSS(x)
-
-
-class Evaluator:
-    """Evaluates a generation in-process (workers = 1) or on a process pool (spawned, so
-    torch's threads in the parent cannot deadlock a fork)."""
-
-    def __init__(self, loss: CalibrationLoss, workers: int):
-        self.loss = loss
-        self.workers = workers
-        self.pool = None
-        if workers > 1:
-            self.pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                               initargs=(loss.measurements, loss.space, loss.margin_m, loss.sub))
-
-    def __call__(self, X) -> list[float]:
-        if self.pool is None:
-            import torch
-
-            # A few capsules per call: extra intra-op threads only add contention.
-            n = torch.get_num_threads()
-            torch.set_num_threads(1)
-            try:
-                return [self.loss(x) for x in X]
-            finally:
-                torch.set_num_threads(n)
-        chunk = max(1, len(X) // (self.workers * 2))
-        return list(self.pool.map(_worker_eval, X, chunksize=chunk))
-
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(cancel_futures=True)
-
-
-def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> dict[str, Path]:
+def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> Written:
     mat = MatSpec()
     measurements = load_measurements(cfg.measurements, mat)
     base = MattressParams.load(cfg.start) if cfg.start else MattressParams()
@@ -181,8 +134,8 @@ def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> dict[str, Path
     if cfg.coupling_check and finished:
         record["coupling"] = coupling_check(loss, best)
     text = json.dumps(record, indent=2) + "\n"
-    paths["record"] = atomic_write(out / "calibrate.json", lambda tmp: Path(tmp).write_text(text))
-    return paths
+    paths["record"] = write_text(out / "calibrate.json", text)
+    return Written(paths, record)
 
 
 def _num(v) -> float | None:
@@ -190,8 +143,6 @@ def _num(v) -> float | None:
 
 
 def _minimise_with_progress(evaluator, x0, settings, state, signature, cfg, progress) -> CMAResult:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
     columns = (TextColumn("calibrate"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
                TimeElapsedColumn())
     with Progress(*columns, disable=not progress, transient=False) as bar:
@@ -204,54 +155,14 @@ def _minimise_with_progress(evaluator, x0, settings, state, signature, cfg, prog
                         stop_after=cfg.stop_after, on_generation=report)
 
 
-def coupling_check(loss: CalibrationLoss, params: MattressParams) -> list[dict]:
-    """Sim #1 (MuJoCo, the foundation law applied to capsules) against sim #2 for every
-    object: each capsule is settled alone at the bed's centre, along the bed (seed eq. 17's
-    role: both simulations must sink an object alike)."""
-    from pressurepose.calib.objects import CalibObject, SceneSimulator
-    from pressurepose.sim.objects import settle_capsule
-
-    mat = loss.mat
-    rows = []
-    for o in loss.sim.objects:
-        centred = CalibObject(o.length_m, o.radius_m, o.mass_kg, 0.9, mat.sensing_width_m / 2, 0.0, o.name)
-        q2 = float(SceneSimulator([[centred]], mat, loss.sub)(params).compression_m[0])
-        s1 = settle_capsule(o.length_m, o.radius_m, o.mass_kg, xy=(0.9, mat.sensing_width_m / 2), params=params,
-                            mat=mat)
-        rows.append({"name": o.name, "sim2_sink_m": round(q2, 6), "sim1_sink_m": round(s1["sink_m"], 6),
-                     "sim1_settled": s1["settled"], "relative_difference": round((s1["sink_m"] - q2) / q2, 4)})
-    return rows
+def calibrate(cfg: CalibrateConfig) -> None:
+    """Calibrate mattress, mat and sensor parameters to measurements of rigid objects with
+    CMA-ES (seed A.4); resumable; writes params.json for `simulate --params`."""
+    written = run_calibrate(cfg)
+    record = written.record
+    state = "finished" if record["finished"] else "stopped (resume with the same command)"
+    print(f"{state} after {record['iterations']} generations, {record['evaluations']} evaluations: loss "
+          f"{record['start_loss']:.4g} -> {record['best_loss']:.4g}; parameters -> {written['params']}")
 
 
-def convergence_plot(result: CMAResult, space: ParamSpace, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    F = result.history_f
-    if len(F):
-        g = np.arange(1, len(F) + 1)
-        axes[0].semilogy(g, np.minimum.accumulate(F.min(1)), label="best so far")
-        axes[0].semilogy(g, np.median(F, 1), label="generation median", alpha=0.7)
-        axes[0].semilogy(g, result.history_std, label="largest std (scaled units)", alpha=0.7)
-        for j, name in enumerate(space.free):
-            axes[1].plot(g, result.history_mean[:, j], label=name)
-    axes[0].set_xlabel("generation")
-    axes[0].set_title("loss (eq. 13 + penalties)")
-    axes[0].legend()
-    axes[1].set_xlabel("generation")
-    axes[1].set_title("CMA-ES mean, scaled (parameter / loss.SCALES)")
-    axes[1].legend(fontsize=7)
-    fig.tight_layout()
-
-    def write(tmp):
-        fig.savefig(tmp, dpi=80, format="png")
-
-    atomic_write(path, write)
-    plt.close(fig)
-    return path
-
-
-__all__ = ["CalibrateConfig", "coupling_check", "convergence_plot", "run_calibrate"]
+__all__ = ["CalibrateConfig", "calibrate", "run_calibrate"]

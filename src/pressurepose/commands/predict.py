@@ -3,7 +3,8 @@
 Every input file is read and checked first (`net.inputs`), so a bad file stops the run
 before anything is written. Images then go through the network in batches; per image
 OUT/<name>.json (parameters by name, J24 joints, height and mass of the estimated shape),
-OUT/<name>.ply (the mesh, mat frame, metres) and OUT/<name>.png (the pressure image with the
+OUT/<name>.ply (the mesh, mat frame, metres; or .obj / .glb with --mesh-format, written by
+trimesh) and OUT/<name>.png (the pressure image with the
 projected skeleton, top and side views of the mesh). <name> is the file's stem, with
 _<index> for files holding several images.
 """
@@ -18,13 +19,18 @@ from typing import Literal
 
 import numpy as np
 import torch
+import trimesh
 import tyro
 
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.errors import UserError
-from pressurepose.files import atomic_write
+from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import read_pressure_file
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
+from pressurepose.net.synthesis import refine
+from pressurepose.train.checkpoint import load_network
+from pressurepose.train.loop import pick_device
+from pressurepose.viz.prediction import plot_prediction
 
 GENDERS = {"female": 1.0, "male": 0.0, "unknown": GENDER_UNKNOWN}
 
@@ -44,7 +50,8 @@ class PredictConfig:
         text_units: raw (PmatData's uncalibrated units, scaled to mass_kg) or mmhg.
         batch_size: images per network pass.
         figures: write one PNG per image.
-        meshes: write one .ply mesh per image.
+        meshes: write one mesh per image.
+        mesh_format: the meshes' file format: ply (binary), obj or glb.
         refine_steps: test-time refinement steps through sim #2 (0 = off; ~50 ms per image and step).
         device: auto (CUDA when present), cpu or cuda.
         force: use images reading more than 1000 mmHg (the plausibility bound, net.inputs), clipped there.
@@ -60,6 +67,7 @@ class PredictConfig:
     batch_size: int = 32
     figures: bool = True
     meshes: bool = True
+    mesh_format: Literal["ply", "obj", "glb"] = "ply"
     refine_steps: int = 0
     device: Literal["auto", "cpu", "cuda"] = "auto"
     force: bool = False
@@ -82,9 +90,6 @@ def read_inputs(cfg: PredictConfig) -> list[tuple[str, np.ndarray]]:
 
 def run_predict(cfg: PredictConfig) -> dict:
     """Predict every image; returns a summary (counts, timings, output folder)."""
-    from pressurepose.train.checkpoint import load_network
-    from pressurepose.train.loop import pick_device
-
     if cfg.batch_size < 1:
         raise UserError(f"batch_size must be >= 1, got {cfg.batch_size}")
     out = Path(cfg.out)
@@ -106,8 +111,6 @@ def run_predict(cfg: PredictConfig) -> dict:
                            mass_kg=full(cfg.mass_kg))
         t0 = time.perf_counter()
         if cfg.refine_steps > 0:
-            from pressurepose.net.synthesis import refine
-
             est, _ = refine(net, inputs, steps=cfg.refine_steps)
         else:
             with torch.inference_mode():
@@ -133,43 +136,33 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
         "joints_m": {n: v for n, v in zip(J24_NAMES, joints.tolist())},
         "height_m": float(measured.height_m[i]), "mass_kg": float(measured.mass_kg[i]),
     }
-    text = json.dumps(record, indent=1)
-    atomic_write(out / f"{name}.json", lambda tmp: Path(tmp).write_text(text))
+    write_text(out / f"{name}.json", json.dumps(record, indent=1))
     faces = net.faces.cpu().numpy()
     if cfg.meshes:
-        atomic_write(out / f"{name}.ply", lambda tmp: write_ply(tmp, vertices, faces))
+        atomic_write(out / f"{name}.{cfg.mesh_format}", lambda tmp: write_mesh(tmp, vertices, faces))
     if cfg.figures:
-        from pressurepose.viz.prediction import plot_prediction
-
         atomic_write(out / f"{name}.png", lambda tmp: plot_prediction(tmp, image, vertices, joints, net.mat, name))
 
 
-def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
-    """Binary little-endian PLY of a triangle mesh: vertices (V, 3) float32, faces (F, 3)."""
-    vertices = np.ascontiguousarray(vertices, dtype="<f4")
-    tri = np.empty(len(faces), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
-    tri["n"] = 3
-    tri["idx"] = faces
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(vertices.tobytes())
-        fh.write(tri.tobytes())
+def write_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    """A triangle mesh, vertices (V, 3) m and faces (F, 3), in the format of the file's suffix
+    (.ply binary, .obj, .glb), every vertex kept in order."""
+    trimesh.Trimesh(np.asarray(vertices, dtype=np.float32), np.asarray(faces), process=False).export(path)
     return Path(path)
 
 
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """The (vertices, faces) of a file `write_ply` wrote."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").split("\n")
-    nv = int(next(h for h in header if h.startswith("element vertex")).split()[-1])
-    nf = int(next(h for h in header if h.startswith("element face")).split()[-1])
-    vertices = np.frombuffer(data, dtype="<f4", count=nv * 3, offset=end).reshape(nv, 3)
-    tri = np.frombuffer(data, dtype=[("n", "u1"), ("idx", "<i4", (3,))], count=nf, offset=end + nv * 12)
-    return vertices, tri["idx"]
+def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The (vertices (V, 3), faces (F, 3)) of a mesh file `write_mesh` wrote."""
+    mesh = trimesh.load(path, process=False, force="mesh")
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
-__all__ = ["PredictConfig", "read_inputs", "read_ply", "run_predict", "write_ply"]
+def predict(cfg: PredictConfig) -> None:
+    """Estimate the body from pressure images with a trained network: JSON parameters, meshes
+    (.ply) and one figure per image in --out."""
+    summary = run_predict(cfg)
+    print(f"{summary['images']} images -> {summary['out']} "
+          f"({summary['network_ms_per_image']:.1f} ms per image for the network and body model)")
+
+
+__all__ = ["PredictConfig", "predict", "read_inputs", "read_mesh", "run_predict", "write_mesh"]

@@ -18,6 +18,7 @@ from pressurepose.body import BodyParams, load_body_model
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.files import write_text
 from pressurepose.mat import MatSpec
+from pressurepose.viz.body_on_mat import plot_body_on_mat
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +66,6 @@ def run_pose(cfg: PoseConfig) -> dict[str, Path]:
     cfg.out.mkdir(parents=True, exist_ok=True)
     title = (f"{model.name}: {measures.height_m.item():.2f} m, {measures.mass_kg.item():.1f} kg, "
              "supine on the mat (no physics)")
-    from pressurepose.viz.body_on_mat import plot_body_on_mat
-
     png = plot_body_on_mat(body.vertices[0].numpy(), body.joints[0].numpy(), mat, cfg.out / "body.png", title)
     record = {
         "config": {"backend": cfg.backend},
@@ -83,3 +82,12 @@ def run_pose(cfg: PoseConfig) -> dict[str, Path]:
     path = write_text(cfg.out / "body.json", json.dumps(record, indent=1))
     log.info("wrote %s and %s", png, path)
     return {"png": png, "json": path}
+
+
+def pose(cfg: PoseConfig) -> None:
+    """Pose the body model's default adult supine on the mat and draw it (body.png, body.json)."""
+    paths = run_pose(cfg)
+    print(f"wrote {paths['png']} and {paths['json']}")
+
+
+__all__ = ["PoseConfig", "pose", "resting_pose", "run_pose"]

@@ -23,7 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pressurepose.files import atomic_write
+from pressurepose.commands.evaluate import EvaluateConfig, run_evaluate
+from pressurepose.commands.evaluate_real import RealEvalConfig, run_evaluate_real
+from pressurepose.commands.info import dataset_info
+from pressurepose.files import write_text
+from pressurepose.generate.plan import GenerateConfig
+from pressurepose.generate.run import run_generate
+from pressurepose.models import resolve_model
+from pressurepose.train.checkpoint import read_model
 
 log = logging.getLogger(__name__)
 
@@ -46,14 +53,6 @@ class DemoConfig:
 
 def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     """Run the four steps; returns the paths of report.md, demo.json and each step's report."""
-    from pressurepose.data.info import dataset_info
-    from pressurepose.eval.real import RealEvalConfig, run_evaluate_real
-    from pressurepose.eval.report import EvaluateConfig, run_evaluate
-    from pressurepose.generate.plan import GenerateConfig
-    from pressurepose.generate.run import run_generate
-    from pressurepose.models import resolve_model
-    from pressurepose.train.checkpoint import read_model
-
     out = Path(cfg.out)
     model_dir = resolve_model(cfg.model)
     _, record = read_model(model_dir)  # fails early, before any simulation, on a bad --model
@@ -79,12 +78,12 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     real = run_evaluate_real(RealEvalConfig(model=model_dir, pmatdata=cfg.pmatdata, out=out / "real"))
     timings["real_s"] = time.perf_counter() - t0
 
-    summary = _summary(json.loads(synthetic["json"].read_text()), json.loads(real["json"].read_text()))
+    summary = _summary(synthetic.record, real.record)
     summary.update(model=str(model_dir), seed=cfg.seed, samples=info["total"],
                    seconds={k: round(v, 1) for k, v in timings.items()})
     paths = {"synthetic": synthetic["markdown"], "real": real["markdown"]}
-    paths["json"] = atomic_write(out / "demo.json", lambda tmp: Path(tmp).write_text(json.dumps(summary, indent=1)))
-    paths["markdown"] = atomic_write(out / "report.md", lambda tmp: Path(tmp).write_text(_markdown(summary)))
+    paths["json"] = write_text(out / "demo.json", json.dumps(summary, indent=1))
+    paths["markdown"] = write_text(out / "report.md", _markdown(summary))
     return paths
 
 
@@ -130,4 +129,12 @@ def _markdown(s: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["DemoConfig", "run_demo"]
+def demo(cfg: DemoConfig) -> None:
+    """The whole system on embedded defaults: simulate fresh samples, estimate their bodies with
+    the packaged network, run it on real PmatData recordings; report.md in --out."""
+    paths = run_demo(cfg)
+    print(Path(paths["markdown"]).read_text())
+    print(f"demo report: {paths['markdown']}")
+
+
+__all__ = ["DemoConfig", "demo", "run_demo"]

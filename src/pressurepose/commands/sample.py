@@ -20,12 +20,18 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import torch
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from pressurepose import __version__
+from pressurepose.body import load_body_model
+from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
+from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import SamplingConfig
-from pressurepose.sampling.sampler import REJECTION_KEYS, InitialPoses, PoseSampler
+from pressurepose.sampling.sampler import InitialPoses, PoseSampler
+from pressurepose.sampling.shapes import shape_bounds
+from pressurepose.viz.sampling import plot_bodies, plot_cells, posed_vertices
 
 log = logging.getLogger(__name__)
 
@@ -38,16 +44,8 @@ class SampleConfig:
     """Output folder (created)."""
     n: int = 200
     """Number of initial poses."""
-    partition: str = "general"
-    """general, supine, hands_behind_head, prone_hands_up, crossed_legs, straight_limbs,
-    half_sitting (head of the bed raised 10-60 deg), lateral (on either side, legs drawn up) or
-    lateral_straight (on either side, legs nearly straight; the trunk roll held in sim #1)."""
-    gender: Literal["female", "male"] = "female"
-    """Gender of the sampled bodies."""
-    over_bed: bool = False
-    """Keep knees, feet, elbows and hands over the mattress."""
-    seed: int = 0
-    """Dataset seed; a sample is a function of (seed, partition, gender, over_bed, index)."""
+    sampling: SamplingConfig = SamplingConfig()
+    """Partition, gender, over_bed, seed and the sampler's attempt limits."""
     start: int = 0
     """First sample index (indices start .. start + n - 1)."""
     backend: Literal["anny", "smpl"] = "anny"
@@ -60,23 +58,18 @@ class SampleConfig:
     """Bodies drawn in bodies.png (0: no body figure)."""
 
 
-def run_sample(cfg: SampleConfig) -> dict[str, Path]:
+def run_sample(cfg: SampleConfig) -> Written:
     if cfg.n < 1:
         raise UserError(f"n must be >= 1, got {cfg.n}")
     if cfg.batch < 1:
         raise UserError(f"batch must be >= 1, got {cfg.batch}")
     if cfg.start < 0:
         raise UserError(f"start must be >= 0, got {cfg.start}")
-    sampling = SamplingConfig(partition=cfg.partition, gender=cfg.gender, over_bed=cfg.over_bed, seed=cfg.seed)
-    from pressurepose.body import load_body_model
-
+    sampling = cfg.sampling
     options = {"model_dir": cfg.smpl_dir} if cfg.backend == "smpl" else {}
     model = load_body_model(cfg.backend, **options)
     sampler = PoseSampler(model, sampling)
     cfg.out.mkdir(parents=True, exist_ok=True)
-
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
     parts: list[InitialPoses] = []
     t0 = time.perf_counter()
     columns = (TextColumn("sampling"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[rate]}"),
@@ -89,7 +82,7 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
             done = hi - cfg.start
             bar.update(task, completed=done, rate=f"{done / (time.perf_counter() - t0):.0f}/s")
     seconds = time.perf_counter() - t0
-    poses = concat(parts)
+    poses = InitialPoses.cat(parts)
 
     arrays = {
         "shape": poses.params.shape.numpy(), "root_rotation": poses.params.root_rotation.numpy(),
@@ -100,10 +93,7 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
     arrays.update({f"rejections_{k}": v for k, v in poses.rejections.items()})
     npz = atomic_write(cfg.out / "poses.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
 
-    from pressurepose.mat import MatSpec
-    from pressurepose.viz.sampling import plot_bodies, plot_cells, posed_vertices
-
-    title = f"{cfg.partition}, {cfg.gender}, over_bed={cfg.over_bed}: {cfg.n} samples"
+    title = f"{sampling.partition}, {sampling.gender}, over_bed={sampling.over_bed}: {cfg.n} samples"
     paths = {"poses": npz}
     paths["cells"] = atomic_write(cfg.out / "cells.png", lambda tmp: plot_cells(
         poses.joints.numpy(), poses.root_draw, poses.cells, tmp, title=f"{title} - distal joints over the cells"))
@@ -114,14 +104,11 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
         vertices = posed_vertices(model, sub)
         paths["bodies"] = atomic_write(cfg.out / "bodies.png", lambda tmp: plot_bodies(vertices, MatSpec(), tmp, labels))
 
-    from pressurepose import __version__
-    from pressurepose.sampling.shapes import shape_bounds
-
-    low, high = shape_bounds(model.name, cfg.gender, model.shape_names)
+    low, high = shape_bounds(model.name, sampling.gender, model.shape_names)
     record = {
         "command": "sample",
         "pressurepose_version": __version__,
-        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "config": flat_config(cfg),
         "sampling": dataclasses.asdict(sampling),
         "body_backend": model.name,
         "shape_names": list(model.shape_names),
@@ -137,23 +124,16 @@ def run_sample(cfg: SampleConfig) -> dict[str, Path]:
     }
     paths["config"] = atomic_write(cfg.out / "config.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
     log.info("%d poses in %.1f s (%.0f/s)", cfg.n, seconds, cfg.n / seconds)
-    return paths
+    return Written(paths, record)
 
 
-def concat(parts: list[InitialPoses]) -> InitialPoses:
-    """One InitialPoses from several of the same config."""
-    from pressurepose.body.params import BodyParams
-
-    first = parts[0]
-    params = BodyParams.cat([p.params for p in parts])
-    return InitialPoses(
-        params=params, joints=torch.cat([p.joints for p in parts]),
-        index=np.concatenate([p.index for p in parts]), cells=np.concatenate([p.cells for p in parts]),
-        root_draw=np.concatenate([p.root_draw for p in parts]),
-        head_angle_deg=np.concatenate([p.head_angle_deg for p in parts]),
-        rejections={k: np.concatenate([p.rejections[k] for p in parts]) for k in REJECTION_KEYS},
-        config=first.config, backend=first.backend,
-    )
+def sample(cfg: SampleConfig) -> None:
+    """Draw initial poses for one partition (seed A.1) and write poses.npz, cells.png and
+    bodies.png."""
+    written = run_sample(cfg)
+    record, paths = written.record, written.paths
+    print(f"{record['count']} poses ({record['samples_per_second']:.0f}/s) -> {cfg.out}: "
+          + ", ".join(p.name for p in paths.values()))
 
 
 def load_poses(path: str | Path) -> dict[str, np.ndarray]:

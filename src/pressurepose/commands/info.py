@@ -10,18 +10,21 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import tyro
 
+from pressurepose.data.dataset import PressurePoseDataset
 from pressurepose.data.manifest import load_manifest
 from pressurepose.data.schema import from_table
 from pressurepose.data.shards import CorruptShardError
+from pressurepose.files import atomic_write
+from pressurepose.viz.dataset import plot_contact_sheet
 
 SHEET = "contact_sheet.png"
 
 
 def _read_columns(path: Path, columns: list[str]) -> dict:
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     try:
         return from_table(pq.read_table(path, columns=columns), tuple(columns))
     except (OSError, pa.ArrowException) as exc:
@@ -68,10 +71,6 @@ def dataset_info(root: str | Path, sheet: int = 24, seed: int = 0) -> dict:
 
 
 def _contact_sheet(root: Path, manifest: dict, k: int, seed: int) -> Path:
-    from pressurepose.data.dataset import PressurePoseDataset
-    from pressurepose.files import atomic_write
-    from pressurepose.viz.dataset import plot_contact_sheet
-
     ds = PressurePoseDataset(root, columns=("pressure_mmhg", "partition", "gender", "index", "mass_kg",
                                             "head_angle_deg"), verify=False)
     rows = np.sort(np.random.default_rng(seed).choice(len(ds), size=min(k, len(ds)), replace=False))
@@ -102,4 +101,16 @@ def format_info(info: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["dataset_info", "format_info"]
+def info(dataset: tyro.conf.Positional[Path], sheet: int = 24, seed: int = 0) -> None:
+    """Describe a dataset: counts per partition and gender, rejections, pressure statistics;
+    verifies every shard's sha256 and writes DATASET/contact_sheet.png.
+
+    Args:
+        dataset: Dataset folder (with manifest.json).
+        sheet: Random samples drawn in the contact sheet (0: none).
+        seed: Which random samples.
+    """
+    print(format_info(dataset_info(dataset, sheet=sheet, seed=seed)))
+
+
+__all__ = ["dataset_info", "format_info", "info"]

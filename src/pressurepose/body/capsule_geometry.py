@@ -1,0 +1,52 @@
+"""Distances between points, segments and capsules (collisions, clearances)."""
+
+from __future__ import annotations
+
+import torch
+
+
+# --- geometry -------------------------------------------------------------------------------
+def point_segment_distance(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Distance from points x (..., 3) to segments [a, b] (..., 3) (broadcast)."""
+    d = b - a
+    dd = (d * d).sum(-1)
+    t = ((x - a) * d).sum(-1) / torch.where(dd > 0, dd, torch.ones_like(dd))
+    t = t.clamp(0.0, 1.0)
+    return (x - (a + t[..., None] * d)).norm(dim=-1)
+
+
+def segment_distance(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
+    """Shortest distance between segments [p1, q1] and [p2, q2], (..., 3) each, broadcast.
+
+    Closest points by clamping the line parameters (Ericson, Real-Time Collision Detection
+    5.1.9), vectorised; degenerate (point-like) segments are handled.
+    """
+    eps = 1e-12
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a = (d1 * d1).sum(-1)
+    e = (d2 * d2).sum(-1)
+    f = (d2 * r).sum(-1)
+    c = (d1 * r).sum(-1)
+    b = (d1 * d2).sum(-1)
+    denom = a * e - b * b
+    safe = lambda z: torch.where(z > eps, z, torch.ones_like(z))  # noqa: E731
+    # s on segment 1 from the lines' closest points (0 if parallel), then t, then re-clamp s.
+    s = torch.where(denom > eps * a * e + eps, ((b * f - c * e) / safe(denom)).clamp(0, 1), torch.zeros_like(a))
+    t = (b * s + f) / safe(e)
+    s = torch.where(t < 0, (-c / safe(a)).clamp(0, 1), torch.where(t > 1, ((b - c) / safe(a)).clamp(0, 1), s))
+    t = t.clamp(0, 1)
+    # Degenerate segments.
+    s = torch.where(a <= eps, torch.zeros_like(s), s)
+    t = torch.where(e <= eps, torch.zeros_like(t), torch.where(a <= eps, (f / safe(e)).clamp(0, 1), t))
+    s = torch.where((e <= eps) & (a > eps), (-c / safe(a)).clamp(0, 1), s)
+    c1 = p1 + s[..., None] * d1
+    c2 = p2 + t[..., None] * d2
+    return (c1 - c2).norm(dim=-1)
+
+
+def capsule_clearance(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor,
+                      pairs: torch.Tensor) -> torch.Tensor:
+    """(B, P) gap between the surfaces of capsule pairs (negative = interpenetrating)."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    d = segment_distance(start[:, i], end[:, i], start[:, j], end[:, j])
+    return d - radius[:, i] - radius[:, j]

@@ -1,0 +1,256 @@
+"""`pressurepose evaluate-real`: estimation on real recordings: PmatData experiment II
+(issue 9, seed A.8); with `--data`, an imported real set with point clouds (3DVPE per
+participant).
+
+Real frames have no 3D labels, but PmatData knows each subject's posture (supine / left /
+right lateral), height and weight. The command runs a trained network on the frames and
+reports, per mattress (air, sponge): posture accuracy - the posture read from the estimated
+root orientation (`eval.real.posture_of`) - and the estimated height and mass against the
+subjects' values, with a confusion matrix and scatter plots.
+
+Frames are normalised as the data's README says (empty level removed, noise threshold, summed
+force = the subject's weight, mmHg; `data.pmatdata.normalise`), clipped at 100 mmHg as the
+sensor model does. Gender is unknown to PmatData (given as 0.5); height and weight are given
+when the network takes them.
+
+With `--data FILE.npz` (written by `import-pressurepose-real`, or any .npz with
+pressure_mmhg, subject, cloud_points, cloud_offsets): the network estimates each frame's body
+(gender, height and mass from the file when the network takes them), and
+`metrics.vpe_to_cloud` compares its camera-facing vertices with the frame's cloud (1 cm voxel
+downsampled, in the mat frame). As released, the error is averaged per participant and then
+over participants; the mean over frames is reported too. Height and mass estimated from the
+body shape are compared with the participants' values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pressurepose.commands.outputs import Written
+from pressurepose.data.pmatdata import load_images, load_index
+from pressurepose.errors import UserError
+from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
+from pressurepose.eval.real import GROUP_POSTURE, POSTURES, posture_of, roll_deg
+from pressurepose.eval.real_cloud import load_cloud_file
+from pressurepose.files import atomic_write, write_text
+from pressurepose.net.inputs import check_images
+from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
+from pressurepose.samples import resolve_pmatdata
+from pressurepose.train.checkpoint import load_network
+from pressurepose.viz.real import plot_real, plot_real_cloud
+
+
+@dataclasses.dataclass(frozen=True)
+class RealEvalConfig:
+    """Run a trained network on PmatData experiment II and compare with what is known."""
+
+    model: Path = Path("default")
+    """Run folder of `pressurepose train`; "default" = the packaged model."""
+    pmatdata: Path = Path("pmatdata")
+    """PmatData folder (index.csv, experiment-ii/); "pmatdata" = the packaged copy of experiment II."""
+    out: Path = Path("out/evaluate-real")
+    """Report folder: real.md, real.json, real.png."""
+    groups: str = "BCD"
+    """PmatData posture groups: B supine, C right, D left (flat bed)."""
+    threshold: float = 20.0
+    """Raw noise threshold of the frames' normalisation (data README)."""
+    batch: int = 32
+    data: Path | None = None
+    """An imported real-data .npz with point clouds (`import-pressurepose-real`): instead of
+    PmatData, report 3DVPE against the clouds per participant and height / mass errors."""
+    voxel_m: float = 0.01
+    """Voxel size of the clouds' downsampling before 3DVPE (--data; 1 cm as released)."""
+    camera_m: tuple[float, float, float] = CAMERA_M
+    """Camera position in the mat frame for the camera-facing vertices (--data; metrics.CAMERA_M)."""
+
+
+def run_evaluate_real(cfg: RealEvalConfig) -> Written:
+    if cfg.data is not None:
+        if not cfg.voxel_m > 0:
+            raise UserError(f"voxel size must be > 0 m, got {cfg.voxel_m}")
+        return run_evaluate_cloud(cfg)
+    cfg = dataclasses.replace(cfg, pmatdata=resolve_pmatdata(cfg.pmatdata))
+
+    groups = [g for g in cfg.groups if g in GROUP_POSTURE]
+    if not groups or len(groups) != len(cfg.groups):
+        raise UserError(f"groups must be letters of {''.join(GROUP_POSTURE)} (B supine, C right, D left), "
+                         f"got {cfg.groups!r}")
+    records = [r for r in load_index(cfg.pmatdata) if r.group in groups]
+    if not records:
+        raise UserError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
+    net, _ = load_network(cfg.model)
+    images = torch.from_numpy(load_images(records, cfg.threshold))
+    heights = [r.height_cm / 100 for r in records]
+    masses = [r.weight_kg for r in records]
+    t0 = time.perf_counter()
+    rolls, est_h, est_m = [], [], []
+    with torch.no_grad():
+        for lo in range(0, len(records), cfg.batch):
+            sl = slice(lo, lo + cfg.batch)
+            p = images[sl]
+            inputs = NetInputs(pressure_mmhg=p, gender=torch.full((p.shape[0],), GENDER_UNKNOWN),
+                               height_m=torch.tensor(heights[sl]), mass_kg=torch.tensor(masses[sl]))
+            est = net(inputs, mesh=False)[-1].params
+            meas = net.body.measure(est.shape)
+            rolls.append(roll_deg(est.root_rotation.to(torch.float64)))
+            est_h.append(meas.height_m)
+            est_m.append(meas.mass_kg)
+    seconds = time.perf_counter() - t0
+    roll = torch.cat(rolls)
+    predicted = posture_of(roll)
+    rows = [{"file": str(r.path.relative_to(Path(cfg.pmatdata))), "subject": r.subject, "mattress": r.mattress,
+             "posture": GROUP_POSTURE[r.group], "estimated_posture": e, "roll_deg": float(a),
+             "height_m": r.height_cm / 100, "estimated_height_m": float(h), "mass_kg": r.weight_kg,
+             "estimated_mass_kg": float(m)}
+            for r, e, a, h, m in zip(records, predicted, roll, torch.cat(est_h), torch.cat(est_m))]
+    summary = {}
+    for mattress in sorted({r["mattress"] for r in rows}):
+        sel = [r for r in rows if r["mattress"] == mattress]
+        confusion = {t: {e: sum(1 for r in sel if r["posture"] == t and r["estimated_posture"] == e) for e in POSTURES}
+                     for t in ("supine", "left", "right")}
+        summary[mattress] = {
+            "frames": len(sel),
+            "posture_accuracy": sum(r["posture"] == r["estimated_posture"] for r in sel) / len(sel),
+            "confusion": confusion,
+            "height_mae_m": float(np.mean([abs(r["estimated_height_m"] - r["height_m"]) for r in sel])),
+            "mass_mae_kg": float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in sel])),
+        }
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    record = {"command": "evaluate-real",
+              "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+              "frames": len(rows), "seconds": round(seconds, 2), "by_mattress": summary, "per_frame": rows}
+    paths = {"figure": atomic_write(cfg.out / "real.png", lambda tmp: plot_real(tmp, rows, summary))}
+    paths["json"] = write_text(cfg.out / "real.json", json.dumps(record, indent=1))
+    paths["markdown"] = write_text(cfg.out / "real.md", _markdown(record))
+    return Written(paths, record)
+
+
+def _markdown(r: dict) -> str:
+    lines = [f"# {r['config']['model']} on PmatData experiment II ({r['frames']} frames, groups "
+             f"{r['config']['groups']})", "",
+             "| mattress | frames | posture accuracy | height MAE (cm) | mass MAE (kg) |", "| --- | --- | --- | --- | --- |"]
+    for name, s in r["by_mattress"].items():
+        lines.append(f"| {name} | {s['frames']} | {s['posture_accuracy'] * 100:.1f}% | {s['height_mae_m'] * 100:.1f} | "
+                     f"{s['mass_mae_kg']:.1f} |")
+    for name, s in r["by_mattress"].items():
+        lines += ["", f"Confusion ({name}; rows: true, columns: estimated)", "",
+                  "| | " + " | ".join(POSTURES) + " |", "| --- |" + " --- |" * len(POSTURES)]
+        for t, row in s["confusion"].items():
+            lines.append(f"| {t} | " + " | ".join(str(row[e]) for e in POSTURES) + " |")
+    lines += ["", "![real](real.png)", ""]
+    return "\n".join(lines)
+
+
+def run_evaluate_cloud(cfg) -> Written:
+    """Report (real.md, real.json, real.png in cfg.out) of a RealEvalConfig with `data`."""
+    arrays = load_cloud_file(cfg.data)
+    images = torch.from_numpy(check_images(arrays["pressure_mmhg"], Path(cfg.data)))
+    n = len(images)
+    net, _ = load_network(cfg.model)
+    genders = arrays.get("gender")
+    gender = torch.tensor([{"female": 1.0, "male": 0.0}.get(str(g), GENDER_UNKNOWN) for g in genders]
+                          if genders is not None else [GENDER_UNKNOWN] * n)
+    height = torch.tensor(arrays["height_m"], dtype=torch.float32) if "height_m" in arrays else None
+    mass = torch.tensor(arrays["mass_kg"], dtype=torch.float32) if "mass_kg" in arrays else None
+    if net.config.height_weight and (height is None or mass is None):
+        raise UserError(f"{cfg.data}: this network takes height and mass; the file has no height_m / mass_kg")
+    faces = net.faces
+    t0 = time.perf_counter()
+    vpes, est_h, est_m = [], [], []
+    with torch.no_grad():
+        for lo in range(0, n, cfg.batch):
+            sl = slice(lo, lo + cfg.batch)
+            inputs = NetInputs(pressure_mmhg=images[sl], gender=gender[sl],
+                               height_m=None if height is None else height[sl],
+                               mass_kg=None if mass is None else mass[sl])
+            est = net(inputs, mesh=True, maps=False)[-1]
+            meas = net.body.measure(est.params.shape)
+            est_h.append(meas.height_m)
+            est_m.append(meas.mass_kg)
+            for j, verts in enumerate(est.vertices):
+                i = lo + j
+                cloud = torch.from_numpy(arrays["cloud_points"][arrays["cloud_offsets"][i]:arrays["cloud_offsets"][i + 1]])
+                vpes.append(float(vpe_to_cloud(verts, faces, cloud.to(verts.dtype), camera=cfg.camera_m,
+                                               voxel_m=cfg.voxel_m)))
+    seconds = time.perf_counter() - t0
+    est_h, est_m = torch.cat(est_h).tolist(), torch.cat(est_m).tolist()
+    rows = []
+    for i in range(n):
+        r = {"subject": str(arrays["subject"][i]), "vpe_m": vpes[i], "estimated_height_m": est_h[i],
+             "estimated_mass_kg": est_m[i]}
+        for k in ("pose_set", "pose_type", "index", "height_m", "mass_kg"):
+            if k in arrays:
+                v = arrays[k][i]
+                r[k] = v.item() if hasattr(v, "item") else v
+        rows.append(r)
+    by_subject = {}
+    for s in sorted({r["subject"] for r in rows}):
+        sel = [r for r in rows if r["subject"] == s]
+        e = {"frames": len(sel), "vpe_m": float(np.mean([r["vpe_m"] for r in sel]))}
+        if "height_m" in sel[0]:
+            e["height_error_m"] = float(np.mean([r["estimated_height_m"] - r["height_m"] for r in sel]))
+            e["mass_error_kg"] = float(np.mean([r["estimated_mass_kg"] - r["mass_kg"] for r in sel]))
+        by_subject[s] = e
+    overall = {"participants": len(by_subject),
+               "vpe_m": float(np.mean([e["vpe_m"] for e in by_subject.values()])),
+               "vpe_m_over_frames": float(np.mean(vpes))}
+    if "height_m" in arrays:
+        overall["height_mae_m"] = float(np.mean([abs(r["estimated_height_m"] - r["height_m"]) for r in rows]))
+        overall["mass_mae_kg"] = float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in rows]))
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    record = {"command": "evaluate-real", "kind": "point-cloud",
+              "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(cfg).items()},
+              "frames": n, "seconds": round(seconds, 2), "overall": overall, "by_participant": by_subject,
+              "per_frame": rows}
+    paths = {"figure": atomic_write(cfg.out / "real.png", lambda tmp: plot_real_cloud(tmp, rows, by_subject))}
+    paths["json"] = write_text(cfg.out / "real.json", json.dumps(record, indent=1))
+    paths["markdown"] = write_text(cfg.out / "real.md", _cloud_markdown(record))
+    return Written(paths, record)
+
+
+def _cloud_markdown(r: dict) -> str:
+    o = r["overall"]
+    lines = [f"# {r['config']['model']} on {r['config']['data']} ({r['frames']} frames, {o['participants']} "
+             "participants)", "",
+             f"3DVPE against the point clouds: **{o['vpe_m'] * 100:.2f} cm** (mean of the participants' means, as "
+             f"released; {o['vpe_m_over_frames'] * 100:.2f} cm over frames).", ""]
+    if "height_mae_m" in o:
+        lines += [f"Height MAE {o['height_mae_m'] * 100:.1f} cm, mass MAE {o['mass_mae_kg']:.1f} kg.", ""]
+    has_hw = all("height_error_m" in e for e in r["by_participant"].values())
+    head = "| participant | frames | 3DVPE (cm) |" + (" height error (cm) | mass error (kg) |" if has_hw else "")
+    lines += [head, "| --- | --- | --- |" + (" --- | --- |" if has_hw else "")]
+    for s, e in r["by_participant"].items():
+        line = f"| {s} | {e['frames']} | {e['vpe_m'] * 100:.2f} |"
+        if has_hw:
+            line += f" {e['height_error_m'] * 100:+.1f} | {e['mass_error_kg']:+.1f} |"
+        lines.append(line)
+    lines += ["", "![real](real.png)", ""]
+    return "\n".join(lines)
+
+
+def evaluate_real(cfg: RealEvalConfig) -> None:
+    """Run a trained network on PmatData's real recordings: posture accuracy from the estimated
+    root, estimated height and mass against the subjects', per mattress (real.md, real.png);
+    with --data FILE.npz (import-pressurepose-real), 3DVPE against its point clouds per
+    participant."""
+    written = run_evaluate_real(cfg)
+    record = written.record
+    if record.get("kind") == "point-cloud":
+        o = record["overall"]
+        extra = (f", height MAE {o['height_mae_m'] * 100:.1f} cm, mass MAE {o['mass_mae_kg']:.1f} kg"
+                 if "height_mae_m" in o else "")
+        print(f"{record['frames']} frames of {o['participants']} participants: 3DVPE {o['vpe_m'] * 100:.2f} cm"
+              f"{extra} -> {written['markdown']}")
+        return
+    parts = [f"{k}: posture {v['posture_accuracy'] * 100:.0f}%, height MAE {v['height_mae_m'] * 100:.1f} cm, "
+             f"mass MAE {v['mass_mae_kg']:.1f} kg" for k, v in record["by_mattress"].items()]
+    print(f"{record['frames']} frames; " + "; ".join(parts) + f" -> {written['markdown']}")
+
+
+__all__ = ["RealEvalConfig", "evaluate_real", "run_evaluate_real"]

@@ -1,0 +1,340 @@
+"""Drawing the limbs of a pose attempt (`PoseSampler`'s limb rounds): windows of rounds, a
+float32 screen looser than the exact tests, the exact float64 tests, self-collisions in draw
+order (module docstring of `sampling.sampler`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from pressurepose.body.capsules import CAPSULES, capsule_clearance
+from pressurepose.sampling.attempt import ALONG, MAT_X, MAT_Y, UP, Attempt, SampleState
+from pressurepose.sampling.limbs import (
+    LIMBS,
+    Limb,
+    apply_hinge,
+    arm_cell,
+    cols,
+    leg_cell,
+    rodrigues,
+    rotate,
+    rotation_matrix,
+    split_xyz,
+    vadd,
+    vdot,
+)
+from pressurepose.sampling.partitions import (
+    ARM_CELLS,
+    HEIGHT_TOLERANCE_M,
+    LEG_CELLS,
+)
+
+FIRST_ROUND, LARGEST_ROUND = 64, 4096  # joint-angle draws per round, per limb and sample
+# The float32 screen of every draw is looser than the exact tests by this much (its round-off
+# is < 1e-6 m), so it never drops a draw they would accept: samples stay exact and
+# batch-independent.
+PREFILTER_MARGIN_M = 1e-4
+# Elements per temporary of the screen: samples x draws chunks that stay in the CPU cache.
+_SCREEN_ELEMENTS = 1 << 16
+# Draws tested at once (pending samples x rounds of a window): ~4 ms of work, so that the fixed
+# cost of a window (~3 ms of small tensor operations) stays a small share.
+_WINDOW_DRAWS = 1 << 16
+
+
+class LimbDraws:
+    """The limb rounds of `PoseSampler` (a mixin: they use its model, config, limits and limbs)."""
+
+    def _draw_limbs(self, states: list[SampleState]) -> None:
+        """One pose attempt: limbs in a fixed order, each drawn until it reaches its cell
+        without touching what is already placed (torso, head, earlier limbs)."""
+        for st in states:
+            st.angles = {}
+        batch = Attempt(states)
+        rows = torch.arange(len(states))
+        for name in LIMBS:
+            rows = self._rounds(batch, rows, self.limbs[name])
+        for r in rows.tolist():
+            batch.states[r].placed = (batch.a[r], batch.b[r])
+
+    def _rounds(self, batch: Attempt, rows: torch.Tensor, limb: Limb) -> torch.Tensor:
+        """Draw angles for `limb` until each sample (attempt rows `rows`) has a draw that meets
+        every condition; returns the rows that got one (the others have failed this attempt).
+
+        Draws come in rounds of growing size (64, 128, ... 4096) up to `max_limb_draws`, so
+        common cells cost one small round and rare ones (a foot near the buttocks) still get
+        thousands of tries; the first draw that passes everything wins, and the sample's
+        generator has then used up exactly the rounds up to the winner's. For speed, several
+        rounds are drawn and tested at once (a window: few pending samples, many rounds) and
+        the generator is wound back to the end of the winner's round: the outcome is the same
+        as drawing round by round. Each draw is first screened by a cheap float32 test that
+        is looser than the real conditions by PREFILTER_MARGIN_M (so it never drops a draw
+        they accept); survivors are tested exactly (float64), then for self-collisions."""
+        pending, done = rows, []
+        reachable = torch.zeros(len(batch.states), dtype=torch.bool)
+        ctx = self._limb_context(batch, limb)
+        ends = self._round_ends
+        start, j = 0, 0
+        while pending.numel() and j < len(ends):
+            # A window: the rounds from `start` on that keep pending x draws within
+            # _WINDOW_DRAWS (at least one round), so few pending samples take few windows.
+            P = pending.numel()
+            while j + 1 < len(ends) and P * (ends[j + 1] - start) <= _WINDOW_DRAWS:
+                j += 1
+            stop = int(ends[j])
+            W = stop - start
+            step = max(1, _WINDOW_DRAWS // W)
+            won = [self._window(batch, ctx, pending[lo:lo + step], limb, start, W, reachable, done)
+                   for lo in range(0, P, step)]
+            pending = pending[~torch.cat(won)]
+            start, j = stop, j + 1
+        for r in pending.tolist():  # budget exhausted: this attempt fails
+            st = batch.states[r]
+            st.counts["limb_failures"] += 1
+            st.failed_limb = limb.name
+            # No draw met even the cell and bed conditions: other limbs cannot help (unless
+            # the condition depends on them, as crossing does), only a new shape and root.
+            if not reachable[r] and not (self.part.crossed_legs and limb.name == "right_leg"):
+                st.unreachable = limb.name
+        return torch.cat(done).sort().values if done else rows[:0]
+
+    def _window(self, batch, ctx, pending, limb, start, W, reachable, done) -> torch.Tensor:
+        """Draws start .. start + W (whole rounds) of each pending row; returns which rows
+        found a winner."""
+        P = pending.numel()
+        ends = self._round_ends
+        states = [batch.states[r] for r in pending.tolist()]
+        one_round = int(np.searchsorted(ends, start, side="right")) == int(np.searchsorted(ends, start + W - 1, side="right"))
+        saved = None if one_round else [st.rng.bit_generator.state for st in states]
+        u = np.empty((P, W, limb.low.shape[0]))
+        for p, st in enumerate(states):
+            st.rng.random(out=u[p])
+        u = torch.from_numpy(u)
+        # 1. Screen every draw (float32, conservative).
+        p_idx, k_idx = self._screen(ctx, pending, limb, u)
+        # 2. The survivors exactly: cell, height, partition conditions, bed outline. Their
+        # angles low + span * random = rng.uniform(low, high), bit for bit.
+        angles = torch.from_numpy(limb.low) + torch.from_numpy(limb.high - limb.low) * u[p_idx, k_idx]
+        if self.part.straight_limbs:
+            angles[:, 3] = 0.0
+        rows_s = pending[p_idx]
+        geo, pos, caps_ab = self._limb_survivors(ctx, rows_s, limb, angles)
+        p_idx, k_idx, rows_s, pos, angles = p_idx[geo], k_idx[geo], rows_s[geo], pos[geo], angles[geo]
+        caps_ab = (caps_ab[0][geo], caps_ab[1][geo])
+        # 3. Self-collision, in draw order: each sample's first 4 geometric draws, then (for
+        # the samples without a free one yet) the next 32, 256, ... until one is free.
+        reachable[rows_s] = True
+        first = torch.full((P,), W, dtype=torch.long)
+        if p_idx.numel():
+            count = torch.bincount(p_idx, minlength=P)
+            rank = torch.arange(p_idx.numel()) - (count.cumsum(0) - count)[p_idx]  # within its sample
+            lo, width, top = 0, 4, int(rank.max())
+            while lo <= top:
+                sel = ((rank >= lo) & (rank < lo + width) & (first[p_idx] == W)).nonzero()[:, 0]
+                if sel.numel():
+                    free = self._collision_free(batch, rows_s[sel], limb, (caps_ab[0][sel], caps_ab[1][sel]))
+                    first.scatter_reduce_(0, p_idx[sel][free], k_idx[sel][free], "amin")
+                lo, width = lo + width, 8 * width
+        before = k_idx < first[p_idx]  # geometric draws before the winner: all collided
+        collided = torch.bincount(p_idx[before], minlength=P)
+        rejected = first - collided
+        for st, rej, col in zip(states, rejected.tolist(), collided.tolist()):
+            st.counts["limb_draws_rejected"] += rej
+            st.counts["collisions"] += col
+        won = first < W
+        if won.any():
+            win = (k_idx == first[p_idx]).nonzero()[:, 0]  # one survivor per winning sample
+            r = rows_s[win]
+            caps = self._limb_capsules[limb.name]
+            batch.a[r[:, None], caps] = caps_ab[0][win]
+            batch.b[r[:, None], caps] = caps_ab[1][win]
+            if limb.name == "left_leg":
+                batch.left_ankle_x[r] = pos[win, -2, 0]
+            for rr, pp, kk, ang in zip(r.tolist(), p_idx[win].tolist(), k_idx[win].tolist(), angles[win]):
+                st = batch.states[rr]
+                st.angles[limb.name] = ang
+                # Wind the generator back to the end of the winner's round.
+                used = int(ends[np.searchsorted(ends, start + kk, side="right")]) - start
+                if used < W:  # (never in a one-round window)
+                    st.rng.bit_generator.state = saved[pp]
+                    st.rng.random(used * limb.low.shape[0])
+            done.append(r)
+        return won
+
+    def _limb_context(self, batch: Attempt, limb: Limb) -> dict:
+        """Per-row constants of the attempt for one limb (every row; windows index them)."""
+        m = PREFILTER_MARGIN_M
+        f32 = torch.float32
+        leg = limb.name.endswith("leg")
+        slot = LIMBS.index(limb.name)
+        chain = list(limb.chain)
+        rest = batch.rest
+        offsets = rest[:, chain[1:]] - rest[:, chain[:-1]]  # (R, n - 1, 3)
+        # 'along' bounds of each row's target cell (outer cells open-ended).
+        cell = batch.cells[:, slot].to(torch.float64)
+        inf = torch.full_like(cell, math.inf)
+        if leg:
+            q = batch.lengths[:, 0] / LEG_CELLS
+            lo, hi = cell * q, torch.where(cell == LEG_CELLS - 1, inf, (cell + 1) * q)
+            lo = lo.clamp_min(0.0)  # the ankle may not lie above its hip
+        else:  # rise = -along in [(3 - cell) A/4, (4 - cell) A/4)
+            q = batch.lengths[:, 1] / 4
+            lo = torch.where(cell == 0, -inf, (cell - 4) * q)
+            hi = torch.where(cell == ARM_CELLS - 1, inf, (cell - 3) * q)
+        caps = self._limb_capsules[limb.name]
+        rj = rest[:, [CAPSULES[k].joint for k in caps]]
+        ci = {j: i for i, j in enumerate(chain)}
+        # Screen (float32, loosened by the margin).
+        reach_off = (offsets[:, 0], offsets[:, 1]) if leg else (offsets[:, 1], offsets[:, 2])
+        # Legs are measured against the bed as they will lie once a raised-bed body sits up.
+        frame, shift = (batch.leg_frame, batch.leg_shift) if leg else (batch.frame, batch.shift)
+        ctx = dict(
+            o1=reach_off[0].to(f32), o2=reach_off[1].to(f32), frame32=frame.to(f32),
+            lo32=(lo - m).to(f32), hi32=(hi + m).to(f32), prox32=rest[:, limb.proximal].to(f32),
+            shift32=shift.to(f32),
+            # bed-outline slack: the margin (legs), or the collar's reach per radian (arms)
+            slack32=(torch.full_like(cell, m) if leg else offsets[:, 0].norm(dim=-1) / 3).to(f32),
+            left_ankle32=(batch.left_ankle_x - m).to(f32),
+            # Exact tests (float64).
+            offsets=offsets, root=rest[:, chain[0]], frame=frame, shift=shift,
+            cell=batch.cells[:, slot], length=batch.lengths[:, 0 if leg else 1],
+            left_ankle=batch.left_ankle_x,
+            local=torch.cat([batch.start0[:, caps] - rj, batch.end0[:, caps] - rj], 1),  # (R, 2c, 3)
+            cap_joints=[ci[CAPSULES[k].joint] for k in caps] * 2,
+            over_bed=[ci[j] for j in limb.over_bed], distal=ci[limb.distal], proximal=ci[limb.proximal],
+        )
+        return ctx
+
+    def _screen(self, ctx: dict, pending: torch.Tensor, limb: Limb, u: torch.Tensor):
+        """(p, k) of the draws that may meet the conditions, from the uniform numbers u (P, M, 4)
+        the angles are made of: first the distal joint's cell and height above the bed (bed
+        axes after the roll) for every draw, then for those left crossing and, over the bed,
+        the distal joint's position - all loosened by PREFILTER_MARGIN_M (float32 round-off is
+        < 1e-6 m), and for arms by how far the collar's third of the rotation can move the
+        shoulder (at most |angle| / 3 x the collar-shoulder distance)."""
+        P, M = u.shape[:2]
+        leg = limb.name.endswith("leg")
+        m = PREFILTER_MARGIN_M
+        f32 = torch.float32
+        low = torch.from_numpy(limb.low).to(f32)
+        span = torch.from_numpy(limb.high - limb.low).to(f32)
+        ps, ks = [], []
+        step = max(1, _SCREEN_ELEMENTS // M)
+        for lo in range(0, P, step):
+            rows = pending[lo:lo + step]
+            x = u[lo:lo + step].permute(2, 0, 1).to(f32, memory_format=torch.contiguous_format)  # (4, p, M)
+            rot = rodrigues(tuple(low[i] + span[i] * x[i] for i in range(3)))
+            o2 = cols(ctx["o2"][rows])
+            if not self.part.straight_limbs:
+                o2 = apply_hinge(limb, low[3] + span[3] * x[3], o2)
+            reach = rotate(rot, vadd(cols(ctx["o1"][rows]), o2))
+            frame = ctx["frame32"][rows]
+            up = vdot(reach, cols(frame[:, UP]))
+            along = vdot(reach, cols(frame[:, ALONG]))
+            ok = up.abs() <= HEIGHT_TOLERANCE_M + m
+            ok &= (along >= ctx["lo32"][rows, None]) & (along < ctx["hi32"][rows, None])
+            if not leg and self.part.hands_behind_head:
+                ok &= up <= m  # no higher than the shoulder
+            idx = ok.nonzero()
+            p, k = idx[:, 0], idx[:, 1]
+            crossed = leg and self.part.crossed_legs
+            if crossed or self.config.over_bed:
+                # The same draws' distal joint, for those left.
+                r = rows[p]
+                dist = vadd(split_xyz(ctx["prox32"][r]), tuple(c.expand(ok.shape)[p, k] for c in reach))
+                keep = torch.ones_like(p, dtype=torch.bool)
+                if crossed:
+                    if limb.side == "left":
+                        keep &= dist[0] < m
+                    else:
+                        keep &= dist[0] > ctx["left_ankle32"][r]
+                if self.config.over_bed:
+                    slack = ctx["slack32"][r]
+                    if not leg:
+                        slack = slack * rot[1][p, k].sqrt() + m
+                    fr, shift = ctx["frame32"][r], ctx["shift32"][r]
+                    wx = vdot(split_xyz(fr[:, MAT_X]), dist) + shift[:, 0]
+                    wy = vdot(split_xyz(fr[:, MAT_Y]), dist) + shift[:, 1]
+                    keep &= (wx > self.x_lo - slack) & (wx < self.x_hi + slack)
+                    keep &= (wy > self.y_lo - slack) & (wy < self.y_hi + slack)
+                p, k = p[keep], k[keep]
+            ps.append(p + lo)
+            ks.append(k)
+        return torch.cat(ps), torch.cat(ks)
+
+    def _limb_survivors(self, ctx: dict, rows: torch.Tensor, limb: Limb, angles: torch.Tensor):
+        """For N draws (rows (N,), angles (N, 4)) that passed the screen: whether they meet
+        every condition (N,) - cell, height, the partition's conditions, the bed outline - the
+        chain joints' positions (N, n, 3) in body axes and the limb's capsule end points
+        ((N, c, 3), (N, c, 3))."""
+        leg = limb.name.endswith("leg")
+        c, s = torch.cos(angles[:, 3]), torch.sin(angles[:, 3])
+        one, zero = torch.ones_like(c), torch.zeros_like(c)
+        if leg:  # knee about x
+            hinge = torch.stack([one, zero, zero, zero, c, -s, zero, s, c], -1).view(-1, 3, 3)
+        else:  # elbow about y
+            hinge = torch.stack([c, zero, s, zero, one, zero, -s, zero, c], -1).view(-1, 3, 3)
+        R = rotation_matrix(angles[:, :3])
+        lower = R @ hinge
+        # World rotation of each chain joint (and the capsule riding it).
+        if leg:  # hip, knee, ankle, foot
+            rots = torch.stack([R, lower, lower, lower], 1)
+        else:  # collar (1/3 of the rotation), shoulder, elbow, wrist, hand
+            rots = torch.stack([rotation_matrix(angles[:, :3] / 3), R, lower, lower, lower], 1)
+        steps = (rots[:, :-1] @ ctx["offsets"][rows, ..., None])[..., 0]
+        pos = torch.cat([ctx["root"][rows, None], steps], 1).cumsum(1)  # (N, n, 3)
+        # Cell and height in the bed's axes after the roll only: 'along' is the body's long
+        # axis and 'up' the height above the bed, whatever the yaw (a yawed body keeps its cells).
+        frame = ctx["frame"][rows]
+        dist, prox = pos[:, ctx["distal"]], pos[:, ctx["proximal"]]
+        reach = dist - prox
+        up = (reach * frame[:, UP]).sum(-1)
+        along = (reach * frame[:, ALONG]).sum(-1)  # toward the foot
+        ok = up.abs() <= HEIGHT_TOLERANCE_M
+        cell, length = ctx["cell"][rows], ctx["length"][rows]
+        if leg:
+            ok &= (along >= 0) & (leg_cell(along, length) == cell)
+            if self.part.crossed_legs:
+                # Feet crossed: the left ankle lies on the right of the right ankle (body x =
+                # the subject's left). The left leg, drawn first, crosses the midline; the
+                # right ankle must then stay on its left.
+                ok &= (dist[:, 0] < 0) if limb.side == "left" else (ctx["left_ankle"][rows] < dist[:, 0])
+        else:
+            ok &= arm_cell(-along, length) == cell
+            if self.part.hands_behind_head:
+                # Behind the head: the wrist between the midline and its shoulder, no higher
+                # than the shoulder (it lies under the head).
+                ok &= (dist[:, 0].abs() < prox[:, 0].abs()) & (up <= 0)
+        if self.config.over_bed:
+            bed = pos[:, ctx["over_bed"]]  # (N, k, 3)
+            shift = ctx["shift"][rows]
+            x = (bed * frame[:, None, MAT_X]).sum(-1) + shift[:, None, 0]
+            y = (bed * frame[:, None, MAT_Y]).sum(-1) + shift[:, None, 1]
+            ok &= ((x > self.x_lo) & (x < self.x_hi) & (y > self.y_lo) & (y < self.y_hi)).all(-1)
+        # Capsule end points: joint position + the joint's rotation of the rest offset.
+        cj = ctx["cap_joints"]
+        ab = (rots[:, cj] @ ctx["local"][rows, ..., None])[..., 0] + pos[:, cj]
+        c2 = len(cj) // 2
+        return ok, pos, (ab[:, :c2], ab[:, c2:])
+
+    def _collision_free(self, batch: Attempt, rows: torch.Tensor, limb: Limb, ends) -> torch.Tensor:
+        """(N,) whether each draw's capsules clear the capsules already placed (checked pairs)."""
+        pairs = self._limb_pairs[limb.name]
+        if rows.numel() == 0 or pairs.numel() == 0:
+            return torch.ones(rows.shape[0], dtype=torch.bool)
+        caps = self._limb_capsules[limb.name]
+        a, b = batch.a[rows], batch.b[rows]
+        a[:, caps], b[:, caps] = ends
+        return (capsule_clearance(a, b, batch.radius[rows], pairs) >= 0).all(-1)
+
+
+def draw_schedule(budget: int) -> np.ndarray:
+    """Cumulative draw counts at the end of each round: 64, 128, ..., 4096, 4096, ... up to
+    `budget`."""
+    ends, drawn, size = [], 0, FIRST_ROUND
+    while drawn < budget:
+        drawn += min(size, budget - drawn)
+        size = min(2 * size, LARGEST_ROUND)
+        ends.append(drawn)
+    return np.array(ends)

@@ -1,0 +1,81 @@
+"""What the pose sampler returns (`InitialPoses`), the error it raises, and the per-sample seed."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import zlib
+
+import numpy as np
+import torch
+
+from pressurepose.bed import BedShape
+from pressurepose.body.params import BodyParams
+from pressurepose.errors import UserError
+from pressurepose.sampling.partitions import (
+    SamplingConfig,
+)
+
+REJECTION_KEYS = ("limb_draws_rejected", "limb_failures", "collisions", "shape_resamples", "cell_redraws",
+                  "sit_up_rejections")
+
+
+@dataclasses.dataclass
+class InitialPoses:
+    """A batch of sampled initial poses (float64) with their provenance."""
+
+    params: BodyParams                 # shape, root (mat frame; lowest capsule point on z = 0), pose
+    joints: torch.Tensor               # (B, 24, 3) J24 in the mat frame
+    index: np.ndarray                  # (B,) sample index within (seed, partition, gender, over_bed)
+    cells: np.ndarray                  # (B, 4) target cell of left leg, right leg, left arm, right arm
+    root_draw: np.ndarray              # (B, 4) drawn roll, yaw (rad), shift along, across (m)
+    head_angle_deg: np.ndarray         # (B,) head-of-bed angle the pose rests on (0: flat bed)
+    rejections: dict[str, np.ndarray]  # REJECTION_KEYS -> (B,) counts
+    config: SamplingConfig
+    backend: str
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.index.shape[0])
+
+    def beds(self) -> list[BedShape]:
+        """The bed each sample rests on (what sim #1 and sim #2 must be given)."""
+        return [BedShape(float(a)) for a in self.head_angle_deg]
+
+    @classmethod
+    def cat(cls, parts: list[InitialPoses]) -> InitialPoses:
+        """One InitialPoses from several of the same config, in order."""
+        first = parts[0]
+        return cls(
+            params=BodyParams.cat([p.params for p in parts]), joints=torch.cat([p.joints for p in parts]),
+            index=np.concatenate([p.index for p in parts]), cells=np.concatenate([p.cells for p in parts]),
+            root_draw=np.concatenate([p.root_draw for p in parts]),
+            head_angle_deg=np.concatenate([p.head_angle_deg for p in parts]),
+            rejections={k: np.concatenate([p.rejections[k] for p in parts]) for k in REJECTION_KEYS},
+            config=first.config, backend=first.backend,
+        )
+
+
+class UnreachableConstraints(UserError):
+    """Raised when a sample cannot satisfy its partition within the attempt limits."""
+
+
+def sample_key(config: SamplingConfig, index: int) -> list[int]:
+    """The entropy a sample's generator is seeded from."""
+    return [int(config.seed), zlib.crc32(config.partition.encode()), int(config.gender == "female"),
+            int(config.over_bed), int(index)]
+
+
+def root_axis_angle(roll: float, yaw: float) -> np.ndarray:
+    """Axis-angle (3,) of Rz(yaw) Rx(roll) (roll about the bed's long axis, then yaw in the bed
+    plane), from the quaternion product in scalar float64 arithmetic (bit-identical whatever
+    else is computed alongside)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    w, v = cy * cr, np.array([cy * sr, sy * sr, sy * cr])
+    if w < 0:
+        w, v = -w, -v
+    n = math.sqrt(float(v @ v))
+    if n < 1e-12:
+        return 2.0 * v / w
+    return v * (2.0 * math.atan2(n, w) / n)
