@@ -32,8 +32,10 @@ def main(B: int = 128) -> None:
     sk = model.light
     shape = model.default_shape(B)
     pose = torch.randn(B, 23, 3, generator=torch.Generator().manual_seed(0)) * 0.3
-    print(f"Anny joints-only, B = {B}, {len(sk.bones)} of {len(model.bone_labels)} bones, "
-          f"{torch.get_num_threads()} threads")
+    print(
+        f"Anny joints-only, B = {B}, {len(sk.bones)} of {len(model.bone_labels)} bones, "
+        f"{torch.get_num_threads()} threads"
+    )
     print("| stage | ms |")
     print("| --- | --- |")
     with torch.no_grad():
@@ -41,7 +43,8 @@ def main(B: int = 128) -> None:
         heads, R = timed("rest skeleton (heads + orientations)", lambda: model._rest_skeleton(coeffs, sk))
         anny = model.anny
         M = anny.bone_template_orientation_matrices[sk.bones] + torch.einsum(
-            "ba,akij->bkij", coeffs, anny.bone_orientation_blendshapes[:, sk.bones])
+            "ba,akij->bkij", coeffs, anny.bone_orientation_blendshapes[:, sk.bones]
+        )
         timed("  of which special Procrustes (3x3 SVD)", lambda: roma.special_procrustes(M[:, 1:]))
         _, offsets = timed("reference offsets", lambda: model._reference_offsets(heads, R, sk))
         G = timed("T-pose corrections", lambda: model._t_pose_corrections(offsets, sk))

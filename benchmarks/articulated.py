@@ -45,7 +45,9 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = load_body_model("anny", dtype=torch.float64)
-    print("| partition | input | rigid ms/sample | articulated ms/sample | articulated steps (median) | rejected rigid / articulated |")
+    print(
+        "| partition | input | rigid ms/sample | articulated ms/sample | articulated steps (median) | rejected rigid / articulated |"
+    )
     print("| --- | --- | --- | --- | --- | --- |")
     for part in args.partitions.split(","):
         params = []
@@ -63,9 +65,11 @@ def main() -> None:
             for b0 in range(0, p.batch_size, args.batch):
                 chunk = p.index(torch.arange(b0, min(b0 + args.batch, p.batch_size)))
                 if name == "after sim #1":
+
                     def rigid():
                         out = model(chunk)
                         return simulate_pressure(out.vertices, out.faces, model.measure(chunk.shape).mass_kg)
+
                     t, r = timed(rigid, args.repeat)
                     rigid_s += t
                     rigid_rej += sum(bool(x) for x in r.failure)
@@ -75,8 +79,11 @@ def main() -> None:
                 steps += a.iterations.tolist()
             n = p.batch_size
             rigid_txt = f"{rigid_s / n * 1e3:.1f}" if name == "after sim #1" else "-"
-            print(f"| {part} | {name} ({n}) | {rigid_txt} | {art_s / n * 1e3:.1f} | {int(np.median(steps))} | "
-                  f"{rigid_rej if name == 'after sim #1' else '-'} / {art_rej} |", flush=True)
+            print(
+                f"| {part} | {name} ({n}) | {rigid_txt} | {art_s / n * 1e3:.1f} | {int(np.median(steps))} | "
+                f"{rigid_rej if name == 'after sim #1' else '-'} / {art_rej} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -29,9 +29,15 @@ from pressurepose.sim.articulated import ArticulatedConfig
 from pressurepose.sim.mattress import MattressParams
 
 # name, start, low, high (searched in log space)
-SPACE = (("k1_pa_per_m", 2.77e4, 5e3, 1.5e5), ("k3_pa_per_m3", 5.89e7, 1e6, 1e9),
-         ("tissue_pa_per_m", 3e5, 3e4, 3e6), ("spread_m", 0.008, 0.001, 0.02), ("neck", 0.1, 0.01, 1.0),
-         ("spine", 1.0, 0.1, 10.0), ("belly", 0.3, 0.05, 1.5))
+SPACE = (
+    ("k1_pa_per_m", 2.77e4, 5e3, 1.5e5),
+    ("k3_pa_per_m3", 5.89e7, 1e6, 1e9),
+    ("tissue_pa_per_m", 3e5, 3e4, 3e6),
+    ("spread_m", 0.008, 0.001, 0.02),
+    ("neck", 0.1, 0.01, 1.0),
+    ("spine", 1.0, 0.1, 10.0),
+    ("belly", 0.3, 0.05, 1.5),
+)
 
 
 def decode(x, space=SPACE):
@@ -51,8 +57,11 @@ def main() -> None:
     ap.add_argument("--popsize", type=int, default=8)
     ap.add_argument("--max-iter", type=int, default=6)
     ap.add_argument("--frames", type=int, default=24, help="real frames simulated per posture (evenly picked)")
-    ap.add_argument("--bed-only", action="store_true",
-                    help="fit the bed (k1, k3, tissue, spread) alone, the body's factors at ArticulatedConfig's defaults")
+    ap.add_argument(
+        "--bed-only",
+        action="store_true",
+        help="fit the bed (k1, k3, tissue, spread) alone, the body's factors at ArticulatedConfig's defaults",
+    )
     args = ap.parse_args()
     import cma
 
@@ -74,12 +83,24 @@ def main() -> None:
     def loss(x):
         nonlocal best
         v = decode(x, space)
-        mp = MattressParams(k1_pa_per_m=v["k1_pa_per_m"], k3_pa_per_m3=v["k3_pa_per_m3"],
-                            tissue_pa_per_m=v["tissue_pa_per_m"], spread_m=v["spread_m"])
+        mp = MattressParams(
+            k1_pa_per_m=v["k1_pa_per_m"],
+            k3_pa_per_m3=v["k3_pa_per_m3"],
+            tissue_pa_per_m=v["tissue_pa_per_m"],
+            spread_m=v["spread_m"],
+        )
         t0 = time.perf_counter()
-        sims = simulate_subjects(subjects, RealismConfig(settle="none"), mp,
-                                 ArticulatedConfig(neck_stiffness_scale=v["neck"], spine_stiffness_scale=v["spine"],
-                                                   tissue_by_part=(("spine1", v["belly"]), ("spine2", v["belly"]))), scenes=scenes)
+        sims = simulate_subjects(
+            subjects,
+            RealismConfig(settle="none"),
+            mp,
+            ArticulatedConfig(
+                neck_stiffness_scale=v["neck"],
+                spine_stiffness_scale=v["spine"],
+                tissue_by_part=(("spine1", v["belly"]), ("spine2", v["belly"])),
+            ),
+            scenes=scenes,
+        )
         total, parts = 0.0, {}
         for p in POSTURES:
             imgs, hts = sims[(p, args.mattress)][0], sims[(p, args.mattress)][1]
@@ -89,25 +110,43 @@ def main() -> None:
             sim_set = R.summarise(imgs, hts, *pitch)
             c = R.compare(real_sets[p], sim_set)
             regions = sum(abs(sim_set.regions[k] - real_sets[p].regions[k]) for k in R.REGION_NAMES)
-            loss = ((1 - c.along) + (1 - c.across) + abs(math.log(c.area_ratio)) + 0.5 * abs(math.log(c.coverage_ratio))
-                 + 0.5 * regions)
-            parts[p] = {"along": round(c.along, 3), "across": round(c.across, 3), "area": round(c.area_ratio, 3),
-                        "coverage": round(c.coverage_ratio, 3), "regions": round(regions, 3)}
+            loss = (
+                (1 - c.along)
+                + (1 - c.across)
+                + abs(math.log(c.area_ratio))
+                + 0.5 * abs(math.log(c.coverage_ratio))
+                + 0.5 * regions
+            )
+            parts[p] = {
+                "along": round(c.along, 3),
+                "across": round(c.across, 3),
+                "area": round(c.area_ratio, 3),
+                "coverage": round(c.coverage_ratio, 3),
+                "regions": round(regions, 3),
+            }
             total += loss
         total /= len(POSTURES)
         log.write(json.dumps({"loss": total, "params": v, "parts": parts, "seconds": time.perf_counter() - t0}) + "\n")
         log.flush()
         if total < best[0]:
             best = (total, v)
-            MattressParams(k1_pa_per_m=v["k1_pa_per_m"], k3_pa_per_m3=v["k3_pa_per_m3"],
-                           tissue_pa_per_m=v["tissue_pa_per_m"], spread_m=v["spread_m"]).save(args.out / f"{args.mattress}.json")
-            (args.out / f"{args.mattress}_best.json").write_text(json.dumps({"loss": total, "params": v, "parts": parts}, indent=1))
+            MattressParams(
+                k1_pa_per_m=v["k1_pa_per_m"],
+                k3_pa_per_m3=v["k3_pa_per_m3"],
+                tissue_pa_per_m=v["tissue_pa_per_m"],
+                spread_m=v["spread_m"],
+            ).save(args.out / f"{args.mattress}.json")
+            (args.out / f"{args.mattress}_best.json").write_text(
+                json.dumps({"loss": total, "params": v, "parts": parts}, indent=1)
+            )
         print(f"loss {total:.4f} {parts} {v}", flush=True)
         return total
 
     space = SPACE[:4] if args.bed_only else SPACE
     x0 = [math.log(s) for _, s, _, _ in space]
-    es = cma.CMAEvolutionStrategy(x0, 0.5, {"popsize": args.popsize, "maxiter": args.max_iter, "seed": 1, "verbose": -9})
+    es = cma.CMAEvolutionStrategy(
+        x0, 0.5, {"popsize": args.popsize, "maxiter": args.max_iter, "seed": 1, "verbose": -9}
+    )
     while not es.stop():
         xs = es.ask()
         es.tell(xs, [loss(x) for x in xs])

@@ -30,10 +30,12 @@ from pressurepose.sim.mattress import MattressParams
 
 # The start: the built-in defaults before issue 5 (fixed here so that the benchmark does not
 # move when the shipped defaults do).
-START = MattressParams(k1_pa_per_m=2.0e4, k3_pa_per_m3=6.0e7, spread_m=0.008, c0_mmhg=-1.0,
-                       c1_mmhg_per_mm=1.0, c2_mmhg_per_mm2=0.0)
-HIDDEN = MattressParams(k1_pa_per_m=3.0e4, k3_pa_per_m3=4.0e7, spread_m=0.012, c0_mmhg=-2.0,
-                        c1_mmhg_per_mm=1.3, c2_mmhg_per_mm2=0.004)
+START = MattressParams(
+    k1_pa_per_m=2.0e4, k3_pa_per_m3=6.0e7, spread_m=0.008, c0_mmhg=-1.0, c1_mmhg_per_mm=1.0, c2_mmhg_per_mm2=0.0
+)
+HIDDEN = MattressParams(
+    k1_pa_per_m=3.0e4, k3_pa_per_m3=4.0e7, spread_m=0.012, c0_mmhg=-2.0, c1_mmhg_per_mm=1.3, c2_mmhg_per_mm2=0.004
+)
 
 
 def main() -> None:
@@ -47,12 +49,19 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
-    meas = synthetic_measurements(seed_objects(), HIDDEN, noise_mmhg=args.noise_mmhg,
-                                  compression_noise_m=args.compression_noise_m, seed=1)
+    meas = synthetic_measurements(
+        seed_objects(), HIDDEN, noise_mmhg=args.noise_mmhg, compression_noise_m=args.compression_noise_m, seed=1
+    )
     path = meas.save(args.out / "measurements.json")
     START.save(args.out / "start.json")
-    cfg = CalibrateConfig(measurements=path, out=args.out, start=args.out / "start.json", workers=args.workers,
-                          popsize=args.popsize, restart=True)
+    cfg = CalibrateConfig(
+        measurements=path,
+        out=args.out,
+        start=args.out / "start.json",
+        workers=args.workers,
+        popsize=args.popsize,
+        restart=True,
+    )
     t0 = time.perf_counter()
     paths = run_calibrate(cfg, progress=False)
     wall = time.perf_counter() - t0
@@ -60,12 +69,18 @@ def main() -> None:
     space = ParamSpace(cfg.free, START)
     loss = CalibrationLoss(meas, space)
     floor = loss(space.encode(HIDDEN))
-    print(f"measurements: {meas.n_objects} objects in {len(meas.scenes)} scenes, sensor noise {args.noise_mmhg} mmHg, "
-          f"compression noise {args.compression_noise_m * 1000:.1f} mm")
-    print(f"calibration: {record['iterations']} generations, {record['evaluations']} evaluations, "
-          f"{wall:.0f} s wall on {args.workers} workers (incl. the sim #1 check); stop: {record['stop']}")
-    print(f"loss: start {record['start_loss']:.4f}, result {record['best_loss']:.4f}, noise floor "
-          f"(hidden parameters) {floor:.4f}")
+    print(
+        f"measurements: {meas.n_objects} objects in {len(meas.scenes)} scenes, sensor noise {args.noise_mmhg} mmHg, "
+        f"compression noise {args.compression_noise_m * 1000:.1f} mm"
+    )
+    print(
+        f"calibration: {record['iterations']} generations, {record['evaluations']} evaluations, "
+        f"{wall:.0f} s wall on {args.workers} workers (incl. the sim #1 check); stop: {record['stop']}"
+    )
+    print(
+        f"loss: start {record['start_loss']:.4f}, result {record['best_loss']:.4f}, noise floor "
+        f"(hidden parameters) {floor:.4f}"
+    )
     print("| parameter | start | hidden | recovered | error |")
     print("| --- | --- | --- | --- | --- |")
     for name in cfg.free:
@@ -75,8 +90,10 @@ def main() -> None:
     print("| object | sim #2 (mm) | sim #1 (mm) | difference |")
     print("| --- | --- | --- | --- |")
     for c in record["coupling"]:
-        print(f"| {c['name']} | {1000 * c['sim2_sink_m']:.1f} | {1000 * c['sim1_sink_m']:.1f} | "
-              f"{100 * c['relative_difference']:+.1f}% |")
+        print(
+            f"| {c['name']} | {1000 * c['sim2_sink_m']:.1f} | {1000 * c['sim1_sink_m']:.1f} | "
+            f"{100 * c['relative_difference']:+.1f}% |"
+        )
     if not args.no_surface:
         surface(loss, space, record["params"], floor, args.out / "loss_surface.png")
 
@@ -96,8 +113,10 @@ def surface(loss: CalibrationLoss, space: ParamSpace, fitted: dict, floor: float
     for name in space.free:
         values = [loss.of_params(best.replace(**{name: getattr(best, name) * f})) for f in factors]
         axes[0].plot(factors, values, label=name)
-        print(f"  {name}: loss at 0.95x {values[6]:.4f}, at 1.0x {values[8]:.4f}, at 1.05x {values[10]:.4f} "
-              f"(noise floor {floor:.4f})")
+        print(
+            f"  {name}: loss at 0.95x {values[6]:.4f}, at 1.0x {values[8]:.4f}, at 1.05x {values[10]:.4f} "
+            f"(noise floor {floor:.4f})"
+        )
     axes[0].axhline(floor, color="k", ls=":", label="noise floor")
     axes[0].set_xlabel("parameter / calibrated value")
     axes[0].set_ylabel("loss")
@@ -105,8 +124,10 @@ def surface(loss: CalibrationLoss, space: ParamSpace, fitted: dict, floor: float
     axes[0].legend(fontsize=7)
     hidden_dirs = {
         "mat_stiffness (c1, c2 rescaled)": lambda f: best.replace(
-            mat_stiffness_pa_per_mm=best.mat_stiffness_pa_per_mm * f, c1_mmhg_per_mm=best.c1_mmhg_per_mm * f,
-            c2_mmhg_per_mm2=best.c2_mmhg_per_mm2 * f * f),
+            mat_stiffness_pa_per_mm=best.mat_stiffness_pa_per_mm * f,
+            c1_mmhg_per_mm=best.c1_mmhg_per_mm * f,
+            c2_mmhg_per_mm2=best.c2_mmhg_per_mm2 * f * f,
+        ),
         "thickness_m": lambda f: best.replace(thickness_m=best.thickness_m * f),
         "damping_s": lambda f: best.replace(damping_s=best.damping_s * f),
         "friction": lambda f: best.replace(friction=best.friction * f),

@@ -46,8 +46,16 @@ def run(model, params, engine, partition, mattress, batch):
     for b0 in range(0, params.batch_size, batch):
         chunk = params.index(torch.arange(b0, min(b0 + batch, params.batch_size)))
         t0 = time.perf_counter()
-        outs.append(simulate_poses(model, chunk, mattress, settle_config=settle_config_for(partition),
-                                   articulated=ArticulatedConfig(hold_roll_m=hold), **ENGINES[engine]))
+        outs.append(
+            simulate_poses(
+                model,
+                chunk,
+                mattress,
+                settle_config=settle_config_for(partition),
+                articulated=ArticulatedConfig(hold_roll_m=hold),
+                **ENGINES[engine],
+            )
+        )
         seconds += time.perf_counter() - t0
     joints = torch.cat([o.joints for o in outs]).numpy()
     images = torch.cat([o.pressure_mmhg for o in outs]).numpy()
@@ -69,8 +77,14 @@ def agreement(ja, ia, ra, jb, ib, rb):
         along.append(profile_similarity(a.sum(1), b.sum(1), 2)[0])
         across.append(profile_similarity(a.sum(0), b.sum(0), 2)[0])
         area.append((b > 0).sum() / max((a > 0).sum(), 1))
-    return dict(n=len(keep), joint_median_mm=float(np.median(d)), joint_p95_mm=float(np.percentile(d, 95)),
-                along=float(np.median(along)), across=float(np.median(across)), area=float(np.median(area)))
+    return dict(
+        n=len(keep),
+        joint_median_mm=float(np.median(d)),
+        joint_p95_mm=float(np.percentile(d, 95)),
+        along=float(np.median(along)),
+        across=float(np.median(across)),
+        area=float(np.median(area)),
+    )
 
 
 def main() -> None:
@@ -83,13 +97,21 @@ def main() -> None:
     torch.set_num_threads(1)
     model = load_body_model("anny", dtype=torch.float64)
     mattress = MattressParams.preset("sponge")
-    print("| partition | engine | rejected (reasons) | ms/sample | within engine: joint median / p95 mm, along, across, area "
-          "| mujoco vs articulated: joint median / p95 mm, along, across, area |")
+    print(
+        "| partition | engine | rejected (reasons) | ms/sample | within engine: joint median / p95 mm, along, across, area "
+        "| mujoco vs articulated: joint median / p95 mm, along, across, area |"
+    )
     print("| --- | --- | --- | --- | --- | --- |")
     for part in args.partitions.split(","):
         over_bed = PARTITIONS[part].over_bed_choices[0]  # the partition's first Table 4 row
-        params = BodyParams.cat([PoseSampler(model, SamplingConfig(partition=part, gender=g, seed=0, over_bed=over_bed))
-                                 .sample(range(args.n // 2)).params for g in ("female", "male")])
+        params = BodyParams.cat(
+            [
+                PoseSampler(model, SamplingConfig(partition=part, gender=g, seed=0, over_bed=over_bed))
+                .sample(range(args.n // 2))
+                .params
+                for g in ("female", "male")
+            ]
+        )
         shaken = perturbed(params, args.jitter_rad, seed=1)
         res = {}
         for engine in ENGINES:
@@ -100,12 +122,18 @@ def main() -> None:
             j, im, r, s = res[engine]
             within = agreement(j, im, r, *res[engine + "'"][:3])
             reasons = collections.Counter(x.split(":")[-1].strip()[:28] for x in r if x)
-            fmt = lambda a: ("-" if a is None else  # noqa: E731
-                             f"{a['joint_median_mm']:.0f} / {a['joint_p95_mm']:.0f}, {a['along']:.3f}, "
-                             f"{a['across']:.3f}, {a['area']:.2f} (n={a['n']})")
-            print(f"| {part} | {engine} | {sum(bool(x) for x in r)}/{len(r)} {dict(reasons) or ''} | "
-                  f"{s / len(r) * 1e3:.0f} | {fmt(within)} | {fmt(between) if engine == 'mujoco' else ''} |",
-                  flush=True)
+            fmt = lambda a: (
+                "-"
+                if a is None
+                # noqa: E731
+                else f"{a['joint_median_mm']:.0f} / {a['joint_p95_mm']:.0f}, {a['along']:.3f}, "
+                f"{a['across']:.3f}, {a['area']:.2f} (n={a['n']})"
+            )
+            print(
+                f"| {part} | {engine} | {sum(bool(x) for x in r)}/{len(r)} {dict(reasons) or ''} | "
+                f"{s / len(r) * 1e3:.0f} | {fmt(within)} | {fmt(between) if engine == 'mujoco' else ''} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

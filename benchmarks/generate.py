@@ -74,8 +74,15 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "ds"
-        cfg = GenerateConfig(out=out, preset=args.preset, n=args.n, workers=args.workers, engine=args.engine,
-                             shard_size=args.shard_size, batch=args.batch)
+        cfg = GenerateConfig(
+            out=out,
+            preset=args.preset,
+            n=args.n,
+            workers=args.workers,
+            engine=args.engine,
+            shard_size=args.shard_size,
+            batch=args.batch,
+        )
         shards = plan_shards(cfg)
         mem = PeakMemory()
         mem.start()
@@ -89,13 +96,19 @@ def main() -> None:
     parts = {}
     for s in shards:
         parts[s.group.partition] = parts.get(s.group.partition, 0) + s.count
-    print(f"generate --preset {args.preset} --n {args.n} --workers {args.workers} --engine {args.engine} "
-          f"--shard-size {args.shard_size} --batch {args.batch}")
+    print(
+        f"generate --preset {args.preset} --n {args.n} --workers {args.workers} --engine {args.engine} "
+        f"--shard-size {args.shard_size} --batch {args.batch}"
+    )
     print(f"  mix: {parts}; {len(shards)} shards")
     print(f"  wall {wall:.1f} s (incl. start-up), {summary['total'] / wall:.2f} samples/s end to end")
-    print(f"  simulated {manifest['candidates']} for {manifest['total']} kept "
-          f"({100 * manifest['rejected'] / manifest['candidates']:.1f}% rejected): {manifest['rejections']}")
-    print(f"  peak RSS of the process tree {mem.peak / 2**30:.2f} GiB; shards {size / summary['total'] / 1024:.1f} KiB/sample")
+    print(
+        f"  simulated {manifest['candidates']} for {manifest['total']} kept "
+        f"({100 * manifest['rejected'] / manifest['candidates']:.1f}% rejected): {manifest['rejections']}"
+    )
+    print(
+        f"  peak RSS of the process tree {mem.peak / 2**30:.2f} GiB; shards {size / summary['total'] / 1024:.1f} KiB/sample"
+    )
 
 
 if __name__ == "__main__":

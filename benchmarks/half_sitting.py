@@ -41,11 +41,15 @@ def main() -> None:
     share = (sim.pressure_mmhg[:, :hinge_row].sum((1, 2)) / sim.pressure_mmhg.sum((1, 2)).clamp_min(1e-9)).numpy()
     print("angle  slide (m)  head z before -> after (m)  load above the hinge  sim #1 steps  rejected")
     for i in range(args.n):
-        print(f"{poses.head_angle_deg[i]:5.0f}  {slide[i]:+9.3f}  {float(poses.joints[i, HEAD, 2]):13.2f} -> "
-              f"{float(sim.joints[i, HEAD, 2]):.2f}  {share[i]:20.2f}  {sim.settle_steps[i]:12d}  {sim.reason[i] or '-'}")
+        print(
+            f"{poses.head_angle_deg[i]:5.0f}  {slide[i]:+9.3f}  {float(poses.joints[i, HEAD, 2]):13.2f} -> "
+            f"{float(sim.joints[i, HEAD, 2]):.2f}  {share[i]:20.2f}  {sim.settle_steps[i]:12d}  {sim.reason[i] or '-'}"
+        )
     ok = np.array([not r for r in sim.reason])
-    print(f"slide |median| {np.median(np.abs(slide[ok])) * 100:.2f} cm, max {np.abs(slide[ok]).max() * 100:.1f} cm; "
-          f"load above the hinge {share[ok].min():.2f}-{share[ok].max():.2f}")
+    print(
+        f"slide |median| {np.median(np.abs(slide[ok])) * 100:.2f} cm, max {np.abs(slide[ok]).max() * 100:.1f} cm; "
+        f"load above the hinge {share[ok].min():.2f}-{share[ok].max():.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -48,8 +48,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "S103"
         folder.mkdir()
-        (folder / "participant_info_red.p").write_bytes(py2_pickle({"gender": "f", "height_in": 65.0,
-                                                                    "weight_lbs": 150.0}))
+        (folder / "participant_info_red.p").write_bytes(
+            py2_pickle({"gender": "f", "height_in": 65.0, "weight_lbs": 150.0})
+        )
         frames = [rng.uniform(0, 10, 1728) for _ in range(48)]
         clouds = [rng.uniform(0, 1, (20000, 3)) for _ in range(48)]
         (folder / "prescribed.p").write_bytes(py2_pickle({"images": frames, "pc": clouds}))

@@ -68,15 +68,20 @@ def settle_subjects(out: Path, params: MattressParams, mat: MatSpec) -> Path:
     recs = [r for r in load_index(PMAT) if r.bed_incline_deg == 0]
     subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
     model = load_body_model("anny", dtype=torch.float64)
-    shape, _, _ = shape_for_height_mass(model, torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64),
-                                        torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64),
-                                        female=0.0)
+    shape, _, _ = shape_for_height_mass(
+        model,
+        torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64),
+        torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64),
+        female=0.0,
+    )
     B = shape.shape[0]
     arrays = {}
     for posture, (_, roll) in POSTURES.items():
         p = BodyParams.zeros(B, shape).replace(
-            pose=home_pose(B), root_rotation=torch.tensor([[roll, 0.0, 0.0]] * B, dtype=torch.float64),
-            root_translation=torch.tensor([[0.80, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64))
+            pose=home_pose(B),
+            root_rotation=torch.tensor([[roll, 0.0, 0.0]] * B, dtype=torch.float64),
+            root_translation=torch.tensor([[0.80, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64),
+        )
         settled = settle(model, p, params, mat)
         ok = [i for i, r in enumerate(settled.reason) if not r]
         body = model(settled.params)
@@ -96,8 +101,9 @@ class RealismLoss:
     def __init__(self, settled: Path, target: dict, space: ParamSpace, mat: MatSpec, postures=tuple(POSTURES)):
         with np.load(settled, allow_pickle=False) as z:
             self.faces = torch.from_numpy(z["faces"])
-            self.bodies = {p: (torch.from_numpy(z[f"{p}_vertices"]), torch.from_numpy(z[f"{p}_mass"]))
-                           for p in POSTURES}
+            self.bodies = {
+                p: (torch.from_numpy(z[f"{p}_vertices"]), torch.from_numpy(z[f"{p}_mass"])) for p in POSTURES
+            }
         self.target, self.space, self.mat, self.postures = target, space, mat, tuple(postures)
 
     def stats(self, params: MattressParams) -> dict:
@@ -144,18 +150,34 @@ def _eval(x):
     return _LOSS(x)
 
 
-def fit(mattress: str, settled: Path, target: dict, start: MattressParams, settings: CMASettings, workers: int,
-        out: Path, postures) -> tuple[MattressParams, float, float, int]:
+def fit(
+    mattress: str,
+    settled: Path,
+    target: dict,
+    start: MattressParams,
+    settings: CMASettings,
+    workers: int,
+    out: Path,
+    postures,
+) -> tuple[MattressParams, float, float, int]:
     space = ParamSpace(FREE, start, RANGES)
     mat = MatSpec()
-    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init,
-                                initargs=(settled, target, space, mat, postures)) as pool:
+    with cf.ProcessPoolExecutor(
+        workers, mp_context=mp.get_context("spawn"), initializer=_init, initargs=(settled, target, space, mat, postures)
+    ) as pool:
+
         def evaluate(X):
             return list(pool.map(_eval, X))
 
         start_loss = evaluate([space.encode(start)])[0]
-        res = minimise(evaluate, space.encode(start), settings, out / f"cma_state_{mattress}.npz", resume=True,
-                       signature={"mattress": mattress, "free": list(FREE), "postures": list(postures)})
+        res = minimise(
+            evaluate,
+            space.encode(start),
+            settings,
+            out / f"cma_state_{mattress}.npz",
+            resume=True,
+            signature={"mattress": mattress, "free": list(FREE), "postures": list(postures)},
+        )
     return space.params(res.best_x), start_loss, res.best_f, res.evaluations
 
 
@@ -167,8 +189,13 @@ def main() -> None:
     ap.add_argument("--max-iter", type=int, default=40)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--threshold", type=float, default=20.0)
-    ap.add_argument("--postures", nargs="+", default=list(POSTURES), choices=list(POSTURES),
-                    help="postures the loss compares (all are reported)")
+    ap.add_argument(
+        "--postures",
+        nargs="+",
+        default=list(POSTURES),
+        choices=list(POSTURES),
+        help="postures the loss compares (all are reported)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -185,28 +212,41 @@ def main() -> None:
     for mattress in ("air", "sponge"):
         target = {p: targets(real[(p, mattress)], PMAT_TAXEL_AREA_M2) for p in POSTURES}
         t1 = time.perf_counter()
-        params, before, after, evals = fit(mattress, settled, target, start, settings, args.workers, args.out,
-                                            args.postures)
+        params, before, after, evals = fit(
+            mattress, settled, target, start, settings, args.workers, args.out, args.postures
+        )
         params.save(args.out / f"params_{mattress}.json")
         loss = RealismLoss(settled, target, ParamSpace(FREE, start, RANGES), mat, args.postures)
-        report[mattress] = {"loss_before": before, "loss_after": after, "evaluations": evals,
-                            "seconds": round(time.perf_counter() - t1, 1), "params": params.to_dict(),
-                            "before": _table(loss.stats(start)), "after": _table(loss.stats(params)),
-                            "real": _table(target)}
-        print(f"{mattress}: loss {before:.4f} -> {after:.4f} in {evals} evaluations, "
-              f"{time.perf_counter() - t1:.0f} s; " + ", ".join(f"{k} {params.to_dict()[k]:.5g}" for k in FREE))
+        report[mattress] = {
+            "loss_before": before,
+            "loss_after": after,
+            "evaluations": evals,
+            "seconds": round(time.perf_counter() - t1, 1),
+            "params": params.to_dict(),
+            "before": _table(loss.stats(start)),
+            "after": _table(loss.stats(params)),
+            "real": _table(target),
+        }
+        print(
+            f"{mattress}: loss {before:.4f} -> {after:.4f} in {evals} evaluations, "
+            f"{time.perf_counter() - t1:.0f} s; " + ", ".join(f"{k} {params.to_dict()[k]:.5g}" for k in FREE)
+        )
         for posture in POSTURES:
             r, b, a = (report[mattress][w][posture] for w in ("real", "before", "after"))
-            print(f"  {posture}: area {r['area_m2']:.3f} real, {b['area_m2']:.3f} -> {a['area_m2']:.3f}; mean "
-                  f"{r['mean_mmhg']:.1f}, {b['mean_mmhg']:.1f} -> {a['mean_mmhg']:.1f}; peak {r['peak_mmhg']:.0f}, "
-                  f"{b['peak_mmhg']:.0f} -> {a['peak_mmhg']:.0f}")
+            print(
+                f"  {posture}: area {r['area_m2']:.3f} real, {b['area_m2']:.3f} -> {a['area_m2']:.3f}; mean "
+                f"{r['mean_mmhg']:.1f}, {b['mean_mmhg']:.1f} -> {a['mean_mmhg']:.1f}; peak {r['peak_mmhg']:.0f}, "
+                f"{b['peak_mmhg']:.0f} -> {a['peak_mmhg']:.0f}"
+            )
     (args.out / "realism_fit.json").write_text(json.dumps(report, indent=2) + "\n")
     print(f"total {time.perf_counter() - t0:.0f} s; report -> {args.out / 'realism_fit.json'}")
 
 
 def _table(stats: dict) -> dict:
-    return {p: {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in s.items()} if s else None
-            for p, s in stats.items()}
+    return {
+        p: {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in s.items()} if s else None
+        for p, s in stats.items()
+    }
 
 
 if __name__ == "__main__":

@@ -23,8 +23,10 @@ def bench_sampling(n: int, threads: int, partitions: list[str] | None = None) ->
     torch.set_num_threads(threads)
     model = load_body_model("anny", dtype=torch.float32)
     print(f"accepted initial poses per second ({threads} thread(s), {n} samples, batch {min(n, 256)}, Anny)")
-    print(f"{'partition':<18} {'over_bed':<8} {'poses/s':>8} {'draws rej.':>10} {'collisions':>10} "
-          f"{'limb fail':>9} {'new shape':>9} {'new cell':>8} {'sit-up rej.':>11}")
+    print(
+        f"{'partition':<18} {'over_bed':<8} {'poses/s':>8} {'draws rej.':>10} {'collisions':>10} "
+        f"{'limb fail':>9} {'new shape':>9} {'new cell':>8} {'sit-up rej.':>11}"
+    )
     for name, part in PARTITIONS.items():
         if partitions and name not in partitions:
             continue
@@ -39,9 +41,11 @@ def bench_sampling(n: int, threads: int, partitions: list[str] | None = None) ->
                 continue
             dt = time.perf_counter() - t
             rej = {k: np.concatenate([o.rejections[k] for o in out]).mean() for k in out[0].rejections}
-            print(f"{name:<18} {str(over_bed):<8} {n / dt:8.0f} {rej['limb_draws_rejected']:10.0f} "
-                  f"{rej['collisions']:10.1f} {rej['limb_failures']:9.2f} {rej['shape_resamples']:9.2f} "
-                  f"{rej['cell_redraws']:8.3f} {rej['sit_up_rejections']:11.2f}")
+            print(
+                f"{name:<18} {str(over_bed):<8} {n / dt:8.0f} {rej['limb_draws_rejected']:10.0f} "
+                f"{rej['collisions']:10.1f} {rej['limb_failures']:9.2f} {rej['shape_resamples']:9.2f} "
+                f"{rej['cell_redraws']:8.3f} {rej['sit_up_rejections']:11.2f}"
+            )
 
 
 def bench_shapes(n: int) -> None:
@@ -83,8 +87,10 @@ def bench_capsules() -> None:
     print(f"capsule_volumes voxel 2 mm: {dt:.2f} s/body; max per-capsule |qmc - voxel| / voxel = {err * 100:.2f}%")
     t = time.perf_counter()
     build_capsule_body(model, shape)
-    print(f"build_capsule_body (fit, volumes, masses, inertia, stiffness), B=64: "
-          f"{(time.perf_counter() - t) / 64 * 1e3:.2f} ms/body")
+    print(
+        f"build_capsule_body (fit, volumes, masses, inertia, stiffness), B=64: "
+        f"{(time.perf_counter() - t) / 64 * 1e3:.2f} ms/body"
+    )
 
 
 if __name__ == "__main__":

@@ -49,8 +49,12 @@ def main() -> None:
     cpu_ms = []
     for name in names:
         over = name in ("hands_behind_head", "prone_hands_up")
-        parts = [PoseSampler(model, SamplingConfig(partition=name, gender=g, over_bed=over, seed=0))
-                 .sample(range(args.n // 2)) for g in ("female", "male")]
+        parts = [
+            PoseSampler(model, SamplingConfig(partition=name, gender=g, over_bed=over, seed=0)).sample(
+                range(args.n // 2)
+            )
+            for g in ("female", "male")
+        ]
         poses = InitialPoses.cat(parts)
         initial = poses.params
         n = initial.batch_size
@@ -88,12 +92,18 @@ def main() -> None:
             all_ms[k].append(v * 1e3 / n)
         rej = 1 - reasons["ok"] / n
         rows.append((name, n, stage, float(np.median(steps)), rej, reasons))
-        print(f"{name:18s} n={n:3d}  " + "  ".join(f"{k} {v * 1e3 / n:6.1f}" for k, v in stage.items())
-              + f"  ms/sample; sim #1 CPU {cpu_ms[-1]:.1f} ms, median steps {np.median(steps):.0f}; rejected {rej:.0%} "
-              + str({k: v for k, v in reasons.items() if k != 'ok'}), flush=True)
+        print(
+            f"{name:18s} n={n:3d}  "
+            + "  ".join(f"{k} {v * 1e3 / n:6.1f}" for k, v in stage.items())
+            + f"  ms/sample; sim #1 CPU {cpu_ms[-1]:.1f} ms, median steps {np.median(steps):.0f}; rejected {rej:.0%} "
+            + str({k: v for k, v in reasons.items() if k != "ok"}),
+            flush=True,
+        )
     # sim #2 alone at several batch sizes, on settled supine poses.
     print("\nsim #2 alone (mesh at rest given), one core:")
-    supine = InitialPoses.cat([PoseSampler(model, SamplingConfig(partition="supine", gender="male", seed=1)).sample(range(32))]).params
+    supine = InitialPoses.cat(
+        [PoseSampler(model, SamplingConfig(partition="supine", gender="male", seed=1)).sample(range(32))]
+    ).params
     rest = settle(model, supine, params, mat, batch=args.batch)
     rest_params = rest.params
     for B in (1, 8, 32):
@@ -111,11 +121,16 @@ def main() -> None:
     accepted = totals["ok"] / sum(totals.values())
     per_day = 86400 / (per_sample / 1e3) * accepted
     print(f"\nsim #1 CPU time, mean over partitions: {np.mean(cpu_ms):.1f} ms per initial pose")
-    print("mean over partitions, ms per initial pose: " + ", ".join(f"{k} {np.mean(v):.1f}" for k, v in all_ms.items())
-          + f"; total {per_sample:.0f}")
+    print(
+        "mean over partitions, ms per initial pose: "
+        + ", ".join(f"{k} {np.mean(v):.1f}" for k, v in all_ms.items())
+        + f"; total {per_sample:.0f}"
+    )
     print(f"rejected overall: {1 - accepted:.1%} {dict((k, v) for k, v in totals.items() if k != 'ok')}")
-    print(f"accepted samples per day: {per_day:,.0f} on one core, {2 * per_day:,.0f} on 2 cores "
-          f"(seed: {SEED_PER_DAY:,} per day on 32 cores + GPU; ratio {2 * per_day / SEED_PER_DAY:.1f}x on 2 cores)")
+    print(
+        f"accepted samples per day: {per_day:,.0f} on one core, {2 * per_day:,.0f} on 2 cores "
+        f"(seed: {SEED_PER_DAY:,} per day on 32 cores + GPU; ratio {2 * per_day / SEED_PER_DAY:.1f}x on 2 cores)"
+    )
 
 
 if __name__ == "__main__":

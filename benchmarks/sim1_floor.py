@@ -42,16 +42,27 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=16, help="samples per partition")
     ap.add_argument("--partitions", default="", help="comma-separated subset (default: all flat-bed ones)")
     args = ap.parse_args()
-    names = ([p for p in sorted(PARTITIONS) if not PARTITIONS[p].raised] if not args.partitions
-             else args.partitions.split(","))
+    names = (
+        [p for p in sorted(PARTITIONS) if not PARTITIONS[p].raised]
+        if not args.partitions
+        else args.partitions.split(",")
+    )
     torch.set_num_threads(1)
     model = load_body_model("anny", dtype=torch.float64)
-    print("partition          | sim #1 CPU | MuJoCo step | MuJoCo build | forces | rest | median steps | us/body-step (MuJoCo)")
+    print(
+        "partition          | sim #1 CPU | MuJoCo step | MuJoCo build | forces | rest | median steps | us/body-step (MuJoCo)"
+    )
     floors = []
     for name in names:
         over = name in ("hands_behind_head", "prone_hands_up")
-        params = InitialPoses.cat([PoseSampler(model, SamplingConfig(partition=name, gender=g, over_bed=over, seed=0))
-                         .sample(range(args.n // 2)) for g in ("female", "male")]).params
+        params = InitialPoses.cat(
+            [
+                PoseSampler(model, SamplingConfig(partition=name, gender=g, over_bed=over, seed=0)).sample(
+                    range(args.n // 2)
+                )
+                for g in ("female", "male")
+            ]
+        ).params
         n = params.batch_size
         body = build_capsule_body(model, params.shape, volume_points=SIM_VOLUME_POINTS)
         prof = cProfile.Profile(time.process_time)
@@ -66,11 +77,16 @@ def main() -> None:
         forces = sum(v[3] for (_, _, f), v in st.stats.items() if f in ("forces",)) * 1e3 / n  # cumulative
         body_steps = int(res.steps.sum())
         floors.append(step)
-        print(f"{name:18s} | {cpu:7.1f} ms | {step:8.1f} ms | {build:9.1f} ms | {forces:5.1f} ms | "
-              f"{cpu - step - build - forces:5.1f} ms | {np.median(res.steps):12.0f} | "
-              f"{step * n * 1e3 / max(body_steps, 1):.1f}", flush=True)
-    print(f"\nMuJoCo stepping alone, mean over partitions: {np.mean(floors):.1f} ms per sample "
-          "(the floor for any loop around MuJoCo at these steps; target 20 ms for all of sim #1)")
+        print(
+            f"{name:18s} | {cpu:7.1f} ms | {step:8.1f} ms | {build:9.1f} ms | {forces:5.1f} ms | "
+            f"{cpu - step - build - forces:5.1f} ms | {np.median(res.steps):12.0f} | "
+            f"{step * n * 1e3 / max(body_steps, 1):.1f}",
+            flush=True,
+        )
+    print(
+        f"\nMuJoCo stepping alone, mean over partitions: {np.mean(floors):.1f} ms per sample "
+        "(the floor for any loop around MuJoCo at these steps; target 20 ms for all of sim #1)"
+    )
 
 
 if __name__ == "__main__":

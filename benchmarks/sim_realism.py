@@ -44,8 +44,11 @@ def real_stats(root: Path, threshold: float):
     out = {}
     for posture, (group, _) in POSTURES.items():
         for mattress in ("air", "sponge"):
-            frames = [normalise(read_frame(r.path), r.weight_kg, threshold) for r in recs
-                      if r.group == group and r.mattress == mattress]
+            frames = [
+                normalise(read_frame(r.path), r.weight_kg, threshold)
+                for r in recs
+                if r.group == group and r.mattress == mattress
+            ]
             out[(posture, mattress)] = frames
     subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
     return out, subjects
@@ -62,12 +65,16 @@ def simulate(subjects, params: MattressParams, mat: MatSpec):
         p = BodyParams.zeros(B, shape).replace(
             pose=home_pose(B),
             root_rotation=torch.tensor([[roll, 0.0, 0.0]] * B, dtype=torch.float64),
-            root_translation=torch.tensor([[0.80, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64))
+            root_translation=torch.tensor([[0.80, mat.sensing_width_m / 2, 0.3]] * B, dtype=torch.float64),
+        )
         t0 = time.perf_counter()
         sim = simulate_poses(model, p, params, mat)
         out[posture] = sim
-        print(f"  simulated {posture}: {B} bodies in {time.perf_counter() - t0:.1f} s; rejected: "
-              f"{sum(bool(r) for r in sim.reason)} {[r for r in sim.reason if r]}", file=sys.stderr)
+        print(
+            f"  simulated {posture}: {B} bodies in {time.perf_counter() - t0:.1f} s; rejected: "
+            f"{sum(bool(r) for r in sim.reason)} {[r for r in sim.reason if r]}",
+            file=sys.stderr,
+        )
     return out, h, m
 
 
@@ -76,8 +83,11 @@ def raised_bed(root: Path, threshold: float, params: MattressParams, mat: MatSpe
     recs = [r for r in load_index(root) if r.group == "F"]
     subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
     model = load_body_model("anny", dtype=torch.float64)
-    shape, _, _ = shape_for_height_mass(model, torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64),
-                                        torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64))
+    shape, _, _ = shape_for_height_mass(
+        model,
+        torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64),
+        torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64),
+    )
     print("\nhead of the bed raised (PmatData group F vs simulated half-sitting):")
     print("| angle | source | contact area (m^2) | mean (mmHg) | peak (mmHg) | load on head section |")
     print("| --- | --- | --- | --- | --- | --- |")
@@ -85,19 +95,26 @@ def raised_bed(root: Path, threshold: float, params: MattressParams, mat: MatSpe
         bed = BedShape(angle)
         hinge_row = mat.rows - bed.hinge_row_from_foot
         for mattress in ("air", "sponge"):
-            frames = [normalise(read_frame(r.path), r.weight_kg, threshold) for r in recs
-                      if r.bed_incline_deg == angle and r.mattress == mattress]
+            frames = [
+                normalise(read_frame(r.path), r.weight_kg, threshold)
+                for r in recs
+                if r.bed_incline_deg == angle and r.mattress == mattress
+            ]
             st = summary(frames, PMAT_TAXEL_AREA_M2)
             head = float(np.median([f[:hinge_row].sum() / f.sum() for f in frames]))
-            print(f"| {angle:.0f} | PmatData {mattress} | {st['area_m2']:.3f} | {st['mean_mmhg']:.1f} | {st['peak_mmhg']:.0f} | {head:.0%} |")
+            print(
+                f"| {angle:.0f} | PmatData {mattress} | {st['area_m2']:.3f} | {st['mean_mmhg']:.1f} | {st['peak_mmhg']:.0f} | {head:.0%} |"
+            )
         sim = simulate_poses(model, half_sitting_params(model, shape, bed, mat), params, mat, bed=bed)
         ok = [i for i, r in enumerate(sim.reason) if not r]
         frames = [sim.pressure_mmhg[i].numpy() for i in ok]
         if frames:
             st = summary(frames, mat.taxel_area_m2)
             head = float(np.median([f[:hinge_row].sum() / f.sum() for f in frames]))
-            print(f"| {angle:.0f} | simulated ({len(ok)}/{len(sim.reason)}) | {st['area_m2']:.3f} | {st['mean_mmhg']:.1f} "
-                  f"| {st['peak_mmhg']:.0f} | {head:.0%} |")
+            print(
+                f"| {angle:.0f} | simulated ({len(ok)}/{len(sim.reason)}) | {st['area_m2']:.3f} | {st['mean_mmhg']:.1f} "
+                f"| {st['peak_mmhg']:.0f} | {head:.0%} |"
+            )
         else:
             print(f"| {angle:.0f} | simulated (0/{len(sim.reason)}) | - | - | - | - |  {sorted(set(sim.reason))}")
 
@@ -119,23 +136,29 @@ def main() -> None:
     mat = MatSpec()
     real, subjects = real_stats(args.pmatdata, args.threshold)
     sims, h, m = simulate(subjects, params, mat)
-    print(f"subjects: {len(subjects)} (male Anny fits: height {h.min():.2f}-{h.max():.2f} m, "
-          f"mass {m.min():.0f}-{m.max():.0f} kg); real threshold {args.threshold} raw units")
+    print(
+        f"subjects: {len(subjects)} (male Anny fits: height {h.min():.2f}-{h.max():.2f} m, "
+        f"mass {m.min():.0f}-{m.max():.0f} kg); real threshold {args.threshold} raw units"
+    )
     print("| posture | source | contact area (m^2) | mean (mmHg) | peak (mmHg) |")
     print("| --- | --- | --- | --- | --- |")
     rows = {}
     for posture in POSTURES:
         for mattress in ("air", "sponge"):
             s = summary(real[(posture, mattress)], PMAT_TAXEL_AREA_M2)
-            print(f"| {posture} | PmatData {mattress} | {s['area_m2']:.3f} | {s['mean_mmhg']:.1f} | {s['peak_mmhg']:.0f} |")
+            print(
+                f"| {posture} | PmatData {mattress} | {s['area_m2']:.3f} | {s['mean_mmhg']:.1f} | {s['peak_mmhg']:.0f} |"
+            )
         sim = sims[posture]
         ok = [i for i, r in enumerate(sim.reason) if not r]
         frames = [sim.pressure_mmhg[i].numpy() for i in ok]
         s = summary(frames, mat.taxel_area_m2) if frames else dict.fromkeys(PLAUSIBLE, float("nan"))
         rows[posture] = s
         flags = " ".join("ok" if PLAUSIBLE[k][0] <= s[k] <= PLAUSIBLE[k][1] else "OUT" for k in PLAUSIBLE)
-        print(f"| {posture} | simulated ({len(ok)}/{len(sim.reason)}) | {s['area_m2']:.3f} | {s['mean_mmhg']:.1f} "
-              f"| {s['peak_mmhg']:.0f} |  supine targets: {flags if posture == 'supine' else '-'}")
+        print(
+            f"| {posture} | simulated ({len(ok)}/{len(sim.reason)}) | {s['area_m2']:.3f} | {s['mean_mmhg']:.1f} "
+            f"| {s['peak_mmhg']:.0f} |  supine targets: {flags if posture == 'supine' else '-'}"
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     _figure(args.out, real, sims, mat)
     print(f"figures in {args.out}")
@@ -158,7 +181,7 @@ def _figure(out: Path, real, sims, mat: MatSpec) -> None:
             ax.imshow(frames[0], vmin=0, vmax=100, cmap="viridis", aspect="auto")
             ax.set_title(title)
             ax.set_xticks([])
-        for ax in axes[len(panels):4]:
+        for ax in axes[len(panels) : 4]:
             ax.axis("off")
         ax = axes[4]
         for title, frames in panels[:2]:

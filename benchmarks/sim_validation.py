@@ -36,19 +36,33 @@ def cases(model):
     out.append(("capsule 20 cm, 2.3 kg", v, f, 2.3))
     shape = model.default_shape(2)
     shape[1, 0] = 1.0
-    p = BodyParams.zeros(2, shape).replace(pose=home_pose(2, dtype=D),
-                                           root_translation=torch.tensor([[0.85, 0.37, 0.2]] * 2, dtype=D))
+    p = BodyParams.zeros(2, shape).replace(
+        pose=home_pose(2, dtype=D), root_translation=torch.tensor([[0.85, 0.37, 0.2]] * 2, dtype=D)
+    )
     body = model(p)
     mass = model.measure(shape).mass_kg
     out.append(("supine male, home pose", body.vertices[0], body.faces, float(mass[0])))
     out.append(("supine female, home pose", body.vertices[1], body.faces, float(mass[1])))
     for partition in ("general", "prone_hands_up"):
-        init = PoseSampler(model, SamplingConfig(partition=partition, gender="male", seed=0,
-                                                 over_bed=partition == "prone_hands_up")).sample([3]).params
+        init = (
+            PoseSampler(
+                model,
+                SamplingConfig(partition=partition, gender="male", seed=0, over_bed=partition == "prone_hands_up"),
+            )
+            .sample([3])
+            .params
+        )
         rest = settle(model, init)
         if rest.ok[0]:
             b = model(rest.params)
-            out.append((f"{partition} #3 after sim #1", b.vertices[0], b.faces, float(model.measure(rest.params.shape).mass_kg[0])))
+            out.append(
+                (
+                    f"{partition} #3 after sim #1",
+                    b.vertices[0],
+                    b.faces,
+                    float(model.measure(rest.params.shape).mass_kg[0]),
+                )
+            )
     return out
 
 
@@ -68,10 +82,14 @@ def main() -> None:
         force = float(quasi.pressure_pa.sum()) * mat.taxel_area_m2
         diff = abs(ref.force_n - force) / force
         worst_r, worst_f = min(worst_r, r), max(worst_f, diff)
-        print(f"| {name} | {r:.4f} | {force:.1f} | {ref.force_n:.1f} | {diff:.2%} | {ref.steps}{'' if ref.at_rest else ' (not at rest)'} | {secs:.1f} |")
+        print(
+            f"| {name} | {r:.4f} | {force:.1f} | {ref.force_n:.1f} | {diff:.2%} | {ref.steps}{'' if ref.at_rest else ' (not at rest)'} | {secs:.1f} |"
+        )
     ok = worst_r >= 0.95 and worst_f <= 0.02
-    print(f"worst correlation {worst_r:.4f} (target >= 0.95), worst force difference {worst_f:.2%} (target <= 2%): "
-          + ("PASS" if ok else "FAIL"))
+    print(
+        f"worst correlation {worst_r:.4f} (target >= 0.95), worst force difference {worst_f:.2%} (target <= 2%): "
+        + ("PASS" if ok else "FAIL")
+    )
     if not math.isfinite(worst_r):
         raise SystemExit(1)
 

@@ -55,13 +55,18 @@ def main() -> None:
             open_ms = (time.perf_counter() - t) * 1e3
             threading.Thread(target=server.serve_forever, daemon=True).start()
             u = server.url
-            rows = [("open the folder", open_ms, 0), ("list", *timed(u + "api/list?limit=500")),
-                    ("faces (body model already in memory)", *timed(u + "api/faces")),
-                    ("sample 1 (first: read + pose)", *timed(u + "api/sample/1")),
-                    ("mesh 1 (cached)", *timed(u + "api/mesh/1")),
-                    ("sample 2 + mesh 2 (first)",
-                     *[a + b for a, b in zip(timed(u + "api/sample/2"), timed(u + "api/mesh/2"))]),
-                    ("sample 1 again (cached)", *timed(u + "api/sample/1"))]
+            rows = [
+                ("open the folder", open_ms, 0),
+                ("list", *timed(u + "api/list?limit=500")),
+                ("faces (body model already in memory)", *timed(u + "api/faces")),
+                ("sample 1 (first: read + pose)", *timed(u + "api/sample/1")),
+                ("mesh 1 (cached)", *timed(u + "api/mesh/1")),
+                (
+                    "sample 2 + mesh 2 (first)",
+                    *[a + b for a, b in zip(timed(u + "api/sample/2"), timed(u + "api/mesh/2"))],
+                ),
+                ("sample 1 again (cached)", *timed(u + "api/sample/1")),
+            ]
             print(f"{kind} ({path.name}, {len(server.browser)} samples)")
             for name, ms, size in rows:
                 print(f"  {name:40s} {ms:8.1f} ms  {size / 1e3:8.1f} kB")

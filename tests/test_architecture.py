@@ -14,8 +14,18 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_imports_follow_the_layers():
     pytest.importorskip("importlinter")
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    r = subprocess.run([sys.executable, "-c", "import sys; from importlinter.cli import lint_imports_command; "
-                        "sys.exit(lint_imports_command())", "--no-cache"],
-                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())",
+            "--no-cache",
+        ],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     assert "1 kept, 0 broken" in r.stdout

@@ -12,8 +12,8 @@ from pressurepose.body.joints import joint_index
 from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import FAIL_TILT, ArticulatedConfig, rest_articulated
-from pressurepose.sim.linearised import Linearised
 from pressurepose.sim.articulation import Dofs, part_mass_and_com
+from pressurepose.sim.linearised import Linearised
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.soft_contact import series_law
 
@@ -26,7 +26,8 @@ def _bodies(model, B=2, roll=0.0, pose=None, scale_weight=None):
     return BodyParams.zeros(B, shape).replace(
         pose=home_pose(B) if pose is None else pose,
         root_rotation=torch.tensor([[roll, 0.0, 0.0]] * B, dtype=torch.float64),
-        root_translation=torch.tensor([[0.85, mat.sensing_width_m / 2, 0.25]] * B, dtype=torch.float64))
+        root_translation=torch.tensor([[0.85, mat.sensing_width_m / 2, 0.25]] * B, dtype=torch.float64),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -164,8 +165,12 @@ def test_hessian_from_moments_matches_autograd(anny64):
     k = joint_stiffness(mass.sum(1), dofs)
     # Hinge limits active on every DoF: a range of +-0.005 rad about 0.
     n = dofs.n
-    limits = (torch.zeros(1, n, dtype=torch.float64), torch.full((n,), -0.005, dtype=torch.float64),
-              torch.full((n,), 0.005, dtype=torch.float64), 100 * k)
+    limits = (
+        torch.zeros(1, n, dtype=torch.float64),
+        torch.full((n,), -0.005, dtype=torch.float64),
+        torch.full((n,), 0.005, dtype=torch.float64),
+        100 * k,
+    )
     lin = Linearised(h, part, xy, a, mass, com, e + 0.05, k, dofs, mat.pitch_row_m * mat.pitch_col_m / 4, 3e5, limits)
     lowest = float(lin.h[lin.mask.bool()].min())
     q = torch.zeros(1, dofs.n, dtype=torch.float64)
@@ -252,10 +257,17 @@ def test_tissue_depth_by_hand():
     joints[0, joint_index("spine1")] = torch.tensor([-0.1, 0.0, 0.0])
     joints[0, joint_index("head")] = torch.tensor([-0.6, 0.0, 0.0])
     head = joint_index("head")
-    points = torch.tensor([[[0.0, 0.05, -0.04],    # pelvis: 4 cm below the left hip segment
-                            [0.05, 0.0, 0.0],      # pelvis: 5 cm beyond the joint, past every segment's start
-                            [-0.6, 0.0, 0.03],     # head: points at +-3 cm around x = -0.6
-                            [-0.6, 0.0, -0.03]]], dtype=torch.float64)
+    points = torch.tensor(
+        [
+            [
+                [0.0, 0.05, -0.04],  # pelvis: 4 cm below the left hip segment
+                [0.05, 0.0, 0.0],  # pelvis: 5 cm beyond the joint, past every segment's start
+                [-0.6, 0.0, 0.03],  # head: points at +-3 cm around x = -0.6
+                [-0.6, 0.0, -0.03],
+            ]
+        ],
+        dtype=torch.float64,
+    )
     labels = torch.tensor([0, 0, head, head])
     d = tissue_depth(points, labels, joints)
     np.testing.assert_allclose(d[0].numpy(), [0.04, 0.05, 0.03, 0.03], atol=1e-12)

@@ -9,8 +9,10 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src" / "pressurepose"
 
 # A call that writes a file.
-WRITE = re.compile(r"\.write_text\(|\.write_bytes\(|\.savefig\(|\bnp\.save[z_]*\w*\(|\bsave_file\(|"
-                   r"\bopen\([^)]*['\"][wax]b?\+?['\"]|\.to_csv\(|\bpq\.write_table\(")
+WRITE = re.compile(
+    r"\.write_text\(|\.write_bytes\(|\.savefig\(|\bnp\.save[z_]*\w*\(|\bsave_file\(|"
+    r"\bopen\([^)]*['\"][wax]b?\+?['\"]|\.to_csv\(|\bpq\.write_table\("
+)
 # Allowed: inside an atomic_write on the same line, or writing to `tmp` (the temporary name
 # atomic_write hands its writer), or to an in-memory buffer.
 ALLOWED = re.compile(r"atomic_write\(|\((?:Path\()?tmp\b|\(fh\b|[(, ]buf\b|open\(tmp\b")
@@ -44,15 +46,20 @@ def test_no_output_bypasses_the_atomic_helpers():
 def test_the_grep_catches_a_bare_write(tmp_path, monkeypatch):
     import test_atomic_outputs as me
 
-    (tmp_path / "bad.py").write_text('def f(p, fig):\n    p.write_text("x")\n    fig.savefig(p)\n'
-                                     '    with open(p, "w") as fh:\n        pass\n')
+    (tmp_path / "bad.py").write_text(
+        'def f(p, fig):\n    p.write_text("x")\n    fig.savefig(p)\n    with open(p, "w") as fh:\n        pass\n'
+    )
     monkeypatch.setattr(me, "SRC", tmp_path)
     assert len(me.bare_writes()) == 3
 
 
 def test_write_mesh_is_only_called_inside_atomic_write():
-    calls = [line for path in SRC.rglob("*.py") for line in path.read_text().splitlines()
-             if "write_mesh(" in line and "def write_mesh" not in line]
+    calls = [
+        line
+        for path in SRC.rglob("*.py")
+        for line in path.read_text().splitlines()
+        if "write_mesh(" in line and "def write_mesh" not in line
+    ]
     assert calls and all("atomic_write(" in line for line in calls)
 
 

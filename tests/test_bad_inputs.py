@@ -44,6 +44,7 @@ def _drop(key):
     def change(m):
         del m[key]
         return m
+
     return change
 
 
@@ -54,6 +55,7 @@ def _shard(key, value):
         else:
             m["shards"][0][key] = value
         return m
+
     return change
 
 
@@ -77,9 +79,11 @@ MANIFEST_CASES = {
 def test_malformed_manifest_is_one_line_for_info_train_evaluate(case, dataset, tmp_path, capsys):
     change, message = MANIFEST_CASES[case]
     bad = edit_manifest(dataset, tmp_path / "bad", change)
-    for argv in (["info", str(bad), "--sheet", "0"],
-                 ["train", "--data", str(bad), "--out", str(tmp_path / "run"), "--preset", "smoke"],
-                 ["evaluate", "--data", str(bad), "--out", str(tmp_path / "ev")]):
+    for argv in (
+        ["info", str(bad), "--sheet", "0"],
+        ["train", "--data", str(bad), "--out", str(tmp_path / "run"), "--preset", "smoke"],
+        ["evaluate", "--data", str(bad), "--out", str(tmp_path / "ev")],
+    ):
         capsys.readouterr()
         assert main(argv) == 2, argv
         one_line_error(capsys, "manifest.json", message)
@@ -140,6 +144,7 @@ def test_user_error_is_one_line_but_internal_value_error_keeps_its_traceback(mon
 
 # --- network files and run folders ---------------------------------------------------------
 
+
 def good_image(path):
     image = np.zeros((64, 27), np.float32)
     image[10:50, 8:19] = 30.0
@@ -182,12 +187,18 @@ MODEL_CASES = {
     "missing_tensor": (None, "missing tensors"),
     "config_not_json": (lambda k, t: {"metadata": {"config": "{not json"}}, "'config' is not readable JSON"),
     "config_no_net": (lambda k, t: {"metadata": {"config": "{}"}}, "'config.net' is missing"),
-    "width_text": (lambda k, t: {"metadata": {"config": json.dumps({"net": {"width": "2"}})}},
-                   "'config.net.width' must be an integer"),
-    "width_huge": (lambda k, t: {"metadata": {"config": json.dumps({"net": {"width": 10**9}})}},
-                   "'config.net.width' must lie in"),
-    "arch_unknown": (lambda k, t: {"metadata": {"config": json.dumps({"net": {"arch": "resnet"}})}},
-                     "'config.net.arch' must be one of"),
+    "width_text": (
+        lambda k, t: {"metadata": {"config": json.dumps({"net": {"width": "2"}})}},
+        "'config.net.width' must be an integer",
+    ),
+    "width_huge": (
+        lambda k, t: {"metadata": {"config": json.dumps({"net": {"width": 10**9}})}},
+        "'config.net.width' must lie in",
+    ),
+    "arch_unknown": (
+        lambda k, t: {"metadata": {"config": json.dumps({"net": {"arch": "resnet"}})}},
+        "'config.net.arch' must be one of",
+    ),
     "not_a_network": (lambda k, t: {"metadata": {"format": "other"}}, "is not a pressurepose network file"),
 }
 
@@ -213,8 +224,10 @@ def test_malformed_model_file_is_one_line_in_predict_and_evaluate(case, default_
     else:
         run = rewrite_model(default_run, tmp_path / "run", **make(key, weights[key]))
     image = good_image(tmp_path / "one.npy")
-    for argv in (["predict", "--model", str(run), "--out", str(tmp_path / "p"), str(image)],
-                 ["evaluate", "--model", str(run), "--data", str(dataset), "--out", str(tmp_path / "e")]):
+    for argv in (
+        ["predict", "--model", str(run), "--out", str(tmp_path / "p"), str(image)],
+        ["evaluate", "--model", str(run), "--data", str(dataset), "--out", str(tmp_path / "e")],
+    ):
         capsys.readouterr()
         assert main(argv) == 2, argv
         one_line_error(capsys, "model.safetensors", message)
@@ -295,8 +308,11 @@ def test_resuming_from_a_checkpoint_with_wrong_shapes_is_one_line(finished_run, 
     capsys.readouterr()
     assert main(_resume(run, dataset)) == 2
     one_line_error(capsys, "checkpoint.safetensors", key, "expected")
-    save_file({k: v for k, v in tensors.items() if not k.startswith("optim/")}, str(run / "checkpoint.safetensors"),
-              metadata={**meta, "epoch": "one"})
+    save_file(
+        {k: v for k, v in tensors.items() if not k.startswith("optim/")},
+        str(run / "checkpoint.safetensors"),
+        metadata={**meta, "epoch": "one"},
+    )
     assert main(_resume(run, dataset)) == 2
     one_line_error(capsys, "checkpoint.safetensors", "'epoch' must be a whole number")
 
@@ -304,8 +320,10 @@ def test_resuming_from_a_checkpoint_with_wrong_shapes_is_one_line(finished_run, 
 # --- pickles: a size budget in the restricted unpicklers -----------------------------------
 
 BYTEARRAY_BOMB = b"\x80\x02c__builtin__\nbytearray\n\x8a\x08\x00\x00\x00\x00\x00\x00\x00@\x85R."  # bytearray(2**62)
-ARRAY_BOMB = (b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\n"
-              b"\x8a\x06\x00\x00\x00\x00\x00\x01\x85U\x01b\x87R.")  # _reconstruct(ndarray, (2**40,), 'b')
+ARRAY_BOMB = (
+    b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\n"
+    b"\x8a\x06\x00\x00\x00\x00\x00\x01\x85U\x01b\x87R."
+)  # _reconstruct(ndarray, (2**40,), 'b')
 NDARRAY_BOMB = b"\x80\x02cnumpy\nndarray\n\x8a\x06\x00\x00\x00\x00\x00\x01\x85\x85R."  # ndarray((2**40,))
 
 
@@ -313,8 +331,10 @@ def _nested_bomb():
     """A 3 kB pickle of {"images": one list shared 1000 x 1000 x 1000 times}: 10^9 numbers."""
     inner = [0.0] * 1000
     middle = [inner] * 1000
-    return pickle.dumps({"images": [middle] * 1000, "markers_xyz_m": [], "body_shape": [], "joint_angles": [],
-                         "root_xyz_shift": []}, protocol=2)
+    return pickle.dumps(
+        {"images": [middle] * 1000, "markers_xyz_m": [], "body_shape": [], "joint_angles": [], "root_xyz_shift": []},
+        protocol=2,
+    )
 
 
 @pytest.mark.parametrize("case", ["bytearray", "array", "ndarray", "nested", "global"])
@@ -329,7 +349,9 @@ def test_import_original_refuses_memory_bombs_with_one_line(case, tmp_path, caps
     capsys.readouterr()
     assert main(["import-original", str(path), "--out", str(tmp_path / "out")]) == 2
     line = one_line_error(capsys, str(path))
-    assert {"global": "refusing to load the global posix.system", "nested": "more numbers than"}.get(case, "asks for") in line
+    assert {"global": "refusing to load the global posix.system", "nested": "more numbers than"}.get(
+        case, "asks for"
+    ) in line
     assert not (tmp_path / "out" / "manifest.json").exists()
 
 
@@ -376,9 +398,11 @@ def test_smpl_pickle_with_an_allocation_bomb_is_refused(tmp_path):
 
 # --- pressure images -------------------------------------------------------------------------
 
+
 def _predict(tmp_path, *files, extra=()):
-    return main(["predict", "--out", str(tmp_path / "p"), "--no-figures", "--no-meshes", *extra,
-                 *[str(f) for f in files]])
+    return main(
+        ["predict", "--out", str(tmp_path / "p"), "--no-figures", "--no-meshes", *extra, *[str(f) for f in files]]
+    )
 
 
 def test_predict_refuses_a_corrupted_shard_of_a_dataset(dataset, tmp_path, capsys):
@@ -398,8 +422,7 @@ def test_predict_refuses_a_corrupted_shard_of_a_dataset(dataset, tmp_path, capsy
     assert not (tmp_path / "p").exists()
 
 
-@pytest.mark.parametrize("value,dtype", [(1e30, np.float32), (1e36, np.float32), (1e300, np.float64),
-                                         (2000, np.int64)])
+@pytest.mark.parametrize("value,dtype", [(1e30, np.float32), (1e36, np.float32), (1e300, np.float64), (2000, np.int64)])
 def test_implausible_pressures_are_refused_unless_forced(value, dtype, tmp_path, capsys):
     import warnings
 
@@ -434,11 +457,15 @@ def test_pressure_file_messages_name_what_was_given(tmp_path, capsys):
 
 # --- command-line arguments ---------------------------------------------------------------
 
-@pytest.mark.parametrize("argv,message", [
-    (["generate", "--out", "x", "--partition", "sitting"], "unknown partition 'sitting'"),
-    (["generate", "--out", "x", "--n", "0"], "n must be >= 1"),
-    (["sample", "--out", "x", "--n", "0"], "n must be >= 1"),
-])
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["generate", "--out", "x", "--partition", "sitting"], "unknown partition 'sitting'"),
+        (["generate", "--out", "x", "--n", "0"], "n must be >= 1"),
+        (["sample", "--out", "x", "--n", "0"], "n must be >= 1"),
+    ],
+)
 def test_config_check_failures_are_one_line_without_tyro_internals(argv, message, capsys):
     assert main(argv) == 2
     line = one_line_error(capsys, message)

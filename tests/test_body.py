@@ -22,8 +22,11 @@ def model(request, anny64, smpl64):
 
 def random_params(model, B=3, seed=0, pose_scale=0.4):
     g = torch.Generator().manual_seed(seed)
-    shape = (torch.rand(B, model.shape_dim, generator=g, dtype=model.dtype) * 0.8 + 0.1
-             if model.name == "anny" else torch.randn(B, model.shape_dim, generator=g, dtype=model.dtype))
+    shape = (
+        torch.rand(B, model.shape_dim, generator=g, dtype=model.dtype) * 0.8 + 0.1
+        if model.name == "anny"
+        else torch.randn(B, model.shape_dim, generator=g, dtype=model.dtype)
+    )
     return BodyParams(
         shape=shape,
         root_rotation=torch.randn(B, 3, generator=g, dtype=model.dtype) * 0.5,
@@ -84,8 +87,11 @@ def test_roll_pi_is_prone(model):
 
 def test_mirrored_pose_gives_mirrored_body(model):
     p = random_params(model, B=2, seed=3)
-    p = p.replace(shape=model.default_shape(2), root_rotation=torch.zeros(2, 3, dtype=model.dtype),
-                  root_translation=torch.zeros(2, 3, dtype=model.dtype))
+    p = p.replace(
+        shape=model.default_shape(2),
+        root_rotation=torch.zeros(2, 3, dtype=model.dtype),
+        root_translation=torch.zeros(2, 3, dtype=model.dtype),
+    )
     mirror = torch.tensor(J24_MIRROR[1:]) - 1
     flip = torch.tensor([1.0, -1.0, -1.0], dtype=model.dtype)  # rotation vectors are pseudovectors
     pm = p.replace(pose=p.pose[:, mirror] * flip)

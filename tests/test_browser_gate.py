@@ -5,8 +5,9 @@ import pytest
 import webdriver
 
 
-@pytest.mark.parametrize("ci, outcome", [("true", "fail"), ("1", "fail"), ("", "skip"), ("false", "skip"),
-                                         (None, "skip")])
+@pytest.mark.parametrize(
+    "ci, outcome", [("true", "fail"), ("1", "fail"), ("", "skip"), ("false", "skip"), (None, "skip")]
+)
 def test_a_missing_browser_skips_outside_ci_and_fails_under_ci(monkeypatch, ci, outcome):
     monkeypatch.setattr(webdriver, "CHROMIUM", "/nonexistent/chromium")
     if ci is None:

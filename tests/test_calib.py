@@ -22,8 +22,9 @@ from pressurepose.cli import main
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
 
-HIDDEN = MattressParams(k1_pa_per_m=3.0e4, k3_pa_per_m3=4.0e7, spread_m=0.012, c0_mmhg=-2.0,
-                        c1_mmhg_per_mm=1.3, c2_mmhg_per_mm2=0.004)
+HIDDEN = MattressParams(
+    k1_pa_per_m=3.0e4, k3_pa_per_m3=4.0e7, spread_m=0.012, c0_mmhg=-2.0, c1_mmhg_per_mm=1.3, c2_mmhg_per_mm2=0.004
+)
 
 
 @pytest.fixture(autouse=True)
@@ -40,6 +41,7 @@ def _small_scene():
 
 
 # --- loss terms against hand-computed cases ---------------------------------------------
+
 
 def test_force_term_hand_computed():
     # sum|d| = 1 + 0 + 1 = 2, sum(u + u') = 8, |sum d| = |3 - 5| = 2: 0.5 * 2/8 + 0.5 * 2/8
@@ -103,13 +105,15 @@ def test_loss_is_zero_at_the_truth_and_terms_match_the_images():
         u, ur = sim.reading_mmhg[0].numpy()[mask], meas.scenes[0].pressure_mmhg[mask]
         assert b.force[i] == pytest.approx(force_term(u, ur))
         assert b.contact[i] == pytest.approx(contact_term(u > 0, ur > 0))
-        assert b.compression[i] == pytest.approx(compression_term(float(sim.compression_m[i]),
-                                                                   meas.scenes[0].compression_m[i]))
+        assert b.compression[i] == pytest.approx(
+            compression_term(float(sim.compression_m[i]), meas.scenes[0].compression_m[i])
+        )
     assert b.total == pytest.approx(b.force.sum() + b.contact.sum() + b.compression.sum())
     assert b.total > 0.1 and b.penalty == 0.0
 
 
 # --- penalties ------------------------------------------------------------------------------
+
 
 def test_penalties():
     meas = synthetic_measurements(_small_scene(), HIDDEN)
@@ -138,6 +142,7 @@ def test_penalties():
 
 # --- measurement files ------------------------------------------------------------------------
 
+
 def test_measurement_file_round_trip(tmp_path):
     meas = synthetic_measurements(seed_objects(), HIDDEN, noise_mmhg=0.5, compression_noise_m=0.001, seed=3)
     path = meas.save(tmp_path / "m.json")
@@ -149,7 +154,8 @@ def test_measurement_file_round_trip(tmp_path):
         assert a.objects == b.objects
     # The objects are the seed's ten capsule-weight pairs.
     assert sorted((o.length_m, o.mass_kg) for s in back.scenes for o in s.objects) == sorted(
-        [(0.2, m) for m in (1.3, 2.3, 4.5, 9.1, 14.0)] + [(0.4, m) for m in (1.3, 4.5, 9.1, 14.0, 18.0)])
+        [(0.2, m) for m in (1.3, 2.3, 4.5, 9.1, 14.0)] + [(0.4, m) for m in (1.3, 4.5, 9.1, 14.0, 18.0)]
+    )
     # Noise is reproducible from the seed and changes the image.
     again = synthetic_measurements(seed_objects(), HIDDEN, noise_mmhg=0.5, compression_noise_m=0.001, seed=3)
     np.testing.assert_array_equal(again.scenes[0].pressure_mmhg, meas.scenes[0].pressure_mmhg)
@@ -161,22 +167,25 @@ def _doc():
     return synthetic_measurements(_small_scene(), HIDDEN).to_json()
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda d: d.pop("format"), "not a pressurepose measurement file"),
-    (lambda d: d["scenes"][0].pop("pressure_mmhg"), "missing \"pressure_mmhg\""),
-    (lambda d: d["scenes"][0]["objects"][1].pop("mass_kg"), "object 1 is missing \"mass_kg\""),
-    (lambda d: d["scenes"][0]["objects"][0].pop("compression_m"), "missing \"compression_m\""),
-    (lambda d: d["scenes"][0].__setitem__("pressure_mmhg", [[0.0] * 27] * 60), "must have shape (64, 27)"),
-    (lambda d: d["scenes"][0].__setitem__("pressure_mmhg", [[0.0] * 26] * 64), "must have shape (64, 27)"),
-    (lambda d: d["scenes"][0]["objects"][0].__setitem__("mass_kg", -1.3), "mass_kg must be > 0"),
-    (lambda d: d["scenes"][0]["objects"][0].__setitem__("mass_kg", "heavy"), "mass_kg must be a finite number"),
-    (lambda d: d["scenes"][0]["objects"][0].__setitem__("compression_m", -0.01), "compression_m"),
-    (lambda d: d["scenes"][0]["objects"][0].__setitem__("radius_m", 0.0), "radius_m > 0"),
-    (lambda d: d["scenes"][0]["objects"][0].__setitem__("x_m", 3.0), "does not lie wholly on the mattress"),
-    (lambda d: d["scenes"][0]["objects"][0].__setitem__("shape", "box"), "only \"capsule\""),
-    (lambda d: d["scenes"][0]["pressure_mmhg"][3].__setitem__(4, -5.0), "within [0, 100]"),
-    (lambda d: d.__setitem__("scenes", []), "non-empty list"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: d.pop("format"), "not a pressurepose measurement file"),
+        (lambda d: d["scenes"][0].pop("pressure_mmhg"), 'missing "pressure_mmhg"'),
+        (lambda d: d["scenes"][0]["objects"][1].pop("mass_kg"), 'object 1 is missing "mass_kg"'),
+        (lambda d: d["scenes"][0]["objects"][0].pop("compression_m"), 'missing "compression_m"'),
+        (lambda d: d["scenes"][0].__setitem__("pressure_mmhg", [[0.0] * 27] * 60), "must have shape (64, 27)"),
+        (lambda d: d["scenes"][0].__setitem__("pressure_mmhg", [[0.0] * 26] * 64), "must have shape (64, 27)"),
+        (lambda d: d["scenes"][0]["objects"][0].__setitem__("mass_kg", -1.3), "mass_kg must be > 0"),
+        (lambda d: d["scenes"][0]["objects"][0].__setitem__("mass_kg", "heavy"), "mass_kg must be a finite number"),
+        (lambda d: d["scenes"][0]["objects"][0].__setitem__("compression_m", -0.01), "compression_m"),
+        (lambda d: d["scenes"][0]["objects"][0].__setitem__("radius_m", 0.0), "radius_m > 0"),
+        (lambda d: d["scenes"][0]["objects"][0].__setitem__("x_m", 3.0), "does not lie wholly on the mattress"),
+        (lambda d: d["scenes"][0]["objects"][0].__setitem__("shape", "box"), 'only "capsule"'),
+        (lambda d: d["scenes"][0]["pressure_mmhg"][3].__setitem__(4, -5.0), "within [0, 100]"),
+        (lambda d: d.__setitem__("scenes", []), "non-empty list"),
+    ],
+)
 def test_bad_measurement_files_are_clear(tmp_path, edit, message):
     doc = _doc()
     edit(doc)
@@ -202,6 +211,7 @@ def test_unreadable_and_overlapping_measurements(tmp_path):
 
 
 # --- CMA-ES: recovery, determinism, resume -----------------------------------------------------
+
 
 def test_counted_normal_is_a_function_of_seed_and_count():
     a, b = CountedNormal(5), CountedNormal(5, count=1)
@@ -240,8 +250,11 @@ def test_calibration_recovers_hidden_parameters_small_case():
     meas = synthetic_measurements(scenes, HIDDEN, sub=1)
     space = ParamSpace(("k1_pa_per_m", "spread_m"), HIDDEN.replace(k1_pa_per_m=2.0e4, spread_m=0.008))
     loss = CalibrationLoss(meas, space, sub=1)
-    res = minimise(lambda X: [loss(x) for x in X], space.encode(space.base),
-                   CMASettings(popsize=8, max_iter=40, tolx=1e-3, tolfun=1e-4, sigma0=0.2, seed=0))
+    res = minimise(
+        lambda X: [loss(x) for x in X],
+        space.encode(space.base),
+        CMASettings(popsize=8, max_iter=40, tolx=1e-3, tolfun=1e-4, sigma0=0.2, seed=0),
+    )
     got = space.decode(res.best_x)
     assert got["k1_pa_per_m"] == pytest.approx(HIDDEN.k1_pa_per_m, rel=0.05)
     assert got["spread_m"] == pytest.approx(HIDDEN.spread_m, rel=0.05)
@@ -252,8 +265,9 @@ def test_sim1_sinks_the_calibration_capsules_like_sim2():
     from pressurepose.calib.coupling import coupling_check
     from pressurepose.calib.loss import CalibrationLoss as _L  # noqa: F401 (same module the CLI uses)
 
-    scenes = [[CalibObject(0.2, 0.05, 1.3, 0.4, 0.37, 90.0, "light"), CalibObject(0.4, 0.05, 18.0, 1.2, 0.37, 90.0,
-                                                                                   "heavy")]]
+    scenes = [
+        [CalibObject(0.2, 0.05, 1.3, 0.4, 0.37, 90.0, "light"), CalibObject(0.4, 0.05, 18.0, 1.2, 0.37, 90.0, "heavy")]
+    ]
     loss = CalibrationLoss(synthetic_measurements(scenes, HIDDEN), ParamSpace())
     rows = coupling_check(loss, HIDDEN)
     assert [r["name"] for r in rows] == ["light", "heavy"]
@@ -264,12 +278,28 @@ def test_sim1_sinks_the_calibration_capsules_like_sim2():
 
 # --- CLI --------------------------------------------------------------------------------------
 
+
 @pytest.mark.slow
 def test_cli_calibrate_smoke_and_resume(tmp_path):
     meas = synthetic_measurements(_small_scene(), HIDDEN).save(tmp_path / "m.json")
     out = tmp_path / "cal"
-    common = ["calibrate", "--measurements", str(meas), "--out", str(out), "--popsize", "4", "--max-iter", "3",
-              "--free", "k1_pa_per_m", "spread_m", "--sub", "1", "--no-coupling-check"]
+    common = [
+        "calibrate",
+        "--measurements",
+        str(meas),
+        "--out",
+        str(out),
+        "--popsize",
+        "4",
+        "--max-iter",
+        "3",
+        "--free",
+        "k1_pa_per_m",
+        "spread_m",
+        "--sub",
+        "1",
+        "--no-coupling-check",
+    ]
     assert main(common + ["--stop-after", "2", "--workers", "2"]) == 0  # the process pool, then in-process
     first = json.loads((out / "calibrate.json").read_text())
     assert not first["finished"] and first["iterations"] == 2
@@ -287,8 +317,20 @@ def test_cli_calibrate_bad_input_exits_2(tmp_path):
     doc = _doc()
     doc["scenes"][0]["objects"][0]["mass_kg"] = -2
     bad.write_text(json.dumps(doc))
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "calibrate", "--measurements", str(bad),
-                        "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pressurepose.cli",
+            "calibrate",
+            "--measurements",
+            str(bad),
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "Traceback" not in r.stderr and "mass_kg must be > 0" in r.stderr
     assert main(["calibrate", "--measurements", str(tmp_path / "none.json")]) == 2
     assert main(["calibrate", "--measurements", str(bad), "--free", "k9"]) == 2

@@ -34,10 +34,17 @@ def _random_params(model, B, seed=0):
     g = torch.Generator().manual_seed(seed)
     lim = JointLimits.default(D)
     pose = lim.lower + (lim.upper - lim.lower) * torch.rand(B, 23, 3, generator=g, dtype=D)
-    shape = (torch.rand(B, model.shape_dim, generator=g, dtype=D) if model.name == "anny"
-             else torch.randn(B, model.shape_dim, generator=g, dtype=D))
-    return BodyParams(shape=shape, root_rotation=torch.randn(B, 3, generator=g, dtype=D),
-                      root_translation=torch.randn(B, 3, generator=g, dtype=D), pose=pose)
+    shape = (
+        torch.rand(B, model.shape_dim, generator=g, dtype=D)
+        if model.name == "anny"
+        else torch.randn(B, model.shape_dim, generator=g, dtype=D)
+    )
+    return BodyParams(
+        shape=shape,
+        root_rotation=torch.randn(B, 3, generator=g, dtype=D),
+        root_translation=torch.randn(B, 3, generator=g, dtype=D),
+        pose=pose,
+    )
 
 
 @pytest.mark.parametrize("backend", ["anny64", "smpl64"])
@@ -71,10 +78,12 @@ def test_segment_distance_matches_brute_force_including_degenerate_cases():
     p = torch.randn(3, dtype=D)
     d = torch.tensor([1.0, 0.5, 0.0], dtype=D)
     cases += [
-        torch.stack([p, p + d, p + torch.tensor([0, 0, 1.0], dtype=D), p + d + torch.tensor([0, 0, 1.0], dtype=D)]),  # parallel
-        torch.stack([p, p, p + 1, p + 2]),          # point vs segment
-        torch.stack([p, p + 1, p - 1, p - 1]),      # segment vs point
-        torch.stack([p, p, p + 0.3, p + 0.3]),      # point vs point
+        torch.stack(
+            [p, p + d, p + torch.tensor([0, 0, 1.0], dtype=D), p + d + torch.tensor([0, 0, 1.0], dtype=D)]
+        ),  # parallel
+        torch.stack([p, p, p + 1, p + 2]),  # point vs segment
+        torch.stack([p, p + 1, p - 1, p - 1]),  # segment vs point
+        torch.stack([p, p, p + 0.3, p + 0.3]),  # point vs point
         torch.stack([p, p + d, p + 0.5 * d, p + 2 * d]),  # collinear, overlapping
     ]
     got = segment_distance(*[torch.stack([c[k] for c in cases]) for k in range(4)])
@@ -93,7 +102,9 @@ def test_capsule_inertia_matches_monte_carlo():
     r, L, m = 0.05, 0.3, 2.0
     g = torch.Generator().manual_seed(2)
     pts = (torch.rand(400_000, 3, generator=g, dtype=D) - 0.5) * torch.tensor([2 * r, 2 * r, L + 2 * r], dtype=D)
-    inside = point_segment_distance(pts, torch.tensor([0, 0, -L / 2], dtype=D), torch.tensor([0, 0, L / 2], dtype=D)) <= r
+    inside = (
+        point_segment_distance(pts, torch.tensor([0, 0, -L / 2], dtype=D), torch.tensor([0, 0, L / 2], dtype=D)) <= r
+    )
     q = pts[inside]
     axial = m * (q[:, 0] ** 2 + q[:, 1] ** 2).mean()
     perp = m * (q[:, 1] ** 2 + q[:, 2] ** 2).mean()
@@ -144,9 +155,9 @@ def test_fitted_capsules_wrap_their_vertices(anny64, two_bodies):
         mask = torch.zeros_like(labels, dtype=torch.bool)
         for part in spec.parts:
             mask |= labels == part
-        d = point_segment_distance(vertices[:, mask], caps.start[:, c:c + 1], caps.end[:, c:c + 1])
-            # most of a part's surface lies within 1.5 radii of the axis (the chest is flatter)
-        assert ((d <= 1.5 * caps.radius[:, c:c + 1]).double().mean(-1) > 0.75).all(), spec.name
+        d = point_segment_distance(vertices[:, mask], caps.start[:, c : c + 1], caps.end[:, c : c + 1])
+        # most of a part's surface lies within 1.5 radii of the axis (the chest is flatter)
+        assert ((d <= 1.5 * caps.radius[:, c : c + 1]).double().mean(-1) > 0.75).all(), spec.name
     # the capsule union has about the mesh's volume
     volume = capsule_volumes(caps).sum(-1)
     mesh = anny64.measure(shape).volume_m3
@@ -173,8 +184,11 @@ def _reference_fit(model, shape):
             band_lo, band_hi = t_lo + 0.25 * (t_hi - t_lo), t_hi - 0.25 * (t_hi - t_lo)
         else:
             a0 = rest[:, spec.joint]
-            direction = rest[:, spec.joint] - rest[:, J24_NAMES.index("neck")] if spec.name == "head" else \
-                rest[:, spec.child] - rest[:, spec.joint]
+            direction = (
+                rest[:, spec.joint] - rest[:, J24_NAMES.index("neck")]
+                if spec.name == "head"
+                else rest[:, spec.child] - rest[:, spec.joint]
+            )
             u = direction / direction.norm(dim=-1, keepdim=True)
             t = ((v - a0[:, None]) * u[:, None]).sum(-1)
             t_lo = t.amin(1) if spec.extend_start else torch.zeros_like(t[:, 0])
@@ -209,7 +223,10 @@ def test_part_by_part_fit_equals_the_whole_mesh_fit(anny64):
     torch.testing.assert_close(one.radius, caps.radius[3:4], atol=1e-13, rtol=0)
     # and differentiable in the shape, with the same gradient
     grads = []
-    for fit in (lambda s: (lambda c: (c.start, c.end, c.radius))(fit_capsules(anny64, s)), lambda s: _reference_fit(anny64, s)):
+    for fit in (
+        lambda s: (lambda c: (c.start, c.end, c.radius))(fit_capsules(anny64, s)),
+        lambda s: _reference_fit(anny64, s),
+    ):
         s = shape[:2].clone().requires_grad_()
         a, b, r = fit(s)
         (a.sum() + 2 * b.sum() + 3 * r.sum()).backward()
@@ -264,7 +281,9 @@ def test_masses_sum_to_the_body_mass_and_follow_the_segments(anny64):
     avg = build_capsule_body(anny64, anny64.shape_from_dict({"gender": 0.0}))
     share = avg.mass_kg[0] / avg.mass_kg[0].sum()
     thigh = share[capsule_index("left_thigh")]
-    trunk = sum(share[capsule_index(n)] for n in ("pelvis", "spine1", "spine2", "spine3", "left_collar", "right_collar"))
+    trunk = sum(
+        share[capsule_index(n)] for n in ("pelvis", "spine1", "spine2", "spine3", "left_collar", "right_collar")
+    )
     assert trunk == pytest.approx(0.483, rel=0.05)
     assert thigh == pytest.approx(0.105, rel=0.05)
 

@@ -41,16 +41,39 @@ def test_user_errors_exit_2_without_traceback(tmp_path):
 
 def test_sample_writes_poses_and_figures(tmp_path):
     out = tmp_path / "s"
-    assert main(["sample", "--out", str(out), "--n", "12", "--partition", "supine", "--gender", "male",
-                 "--batch", "5", "--figures", "4"]) == 0
+    assert (
+        main(
+            [
+                "sample",
+                "--out",
+                str(out),
+                "--n",
+                "12",
+                "--partition",
+                "supine",
+                "--gender",
+                "male",
+                "--batch",
+                "5",
+                "--figures",
+                "4",
+            ]
+        )
+        == 0
+    )
     from pressurepose.commands.sample import load_poses
 
     arrays = load_poses(out / "poses.npz")
     assert arrays["pose"].shape == (12, 23, 3) and arrays["joints"].shape == (12, 24, 3)
     np.testing.assert_array_equal(arrays["index"], np.arange(12))
     assert set(k for k in arrays if k.startswith("rejections_")) == {
-        "rejections_limb_draws_rejected", "rejections_limb_failures", "rejections_collisions",
-        "rejections_shape_resamples", "rejections_cell_redraws", "rejections_sit_up_rejections"}
+        "rejections_limb_draws_rejected",
+        "rejections_limb_failures",
+        "rejections_collisions",
+        "rejections_shape_resamples",
+        "rejections_cell_redraws",
+        "rejections_sit_up_rejections",
+    }
     np.testing.assert_array_equal(arrays["head_angle_deg"], np.zeros(12))  # flat bed
     record = json.loads((out / "config.json").read_text())
     assert record["sampling"]["partition"] == "supine" and record["count"] == 12
@@ -60,8 +83,26 @@ def test_sample_writes_poses_and_figures(tmp_path):
     assert not list(out.glob(".*partial*"))  # no temporary files left behind
     # the same indices drawn in another batch size are the same samples
     again = tmp_path / "t"
-    assert main(["sample", "--out", str(again), "--n", "12", "--partition", "supine", "--gender", "male",
-                 "--batch", "12", "--figures", "0"]) == 0
+    assert (
+        main(
+            [
+                "sample",
+                "--out",
+                str(again),
+                "--n",
+                "12",
+                "--partition",
+                "supine",
+                "--gender",
+                "male",
+                "--batch",
+                "12",
+                "--figures",
+                "0",
+            ]
+        )
+        == 0
+    )
     other = load_poses(again / "poses.npz")
     for key in ("shape", "pose", "root_rotation", "root_translation", "cells"):
         np.testing.assert_array_equal(arrays[key], other[key])
@@ -116,6 +157,17 @@ def test_simulate_half_sitting_uses_the_samples_bed_and_refuses_another(tmp_path
     angle = record["head_angle_deg"]
     assert record["status"] == "ok" and angle in (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
     other = 10.0 if angle != 10.0 else 20.0
-    r = run("simulate", "--out", str(tmp_path / "s2"), "--partition", "half_sitting", "--index", "0",
-            "--gender", "male", "--head-angle-deg", str(other))
+    r = run(
+        "simulate",
+        "--out",
+        str(tmp_path / "s2"),
+        "--partition",
+        "half_sitting",
+        "--index",
+        "0",
+        "--gender",
+        "male",
+        "--head-angle-deg",
+        str(other),
+    )
     assert r.returncode == 2 and "Traceback" not in r.stderr and "leave out --head-angle-deg" in r.stderr

@@ -40,7 +40,12 @@ def camera_pose():
 
 R_TRUE, T_TRUE = camera_pose()
 PIXELS = {name: project(K, R_TRUE, T_TRUE, X[None])[0] for name, X in CORNERS.items()}
-DOT = {"head_left": (255, 60, 60), "head_right": (255, 220, 40), "foot_left": (40, 200, 255), "foot_right": (90, 255, 80)}
+DOT = {
+    "head_left": (255, 60, 60),
+    "head_right": (255, 220, 40),
+    "foot_left": (40, 200, 255),
+    "foot_right": (90, 255, 80),
+}
 
 
 @pytest.fixture(scope="module")
@@ -69,8 +74,12 @@ class Clicker(Served):
 
     def post(self, payload, headers=None, raw: bytes | None = None) -> tuple[int, dict]:
         body = raw if raw is not None else json.dumps(payload).encode()
-        req = urllib.request.Request(self.url + "api/save", data=body, method="POST",
-                                     headers={"Content-Type": "application/json", **(headers or {})})
+        req = urllib.request.Request(
+            self.url + "api/save",
+            data=body,
+            method="POST",
+            headers={"Content-Type": "application/json", **(headers or {})},
+        )
         try:
             with urllib.request.urlopen(req, timeout=30) as r:
                 return r.status, json.loads(r.read())
@@ -90,8 +99,9 @@ def payload(pixels=PIXELS, intrinsics=INTR, **extra):
 
 def angle_deg(R1, R2):
     """Angle between two rotation matrices (numpy), exact near 0 and pi (unlike acos of the trace)."""
-    return math.degrees(float(rotation_angle(torch.as_tensor(R1, dtype=torch.float64),
-                                             torch.as_tensor(R2, dtype=torch.float64))))
+    return math.degrees(
+        float(rotation_angle(torch.as_tensor(R1, dtype=torch.float64), torch.as_tensor(R2, dtype=torch.float64)))
+    )
 
 
 # --- API -----------------------------------------------------------------------------------------
@@ -117,8 +127,11 @@ def test_saved_clicks_give_back_the_camera_pose(picture, tmp_path, clicker):
     u, v = np.round(PIXELS["head_left"]).astype(int)
     assert np.abs(jpg.rgb[v, u].astype(int) - DOT["head_left"]).max() < 40
 
-    custom = {"name": "pillow", "pixel": project(K, R_TRUE, T_TRUE, np.array([[0.3, 0.2, 0.05]]))[0].tolist(),
-              "mat_xyz_m": [0.3, 0.2, 0.05]}
+    custom = {
+        "name": "pillow",
+        "pixel": project(K, R_TRUE, T_TRUE, np.array([[0.3, 0.2, 0.05]]))[0].tolist(),
+        "mat_xyz_m": [0.3, 0.2, 0.05],
+    }
     status, reply = c.post(payload(more=[custom]))
     assert status == 200, reply
     saved = json.loads(out.read_text())
@@ -172,8 +185,11 @@ def test_bad_saves_write_nothing(picture, tmp_path, clicker):
 
 def test_existing_file_is_loaded_for_editing(picture, tmp_path, clicker):
     out = tmp_path / "markers.json"
-    doc = {"format": FORMAT, "intrinsics": INTR,
-           "markers": [{"name": n, "pixel": p.round(2).tolist(), "depth_m": 1.9} for n, p in PIXELS.items()]}
+    doc = {
+        "format": FORMAT,
+        "intrinsics": INTR,
+        "markers": [{"name": n, "pixel": p.round(2).tolist(), "depth_m": 1.9} for n, p in PIXELS.items()],
+    }
     out.write_text(json.dumps(doc))
     info = json.loads(clicker(picture, out).get("api/info"))
     assert info["intrinsics"] == INTR and info["markers"] == doc["markers"]
@@ -199,10 +215,16 @@ def test_depth_image_clicks_record_depth(tmp_path, clicker):
     out = tmp_path / "m.json"
     c = clicker(path, out, **INTR)
     info = json.loads(c.get("api/info"))
-    assert info["has_depth"] and info["depth_range_m"] == [depth_mm[depth_mm > 0].min() / 1000,
-                                                           depth_mm[depth_mm > 0].max() / 1000]
-    clicks = {"head_left": [100.4, 50.6], "head_right": [400.0, 60.49], "foot_left": [20.2, 10.0],  # no reading
-              "foot_right": [510.7, 423.2]}
+    assert info["has_depth"] and info["depth_range_m"] == [
+        depth_mm[depth_mm > 0].min() / 1000,
+        depth_mm[depth_mm > 0].max() / 1000,
+    ]
+    clicks = {
+        "head_left": [100.4, 50.6],
+        "head_right": [400.0, 60.49],
+        "foot_left": [20.2, 10.0],  # no reading
+        "foot_right": [510.7, 423.2],
+    }
     # the page's depth look-up and the saved file: the reading at the nearest pixel, in metres
     assert json.loads(c.get("api/depth?u=100.4&v=50.6"))["depth_m"] == depth_mm[51, 100] / 1000
     assert json.loads(c.get("api/depth?u=20&v=10"))["depth_m"] is None
@@ -211,8 +233,12 @@ def test_depth_image_clicks_record_depth(tmp_path, clicker):
     status, reply = c.post(payload({k: np.array(v) for k, v in clicks.items()}))
     assert status == 200, reply
     got = {m["name"]: m.get("depth_m") for m in json.loads(out.read_text())["markers"]}
-    assert got == {"head_left": depth_mm[51, 100] / 1000, "head_right": depth_mm[60, 400] / 1000,
-                   "foot_left": None, "foot_right": depth_mm[423, 511] / 1000}
+    assert got == {
+        "head_left": depth_mm[51, 100] / 1000,
+        "head_right": depth_mm[60, 400] / 1000,
+        "foot_left": None,
+        "foot_right": depth_mm[423, 511] / 1000,
+    }
     assert read_markers(out).depth_m[0] == depth_mm[51, 100] / 1000
     assert f"--cloud {path}" in reply["command"]
     # float depth in metres is taken as metres; the same numbers in mm as mm
@@ -261,8 +287,10 @@ def test_bad_images_and_intrinsics(picture, tmp_path, capsys, monkeypatch):
         assert err.count("\n") == 1 and message.split()[0] in err and "Traceback" not in err
     # a good command line reaches the server (run_local stubbed: it would serve until Ctrl-C)
     served = []
-    monkeypatch.setattr("pressurepose.viz.viewer.run_local",
-                        lambda server, open_browser, ready: (served.append(server), server.server_close()))
+    monkeypatch.setattr(
+        "pressurepose.viz.viewer.run_local",
+        lambda server, open_browser, ready: (served.append(server), server.server_close()),
+    )
     assert main(["click", str(picture), *good, "--port", "0", "--no-open", "--out", str(tmp_path / "y.json")]) == 0
     assert served[0].session.intrinsics == INTR and served[0].session.image.size == (W, H)
     with socket.socket() as taken:  # the viewer's port handling
@@ -277,8 +305,10 @@ def test_bad_images_and_intrinsics(picture, tmp_path, capsys, monkeypatch):
 
 def view(driver: WebDriver) -> list[float]:
     """The canvas's place on the page and the page's displayed scale and offset (CSS px)."""
-    return driver.js("const r = document.getElementById('img').getBoundingClientRect();"
-                     "const c = window.clickerState; return [r.left, r.top, c.scale, c.offX, c.offY];")
+    return driver.js(
+        "const r = document.getElementById('img').getBoundingClientRect();"
+        "const c = window.clickerState; return [r.left, r.top, c.scale, c.offX, c.offY];"
+    )
 
 
 def screen_point(driver: WebDriver, u: float, v: float) -> tuple[int, int]:
@@ -292,8 +322,13 @@ def click_at(driver: WebDriver, u: float, v: float) -> np.ndarray:
     convention (pixel centres at integers), which the page must record."""
     left, top, scale, off_x, off_y = view(driver)
     x, y = screen_point(driver, u, v)
-    driver.actions([{"type": "pointerMove", "x": x, "y": y, "origin": "viewport", "duration": 0},
-                    {"type": "pointerDown", "button": 0}, {"type": "pointerUp", "button": 0}])
+    driver.actions(
+        [
+            {"type": "pointerMove", "x": x, "y": y, "origin": "viewport", "duration": 0},
+            {"type": "pointerDown", "button": 0},
+            {"type": "pointerUp", "button": 0},
+        ]
+    )
     return np.array([(x - left - off_x) / scale - 0.5, (y - top - off_y) / scale - 0.5])
 
 
@@ -315,8 +350,10 @@ def test_clicking_in_headless_chromium(picture, tmp_path, clicker):
         # The image is drawn where the page's scale and offset say: each dot's centre on screen,
         # mapped back with them (pixel centres at integers), is the dot's centre in the image.
         shot = driver.screenshot()
-        left, top, dpr = driver.js("const r = document.getElementById('img').getBoundingClientRect();"
-                                   "return [r.left, r.top, window.devicePixelRatio];")
+        left, top, dpr = driver.js(
+            "const r = document.getElementById('img').getBoundingClientRect();"
+            "return [r.left, r.top, window.devicePixelRatio];"
+        )
         vv, uu = np.mgrid[0:H, 0:W]
         image = (matplotlib.image.imread(picture)[..., :3] * 255).round()
         for name, rgb in DOT.items():
@@ -331,19 +368,48 @@ def test_clicking_in_headless_chromium(picture, tmp_path, clicker):
         click_at(driver, u + 15, v + 10)
         assert list(markers(driver)) == ["head_left"] and driver.js(state)["active"] == "head_right"
         start, end = screen_point(driver, u + 15, v + 10), screen_point(driver, u, v)
-        driver.actions([{"type": "pointerMove", "x": start[0], "y": start[1], "origin": "viewport"},
-                        {"type": "pointerDown", "button": 0},
-                        {"type": "pointerMove", "x": (start[0] + end[0]) // 2, "y": (start[1] + end[1]) // 2,
-                         "origin": "viewport", "duration": 50},
-                        {"type": "pointerMove", "x": end[0], "y": end[1], "origin": "viewport", "duration": 50},
-                        {"type": "pointerUp", "button": 0}])
+        driver.actions(
+            [
+                {"type": "pointerMove", "x": start[0], "y": start[1], "origin": "viewport"},
+                {"type": "pointerDown", "button": 0},
+                {
+                    "type": "pointerMove",
+                    "x": (start[0] + end[0]) // 2,
+                    "y": (start[1] + end[1]) // 2,
+                    "origin": "viewport",
+                    "duration": 50,
+                },
+                {"type": "pointerMove", "x": end[0], "y": end[1], "origin": "viewport", "duration": 50},
+                {"type": "pointerUp", "button": 0},
+            ]
+        )
         assert np.abs(np.subtract(markers(driver)["head_left"], PIXELS["head_left"])).max() < 1
         # the others in turn (the page moves on to the next corner by itself); foot_left zoomed in
         click_at(driver, *PIXELS["head_right"])
         fl = screen_point(driver, *PIXELS["foot_left"])
         before = driver.js(state)["scale"]
-        driver.cmd("POST", "/actions", {"actions": [{"type": "wheel", "id": "wheel", "actions": [
-            {"type": "scroll", "x": fl[0], "y": fl[1], "deltaX": 0, "deltaY": -500, "origin": "viewport"}]}]})
+        driver.cmd(
+            "POST",
+            "/actions",
+            {
+                "actions": [
+                    {
+                        "type": "wheel",
+                        "id": "wheel",
+                        "actions": [
+                            {
+                                "type": "scroll",
+                                "x": fl[0],
+                                "y": fl[1],
+                                "deltaX": 0,
+                                "deltaY": -500,
+                                "origin": "viewport",
+                            }
+                        ],
+                    }
+                ]
+            },
+        )
         driver.wait(f"return window.clickerState.scale > {before} * 1.5", state=state)
         zoomed = click_at(driver, *PIXELS["foot_left"])
         assert driver.js(state)["scale"] > 4

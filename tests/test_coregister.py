@@ -53,8 +53,9 @@ def marker_file(R, t, noise_px=0.0, depth=False, extra=(), seed=0):
 
 def angle_deg(R1, R2):
     """Angle between two rotation matrices (numpy), exact near 0 and pi (unlike acos of the trace)."""
-    return math.degrees(float(rotation_angle(torch.as_tensor(R1, dtype=torch.float64),
-                                             torch.as_tensor(R2, dtype=torch.float64))))
+    return math.degrees(
+        float(rotation_angle(torch.as_tensor(R1, dtype=torch.float64), torch.as_tensor(R2, dtype=torch.float64)))
+    )
 
 
 @pytest.mark.parametrize("method", ["lm", "cma"])
@@ -99,11 +100,16 @@ def test_bad_marker_files_are_refused(tmp_path):
         "not a marker file": {**good, "format": "other"},
         "intrinsics": {k: v for k, v in good.items() if k != "intrinsics"},
         "at least 4": {**good, "markers": good["markers"][:3]},
-        "finite number": {**good, "markers": [{**good["markers"][0], "pixel": [float("nan"), 1.0]}] + good["markers"][1:]},
+        "finite number": {
+            **good,
+            "markers": [{**good["markers"][0], "pixel": [float("nan"), 1.0]}] + good["markers"][1:],
+        },
         "not a named corner": {**good, "markers": good["markers"] + [{"name": "elbow", "pixel": [1, 2]}]},
         "focal lengths": {**good, "intrinsics": {"fx": -1, "fy": 1, "cx": 0, "cy": 0}},
-        "collinear": {**good, "markers": [{"name": f"m{k}", "pixel": [k, k], "mat_xyz_m": [0.1 * k, 0, 0]}
-                                          for k in range(4)]},
+        "collinear": {
+            **good,
+            "markers": [{"name": f"m{k}", "pixel": [k, k], "mat_xyz_m": [0.1 * k, 0, 0]} for k in range(4)],
+        },
     }
     for message, data in cases.items():
         with pytest.raises(ValueError, match=message):
@@ -127,13 +133,39 @@ def test_coregister_cli_writes_pose_cloud_and_figure(tmp_path):
     X = np.random.default_rng(0).uniform([0.4, 0.1, 0.0], [1.4, 0.6, 0.2], (300, 3))
     np.save(tmp_path / "cloud.npy", X @ R.T + t)
     out = tmp_path / "out"
-    assert main(["coregister", "--markers", str(tmp_path / "m.json"), "--cloud", str(tmp_path / "cloud.npy"),
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "coregister",
+                "--markers",
+                str(tmp_path / "m.json"),
+                "--cloud",
+                str(tmp_path / "cloud.npy"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     record = json.loads((out / "camera.json").read_text())
     np.testing.assert_allclose(record["camera_position_in_mat_m"], [0.9, 0.37, 2.0], atol=0.03)
     assert np.abs(np.load(out / "cloud_mat.npy") - X).max() < 0.02
     assert (out / "coregister.png").read_bytes()[:4] == b"\x89PNG"
     np.save(tmp_path / "bad.npy", np.zeros((2, 2, 2)))
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "coregister", "--markers", str(tmp_path / "m.json"),
-                        "--cloud", str(tmp_path / "bad.npy"), "--out", str(tmp_path / "o2")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pressurepose.cli",
+            "coregister",
+            "--markers",
+            str(tmp_path / "m.json"),
+            "--cloud",
+            str(tmp_path / "bad.npy"),
+            "--out",
+            str(tmp_path / "o2"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "Traceback" not in r.stderr and "depth image" in r.stderr

@@ -22,15 +22,23 @@ from pressurepose.data.shards import CorruptShardError, read_record, table_bytes
 
 def random_batch(n, rng, split="train", partition="supine", gender="female", over_bed=False, first=0):
     return SampleBatch(
-        split=np.array([split] * n, dtype=object), partition=np.array([partition] * n, dtype=object),
-        gender=np.array([gender] * n, dtype=object), over_bed=np.full(n, over_bed),
+        split=np.array([split] * n, dtype=object),
+        partition=np.array([partition] * n, dtype=object),
+        gender=np.array([gender] * n, dtype=object),
+        over_bed=np.full(n, over_bed),
         index=np.arange(first, first + n, dtype=np.int64),
         pressure_mmhg=rng.uniform(0, 100, (n, 64, 27)).astype(np.float32),
         depth_mm=rng.normal(0, 10, (n, 64, 27)).astype(np.float32),
-        contact=(rng.random((n, 64, 27)) > 0.5).astype(np.uint8), shape=rng.random((n, 6)),
-        root_rotation=rng.normal(size=(n, 3)), root_translation=rng.normal(size=(n, 3)),
-        pose=rng.normal(size=(n, 23, 3)), joints_m=rng.normal(size=(n, 24, 3)), mass_kg=rng.uniform(40, 120, n),
-        height_m=rng.uniform(1.4, 2.0, n), head_angle_deg=np.zeros(n), settle_steps=rng.integers(0, 900, n).astype(np.int32),
+        contact=(rng.random((n, 64, 27)) > 0.5).astype(np.uint8),
+        shape=rng.random((n, 6)),
+        root_rotation=rng.normal(size=(n, 3)),
+        root_translation=rng.normal(size=(n, 3)),
+        pose=rng.normal(size=(n, 23, 3)),
+        joints_m=rng.normal(size=(n, 24, 3)),
+        mass_kg=rng.uniform(40, 120, n),
+        height_m=rng.uniform(1.4, 2.0, n),
+        head_angle_deg=np.zeros(n),
+        settle_steps=rng.integers(0, 900, n).astype(np.int32),
         sink_mm=rng.uniform(0, 80, n).astype(np.float32),
     )
 
@@ -43,8 +51,18 @@ def make_fake_dataset(root, groups, seed=0):
     for k, (split, part, gender, n) in enumerate(groups):
         batch = random_batch(n, rng, split, part, gender)
         sid = f"{split}-{part}-{gender}-{k:05d}"
-        rec = {"split": split, "partition": part, "gender": gender, "over_bed": False, "number": k, "first_slot": 0,
-               "count": n, "candidates": n + 1, "rejections": {"sim #1: fake": 1}, "sampling_rejections": {"collisions": 2}}
+        rec = {
+            "split": split,
+            "partition": part,
+            "gender": gender,
+            "over_bed": False,
+            "number": k,
+            "first_slot": 0,
+            "count": n,
+            "candidates": n + 1,
+            "rejections": {"sim #1: fake": 1},
+            "sampling_rejections": {"collisions": 2},
+        }
         records.append(write_shard(root, sid, table_bytes(to_table(batch)), rec))
         batches[sid] = batch
     write_manifest(root, {"config": {"preset": "fake"}}, records)
@@ -133,7 +151,9 @@ def test_dataset_items_equal_the_shards_and_filters_select(tmp_path):
         ds[108]
     train = PressurePoseDataset(tmp_path, split="train")
     assert len(train) == 103
-    sup = PressurePoseDataset(tmp_path, partitions=["supine"], genders=["male"], columns=("gender", "partition", "split"))
+    sup = PressurePoseDataset(
+        tmp_path, partitions=["supine"], genders=["male"], columns=("gender", "partition", "split")
+    )
     assert len(sup) == 5 and {sup[i]["split"] for i in range(5)} == {"test"}
     loader = torch.utils.data.DataLoader(PressurePoseDataset(tmp_path, split="train"), batch_size=16)
     first = next(iter(loader))
@@ -209,10 +229,14 @@ def original_dict(n, rng, with_optional=True):
         "root_xyz_shift": [rng.normal(size=3) for _ in range(n)],
     }
     if with_optional:
-        d.update({"mesh_depth": [rng.normal(size=(64, 27)) for _ in range(n)],
-                  "mesh_contact": [(rng.random((64, 27)) > 0.5).astype(np.float64) for _ in range(n)],
-                  "body_mass": [float(x) for x in rng.uniform(40, 100, n)],
-                  "body_height": [np.float64(x) for x in rng.uniform(1.5, 1.9, n)]})
+        d.update(
+            {
+                "mesh_depth": [rng.normal(size=(64, 27)) for _ in range(n)],
+                "mesh_contact": [(rng.random((64, 27)) > 0.5).astype(np.float64) for _ in range(n)],
+                "body_mass": [float(x) for x in rng.uniform(40, 100, n)],
+                "body_height": [np.float64(x) for x in rng.uniform(1.5, 1.9, n)],
+            }
+        )
     return d
 
 
@@ -227,8 +251,13 @@ def test_importer_round_trip(tmp_path):
     import_original([f1, f2], out)
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["counts"] == {"train": {"crossed_legs": {"female": 4}}, "test": {"supine": {"male": 3}}}
-    assert manifest["import"]["files"][1]["missing"] == ["mesh_depth", "mesh_contact", "body_mass", "body_height",
-                                                         "bed_angle_deg"]
+    assert manifest["import"]["files"][1]["missing"] == [
+        "mesh_depth",
+        "mesh_contact",
+        "body_mass",
+        "body_height",
+        "bed_angle_deg",
+    ]
     ds = PressurePoseDataset(out, columns=NAMES)
     assert len(ds) == 7
     for i in range(4):
@@ -244,8 +273,15 @@ def test_importer_round_trip(tmp_path):
 
 
 def test_restricted_unpickler_accepts_numpy_and_containers():
-    values = {"a": np.arange(6, dtype=np.int16).reshape(2, 3), "b": [np.float32(1.5), (1, 2.0, "x")],
-              b"k": {1, 2}, "c": np.array([1.0, 2.0]).T, "d": np.bool_(True), "e": frozenset([3]), "f": 2 + 1j}
+    values = {
+        "a": np.arange(6, dtype=np.int16).reshape(2, 3),
+        "b": [np.float32(1.5), (1, 2.0, "x")],
+        b"k": {1, 2},
+        "c": np.array([1.0, 2.0]).T,
+        "d": np.bool_(True),
+        "e": frozenset([3]),
+        "f": 2 + 1j,
+    }
     for protocol in (2, 4, 5):
         back = load_restricted(pickle.dumps(values, protocol=protocol))
         assert np.array_equal(back["a"], values["a"]) and back["a"].dtype == np.int16
@@ -258,11 +294,14 @@ class _Evil:
         return (os.system, ("touch pwned_by_pickle",))
 
 
-@pytest.mark.parametrize("payload, name", [
-    (OrderedDict(a=1), "collections.OrderedDict"),
-    ({"images": [_Evil()]}, "system"),
-    ({"x": [np.random.default_rng(0)]}, "numpy.random"),
-])
+@pytest.mark.parametrize(
+    "payload, name",
+    [
+        (OrderedDict(a=1), "collections.OrderedDict"),
+        ({"images": [_Evil()]}, "system"),
+        ({"x": [np.random.default_rng(0)]}, "numpy.random"),
+    ],
+)
 def test_restricted_unpickler_refuses_other_objects(tmp_path, payload, name, monkeypatch):
     monkeypatch.chdir(tmp_path)
     data = pickle.dumps(payload, protocol=2)
@@ -296,7 +335,10 @@ def test_importer_bad_inputs(tmp_path):
     with pytest.raises(ValueError, match="not a readable pickle|refusing"):
         read_original(tmp_path / "junk.p", gender="male")
     assert infer_labels(path.with_name("test_roll180_m_lay_set1_500.p")) == {
-        "split": "test", "gender": "male", "partition": "prone_hands_up"}
+        "split": "test",
+        "gender": "male",
+        "partition": "prone_hands_up",
+    }
 
 
 def test_import_original_cli(tmp_path, capsys):

@@ -33,8 +33,9 @@ def tiny(anny64, tmp_path_factory):
 def test_report_end_to_end(tiny):
     root, run = tiny
     out = root / "report"
-    paths = run_evaluate(EvaluateConfig(model=run, data=root / "test", out=out, train_data=root / "train",
-                                        batch=4, failures=3))
+    paths = run_evaluate(
+        EvaluateConfig(model=run, data=root / "test", out=out, train_data=root / "train", batch=4, failures=3)
+    )
     record = json.loads(paths["json"].read_text())
     n = len(open_dataset(root / "test"))
     assert record["count"] == n and len(record["per_sample"]["vpe_m"]) == n
@@ -76,8 +77,11 @@ def test_report_numbers_equal_the_per_sample_reference(tiny, tmp_path):
     from pressurepose.train.checkpoint import load_network
 
     root, run = tiny
-    paths = run_evaluate(EvaluateConfig(model=run, data=root / "test", out=tmp_path / "r", train_data=root / "train",
-                                        batch=4, failures=2))
+    paths = run_evaluate(
+        EvaluateConfig(
+            model=run, data=root / "test", out=tmp_path / "r", train_data=root / "train", batch=4, failures=2
+        )
+    )
     record = json.loads(paths["json"].read_text())
     net, _ = load_network(run)
     body, f32 = net.body, torch.float32
@@ -86,14 +90,24 @@ def test_report_numbers_equal_the_per_sample_reference(tiny, tmp_path):
     with torch.no_grad():
         for _, b in R._batches(R.open_split(root / "test", "test"), 4, None):  # batches of 4 and 2
             true = body(R._as_params(b, f32))
-            est = body(net(NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
-                                     mass_kg=b["mass_kg"]), mesh=False)[-1].params)
+            est = body(
+                net(
+                    NetInputs(
+                        pressure_mmhg=b["pressure_mmhg"],
+                        gender=b["gender"],
+                        height_m=b["height_m"],
+                        mass_kg=b["mass_kg"],
+                    ),
+                    mesh=False,
+                )[-1].params
+            )
             want["vpe_m"] += reference_vpe(est.vertices, true.vertices, body.faces)
             want["v2v_m"] += (est.vertices - true.vertices).norm(dim=-1).mean(-1).tolist()
             want["mpjpe_m"] += (est.joints - b["joints"]).norm(dim=-1).mean(-1).tolist()
             n = len(b["shape"])
-            want["mean_body"] += reference_vpe(body(mean.index(torch.zeros(n, dtype=torch.long))).vertices,
-                                               true.vertices, body.faces)
+            want["mean_body"] += reference_vpe(
+                body(mean.index(torch.zeros(n, dtype=torch.long))).vertices, true.vertices, body.faces
+            )
             nearest = torch.cdist(R._normalised(b["pressure_mmhg"]), images).argmin(1)
             want["nearest_image"] += reference_vpe(body(bodies.index(nearest)).vertices, true.vertices, body.faces)
     got = record["per_sample"]
@@ -132,8 +146,22 @@ def test_bad_inputs(tiny, tmp_path):
     write_npz(tmp_path / "empty" / "d.npz", empty)
     with pytest.raises(ValueError, match="no test samples"):
         run_evaluate(EvaluateConfig(model=run, data=tmp_path / "empty", out=tmp_path / "o"))
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "evaluate", "--model", str(tmp_path / "nothing"),
-                        "--data", str(root / "test"), "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pressurepose.cli",
+            "evaluate",
+            "--model",
+            str(tmp_path / "nothing"),
+            "--data",
+            str(root / "test"),
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "Traceback" not in r.stderr
 
 
@@ -158,7 +186,9 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
 
     _, run = tiny
     out = tmp_path / "real"
-    assert main(["evaluate-real", "--model", str(run), "--pmatdata", str(PMAT), "--groups", "CD", "--out", str(out)]) == 0
+    assert (
+        main(["evaluate-real", "--model", str(run), "--pmatdata", str(PMAT), "--groups", "CD", "--out", str(out)]) == 0
+    )
     record = json.loads((out / "real.json").read_text())
     assert record["frames"] == 12 and set(record["by_mattress"]) == {"air", "sponge"}
     for s in record["by_mattress"].values():
@@ -167,8 +197,24 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
         assert set(s["confusion"]) == {"supine", "left", "right"} and sum(s["confusion"]["supine"].values()) == 0
         assert s["height_mae_m"] < 1.0 and s["mass_mae_kg"] < 200
     assert (out / "real.png").read_bytes()[:4] == b"\x89PNG" and "posture accuracy" in (out / "real.md").read_text()
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "evaluate-real", "--model", str(run), "--pmatdata",
-                        str(PMAT), "--groups", "BX", "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pressurepose.cli",
+            "evaluate-real",
+            "--model",
+            str(run),
+            "--pmatdata",
+            str(PMAT),
+            "--groups",
+            "BX",
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "groups must be" in r.stderr
 
 
@@ -202,16 +248,30 @@ def test_evaluate_real_3dvpe_against_point_clouds_per_participant(tiny, tmp_path
     height, mass = np.array([1.6, 1.8, 1.7, 1.75]), np.array([60.0, 85.0, 70.0, 80.0])
     net, _ = load_network(run)
     with torch.no_grad():
-        est = net(NetInputs(torch.from_numpy(images), gender=torch.tensor([1.0, 0.0, 1.0, 0.0]),
-                            height_m=torch.tensor(height, dtype=torch.float32),
-                            mass_kg=torch.tensor(mass, dtype=torch.float32)), mesh=True, maps=False)[-1]
+        est = net(
+            NetInputs(
+                torch.from_numpy(images),
+                gender=torch.tensor([1.0, 0.0, 1.0, 0.0]),
+                height_m=torch.tensor(height, dtype=torch.float32),
+                mass_kg=torch.tensor(mass, dtype=torch.float32),
+            ),
+            mesh=True,
+            maps=False,
+        )[-1]
         mask, _ = camera_facing(est.vertices, net.faces)
     lift = 0.05
     clouds = [est.vertices[i][mask[i]].numpy() + (np.array([0, 0, lift]) if i >= 2 else 0) for i in range(4)]
     data = tmp_path / "real.npz"
-    np.savez(data, pressure_mmhg=images, subject=np.array(["A", "A", "B", "B"]), gender=gender, height_m=height,
-             mass_kg=mass, cloud_points=np.concatenate(clouds).astype(np.float32),
-             cloud_offsets=np.concatenate([[0], np.cumsum([len(c) for c in clouds])]))
+    np.savez(
+        data,
+        pressure_mmhg=images,
+        subject=np.array(["A", "A", "B", "B"]),
+        gender=gender,
+        height_m=height,
+        mass_kg=mass,
+        cloud_points=np.concatenate(clouds).astype(np.float32),
+        cloud_offsets=np.concatenate([[0], np.cumsum([len(c) for c in clouds])]),
+    )
     out = tmp_path / "report"
     assert main(["evaluate-real", "--model", str(run), "--data", str(data), "--out", str(out), "--batch", "3"]) == 0
     record = json.loads((out / "real.json").read_text())
@@ -231,11 +291,30 @@ def test_evaluate_real_3dvpe_against_point_clouds_per_participant(tiny, tmp_path
     assert "| A | 2 |" in (out / "real.md").read_text() and (out / "real.png").read_bytes()[:4] == b"\x89PNG"
     # A file without clouds, or with offsets that do not fit, is refused in one line.
     np.savez(data, pressure_mmhg=images, subject=np.array(["A"] * 4))
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "evaluate-real", "--model", str(run), "--data",
-                        str(data), "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pressurepose.cli",
+            "evaluate-real",
+            "--model",
+            str(run),
+            "--data",
+            str(data),
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "missing arrays ['cloud_points', 'cloud_offsets']" in r.stderr
-    np.savez(data, pressure_mmhg=images, subject=np.array(["A"] * 4), cloud_points=np.zeros((3, 3)),
-             cloud_offsets=np.array([0, 1, 1, 2, 3]))
+    np.savez(
+        data,
+        pressure_mmhg=images,
+        subject=np.array(["A"] * 4),
+        cloud_points=np.zeros((3, 3)),
+        cloud_offsets=np.array([0, 1, 1, 2, 3]),
+    )
     with pytest.raises(ValueError, match="every frame with at least one point"):
         from pressurepose.commands.evaluate_real import RealEvalConfig, run_evaluate_real
 

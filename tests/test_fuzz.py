@@ -21,22 +21,42 @@ from test_data import make_fake_dataset
 from pressurepose.cli import main
 from pressurepose.errors import UserError
 
-EXAMPLES = {"manifest": 40, "run_config": 12, "metrics": 12, "model": 12, "measurements": 40,
-            "pressure_npy": 40, "pressure_text": 30, "pressure_array": 40, "pickle": 40}
+EXAMPLES = {
+    "manifest": 40,
+    "run_config": 12,
+    "metrics": 12,
+    "model": 12,
+    "measurements": 40,
+    "pressure_npy": 40,
+    "pressure_text": 30,
+    "pressure_array": 40,
+    "pickle": 40,
+}
 
 
 def fuzz(name):
-    return settings(max_examples=EXAMPLES[name], deadline=None, derandomize=True, database=None,
-                    suppress_health_check=list(HealthCheck))
+    return settings(
+        max_examples=EXAMPLES[name],
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=list(HealthCheck),
+    )
 
 
 # --- mutations ------------------------------------------------------------------------------
 
 WEIRD = st.one_of(
-    st.none(), st.booleans(), st.integers(-(10**30), 10**30), st.sampled_from([0, -1, 2**63, 10**400 // 10**380]),
-    st.floats(allow_nan=True, allow_infinity=True), st.sampled_from([1e308, -1e308, 1e-308]),
-    st.text(max_size=12), st.sampled_from(["../../etc/passwd", "/etc/passwd", "", "shards/../../x", "\x00"]),
-    st.lists(st.integers(-3, 3), max_size=3), st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**30), 10**30),
+    st.sampled_from([0, -1, 2**63, 10**400 // 10**380]),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([1e308, -1e308, 1e-308]),
+    st.text(max_size=12),
+    st.sampled_from(["../../etc/passwd", "/etc/passwd", "", "shards/../../x", "\x00"]),
+    st.lists(st.integers(-3, 3), max_size=3),
+    st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
 )
 
 
@@ -70,7 +90,7 @@ def mutate_bytes(data, blob: bytes) -> bytes:
     blob = bytearray(blob)
     action = data.draw(st.sampled_from(["truncate", "flip", "insert", "flip_many"]), label="action")
     if action == "truncate":
-        return bytes(blob[:data.draw(st.integers(0, max(len(blob) - 1, 0)), label="keep")])
+        return bytes(blob[: data.draw(st.integers(0, max(len(blob) - 1, 0)), label="keep")])
     if action == "insert":
         at = data.draw(st.integers(0, len(blob)), label="at")
         return bytes(blob[:at] + data.draw(st.binary(min_size=1, max_size=8), label="junk") + blob[at:])
@@ -96,6 +116,7 @@ def assert_ok_or_one_line(code, capsys):
 
 
 # --- datasets ---------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def small_dataset(tmp_path_factory):
@@ -126,6 +147,7 @@ def test_fuzzed_manifests(small_dataset, tmp_path_factory, capsys):
 
 
 # --- run folders and network files ----------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def run_folder(small_dataset, tmp_path_factory):
@@ -188,19 +210,33 @@ def test_fuzzed_model_files(tmp_path_factory, capsys):
             if action == "drop":
                 del t[name]
             else:
-                t[name] = t[name].flatten()[:data.draw(st.integers(1, 5), label="size")].clone()
+                t[name] = t[name].flatten()[: data.draw(st.integers(1, 5), label="size")].clone()
         save_file(t, str(run / "model.safetensors"), metadata=m)
         if action == "bytes":
             blob = (run / "model.safetensors").read_bytes()
             (run / "model.safetensors").write_bytes(mutate_bytes(data, blob[:4096]) + blob[4096:])
         capsys.readouterr()
-        assert_ok_or_one_line(main(["predict", "--model", str(run), "--out", str(run / "p"), "--no-figures",
-                                    "--no-meshes", str(folder / "one.npy")]), capsys)
+        assert_ok_or_one_line(
+            main(
+                [
+                    "predict",
+                    "--model",
+                    str(run),
+                    "--out",
+                    str(run / "p"),
+                    "--no-figures",
+                    "--no-meshes",
+                    str(folder / "one.npy"),
+                ]
+            ),
+            capsys,
+        )
 
     check()
 
 
 # --- measurement files, pressure files, pickles: their readers ---------------------------------
+
 
 def raises_user_error_naming(path, call):
     """call() returns, or raises a UserError whose message names `path`; anything else fails."""
@@ -220,8 +256,17 @@ def measurement_doc():
     mat = MatSpec()
     pressure = np.zeros((mat.rows, mat.cols))
     pressure[20:25, 10:15] = 20.0
-    obj = {"name": "a", "shape": "capsule", "length_m": 0.2, "radius_m": 0.05, "mass_kg": 4.5, "x_m": 0.6,
-           "y_m": 0.37, "yaw_deg": 90.0, "compression_m": 0.01}
+    obj = {
+        "name": "a",
+        "shape": "capsule",
+        "length_m": 0.2,
+        "radius_m": 0.05,
+        "mass_kg": 4.5,
+        "x_m": 0.6,
+        "y_m": 0.37,
+        "yaw_deg": 90.0,
+        "compression_m": 0.01,
+    }
     return {"format": FORMAT, "scenes": [{"name": "s", "pressure_mmhg": pressure.tolist(), "objects": [obj]}]}
 
 
@@ -299,10 +344,12 @@ def test_fuzzed_pressure_text_frames(tmp_path):
 ARRAYS = st.one_of(
     st.tuples(st.integers(0, 3), st.integers(0, 70), st.integers(0, 30)).map(lambda s: np.ones(s, np.float32)),
     st.sampled_from([1e30, 1e36, 1e300, -1.0, np.nan, np.inf, 2000.0, 999.0, 0.0]).map(
-        lambda v: np.where(_image() > 0, v, 0.0)),
-    st.sampled_from(["int8", "uint64", "float16", "complex64", "bool", "U3"]).map(
-        lambda d: _image().astype(d)),
-    st.just(np.ones((64, 27, 1))), st.just(np.ones((2, 2, 64, 27))), st.just(np.ones((0, 64, 27))),
+        lambda v: np.where(_image() > 0, v, 0.0)
+    ),
+    st.sampled_from(["int8", "uint64", "float16", "complex64", "bool", "U3"]).map(lambda d: _image().astype(d)),
+    st.just(np.ones((64, 27, 1))),
+    st.just(np.ones((2, 2, 64, 27))),
+    st.just(np.ones((0, 64, 27))),
 )
 
 
@@ -337,9 +384,14 @@ def test_fuzzed_original_pickles(tmp_path):
     from pressurepose.data.importer import read_original
 
     n = 2
-    doc = {"images": [np.ones(64 * 27) for _ in range(n)], "markers_xyz_m": [np.zeros(72) for _ in range(n)],
-           "body_shape": [np.zeros(10) for _ in range(n)], "joint_angles": [np.zeros(72) for _ in range(n)],
-           "root_xyz_shift": [np.zeros(3) for _ in range(n)], "body_mass": [70.0] * n}
+    doc = {
+        "images": [np.ones(64 * 27) for _ in range(n)],
+        "markers_xyz_m": [np.zeros(72) for _ in range(n)],
+        "body_shape": [np.zeros(10) for _ in range(n)],
+        "joint_angles": [np.zeros(72) for _ in range(n)],
+        "root_xyz_shift": [np.zeros(3) for _ in range(n)],
+        "body_mass": [70.0] * n,
+    }
     blob = pickle.dumps(doc, protocol=2)
     path = tmp_path / "train_roll0_f_lay_set1_2.p"
     path.write_bytes(blob)

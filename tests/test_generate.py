@@ -39,8 +39,15 @@ SMALL_ARGS = ["--partition", "supine", "--n", "6", "--shard-size", "2", "--batch
 
 def cli(*args, **kwargs):
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).parents[1] / "src"))
-    return subprocess.Popen([sys.executable, "-m", "pressurepose.cli", *args], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True, **kwargs)
+    return subprocess.Popen(
+        [sys.executable, "-m", "pressurepose.cli", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        **kwargs,
+    )
 
 
 def files_of(root: Path) -> dict[str, bytes]:
@@ -57,14 +64,26 @@ def read_all(root: Path) -> dict[str, np.ndarray]:
 
 def fake_batch(index, rng, split):
     n = len(index)
-    f = dict(split=np.array([split] * n, dtype=object), partition=np.array(["supine"] * n, dtype=object),
-             gender=np.array(["female"] * n, dtype=object), over_bed=np.zeros(n, bool), index=index,
-             pressure_mmhg=rng.uniform(0, 100, (n, 64, 27)).astype(np.float32),
-             depth_mm=np.zeros((n, 64, 27), np.float32), contact=np.zeros((n, 64, 27), np.uint8),
-             shape=rng.random((n, 6)), root_rotation=np.zeros((n, 3)), root_translation=np.zeros((n, 3)),
-             pose=np.zeros((n, 23, 3)), joints_m=np.zeros((n, 24, 3)), mass_kg=np.full(n, 70.0),
-             height_m=np.full(n, 1.7), head_angle_deg=np.zeros(n), settle_steps=np.zeros(n, np.int32),
-             sink_mm=np.zeros(n, np.float32))
+    f = dict(
+        split=np.array([split] * n, dtype=object),
+        partition=np.array(["supine"] * n, dtype=object),
+        gender=np.array(["female"] * n, dtype=object),
+        over_bed=np.zeros(n, bool),
+        index=index,
+        pressure_mmhg=rng.uniform(0, 100, (n, 64, 27)).astype(np.float32),
+        depth_mm=np.zeros((n, 64, 27), np.float32),
+        contact=np.zeros((n, 64, 27), np.uint8),
+        shape=rng.random((n, 6)),
+        root_rotation=np.zeros((n, 3)),
+        root_translation=np.zeros((n, 3)),
+        pose=np.zeros((n, 23, 3)),
+        joints_m=np.zeros((n, 24, 3)),
+        mass_kg=np.full(n, 70.0),
+        height_m=np.full(n, 1.7),
+        head_angle_deg=np.zeros(n),
+        settle_steps=np.zeros(n, np.int32),
+        sink_mm=np.zeros(n, np.float32),
+    )
     return SampleBatch(**f)
 
 
@@ -85,10 +104,16 @@ def test_paper_preset_is_seed_table4():
     per = {}
     for g in rows:
         per.setdefault(g.partition, [0, 0])[g.split == "test"] += g.count
-    assert per == {"general": [104_000, 12_000], "supine": [52_000, 6_000], "hands_behind_head": [4_000, 1_000],
-                   "prone_hands_up": [8_000, 1_000], "crossed_legs": [8_000, 1_000], "straight_limbs": [8_000, 1_000]}
+    assert per == {
+        "general": [104_000, 12_000],
+        "supine": [52_000, 6_000],
+        "hands_behind_head": [4_000, 1_000],
+        "prone_hands_up": [8_000, 1_000],
+        "crossed_legs": [8_000, 1_000],
+        "straight_limbs": [8_000, 1_000],
+    }
     # every row is a (partition, gender, over_bed) the sampler accepts
-    for (part, _, over) in PAPER_TABLE4:
+    for part, _, over in PAPER_TABLE4:
         assert over in PARTITIONS[part].over_bed_choices
     small = preset_rows("small")
     assert [g.count * 100 for g in small] == [g.count for g in rows]
@@ -157,6 +182,7 @@ def test_bad_settings_are_clear(tmp_path, capsys):
 def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkeypatch):
     """A shard keeps exactly `count` samples: rejected primary indices are replaced by
     replacement indices, the same ones every time."""
+
     def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco"):
         rng = np.random.default_rng(seed)
         keep = [i for i in indices if i % 3 != 0]  # index 0, 3, 6, ... and some replacements rejected
@@ -178,8 +204,8 @@ def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkey
     assert len(rows["index"]) == spec.count == record["count"] == 10
     assert len(set(rows["index"])) == 10
     kept_primary = [i for i in primary if i % 3 != 0]
-    assert list(rows["index"][:len(kept_primary)]) == kept_primary
-    assert all(i >= REPLACEMENT_BASE for i in rows["index"][len(kept_primary):])
+    assert list(rows["index"][: len(kept_primary)]) == kept_primary
+    assert all(i >= REPLACEMENT_BASE for i in rows["index"][len(kept_primary) :])
     assert record["rejections"] == {"fake": record["candidates"] - 10}
     assert record["sampling_rejections"] == {"collisions": record["candidates"]}
 
@@ -195,7 +221,8 @@ def test_counts_exact_no_nan_and_labels_consistent(reference, anny64):
     assert manifest["total"] == summary["total"] == 6 == sum(g.count for g in groups)
     for g in groups:
         assert manifest["counts"][g.split][g.partition][g.gender] == sum(
-            h.count for h in groups if (h.split, h.partition, h.gender) == (g.split, g.partition, g.gender))
+            h.count for h in groups if (h.split, h.partition, h.gender) == (g.split, g.partition, g.gender)
+        )
     assert manifest["rejected"] == sum(manifest["rejections"].values()) == manifest["candidates"] - 6
     data = read_all(out)
     assert len(data["index"]) == 6
@@ -261,12 +288,13 @@ def test_resume_remakes_damaged_and_half_written_shards(reference, tmp_path, cap
     shards = sorted((out / "shards").glob("*.parquet"))
     data = bytearray(shards[0].read_bytes())
     data[200] ^= 0xFF
-    shards[0].write_bytes(bytes(data))                  # corrupted
-    shards[1].with_suffix(".json").unlink()             # killed between the shard and its record
+    shards[0].write_bytes(bytes(data))  # corrupted
+    shards[1].with_suffix(".json").unlink()  # killed between the shard and its record
     (out / "shards" / ".x.partial.parquet").write_bytes(b"partial")  # killed inside a write
     summary = run_generate(GenerateConfig(out=out, **SMALL), progress=False)
     assert summary["made"] == sum(
-        json.loads((ref / "shards" / f"{p.stem}.json").read_text())["count"] for p in shards[:2])
+        json.loads((ref / "shards" / f"{p.stem}.json").read_text())["count"] for p in shards[:2]
+    )
     assert "sha256 does not match" in caplog.text
     assert files_of(out) == files_of(ref)
     with pytest.raises(ValueError, match="other settings .*seed"):
@@ -288,8 +316,21 @@ def _children(pid: int) -> list[int]:
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
 def test_pool_workers_exit_when_the_generate_process_is_killed(tmp_path):
-    p = cli("generate", "--out", str(tmp_path / "ds"), "--partition", "supine", "--n", "64", "--shard-size", "2",
-            "--batch", "2", "--workers", "2")
+    p = cli(
+        "generate",
+        "--out",
+        str(tmp_path / "ds"),
+        "--partition",
+        "supine",
+        "--n",
+        "64",
+        "--shard-size",
+        "2",
+        "--batch",
+        "2",
+        "--workers",
+        "2",
+    )
     try:
         deadline = time.time() + 120
         workers: list[int] = []
@@ -306,8 +347,11 @@ def test_pool_workers_exit_when_the_generate_process_is_killed(tmp_path):
         deadline = time.time() + 15
         while time.time() < deadline and any(Path(f"/proc/{w}").exists() for w in workers):
             time.sleep(0.1)
-        alive = [w for w in workers if Path(f"/proc/{w}").exists()
-                 and Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"]
+        alive = [
+            w
+            for w in workers
+            if Path(f"/proc/{w}").exists() and Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        ]
         assert not alive, f"orphaned workers still running: {alive}"
     finally:
         with contextlib.suppress(ProcessLookupError):
@@ -366,8 +410,9 @@ def test_articulated_sim2_dataset(tmp_path):
     """`generate --sim2 articulated`: the manifest records it, images carry the weight, the
     stored parameters reproduce the stored joints; the rigid default's identity is unchanged."""
     out = tmp_path / "art"
-    run_generate(GenerateConfig(out=out, partition="supine", n=2, shard_size=2, batch=2, sim2="articulated"),
-                 progress=False)
+    run_generate(
+        GenerateConfig(out=out, partition="supine", n=2, shard_size=2, batch=2, sim2="articulated"), progress=False
+    )
     import json
 
     manifest = json.loads((out / "manifest.json").read_text())
@@ -381,8 +426,12 @@ def test_articulated_sim2_dataset(tmp_path):
     from pressurepose.body.params import BodyParams
 
     model = load_body_model("anny", dtype=torch.float64)
-    params = BodyParams(shape=torch.from_numpy(data["shape"]), root_rotation=torch.from_numpy(data["root_rotation"]),
-                        root_translation=torch.from_numpy(data["root_translation"]), pose=torch.from_numpy(data["pose"]))
+    params = BodyParams(
+        shape=torch.from_numpy(data["shape"]),
+        root_rotation=torch.from_numpy(data["root_rotation"]),
+        root_translation=torch.from_numpy(data["root_translation"]),
+        pose=torch.from_numpy(data["pose"]),
+    )
     np.testing.assert_allclose(model.joints(params).numpy(), data["joints_m"], atol=1e-4)
 
 
@@ -413,8 +462,12 @@ def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
     from pressurepose.body.params import BodyParams
 
     model = load_body_model("anny", dtype=torch.float64)
-    params = BodyParams(shape=torch.from_numpy(data["shape"]), root_rotation=torch.from_numpy(data["root_rotation"]),
-                        root_translation=torch.from_numpy(data["root_translation"]), pose=torch.from_numpy(data["pose"]))
+    params = BodyParams(
+        shape=torch.from_numpy(data["shape"]),
+        root_rotation=torch.from_numpy(data["root_rotation"]),
+        root_translation=torch.from_numpy(data["root_translation"]),
+        pose=torch.from_numpy(data["pose"]),
+    )
     np.testing.assert_allclose(model.joints(params).numpy(), data["joints_m"], atol=1e-4)
     from pressurepose.errors import UserError
 

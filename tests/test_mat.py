@@ -41,14 +41,18 @@ def test_taxel_centres_and_indexing():
     # Row 0 is at the head end (small x), column index grows with y.
     assert centres[0, 0, 0] == pytest.approx(mat.pitch_row_m / 2)
     assert centres[63, 0, 0] > centres[0, 0, 0] and centres[0, 26, 1] > centres[0, 0, 1]
-    assert np.allclose(np.floor(mat.to_taxel(centres)), np.stack(np.meshgrid(np.arange(64), np.arange(27), indexing="ij"), -1))
+    assert np.allclose(
+        np.floor(mat.to_taxel(centres)), np.stack(np.meshgrid(np.arange(64), np.arange(27), indexing="ij"), -1)
+    )
     covered = mat.taxel_centres_m(covered=True)
     assert covered.shape == (68, 33, 2)
     assert np.allclose(covered[mat.sensing_slice()], centres)
 
 
-@pytest.mark.parametrize("kwargs", [dict(rows=0), dict(pitch_row_m=-1.0), dict(covered_rows=65), dict(cols=2.5),
-                                    dict(pitch_col_m=float("nan"))])
+@pytest.mark.parametrize(
+    "kwargs",
+    [dict(rows=0), dict(pitch_row_m=-1.0), dict(covered_rows=65), dict(cols=2.5), dict(pitch_col_m=float("nan"))],
+)
 def test_bad_mat_spec(kwargs):
     with pytest.raises(ValueError, match="MatSpec"):
         MatSpec(**kwargs)

@@ -117,7 +117,9 @@ def test_camera_facing_and_vertex_areas():
 def test_joint_and_vertex_errors_against_loops_and_known_translation():
     est = torch.randn(3, 24, 3, generator=g, dtype=D)
     true = torch.randn(3, 24, 3, generator=g, dtype=D)
-    loop = torch.tensor([sum(float((est[b, j] - true[b, j]).norm()) for j in range(24)) / 24 for b in range(3)], dtype=D)
+    loop = torch.tensor(
+        [sum(float((est[b, j] - true[b, j]).norm()) for j in range(24)) / 24 for b in range(3)], dtype=D
+    )
     torch.testing.assert_close(mpjpe(est, true), loop)
     torch.testing.assert_close(per_vertex_error(est, true), loop)
     t = torch.tensor([0.03, -0.04, 0.0], dtype=D)  # |t| = 5 cm
@@ -208,14 +210,21 @@ def test_vpe_of_body_meshes_matches_the_brute_force_reference(anny64, anny32):
     # One mesh (a baseline's) against several, packed once.
     one = facing_meshes(est[:1], anny64.faces)
     many = facing_meshes(true, anny64.faces)
-    assert float((vpe_between(one, many) - reference_vpe(est[:1].expand(3, -1, -1), true, anny64.faces,
-                                                         CAMERA_M)).abs().max()) <= 1e-9
+    assert (
+        float(
+            (vpe_between(one, many) - reference_vpe(est[:1].expand(3, -1, -1), true, anny64.faces, CAMERA_M))
+            .abs()
+            .max()
+        )
+        <= 1e-9
+    )
     with pytest.raises(ValueError, match="batch size"):
         vpe_between(facing_meshes(est[:2], anny64.faces), many)
     # float32, as evaluate runs: equal to round-off.
     est32, true32 = posed_bodies(anny32, 2, 2, torch.float32), posed_bodies(anny32, 2, 3, torch.float32)
-    torch.testing.assert_close(vpe(est32, true32, anny32.faces), reference_vpe(est32, true32, anny32.faces, CAMERA_M),
-                               rtol=1e-5, atol=1e-8)
+    torch.testing.assert_close(
+        vpe(est32, true32, anny32.faces), reference_vpe(est32, true32, anny32.faces, CAMERA_M), rtol=1e-5, atol=1e-8
+    )
 
 
 def test_cloud_vpe_matches_the_brute_force_reference(anny64):

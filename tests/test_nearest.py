@@ -25,7 +25,7 @@ def clouds(seed: int):
     dup = torch.rand(40, 3, generator=g, dtype=D).repeat(3, 1)  # every point three times
     far = torch.rand(LEAF + 1, 3, generator=g, dtype=D) + 10.0
     one = torch.rand(1, 3, generator=g, dtype=D)
-    return [cube, flat, line, dup, far, one, cube[:LEAF], cube[:LEAF - 1]]
+    return [cube, flat, line, dup, far, one, cube[:LEAF], cube[: LEAF - 1]]
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -56,9 +56,10 @@ def test_body_meshes_match_the_brute_force(anny64):
     of two bodies far apart (a poor estimate)."""
     g = torch.Generator().manual_seed(4)
     params = BodyParams.zeros(3, anny64.default_shape(3), dtype=D)
-    params = params.replace(pose=0.3 * torch.randn(3, 23, 3, generator=g, dtype=D),
-                            root_translation=torch.tensor([[1.0, 0.4, 0.2], [1.02, 0.41, 0.21], [1.3, 0.3, 0.25]],
-                                                          dtype=D))
+    params = params.replace(
+        pose=0.3 * torch.randn(3, 23, 3, generator=g, dtype=D),
+        root_translation=torch.tensor([[1.0, 0.4, 0.2], [1.02, 0.41, 0.21], [1.3, 0.3, 0.25]], dtype=D),
+    )
     verts = anny64(params).vertices
     mask, _ = camera_facing(verts, anny64.faces)
     sets = [verts[k][mask[k]] for k in range(3)]
@@ -71,8 +72,9 @@ def test_body_meshes_match_the_brute_force(anny64):
     # round-off accurate, so agreement is to round-off.
     a, b = sets[0].float(), sets[1].float()
     torch.testing.assert_close(nearest_distance(a, b), nearest_brute(a, b), rtol=0, atol=5e-5)
-    torch.testing.assert_close(nearest_distance(a, b).double(), nearest_brute(a.double(), b.double()),
-                               rtol=0, atol=1e-6)
+    torch.testing.assert_close(
+        nearest_distance(a, b).double(), nearest_brute(a.double(), b.double()), rtol=0, atol=1e-6
+    )
 
 
 def test_forest_leaves_hold_every_point_in_a_tight_box():
@@ -82,7 +84,7 @@ def test_forest_leaves_hold_every_point_in_a_tight_box():
     assert torch.equal(slots.reshape(-1, 3), forest.points[forest.index])
     assert torch.equal(forest.lo, slots.amin(1)) and torch.equal(forest.hi, slots.amax(1))
     for k, s in enumerate(sets):
-        leaves = forest.index[int(forest.first[k]) * 8:int(forest.first[k + 1]) * 8]
+        leaves = forest.index[int(forest.first[k]) * 8 : int(forest.first[k + 1]) * 8]
         assert len(leaves) == -(-len(s) // 8) * 8  # whole leaves, fewer than 8 repeats
         assert set(leaves.tolist()) == set(range(int(forest.offsets[k]), int(forest.offsets[k + 1])))
 

@@ -70,12 +70,13 @@ def test_width_scales_the_fast_cnn_and_is_saved(anny32, tmp_path):
 def test_channels_and_options(anny32):
     net = PressureNet(NetConfig(height_weight=True, gender_input=True), body=anny32)
     p = _images(3)
-    x = net.channels(NetInputs(p, gender=torch.ones(3), height_m=torch.full((3,), 1.7),
-                               mass_kg=torch.full((3,), 70.0)))
+    x = net.channels(NetInputs(p, gender=torch.ones(3), height_m=torch.full((3,), 1.7), mass_kg=torch.full((3,), 70.0)))
     assert x.shape == (3, 6, 64, 27)
     assert torch.allclose(x[:, 1].sum((1, 2)), torch.full((3,), SUM_TOTAL))
     assert torch.equal(x[:, 0], (p > 0).float() * 100)
-    assert torch.allclose(x[:, 3], torch.full_like(x[:, 3], 1.7)) and torch.allclose(x[:, 4], torch.full_like(x[:, 4], 0.7))
+    assert torch.allclose(x[:, 3], torch.full_like(x[:, 3], 1.7)) and torch.allclose(
+        x[:, 4], torch.full_like(x[:, 4], 0.7)
+    )
     with pytest.raises(ValueError, match="height and mass"):
         net.channels(NetInputs(p))
     with pytest.raises(ValueError, match="shape"):
@@ -221,8 +222,11 @@ def test_synthesis_loss_prefers_the_true_body(anny64, samples):
     pressure = samples["pressure_mmhg"][:1].double()
     losses = []
     for shift in (0.0, 0.12):
-        params = true.replace(root_translation=(true.root_translation + torch.tensor([[shift, 0.0, 0.0]],
-                                                                                     dtype=torch.float64)).requires_grad_(True))
+        params = true.replace(
+            root_translation=(
+                true.root_translation + torch.tensor([[shift, 0.0, 0.0]], dtype=torch.float64)
+            ).requires_grad_(True)
+        )
         out = anny64(params)
         est = Estimate(raw=torch.zeros(1, 1), params=params, joints=out.joints, vertices=out.vertices)
         loss = synthesis_loss(net, est, pressure)

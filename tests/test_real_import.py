@@ -41,8 +41,9 @@ def _py2(obj) -> bytes:
         a = np.ascontiguousarray(obj, dtype="<f8")
         dtype = b"cnumpy\ndtype\n" + _py2(("f8", 0, 1)) + b"R" + _py2((3, "<", None, None, None, -1, -1, 0)) + b"b"
         state = b"(" + _py2(1) + _py2(tuple(a.shape)) + dtype + _py2(False) + _py2(a.tobytes()) + b"t"
-        return (b"cnumpy.core.multiarray\n_reconstruct\n(cnumpy\nndarray\n" + _py2((0,)) + _py2("b") + b"tR"
-                + state + b"b")
+        return (
+            b"cnumpy.core.multiarray\n_reconstruct\n(cnumpy\nndarray\n" + _py2((0,)) + _py2("b") + b"tR" + state + b"b"
+        )
     raise TypeError(type(obj))
 
 
@@ -72,13 +73,24 @@ def _frame(rng, head=True):
 
 def _write_participant(folder, rng, gender="f", height_in=65.0, weight_lbs=150.0, n=3, flat=True, **overrides):
     folder.mkdir(parents=True)
-    info = {"gender": gender, "height_in": height_in, "weight_lbs": weight_lbs,
-            "prescribed_pose_type": ["supine"] * n, "p_select_pose_type": ["x"]}
+    info = {
+        "gender": gender,
+        "height_in": height_in,
+        "weight_lbs": weight_lbs,
+        "prescribed_pose_type": ["supine"] * n,
+        "p_select_pose_type": ["x"],
+    }
     (folder / "participant_info_red.p").write_bytes(py2_pickle(info))
     images = [_frame(rng).ravel() if flat else _frame(rng) for _ in range(n)]
     clouds = [rng.uniform([0.2, 0.1, -0.3], [1.7, 0.7, 0.07], (50 + 10 * i, 3)) for i in range(n)]
-    data = {"images": images, "pc": clouds, "pose_type": [f"pose{i}" for i in range(n)],
-            "pmat_corners": [np.zeros((4, 2))] * n, "RGB": [np.zeros((2, 2))] * n, "depth": [np.zeros((2, 2))] * n}
+    data = {
+        "images": images,
+        "pc": clouds,
+        "pose_type": [f"pose{i}" for i in range(n)],
+        "pmat_corners": [np.zeros((4, 2))] * n,
+        "RGB": [np.zeros((2, 2))] * n,
+        "depth": [np.zeros((2, 2))] * n,
+    }
     data.update(overrides)
     (folder / "prescribed.p").write_bytes(py2_pickle(data))
     return images, clouds
@@ -95,7 +107,9 @@ def test_import_pressurepose_real_converts_units_orientation_and_clouds(tmp_path
     with np.load(out, allow_pickle=False) as f:
         d = {k: f[k] for k in f.files}
     assert d["pressure_mmhg"].shape == (5, 64, 27) and d["pressure_mmhg"].dtype == np.float32
-    assert d["subject"].tolist() == ["S103"] * 3 + ["S104"] * 2 and d["gender"].tolist() == ["female"] * 3 + ["male"] * 2
+    assert (
+        d["subject"].tolist() == ["S103"] * 3 + ["S104"] * 2 and d["gender"].tolist() == ["female"] * 3 + ["male"] * 2
+    )
     assert d["pose_type"].tolist() == ["pose0", "pose1", "pose2", "pose0", "pose1"] and (d["bed_angle_deg"] == 0).all()
     np.testing.assert_allclose(d["height_m"], [65 * 0.0254] * 3 + [72 * 0.0254] * 2)
     np.testing.assert_allclose(d["mass_kg"], [150 * 0.45359237] * 3 + [200 * 0.45359237] * 2)
@@ -107,30 +121,35 @@ def test_import_pressurepose_real_converts_units_orientation_and_clouds(tmp_path
     off = d["cloud_offsets"]
     assert off[0] == 0 and off[-1] == len(d["cloud_points"]) and np.diff(off).tolist() == [50, 60, 70, 50, 60]
     for k, pc in enumerate(pc_a + pc_b):
-        got = d["cloud_points"][off[k]:off[k + 1]]
+        got = d["cloud_points"][off[k] : off[k + 1]]
         want = np.stack([64 * 0.0286 * 1.04 - pc[:, 0], pc[:, 1], 0.075 - pc[:, 2]], 1)
         np.testing.assert_allclose(got, want, atol=1e-6)
         assert (got[:, 2] > -0.001).all()  # points above the bed stay above z = 0
     # A single participant folder works too, and "weight" makes sum p A = m g.
-    import_pressurepose_real(root / "S103", out, pose_sets=("prescribed",), pressure="weight",
-                             cloud_frame=CloudFrame(2.0, 0.1, 0.0))
+    import_pressurepose_real(
+        root / "S103", out, pose_sets=("prescribed",), pressure="weight", cloud_frame=CloudFrame(2.0, 0.1, 0.0)
+    )
     with np.load(out, allow_pickle=False) as f:
         p, m = f["pressure_mmhg"].astype(float), f["mass_kg"]
-        np.testing.assert_allclose(f["cloud_points"][:50], np.stack([2.0 - pc_a[0][:, 0], pc_a[0][:, 1] - 0.1,
-                                                                       -pc_a[0][:, 2]], 1), atol=1e-6)
+        np.testing.assert_allclose(
+            f["cloud_points"][:50], np.stack([2.0 - pc_a[0][:, 0], pc_a[0][:, 1] - 0.1, -pc_a[0][:, 2]], 1), atol=1e-6
+        )
     assert p.max() < 100  # unclipped here: exact force balance
     np.testing.assert_allclose(p.sum((1, 2)) * TAXEL_AREA_M2 * MMHG_PA, m * GRAVITY_M_S2, rtol=1e-5)
 
 
-@pytest.mark.parametrize("case, message", [
-    ("truncated", "not a readable pickle"),
-    ("missing_pc", "missing keys \\['pc'\\]"),
-    ("wrong_shape", "image 1 is not 64 x 27"),
-    ("bad_cloud", "point cloud 0 must be a non-empty \\(P, 3\\)"),
-    ("count", "'pc' has 1 entries but 'images' has 2"),
-    ("info_units", "not plausible"),
-    ("forbidden", "refusing to load the global os.system"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("truncated", "not a readable pickle"),
+        ("missing_pc", "missing keys \\['pc'\\]"),
+        ("wrong_shape", "image 1 is not 64 x 27"),
+        ("bad_cloud", "point cloud 0 must be a non-empty \\(P, 3\\)"),
+        ("count", "'pc' has 1 entries but 'images' has 2"),
+        ("info_units", "not plausible"),
+        ("forbidden", "refusing to load the global os.system"),
+    ],
+)
 def test_malformed_pressurepose_real_files_fail_with_one_line(tmp_path, case, message, capsys):
     rng = np.random.default_rng(1)
     folder = tmp_path / "S103"
@@ -169,14 +188,38 @@ def test_import_pressurepose_real_cli_and_predict_reads_it(tmp_path):
     rng = np.random.default_rng(2)
     _write_participant(tmp_path / "real" / "S107", rng, n=2)
     out = tmp_path / "r.npz"
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "import-pressurepose-real", str(tmp_path / "real"),
-                        "--out", str(out), "--pose-sets", "prescribed"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pressurepose.cli",
+            "import-pressurepose-real",
+            str(tmp_path / "real"),
+            "--out",
+            str(out),
+            "--pose-sets",
+            "prescribed",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0 and "2 frames of 1 participants" in r.stdout
     from pressurepose.net.inputs import read_pressure_file
 
     assert read_pressure_file(out).shape == (2, 64, 27)
-    r = subprocess.run([sys.executable, "-m", "pressurepose.cli", "import-pressurepose-real", str(tmp_path / "none"),
-                        "--out", str(out)], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pressurepose.cli",
+            "import-pressurepose-real",
+            str(tmp_path / "none"),
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "no folder" in r.stderr and "Traceback" not in r.stderr
 
 
@@ -243,13 +286,16 @@ def test_import_slp_resamples_with_force_kept_and_head_at_row_0(tmp_path):
         assert np.argmax(f["pressure_mmhg"][0].max(1)) >= 61
 
 
-@pytest.mark.parametrize("case, message", [
-    ("shape", "expected an SLP pressure map of shape \\(192, 84\\)"),
-    ("physique", "are not gender \\(0/1\\), height \\(cm\\), weight \\(kg\\)"),
-    ("nocali", "no PMcali.npy"),
-    ("pickle", "not a numpy array file without pickles"),
-    ("cover", "covers must be among"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("shape", "expected an SLP pressure map of shape \\(192, 84\\)"),
+        ("physique", "are not gender \\(0/1\\), height \\(cm\\), weight \\(kg\\)"),
+        ("nocali", "no PMcali.npy"),
+        ("pickle", "not a numpy array file without pickles"),
+        ("cover", "covers must be among"),
+    ],
+)
 def test_bad_slp_inputs_fail_with_one_line(tmp_path, case, message, capsys):
     rng = np.random.default_rng(4)
     root = tmp_path / "danaLab"
@@ -262,14 +308,17 @@ def test_bad_slp_inputs_fail_with_one_line(tmp_path, case, message, capsys):
     if case == "shape":
         np.save(root / "00001" / "PMarray" / "uncover" / "000001.npy", np.ones((120, 84)))
     if case == "pickle":
-        np.save(root / "00001" / "PMarray" / "uncover" / "000001.npy", np.array([{"a": 1}], dtype=object),
-                allow_pickle=True)
+        np.save(
+            root / "00001" / "PMarray" / "uncover" / "000001.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True
+        )
     covers = ["uncover", "blanket"] if case == "cover" else ["uncover"]
     out = tmp_path / "o.npz"
     from pressurepose.cli import main
 
-    rc = main(["import-slp", str(root), "--out", str(out), "--calibration", "pmcali"]
-              + (["--covers", *covers] if case != "cover" else []))
+    rc = main(
+        ["import-slp", str(root), "--out", str(out), "--calibration", "pmcali"]
+        + (["--covers", *covers] if case != "cover" else [])
+    )
     if case == "cover":
         with pytest.raises(ValueError, match=message):
             import_slp(root, out, covers=tuple(covers))

@@ -9,9 +9,9 @@ from pressurepose.eval import realism as R
 
 def test_coverage_by_hand():
     img = np.zeros((10, 3))
-    img[2] = [50, 40, 10]   # 100
-    img[3] = [0, 0.5, 0]    # 0.5 < 1% of 200.5
-    img[5] = [0, 100, 0]    # 100
+    img[2] = [50, 40, 10]  # 100
+    img[3] = [0, 0.5, 0]  # 0.5 < 1% of 200.5
+    img[5] = [0, 100, 0]  # 100
     # rows 2..5 span 4 rows, 2 carry >= 1%: coverage 0.5
     assert R.coverage(img) == pytest.approx(0.5)
     assert R.coverage(np.zeros((4, 4))) == 0.0
@@ -40,9 +40,9 @@ def test_region_shares_by_hand():
     """A 1 m tall subject on a 0.1 m grid: the head top at row 1, so row r's centre lies at
     (r - 1 + 0.5) x 0.1 of the height."""
     img = np.zeros((12, 9))
-    img[1, 4] = 10.0   # frac 0.05: head
-    img[4, 4] = 20.0   # frac 0.35: back
-    img[4, 0] = 5.0    # frac 0.35, 0.4 m from the centre column (> 0.09 m): arms
+    img[1, 4] = 10.0  # frac 0.05: head
+    img[4, 4] = 20.0  # frac 0.35: back
+    img[4, 0] = 5.0  # frac 0.35, 0.4 m from the centre column (> 0.09 m): arms
     img[10, 4] = 15.0  # frac 0.95: heels
     s = R.region_shares(img, 1.0, 0.1, 0.1)
     assert s["head"] == pytest.approx(0.2)
@@ -64,7 +64,9 @@ def test_summarise_and_compare_by_hand():
     # mean of unit-sum row profiles: frame 0 (0, .25, .75, 0), frame 1 (0, 1, 0, 0)
     np.testing.assert_allclose(s.along, [0, 0.625, 0.375, 0])
     c = R.compare(s, s)
-    assert c.along == pytest.approx(1.0) and c.area_ratio == pytest.approx(1.0) and c.coverage_ratio == pytest.approx(1.0)
+    assert (
+        c.along == pytest.approx(1.0) and c.area_ratio == pytest.approx(1.0) and c.coverage_ratio == pytest.approx(1.0)
+    )
     with pytest.raises(ValueError, match="finite"):
         R.summarise(np.full((1, 4, 3), np.nan), np.ones(1), 0.5, 0.5)
     with pytest.raises(ValueError, match="carry no load"):
@@ -81,9 +83,14 @@ def _tiny_folder(tmp_path, frame_text=None, rows=64):
     src = pmatdata_dir()
     with (src / "index.csv").open() as fh:
         records = list(csv.DictReader(fh))
-    keep = [r for r in records if r["subject"] in ("1", "5") and r["mattress"] == "sponge"
-            and r["group"] in ("C", "D") or (r["subject"] in ("1", "5") and r["mattress"] == "sponge"
-                                              and r["group"] == "B" and r["index"] == "1")]
+    keep = [
+        r
+        for r in records
+        if r["subject"] in ("1", "5")
+        and r["mattress"] == "sponge"
+        and r["group"] in ("C", "D")
+        or (r["subject"] in ("1", "5") and r["mattress"] == "sponge" and r["group"] == "B" and r["index"] == "1")
+    ]
     for r in keep:
         (tmp_path / r["file"]).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(src / r["file"], tmp_path / r["file"])

@@ -43,8 +43,10 @@ def roll_frame(poses):
     yaw = torch.as_tensor(poses.root_draw[:, 1])
     c, s = torch.cos(yaw), torch.sin(yaw)
     d = poses.joints - poses.params.root_translation[:, None]
-    return torch.stack([c[:, None] * d[..., 0] + s[:, None] * d[..., 1],
-                        -s[:, None] * d[..., 0] + c[:, None] * d[..., 1], d[..., 2]], -1)
+    return torch.stack(
+        [c[:, None] * d[..., 0] + s[:, None] * d[..., 1], -s[:, None] * d[..., 0] + c[:, None] * d[..., 1], d[..., 2]],
+        -1,
+    )
 
 
 def body_axes(poses):
@@ -88,8 +90,17 @@ def test_unknown_partition_lists_the_valid_ones():
         SamplingConfig(partition="hands_behind_head", over_bed=False)
     with pytest.raises(ValueError, match="max_limb_draws"):
         SamplingConfig(max_limb_draws=0)
-    assert set(PARTITIONS) == {"general", "supine", "hands_behind_head", "prone_hands_up", "crossed_legs",
-                               "straight_limbs", "half_sitting", "lateral", "lateral_straight"}
+    assert set(PARTITIONS) == {
+        "general",
+        "supine",
+        "hands_behind_head",
+        "prone_hands_up",
+        "crossed_legs",
+        "straight_limbs",
+        "half_sitting",
+        "lateral",
+        "lateral_straight",
+    }
     assert get_partition("supine").roll == (0.0, 0.0)
 
 
@@ -168,8 +179,14 @@ def test_determinism_same_index_same_sample(anny):
 def test_records_partition_rejections_and_rests_on_the_mat(anny):
     poses = draw(anny, 40, partition="supine", gender="female", over_bed=True)
     assert poses.config.partition == "supine" and poses.config.over_bed
-    assert set(poses.rejections) == {"limb_draws_rejected", "limb_failures", "collisions", "shape_resamples",
-                                     "cell_redraws", "sit_up_rejections"}
+    assert set(poses.rejections) == {
+        "limb_draws_rejected",
+        "limb_failures",
+        "collisions",
+        "shape_resamples",
+        "cell_redraws",
+        "sit_up_rejections",
+    }
     assert (poses.rejections["sit_up_rejections"] == 0).all()  # a flat partition never sits up
     assert sum(int(v.sum()) for v in poses.rejections.values()) > 0
     anny._check(poses.params.to(anny.dtype))  # valid BodyParams for the model
@@ -240,13 +257,21 @@ def test_determinism_over_the_bed(anny):
         alone = PoseSampler(anny, cfg).sample([i])
         for field in ("shape", "root_rotation", "root_translation", "pose"):
             torch.testing.assert_close(getattr(alone.params, field)[0], getattr(batch.params, field)[i], rtol=0, atol=0)
-        assert {k: int(v[0]) for k, v in alone.rejections.items()} == {k: int(v[i]) for k, v in batch.rejections.items()}
+        assert {k: int(v[0]) for k, v in alone.rejections.items()} == {
+            k: int(v[i]) for k, v in batch.rejections.items()
+        }
 
 
 def test_the_float32_screen_drops_no_valid_draw(anny, monkeypatch):
     # With the screen let through every draw, only the exact tests decide: same samples.
-    configs = [SamplingConfig(partition=p, gender=g, over_bed=o, seed=5) for p, g, o in
-               (("general", "male", True), ("crossed_legs", "female", True), ("hands_behind_head", "male", True))]
+    configs = [
+        SamplingConfig(partition=p, gender=g, over_bed=o, seed=5)
+        for p, g, o in (
+            ("general", "male", True),
+            ("crossed_legs", "female", True),
+            ("hands_behind_head", "male", True),
+        )
+    ]
     screened = [PoseSampler(anny, cfg).sample(range(4)) for cfg in configs]
 
     def everything(self, ctx, pending, limb, u):
@@ -284,8 +309,8 @@ def test_hands_behind_head_and_prone_hands_up(anny):
     for s in ("left", "right"):
         wr, sh = J(f"{s}_wrist"), J(f"{s}_shoulder")
         assert (body[:, wr, 0].abs() < body[:, sh, 0].abs()).all()  # between midline and shoulder
-        assert (p[:, wr, 0] <= p[:, sh, 0]).all()                    # toward the head
-        assert (p[:, wr, 2] <= p[:, sh, 2] + 1e-9).all()             # not above the shoulder
+        assert (p[:, wr, 0] <= p[:, sh, 0]).all()  # toward the head
+        assert (p[:, wr, 2] <= p[:, sh, 2] + 1e-9).all()  # not above the shoulder
     assert_collision_free(anny, poses, PARTITIONS["hands_behind_head"].checked_capsules)
     prone = draw(anny, 20, partition="prone_hands_up", gender="male", over_bed=True)
     front = root_matrix(prone.params.root_rotation)[:, :, 2]

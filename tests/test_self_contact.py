@@ -13,7 +13,7 @@ from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
 from pressurepose.sim.articulation import Dofs, apply_motion, dof_axes_pivots
-from pressurepose.sim.self_contact import SelfContact, LinearSprings, closest_points
+from pressurepose.sim.self_contact import LinearSprings, SelfContact, closest_points
 
 
 def test_closest_points_match_a_dense_search():
@@ -45,7 +45,8 @@ def _forearm_over_belly(model, B=1):
     pose[:, joint_index("left_shoulder") - 1] = torch.tensor([0.5, -1.0, -1.0], dtype=torch.float64)
     pose[:, joint_index("left_elbow") - 1] = torch.tensor([0.0, -1.6, 0.0], dtype=torch.float64)
     return BodyParams.zeros(B, model.default_shape(B)).replace(
-        pose=pose, root_translation=torch.tensor([[0.85, mat.sensing_width_m / 2, 0.25]] * B, dtype=torch.float64))
+        pose=pose, root_translation=torch.tensor([[0.85, mat.sensing_width_m / 2, 0.25]] * B, dtype=torch.float64)
+    )
 
 
 def test_gap_jacobian_matches_moved_poses(anny64):
@@ -74,10 +75,12 @@ def test_gap_jacobian_matches_moved_poses(anny64):
 def test_energy_derivatives_match_autograd():
     g = torch.Generator().manual_seed(2)
     B, P, N = 2, 7, 5
-    lin = LinearSprings(gap=0.01 * torch.randn(B, P, generator=g, dtype=torch.float64),
-                                jac=torch.randn(B, P, N, generator=g, dtype=torch.float64),
-                                stiffness=torch.tensor([1e4, 3e4], dtype=torch.float64),
-                                mask=(torch.rand(B, P, generator=g) > 0.2).to(torch.float64))
+    lin = LinearSprings(
+        gap=0.01 * torch.randn(B, P, generator=g, dtype=torch.float64),
+        jac=torch.randn(B, P, N, generator=g, dtype=torch.float64),
+        stiffness=torch.tensor([1e4, 3e4], dtype=torch.float64),
+        mask=(torch.rand(B, P, generator=g) > 0.2).to(torch.float64),
+    )
     q = 0.01 * torch.randn(B, N, generator=g, dtype=torch.float64)
     e, grad, hess = lin.gradient_hessian(q)
     qa = q.clone().requires_grad_(True)
@@ -85,8 +88,9 @@ def test_energy_derivatives_match_autograd():
     g_auto = torch.autograd.grad(lin.energy(qa).sum(), qa)[0]
     np.testing.assert_allclose(grad.numpy(), g_auto.numpy(), rtol=1e-9, atol=1e-9)
     for b in range(B):
-        h_auto = torch.autograd.functional.hessian(lambda x: lin.energy(x[None])[0] if b == 0 else
-                                                   lin.energy(torch.stack([q[0], x]))[1], q[b])
+        h_auto = torch.autograd.functional.hessian(
+            lambda x: lin.energy(x[None])[0] if b == 0 else lin.energy(torch.stack([q[0], x]))[1], q[b]
+        )
         np.testing.assert_allclose(hess[b].numpy(), h_auto.numpy(), rtol=1e-9, atol=1e-6)
 
 
@@ -128,8 +132,13 @@ def test_friction_anchors_where_a_part_touches_and_slips_beyond_mu_n():
     joints[0, 5, 0] = 0.001
     fr.update(rot, joints, part, xyz, force, stiff)
     np.testing.assert_allclose(fr.anchor[0, 5].numpy(), [1.15, 0.2])
-    springs = fr.linearise(rot, joints, torch.zeros(B, 4, 3, dtype=torch.float64),
-                           torch.zeros(B, 4, 3, dtype=torch.float64), torch.ones(4, 24, dtype=torch.float64))
+    springs = fr.linearise(
+        rot,
+        joints,
+        torch.zeros(B, 4, 3, dtype=torch.float64),
+        torch.zeros(B, 4, 3, dtype=torch.float64),
+        torch.ones(4, 24, dtype=torch.float64),
+    )
     np.testing.assert_allclose(float(springs.energy(torch.zeros(B, 4, dtype=torch.float64))[0]), 0.5 * 2e3 * 1e-6)
     assert float(springs.sliding_force[0, 5]) == 0.5 * 40
     # It moves 5 cm: the anchor slides after it, the spring at mu N.
@@ -151,8 +160,14 @@ def test_friction_jacobian_matches_moved_poses(anny64):
     fr = Friction(1, 0.5, torch.float64, "cpu")
     # Every part touches at its joint (a contact point per part, unit force and stiffness).
     part = torch.arange(24)[None]
-    fr.update(rot, joints, part, joints.clone(), torch.ones(1, 24, dtype=torch.float64),
-              torch.ones(1, 24, dtype=torch.float64))
+    fr.update(
+        rot,
+        joints,
+        part,
+        joints.clone(),
+        torch.ones(1, 24, dtype=torch.float64),
+        torch.ones(1, 24, dtype=torch.float64),
+    )
     com = joints.mean(1)
     axes, pivots = dof_axes_pivots(dofs, rot, joints, com)
     springs = fr.linearise(rot, joints, axes, pivots, dofs.desc[dofs.joint])
@@ -172,10 +187,12 @@ def test_coulomb_springs_derivatives_and_sliding_force():
 
     g = torch.Generator().manual_seed(4)
     B, N = 2, 6
-    springs = CoulombSprings(offset=0.01 * torch.randn(B, 24, 2, generator=g, dtype=torch.float64),
-                             jac=torch.randn(B, 24, 2, N, generator=g, dtype=torch.float64),
-                             stiffness=torch.rand(B, 24, generator=g, dtype=torch.float64) * 1e3,
-                             sliding_force=torch.rand(B, 24, generator=g, dtype=torch.float64) * 5.0)
+    springs = CoulombSprings(
+        offset=0.01 * torch.randn(B, 24, 2, generator=g, dtype=torch.float64),
+        jac=torch.randn(B, 24, 2, N, generator=g, dtype=torch.float64),
+        stiffness=torch.rand(B, 24, generator=g, dtype=torch.float64) * 1e3,
+        sliding_force=torch.rand(B, 24, generator=g, dtype=torch.float64) * 5.0,
+    )
     springs.stiffness[:, :4] = 0.0  # parts without an anchor
     q = 0.01 * torch.randn(B, N, generator=g, dtype=torch.float64)
     s = springs._s(q).norm(dim=-1)
@@ -186,15 +203,21 @@ def test_coulomb_springs_derivatives_and_sliding_force():
     qa = q.clone().requires_grad_(True)
     np.testing.assert_allclose(grad.numpy(), torch.autograd.grad(springs.energy(qa).sum(), qa)[0].numpy(), rtol=1e-9)
     for b in range(B):
+
         def one(x):
             qq = q.clone()
             qq[b] = x
             return springs.energy(qq)[b]
-        np.testing.assert_allclose(hess[b].numpy(), torch.autograd.functional.hessian(one, q[b]).numpy(),
-                                   rtol=1e-7, atol=1e-7)
+
+        np.testing.assert_allclose(
+            hess[b].numpy(), torch.autograd.functional.hessian(one, q[b]).numpy(), rtol=1e-7, atol=1e-7
+        )
     # One sliding part alone: its force (the gradient w.r.t. its offset) has size mu N.
-    one_part = CoulombSprings(offset=torch.tensor([[[0.3, 0.4]]], dtype=torch.float64),
-                              jac=torch.eye(2, dtype=torch.float64)[None, None], stiffness=torch.tensor([[100.0]], dtype=torch.float64),
-                              sliding_force=torch.tensor([[2.0]], dtype=torch.float64))
+    one_part = CoulombSprings(
+        offset=torch.tensor([[[0.3, 0.4]]], dtype=torch.float64),
+        jac=torch.eye(2, dtype=torch.float64)[None, None],
+        stiffness=torch.tensor([[100.0]], dtype=torch.float64),
+        sliding_force=torch.tensor([[2.0]], dtype=torch.float64),
+    )
     _, grad, _ = one_part.gradient_hessian(torch.zeros(1, 2, dtype=torch.float64))
     np.testing.assert_allclose(grad[0].numpy(), [1.2, 1.6])

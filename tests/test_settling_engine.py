@@ -27,8 +27,13 @@ def _drawn(model, partition, n, seed=0):
 def test_every_partition_rests_without_nan(anny64, partition):
     params = _drawn(anny64, partition, 2)
     hold = settle_config_for(partition).hold_roll_m
-    sim = simulate_poses(anny64, params, MattressParams.preset("sponge"), settle="articulated",
-                         articulated=ArticulatedConfig(hold_roll_m=hold))
+    sim = simulate_poses(
+        anny64,
+        params,
+        MattressParams.preset("sponge"),
+        settle="articulated",
+        articulated=ArticulatedConfig(hold_roll_m=hold),
+    )
     for name in ("pressure_mmhg", "depth_mm", "joints", "vertices"):
         assert torch.isfinite(getattr(sim, name)).all(), name
     kept = [i for i, r in enumerate(sim.reason) if not r]

@@ -28,8 +28,8 @@ def supine(anny64):
     shape = anny64.default_shape(2)
     shape[1, 0] = 1.0
     p = BodyParams.zeros(2, shape).replace(
-        pose=home_pose(2, dtype=D),
-        root_translation=torch.tensor([[0.85, 0.37, 0.15]] * 2, dtype=D))
+        pose=home_pose(2, dtype=D), root_translation=torch.tensor([[0.85, 0.37, 0.15]] * 2, dtype=D)
+    )
     out = anny64(p)
     return out.vertices, out.faces, anny64.measure(shape).mass_kg
 
@@ -109,8 +109,10 @@ def test_gradients_flow_to_vertices_mass_and_parameters():
     assert torch.isfinite(gv).all() and gv.abs().sum() > 0
     # Finite differences of the rest depth in the mass and the stiffness (both smooth there).
     h = 1e-4
-    for value, grad, make in ((8.0, gm, lambda x: _capsule_depth(v.detach(), f, x, 2.0e4)),
-                              (2.0e4, gk, lambda x: _capsule_depth(v.detach(), f, 8.0, x))):
+    for value, grad, make in (
+        (8.0, gm, lambda x: _capsule_depth(v.detach(), f, x, 2.0e4)),
+        (2.0e4, gk, lambda x: _capsule_depth(v.detach(), f, 8.0, x)),
+    ):
         fd = (make(value * (1 + h)) - make(value * (1 - h))) / (2 * h * value)
         assert math.isclose(float(grad), fd, rel_tol=0.05), (float(grad), fd)
 
@@ -206,7 +208,9 @@ def test_mattress_params_round_trip_and_bad_files(tmp_path):
         MattressParams(spread_m=float("nan"))
 
 
-@pytest.mark.parametrize("length,radius,mass", [(0.2, 0.05, 1.3), (0.2, 0.05, 9.1), (0.4, 0.06, 4.5), (0.4, 0.06, 18.0)])
+@pytest.mark.parametrize(
+    "length,radius,mass", [(0.2, 0.05, 1.3), (0.2, 0.05, 9.1), (0.4, 0.06, 4.5), (0.4, 0.06, 18.0)]
+)
 def test_sim1_and_sim2_sink_alike(length, radius, mass):
     v, f = capsule_mesh(length, radius, centre=(0.9, 0.37, radius + 0.01))
     sim2 = float(simulate_pressure(v[None], f, torch.tensor([mass], dtype=D)).max_compression_m)
@@ -235,7 +239,9 @@ def test_sim1_settles_typical_poses_of_every_partition(anny64, partition):
     ok = 0
     for bed in set(poses.beds()):  # the half_sitting partition's samples rest on raised beds
         rows = [i for i, b in enumerate(poses.beds()) if b == bed]
-        params = BodyParams(**{f: getattr(poses.params, f)[rows] for f in ("shape", "root_rotation", "root_translation", "pose")})
+        params = BodyParams(
+            **{f: getattr(poses.params, f)[rows] for f in ("shape", "root_rotation", "root_translation", "pose")}
+        )
         res = settle(anny64, params, bed=bed, config=settle_config_for(partition))
         for name in ("root_rotation", "root_translation", "pose"):
             assert torch.isfinite(getattr(res.params, name)).all()
@@ -296,7 +302,9 @@ def test_trunk_roll_hold_keeps_straight_legged_side_lying_bodies_on_their_side(a
     from pressurepose.bed import BedShape
     from pressurepose.sim.run import simulate_poses
 
-    sim = simulate_poses(anny64, params, bed=[BedShape(), BedShape()], settle_config=settle_config_for("lateral_straight"))
+    sim = simulate_poses(
+        anny64, params, bed=[BedShape(), BedShape()], settle_config=settle_config_for("lateral_straight")
+    )
     assert sim.reason == ["", ""]
     assert (roll_deg(sim.params.root_rotation).abs() > 45).all()
 
@@ -310,9 +318,14 @@ def test_sim1_is_deterministic_and_batch_independent(anny64):
     a = settle(anny64, params, batch=2)
     b = settle(anny64, params, batch=1)
     assert a.reason == b.reason and (a.steps == b.steps).all() and len(set(a.steps)) == 3
-    assert torch.equal(a.params.pose, b.params.pose) and torch.equal(a.params.root_translation, b.params.root_translation)
+    assert torch.equal(a.params.pose, b.params.pose) and torch.equal(
+        a.params.root_translation, b.params.root_translation
+    )
     # Alone, a body settles exactly as it does among others.
-    c = settle(anny64, params.replace(**{k: getattr(params, k)[2:] for k in ("shape", "root_rotation", "root_translation", "pose")}))
+    c = settle(
+        anny64,
+        params.replace(**{k: getattr(params, k)[2:] for k in ("shape", "root_rotation", "root_translation", "pose")}),
+    )
     assert c.steps[0] == a.steps[2] and torch.equal(c.params.pose[0], a.params.pose[2])
 
 
@@ -446,8 +459,8 @@ def test_sim1_underside_matches_a_brute_force_search():
         c = centre + np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(-0.02, 0.05)])
         half = rng.uniform(0.0, 0.2)
         caps.append((c - half * u, c + half * u, rng.uniform(0.03, 0.07)))
-    caps.append((centre + [0, 0, 0.01], centre + [0, 0, 0.3], 0.05))   # upright
-    caps.append((centre + [0, 0, 0.3], centre + [0, 0, 0.01], 0.05))   # upright, ends swapped
+    caps.append((centre + [0, 0, 0.01], centre + [0, 0, 0.3], 0.05))  # upright
+    caps.append((centre + [0, 0, 0.3], centre + [0, 0, 0.01], 0.05))  # upright, ends swapped
     caps.append((centre - [0.2, 0, -0.02], centre + [0.2, 0, 0.02], 0.06))  # horizontal
     a = np.array([c[0] for c in caps])
     b = np.array([c[1] for c in caps])

@@ -47,9 +47,11 @@ def test_fixed_order_helpers_match_numpy_and_are_row_independent():
             lo = max(0, min(k, 37 - n))
             sl = slice(lo, lo + n)
             for shift in (0, 1, 3):
-                assert np.array_equal(sq_norm3(_misaligned(v[sl], shift))[k - lo], sq_norm3(v[k:k + 1])[0])
-                assert np.array_equal(matvec3(_misaligned(R[sl], shift), v[sl])[k - lo], matvec3(R[k:k + 1], v[k:k + 1])[0])
-                assert np.array_equal(sum_last(_misaligned(s[sl], shift))[k - lo], sum_last(s[k:k + 1])[0])
+                assert np.array_equal(sq_norm3(_misaligned(v[sl], shift))[k - lo], sq_norm3(v[k : k + 1])[0])
+                assert np.array_equal(
+                    matvec3(_misaligned(R[sl], shift), v[sl])[k - lo], matvec3(R[k : k + 1], v[k : k + 1])[0]
+                )
+                assert np.array_equal(sum_last(_misaligned(s[sl], shift))[k - lo], sum_last(s[k : k + 1])[0])
 
 
 def _bodies(n: int, seed: int = 1):
@@ -63,9 +65,18 @@ def _bodies(n: int, seed: int = 1):
         c = centre + np.stack([rng.uniform(-0.4, 0.4, C), rng.uniform(-0.2, 0.2, C), rng.uniform(-0.03, 0.06, C)], 1)
         half = rng.uniform(0.0, 0.15, C)[:, None]
         com = np.broadcast_to(centre + [0.0, 0.0, 0.1], (C, 3)).copy()
-        out.append(dict(a=c - half * u, b=c + half * u, r=rng.uniform(0.03, 0.07, C),
-                        vel=rng.normal(scale=0.2, size=(C, 6)), com=com, xipos=c + rng.normal(scale=0.01, size=(C, 3)),
-                        mass=rng.uniform(0.5, 10.0, C), inertia=rng.uniform(0.005, 0.2, C)))
+        out.append(
+            dict(
+                a=c - half * u,
+                b=c + half * u,
+                r=rng.uniform(0.03, 0.07, C),
+                vel=rng.normal(scale=0.2, size=(C, 6)),
+                com=com,
+                xipos=c + rng.normal(scale=0.01, size=(C, 3)),
+                mass=rng.uniform(0.5, 10.0, C),
+                inertia=rng.uniform(0.005, 0.2, C),
+            )
+        )
     return out
 
 
@@ -73,8 +84,19 @@ def _forces(found: CapsuleFoundation, bodies: list[dict], stick: np.ndarray):
     n = len(bodies)
     cat = {k: np.concatenate([b[k] for b in bodies]) for k in bodies[0]}
     offset = np.repeat(np.arange(n) * found.nr * found.nc, C)
-    return found.forces(cat["a"], cat["b"], cat["r"], cat["vel"], cat["com"], cat["xipos"], cat["mass"],
-                        cat["inertia"], offset, 0.0103, stick)
+    return found.forces(
+        cat["a"],
+        cat["b"],
+        cat["r"],
+        cat["vel"],
+        cat["com"],
+        cat["xipos"],
+        cat["mass"],
+        cat["inertia"],
+        offset,
+        0.0103,
+        stick,
+    )
 
 
 @pytest.mark.parametrize("head_angle", [0.0, 35.0])
@@ -93,11 +115,11 @@ def test_mattress_forces_of_a_body_do_not_depend_on_its_batch(head_angle):
         out, cap, w, energy = _forces(found, [bodies[k] for k in order], st)
         for j, k in enumerate(order):
             (out1, cap1, w1, e1), st1 = alone[k]
-            assert np.array_equal(out[j * C:(j + 1) * C], out1)
+            assert np.array_equal(out[j * C : (j + 1) * C], out1)
             mine = cap // C == j
             assert np.array_equal(cap[mine] - j * C, cap1) and np.array_equal(w[mine], w1)
             assert np.array_equal(energy[mine], e1)
-            assert np.array_equal(st[:, j * C:(j + 1) * C], st1)
+            assert np.array_equal(st[:, j * C : (j + 1) * C], st1)
             touched += int((np.abs(out1[:, 2]) > 0).sum())
     assert touched > 50  # the bodies do press on the mattress
     # The forces are real: upward, and they hold the capsules' sunk parts (not all zero).
@@ -139,11 +161,12 @@ def test_capsule_bodies_built_one_by_one_depend_on_their_own_shape_only(anny64):
     together = build_capsule_body(anny64, shape, volume_points=SIM_VOLUME_POINTS, one_by_one=True)
     batched = build_capsule_body(anny64, shape, volume_points=SIM_VOLUME_POINTS)
     for i in (0, 2):
-        alone = build_capsule_body(anny64, shape[i:i + 1], volume_points=SIM_VOLUME_POINTS, one_by_one=True)
+        alone = build_capsule_body(anny64, shape[i : i + 1], volume_points=SIM_VOLUME_POINTS, one_by_one=True)
         for name in ("volume_m3", "mass_kg", "inertia", "stiffness", "damping", "home_pose", "body_mass_kg"):
             assert torch.equal(getattr(together, name)[i], getattr(alone, name)[0]), name
             torch.testing.assert_close(getattr(together, name)[i], getattr(batched, name)[i], rtol=1e-12, atol=1e-15)
         for name in ("start", "end", "radius", "rest"):
             assert torch.equal(getattr(together.capsules, name)[i], getattr(alone.capsules, name)[0]), name
-            torch.testing.assert_close(getattr(together.capsules, name)[i], getattr(batched.capsules, name)[i],
-                                       rtol=1e-12, atol=1e-15)
+            torch.testing.assert_close(
+                getattr(together.capsules, name)[i], getattr(batched.capsules, name)[i], rtol=1e-12, atol=1e-15
+            )

@@ -118,8 +118,10 @@ def test_trunk_pitch_rests_the_trunk_on_both_sections(caps):
     for hips_past_hinge in (0.15, 0.3, 0.45):
         params = lying(caps, yaw=(0.0, 0.0))
         hip_x = pose_in_mat(caps.rest, params)[1][:, HIPS, 0].mean(1)
-        params = params.replace(root_translation=params.root_translation
-                                + torch.stack([bed.hinge_x(MAT) + hips_past_hinge - hip_x, 0 * hip_x, 0 * hip_x], -1))
+        params = params.replace(
+            root_translation=params.root_translation
+            + torch.stack([bed.hinge_x(MAT) + hips_past_hinge - hip_x, 0 * hip_x, 0 * hip_x], -1)
+        )
         pitch = trunk_pitch(caps, params, bed, MAT)
         assert ((pitch > 0) & (pitch < bed.angle_rad)).all()
         sat = fold_params(params, caps.rest, pitch)
@@ -144,8 +146,9 @@ def test_half_sitting_params_keep_the_legs_straight_and_flat(anny64):
     # the trunk's pitch.
     flat = BodyParams.zeros(1, anny64.default_shape(1).to(D)).replace(pose=home_pose(1))
     _, pos_flat = pose_in_mat(c.rest.to(D), flat)
-    torch.testing.assert_close(pos[0, LEGS] - pos[0, LEGS[:1]], pos_flat[0, LEGS] - pos_flat[0, LEGS[:1]],
-                               rtol=0, atol=1e-9)
+    torch.testing.assert_close(
+        pos[0, LEGS] - pos[0, LEGS[:1]], pos_flat[0, LEGS] - pos_flat[0, LEGS[:1]], rtol=0, atol=1e-9
+    )
     assert float(params.pose[0, J("left_hip") - 1, 0]) < -0.2
     assert float(pos[0, J("head"), 2]) > 0.25
 
@@ -169,7 +172,7 @@ def test_half_sitting_partition_sits_on_its_raised_bed(anny32, anny64, sitting):
     assert (capsule_clearance(a, b, caps.radius, pairs) > -1e-6).all()
     trunk = list(TRUNK_CAPSULES)
     for i, bed in enumerate(poses.beds()):
-        gaps = capsule_gaps(a[i:i + 1], b[i:i + 1], caps.radius[i:i + 1], bed, MAT)
+        gaps = capsule_gaps(a[i : i + 1], b[i : i + 1], caps.radius[i : i + 1], bed, MAT)
         assert abs(float(gaps.amin())) < 1e-6  # resting on the bed, nothing inside it
         assert float(gaps[:, trunk].amin()) <= SEAT_TOLERANCE_M + 1e-9  # on its trunk
         # Sitting: the head well above the flat bed; the legs on the foot section within the
@@ -195,7 +198,9 @@ def test_half_sitting_is_deterministic_and_keeps_flat_partitions_as_they_were(an
 
 
 def test_half_sitting_over_the_bed_keeps_limbs_over_the_mattress(anny32):
-    poses = PoseSampler(anny32, SamplingConfig(partition="half_sitting", gender="female", over_bed=True)).sample(range(6))
+    poses = PoseSampler(anny32, SamplingConfig(partition="half_sitting", gender="female", over_bed=True)).sample(
+        range(6)
+    )
     (x0, x1), (y0, y1) = MAT.mattress_bounds_m
     ends = [J(f"{s}_{n}") for s in ("left", "right") for n in ("knee", "ankle", "foot", "elbow", "wrist", "hand")]
     for i, bed in enumerate(poses.beds()):
@@ -210,8 +215,12 @@ def test_simulating_samples_on_different_beds_equals_simulating_each_bed(anny64)
     bed_a, bed_b = BedShape(0.0), BedShape(30.0)
     flat = PoseSampler(anny64, SamplingConfig(partition="supine", gender="male")).sample([1]).params
     sat = half_sitting_params(anny64, anny64.default_shape(1), bed_b, MAT)
-    both = BodyParams(**{f: torch.cat([getattr(sat, f), getattr(flat, f)]) for f in
-                         ("shape", "root_rotation", "root_translation", "pose")})
+    both = BodyParams(
+        **{
+            f: torch.cat([getattr(sat, f), getattr(flat, f)])
+            for f in ("shape", "root_rotation", "root_translation", "pose")
+        }
+    )
     mixed = simulate_poses(anny64, both, bed=[bed_b, bed_a])
     alone = simulate_poses(anny64, flat, bed=bed_a)
     assert mixed.reason == ["", ""]

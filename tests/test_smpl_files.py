@@ -104,8 +104,20 @@ def test_sparse_states_rebuild_csc_and_csr():
 
     dense = np.array([[0.0, 2.0, 0.0], [1.0, 0.0, 3.0]])
     csc, csr = _SparseState(), _CsrState()
-    csc.__setstate__({"data": np.array([1.0, 2.0, 3.0]), "indices": np.array([1, 0, 1]),
-                      "indptr": np.array([0, 1, 2, 3]), "_shape": (2, 3)})
-    csr.__setstate__({"data": np.array([2.0, 1.0, 3.0]), "indices": np.array([1, 0, 2]),
-                      "indptr": np.array([0, 1, 3]), "_shape": (2, 3)})
+    csc.__setstate__(
+        {
+            "data": np.array([1.0, 2.0, 3.0]),
+            "indices": np.array([1, 0, 1]),
+            "indptr": np.array([0, 1, 2, 3]),
+            "_shape": (2, 3),
+        }
+    )
+    csr.__setstate__(
+        {
+            "data": np.array([2.0, 1.0, 3.0]),
+            "indices": np.array([1, 0, 2]),
+            "indptr": np.array([0, 1, 3]),
+            "_shape": (2, 3),
+        }
+    )
     assert np.array_equal(csc.to_array(), dense) and np.array_equal(csr.to_array(), dense)

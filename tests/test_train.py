@@ -43,7 +43,12 @@ def _metrics(run):
 
 def test_standardise_accepts_shard_names_and_rejects_missing_keys(data32):
     item = dict(NpzDataset(data32 / "train.npz")[0])
-    shard_like = {**item, "joints_m": item.pop("joints").double(), "gender": "female", "contact": item["contact"].byte()}
+    shard_like = {
+        **item,
+        "joints_m": item.pop("joints").double(),
+        "gender": "female",
+        "contact": item["contact"].byte(),
+    }
     std = standardise(shard_like)
     assert set(std) == set(KEYS) and all(v.dtype == torch.float32 for v in std.values())
     assert float(std["gender"]) == 1.0
@@ -74,8 +79,17 @@ def test_npz_dataset_round_trip(data32, tmp_path):
 @pytest.mark.slow
 def test_overfit_32_samples(data32, tmp_path):
     """arch=fast learns 32 samples by heart: the loss falls by more than 90%."""
-    cfg = TrainConfig.smoke(out=tmp_path / "run", epochs=110, batch_size=32, lr=2e-3, augment=False,
-                            dropout=0.0, val_fraction=0.0, progress=False, save_every=1000)
+    cfg = TrainConfig.smoke(
+        out=tmp_path / "run",
+        epochs=110,
+        batch_size=32,
+        lr=2e-3,
+        augment=False,
+        dropout=0.0,
+        val_fraction=0.0,
+        progress=False,
+        save_every=1000,
+    )
     train(cfg, NpzDataset(data32 / "train.npz"))
     rows = _metrics(tmp_path / "run")
     assert len(rows) == 110
@@ -157,7 +171,9 @@ def test_shift_moves_images_and_labels_as_the_physics_does(anny64):
             break
     # labels: every joint lands exactly (dr, dc) taxels further; the shape does not change
     rc = lambda j: torch.as_tensor(mat.to_taxel(j[0, :, :2].double()))  # noqa: E731
-    assert torch.allclose(rc(moved.joints) - rc(targets.joints), torch.tensor([float(dr), float(dc)]).double(), atol=1e-4)
+    assert torch.allclose(
+        rc(moved.joints) - rc(targets.joints), torch.tensor([float(dr), float(dc)]).double(), atol=1e-4
+    )
     assert torch.equal(moved.shape, targets.shape)
     # naive reference of the image move, with zeros entering
     ref = torch.zeros(64, 27)
@@ -171,16 +187,21 @@ def test_shift_moves_images_and_labels_as_the_physics_does(anny64):
     # (both solved here from the same start, so only the move differs)
     move = torch.tensor([[0.0, 0.0, 0.0], [dr * mat.pitch_row_m, dc * mat.pitch_col_m, 0.0]], dtype=torch.float64)
     two = lambda x: x.double().expand(2, *x.shape[1:])  # noqa: E731
-    params = BodyParams(shape=two(a["shape"]), pose=two(a["pose"]), root_rotation=two(a["root_rotation"]),
-                        root_translation=two(a["root_translation"]) + move)
+    params = BodyParams(
+        shape=two(a["shape"]),
+        pose=two(a["pose"]),
+        root_rotation=two(a["root_rotation"]),
+        root_translation=two(a["root_translation"]) + move,
+    )
     out = anny64(params)
     with torch.no_grad():
         pressed = simulate_pressure(out.vertices, out.faces, anny64.measure(params.shape).mass_kg)
     here, there = taxel_reading(sensing_area(pressed.pressure_pa)).float()
     moved_here, _ = shift_batch(NetInputs(pressure_mmhg=here[None]), targets, 0, 0, None)
     ref = torch.zeros(64, 27)
-    ref[max(dr, 0):64 + min(dr, 0), max(dc, 0):27 + min(dc, 0)] = here[max(-dr, 0):64 + min(-dr, 0),
-                                                                      max(-dc, 0):27 + min(-dc, 0)]
+    ref[max(dr, 0) : 64 + min(dr, 0), max(dc, 0) : 27 + min(dc, 0)] = here[
+        max(-dr, 0) : 64 + min(-dr, 0), max(-dc, 0) : 27 + min(-dc, 0)
+    ]
     rows, cols = slice(max(dr, 0), 64 + min(dr, 0)), slice(max(dc, 0), 27 + min(dc, 0))
     assert torch.equal(moved_here.pressure_mmhg[0], here) and float(here.sum()) > 100
     diff = (there[rows, cols] - ref[rows, cols]).abs()
@@ -220,8 +241,10 @@ def test_mod2_trains_on_a_frozen_mod1(data32, tmp_path):
     with pytest.raises(ValueError, match="--mod1"):
         TrainConfig.smoke(module=2)
     # With the analysis-by-synthesis loss (sim #2 on the estimated meshes).
-    run3 = train(TrainConfig.smoke(out=tmp_path / "m3", module=2, mod1=run1, epochs=1, synthesis_weight=0.1,
-                                   **common), _small(data32, 4))
+    run3 = train(
+        TrainConfig.smoke(out=tmp_path / "m3", module=2, mod1=run1, epochs=1, synthesis_weight=0.1, **common),
+        _small(data32, 4),
+    )
     row = _metrics(run3)[0]
     assert "synthesis" in row and np.isfinite(row["synthesis"]) and row["synthesis"] > 0
 
@@ -229,8 +252,24 @@ def test_mod2_trains_on_a_frozen_mod1(data32, tmp_path):
 @pytest.fixture(scope="module")
 def trained_run(data32, tmp_path_factory):
     run = tmp_path_factory.mktemp("run")
-    code = main(["train", "--data", str(data32), "--out", str(run), "--module", "1", "--preset", "smoke",
-                 "--epochs", "1", "--batch-size", "8", "--no-progress"])
+    code = main(
+        [
+            "train",
+            "--data",
+            str(data32),
+            "--out",
+            str(run),
+            "--module",
+            "1",
+            "--preset",
+            "smoke",
+            "--epochs",
+            "1",
+            "--batch-size",
+            "8",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     return run
 
@@ -245,8 +284,23 @@ def test_predict_writes_params_meshes_and_figures(trained_run, data32, tmp_path,
     _shard(tmp_path / "shard.parquet", images[:2])
     out = tmp_path / "out"
     files = [str(tmp_path / n) for n in ("one.npy", "stack.npy", "frame.csv", "shard.parquet")]
-    assert main(["predict", "--model", str(trained_run), "--out", str(out), "--gender", "female",
-                 "--batch-size", "4", *files]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                "--model",
+                str(trained_run),
+                "--out",
+                str(out),
+                "--gender",
+                "female",
+                "--batch-size",
+                "4",
+                *files,
+            ]
+        )
+        == 0
+    )
     names = ["one", "stack_0000", "stack_0001", "stack_0002", "frame", "shard_0000", "shard_0001"]
     for n in names:
         record = json.loads((out / f"{n}.json").read_text())
@@ -268,8 +322,21 @@ def _shard(path, images):
     pq.write_table(pa.table({"pressure_mmhg": flat}), path)
 
 
-@pytest.mark.parametrize("case", ["wrong_size", "nan", "negative", "empty_image", "empty_file", "words",
-                                  "not_an_array", "pickled", "unknown_suffix", "missing"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "wrong_size",
+        "nan",
+        "negative",
+        "empty_image",
+        "empty_file",
+        "words",
+        "not_an_array",
+        "pickled",
+        "unknown_suffix",
+        "missing",
+    ],
+)
 def test_predict_bad_files_exit_2_with_one_line(case, trained_run, tmp_path, capsys):
     path = tmp_path / "bad.npy"
     good = np.zeros((64, 27), np.float32)
@@ -395,15 +462,23 @@ def test_mirror_flips_images_and_labels_as_the_physics_does(anny64):
             assert torch.allclose(m.joints[b, j], torch.stack([src[0], W - src[1], src[2]]), atol=1e-6)
     assert torch.equal(m.shape, targets.shape)
     back_in, back = mirror_batch(m_in, m, 1.0, None)  # an involution
-    assert torch.equal(back_in.pressure_mmhg, inputs.pressure_mmhg) and torch.allclose(back.joints, targets.joints, atol=1e-6)
+    assert torch.equal(back_in.pressure_mmhg, inputs.pressure_mmhg) and torch.allclose(
+        back.joints, targets.joints, atol=1e-6
+    )
     part_in, part = mirror_batch(inputs, targets, 0.5, torch.Generator().manual_seed(2))
     on = torch.rand(B, generator=torch.Generator().manual_seed(2)) < 0.5
     for b in range(B):
         ref_in, ref = (m_in, m) if on[b] else (inputs, targets)
-        assert torch.equal(part_in.pressure_mmhg[b], ref_in.pressure_mmhg[b]) and torch.equal(part.joints[b], ref.joints[b])
+        assert torch.equal(part_in.pressure_mmhg[b], ref_in.pressure_mmhg[b]) and torch.equal(
+            part.joints[b], ref.joints[b]
+        )
     # physics: sim #2 on the mirrored mesh reads the mirrored image
-    params = BodyParams(shape=a["shape"][:1].double(), pose=a["pose"][:1].double(),
-                        root_rotation=a["root_rotation"][:1].double(), root_translation=a["root_translation"][:1].double())
+    params = BodyParams(
+        shape=a["shape"][:1].double(),
+        pose=a["pose"][:1].double(),
+        root_rotation=a["root_rotation"][:1].double(),
+        root_translation=a["root_translation"][:1].double(),
+    )
     out = anny64(params)
     mass = anny64.measure(params.shape).mass_kg
     mirrored = out.vertices.clone()
@@ -411,7 +486,9 @@ def test_mirror_flips_images_and_labels_as_the_physics_does(anny64):
     with torch.no_grad():
         here = taxel_reading(sensing_area(simulate_pressure(out.vertices, out.faces, mass).pressure_pa)).float()
         there = taxel_reading(sensing_area(simulate_pressure(mirrored, out.faces.flip(-1), mass).pressure_pa)).float()
-    flipped, _ = mirror_batch(NetInputs(pressure_mmhg=here), Targets(joints=out.joints.float(), shape=params.shape), 1.0, None)
+    flipped, _ = mirror_batch(
+        NetInputs(pressure_mmhg=here), Targets(joints=out.joints.float(), shape=params.shape), 1.0, None
+    )
     assert float(here.sum()) > 100
     assert float((flipped.pressure_mmhg - there).abs().max()) < 1e-3 * float(here.max())
 

@@ -37,7 +37,6 @@ from pressurepose.viz.viewer import ViewConfig, make_server
 pytestmark = pytest.mark.slow
 
 
-
 def write_dataset(root: Path, arrays: dict[str, torch.Tensor]) -> None:
     """A generated-format test split (shards + manifest) of `synthetic_arrays` samples (real
     bodies and pressure images from the sampler and sim #2), one shard per gender."""
@@ -47,16 +46,37 @@ def write_dataset(root: Path, arrays: dict[str, torch.Tensor]) -> None:
     for gender in ("female", "male"):
         sel = genders == gender
         c = int(sel.sum())
-        f64 = {k: a[k][sel].astype(np.float64) for k in ("shape", "root_rotation", "root_translation", "pose",
-                                                          "mass_kg", "height_m")}
-        batch = SampleBatch(split=np.array(["test"] * c, object), partition=np.array(["supine"] * c, object),
-                            gender=genders[sel], over_bed=np.zeros(c, bool), index=np.arange(c, dtype=np.int64),
-                            pressure_mmhg=a["pressure_mmhg"][sel], depth_mm=a["depth_mm"][sel],
-                            contact=(a["contact"][sel] > 0).astype(np.uint8), joints_m=a["joints"][sel].astype(np.float64),
-                            head_angle_deg=np.zeros(c), settle_steps=np.zeros(c, np.int32),
-                            sink_mm=np.zeros(c, np.float32), **f64)
-        rec = {"split": "test", "partition": "supine", "gender": gender, "over_bed": False, "number": 0,
-               "first_slot": 0, "count": c, "candidates": c, "rejections": {}, "sampling_rejections": {}}
+        f64 = {
+            k: a[k][sel].astype(np.float64)
+            for k in ("shape", "root_rotation", "root_translation", "pose", "mass_kg", "height_m")
+        }
+        batch = SampleBatch(
+            split=np.array(["test"] * c, object),
+            partition=np.array(["supine"] * c, object),
+            gender=genders[sel],
+            over_bed=np.zeros(c, bool),
+            index=np.arange(c, dtype=np.int64),
+            pressure_mmhg=a["pressure_mmhg"][sel],
+            depth_mm=a["depth_mm"][sel],
+            contact=(a["contact"][sel] > 0).astype(np.uint8),
+            joints_m=a["joints"][sel].astype(np.float64),
+            head_angle_deg=np.zeros(c),
+            settle_steps=np.zeros(c, np.int32),
+            sink_mm=np.zeros(c, np.float32),
+            **f64,
+        )
+        rec = {
+            "split": "test",
+            "partition": "supine",
+            "gender": gender,
+            "over_bed": False,
+            "number": 0,
+            "first_slot": 0,
+            "count": c,
+            "candidates": c,
+            "rejections": {},
+            "sampling_rejections": {},
+        }
         records.append(write_shard(root, f"test-supine-{gender}-free-00000", table_bytes(to_table(batch)), rec))
     write_manifest(root, {"config": {"preset": "test", "backend": "anny"}}, records)
 
@@ -73,8 +93,7 @@ def folders(anny64, tmp_path_factory):
     (root / "train").mkdir()
     write_npz(root / "train" / "train.npz", arrays)
     run = train(TrainConfig.smoke(data=root / "train", out=root / "run", epochs=1, progress=False, val_fraction=0.2))
-    run_evaluate(EvaluateConfig(model=run, data=root / "data", out=root / "report", batch=8, failures=1,
-                                limit=2))
+    run_evaluate(EvaluateConfig(model=run, data=root / "data", out=root / "report", batch=8, failures=1, limit=2))
     return {"data": root / "data", "run": run, "report": root / "report", "root": root, "n": len(arrays["shape"])}
 
 
@@ -110,7 +129,7 @@ def vertices(v: Viewer, i: int) -> dict[str, np.ndarray]:
     V = int(headers["X-Vertices"])
     flat = np.frombuffer(data, dtype="<f4")
     assert flat.size == len(layers) * V * 3
-    return {name: flat[k * V * 3:(k + 1) * V * 3].reshape(V, 3) for k, name in enumerate(layers)}
+    return {name: flat[k * V * 3 : (k + 1) * V * 3].reshape(V, 3) for k, name in enumerate(layers)}
 
 
 # --- API -----------------------------------------------------------------------------------------
@@ -173,7 +192,7 @@ def test_dataset_is_listed_without_reading_samples(folders, viewer, anny32):
     rebound = urllib.request.Request(v.url + "api/info", headers={"Host": "evil.example:80"})
     with pytest.raises(urllib.error.HTTPError, match="403"):
         urllib.request.urlopen(rebound, timeout=30)
-    assert v.get("")[0].startswith(b"<!doctype html>") and b"getContext(\"webgl\"" in v.get("viewer.js")[0]
+    assert v.get("")[0].startswith(b"<!doctype html>") and b'getContext("webgl"' in v.get("viewer.js")[0]
 
 
 def test_run_folder_shows_curves_and_predicts(folders, viewer):
@@ -197,16 +216,22 @@ def test_run_folder_shows_curves_and_predicts(folders, viewer):
 
 def test_npz_of_images(folders, tmp_path, viewer):
     rng = np.random.default_rng(0)
-    np.savez(tmp_path / "pmat.npz", pressure_mmhg=rng.uniform(0, 40, (3, 64, 27)).astype(np.float32),
-             subject=np.array(["S1", "S2", "S3"]), posture=np.array(["supine", "left", "right"]), height_m=np.full(3, 1.7))
+    np.savez(
+        tmp_path / "pmat.npz",
+        pressure_mmhg=rng.uniform(0, 40, (3, 64, 27)).astype(np.float32),
+        subject=np.array(["S1", "S2", "S3"]),
+        posture=np.array(["supine", "left", "right"]),
+        height_m=np.full(3, 1.7),
+    )
     v = viewer(tmp_path / "pmat.npz")
     info = v.json("api/info")
     assert (info["kind"], info["count"], info["has_truth"]) == ("images", 3, False)
     assert v.json("api/list")["items"][1]["posture"] == "left"
     s = v.json("api/sample/2")
     assert s["meta"]["subject"] == "S3" and s["joints_true"] is None
-    np.testing.assert_allclose(np.reshape(s["pressure"], (64, 27)), np.load(tmp_path / "pmat.npz")["pressure_mmhg"][2],
-                               atol=0.01)
+    np.testing.assert_allclose(
+        np.reshape(s["pressure"], (64, 27)), np.load(tmp_path / "pmat.npz")["pressure_mmhg"][2], atol=0.01
+    )
     # with --model, a run's network estimates the bodies of the images (no truth: no joint errors)
     v = viewer(tmp_path / "pmat.npz", model=folders["run"])
     assert v.json("api/info")["has_estimate"]
@@ -222,8 +247,12 @@ def test_bad_paths_and_ports(folders, tmp_path, capsys):
     (tmp_path / "notes.txt").write_text("hello")
     (tmp_path / "broken").mkdir()
     (tmp_path / "broken" / "manifest.json").write_text("{ not json")
-    cases = {tmp_path / "missing": "does not exist", tmp_path / "empty": "empty folder",
-             tmp_path / "notes.txt": "not a .npz", tmp_path / "broken": "not readable JSON"}
+    cases = {
+        tmp_path / "missing": "does not exist",
+        tmp_path / "empty": "empty folder",
+        tmp_path / "notes.txt": "not a .npz",
+        tmp_path / "broken": "not readable JSON",
+    }
     # a report whose dataset is gone, a dataset whose shard is cut short
     shutil.copytree(folders["report"], tmp_path / "report")
     rec = json.loads((tmp_path / "report" / "report.json").read_text())
@@ -254,9 +283,14 @@ def test_ctrl_c_stops_the_cli_cleanly(folders):
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).parents[1] / "src"))
     # A shell's background job (CI runners, `cmd &`) starts with SIGINT ignored, and children
     # inherit that; give the viewer the default disposition a terminal user has.
-    p = subprocess.Popen([sys.executable, "-m", "pressurepose.cli", "view", str(folders["data"]), "--port", "0",
-                          "--no-open"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    p = subprocess.Popen(
+        [sys.executable, "-m", "pressurepose.cli", "view", str(folders["data"]), "--port", "0", "--no-open"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     try:
         line = p.stdout.readline()
         url = line.split(" at ")[1].split()[0]
@@ -272,10 +306,12 @@ def test_ctrl_c_stops_the_cli_cleanly(folders):
 
 
 def region(img: np.ndarray, driver: WebDriver, element_id: str) -> np.ndarray:
-    r = driver.js(f"const r = document.getElementById('{element_id}').getBoundingClientRect();"
-                  "return [r.left, r.top, r.width, r.height, window.devicePixelRatio];")
+    r = driver.js(
+        f"const r = document.getElementById('{element_id}').getBoundingClientRect();"
+        "return [r.left, r.top, r.width, r.height, window.devicePixelRatio];"
+    )
     x, y, w, h = (v * r[4] for v in r[:4])
-    return img[int(y) + 1:int(y + h) - 1, int(x) + 1:int(x + w) - 1]
+    return img[int(y) + 1 : int(y + h) - 1, int(x) + 1 : int(x + w) - 1]
 
 
 def colours(pixels: np.ndarray) -> int:

@@ -56,8 +56,9 @@ class WebDriver:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-        self.proc = subprocess.Popen([CHROMEDRIVER, f"--port={port}"], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
+        self.proc = subprocess.Popen(
+            [CHROMEDRIVER, f"--port={port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         self.base = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + 30
         while True:
@@ -71,18 +72,33 @@ class WebDriver:
         # Root (CI) needs --no-sandbox; a fresh profile and no background traffic keep a
         # closed network from stalling the start (sync, component updates, first-run pages).
         self.profile = tempfile.mkdtemp(prefix="pp-chromium-")
-        args = ["--headless=new", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader", "--window-size=1400,1000", "--disable-dev-shm-usage",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--no-first-run", "--no-default-browser-check", f"--user-data-dir={self.profile}"]
-        caps = {"capabilities": {"alwaysMatch": {"browserName": "chrome",
-                                                 "goog:chromeOptions": {"binary": CHROMIUM, "args": args}}}}
+        args = [
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--window-size=1400,1000",
+            "--disable-dev-shm-usage",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-first-run",
+            "--no-default-browser-check",
+            f"--user-data-dir={self.profile}",
+        ]
+        caps = {
+            "capabilities": {
+                "alwaysMatch": {"browserName": "chrome", "goog:chromeOptions": {"binary": CHROMIUM, "args": args}}
+            }
+        }
         self.session = self.call("POST", "/session", caps)["sessionId"]
 
     def call(self, method: str, path: str, body=None):
         data = None if body is None else json.dumps(body).encode()
-        req = urllib.request.Request(self.base + path, data=data, method=method,
-                                     headers={"Content-Type": "application/json"})
+        req = urllib.request.Request(
+            self.base + path, data=data, method=method, headers={"Content-Type": "application/json"}
+        )
         with urllib.request.urlopen(req, timeout=120) as r:
             return json.loads(r.read() or b"{}").get("value")
 
@@ -111,8 +127,15 @@ class WebDriver:
 
     def actions(self, pointer: list[dict]) -> None:
         """Perform one mouse's action sequence (pointerMove / pointerDown / pointerUp / pause)."""
-        self.cmd("POST", "/actions", {"actions": [{"type": "pointer", "id": "mouse",
-                                                   "parameters": {"pointerType": "mouse"}, "actions": pointer}]})
+        self.cmd(
+            "POST",
+            "/actions",
+            {
+                "actions": [
+                    {"type": "pointer", "id": "mouse", "parameters": {"pointerType": "mouse"}, "actions": pointer}
+                ]
+            },
+        )
         self.cmd("DELETE", "/actions")
 
     def close(self) -> None:

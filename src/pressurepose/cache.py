@@ -22,8 +22,7 @@ def cache_dir() -> Path:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise RuntimeError(
-            f"cannot create the cache directory {path} ({exc.strerror}); "
-            f"set {ENV_VAR} to a writable directory"
+            f"cannot create the cache directory {path} ({exc.strerror}); set {ENV_VAR} to a writable directory"
         ) from None
     return path
 

@@ -32,11 +32,26 @@ from pressurepose.commands.view import cache, click, view
 from pressurepose.errors import UserError
 
 COMMANDS = {
-    "demo": demo, "pose": pose, "sample": sample, "simulate": simulate, "generate": generate, "info": info,
-    "import-original": import_original, "import-pmatdata": import_pmatdata,
-    "import-pressurepose-real": import_pressurepose_real, "import-slp": import_slp, "calibrate": calibrate,
-    "coregister": coregister, "click": click, "cache": cache, "realism": realism,
-    "train": train, "predict": predict, "evaluate": evaluate, "evaluate-real": evaluate_real, "view": view,
+    "demo": demo,
+    "pose": pose,
+    "sample": sample,
+    "simulate": simulate,
+    "generate": generate,
+    "info": info,
+    "import-original": import_original,
+    "import-pmatdata": import_pmatdata,
+    "import-pressurepose-real": import_pressurepose_real,
+    "import-slp": import_slp,
+    "calibrate": calibrate,
+    "coregister": coregister,
+    "click": click,
+    "cache": cache,
+    "realism": realism,
+    "train": train,
+    "predict": predict,
+    "evaluate": evaluate,
+    "evaluate-real": evaluate_real,
+    "view": view,
 }
 
 

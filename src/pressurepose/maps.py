@@ -38,8 +38,9 @@ def grid_origin(mat: MatSpec, covered: bool = True) -> tuple[float, float]:
     return -mat.border_head_foot_m, -mat.border_side_m
 
 
-def cell_centres(mat: MatSpec, sub: int = 1, covered: bool = True, dtype=torch.float32,
-                 device=None) -> tuple[torch.Tensor, torch.Tensor]:
+def cell_centres(
+    mat: MatSpec, sub: int = 1, covered: bool = True, dtype=torch.float32, device=None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(rows*sub, cols*sub) x and y (m) of the grid-cell centres."""
     nr, nc = grid_shape(mat, sub, covered)
     x0, y0 = grid_origin(mat, covered)
@@ -49,8 +50,9 @@ def cell_centres(mat: MatSpec, sub: int = 1, covered: bool = True, dtype=torch.f
     return torch.meshgrid(x, y, indexing="ij")
 
 
-def surface_points(vertices: torch.Tensor, faces: torch.Tensor | None,
-                   corners: torch.Tensor | None = None) -> torch.Tensor:
+def surface_points(
+    vertices: torch.Tensor, faces: torch.Tensor | None, corners: torch.Tensor | None = None
+) -> torch.Tensor:
     """(B, V [+ F], 3): the vertices and, with faces (F, 3), each triangle's centroid.
     `corners` (B, F, 3, 3): the triangles' corners when the caller has gathered them already."""
     if faces is None:
@@ -72,8 +74,14 @@ def _check_vertices(vertices: torch.Tensor) -> None:
         raise ValueError("vertices contain NaN or infinite values")
 
 
-def underside_height(vertices: torch.Tensor, faces: torch.Tensor | None, mat: MatSpec,
-                     sub: int = 1, covered: bool = True, patch: bool = True) -> torch.Tensor:
+def underside_height(
+    vertices: torch.Tensor,
+    faces: torch.Tensor | None,
+    mat: MatSpec,
+    sub: int = 1,
+    covered: bool = True,
+    patch: bool = True,
+) -> torch.Tensor:
     """(B, rows*sub, cols*sub) height (m) of the lowest mesh point over each grid cell.
 
     vertices: (B, V, 3) in the mat frame (m); faces: (F, 3) or None (vertices only).
@@ -83,8 +91,9 @@ def underside_height(vertices: torch.Tensor, faces: torch.Tensor | None, mat: Ma
     return heights_from_points(surface_points(vertices, faces), mat, sub, covered, patch)
 
 
-def heights_from_points(pts: torch.Tensor, mat: MatSpec, sub: int = 1, covered: bool = True,
-                        patch: bool = True) -> torch.Tensor:
+def heights_from_points(
+    pts: torch.Tensor, mat: MatSpec, sub: int = 1, covered: bool = True, patch: bool = True
+) -> torch.Tensor:
     """`underside_height` of a point cloud (B, N, 3) (e.g. from `surface_points`)."""
     if sub < 1:
         raise ValueError(f"sub must be a positive int, got {sub}")
@@ -114,7 +123,7 @@ def patch_holes(h: torch.Tensor) -> torch.Tensor:
     R, C = h.shape[-2:]
 
     def shifted(t, dr, dc):
-        return t[..., 1 + dr: 1 + dr + R, 1 + dc: 1 + dc + C]
+        return t[..., 1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
 
     offsets = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
     count = sum(shifted(pad_f, dr, dc) for dr, dc in offsets)
@@ -140,6 +149,14 @@ def contact_map(depth_mm: torch.Tensor) -> torch.Tensor:
 
 
 __all__ = [
-    "EMPTY_HEIGHT_M", "cell_centres", "contact_map", "depth_map", "grid_origin", "grid_shape", "heights_from_points",
-    "patch_holes", "surface_points", "underside_height",
+    "EMPTY_HEIGHT_M",
+    "cell_centres",
+    "contact_map",
+    "depth_map",
+    "grid_origin",
+    "grid_shape",
+    "heights_from_points",
+    "patch_holes",
+    "surface_points",
+    "underside_height",
 ]

@@ -28,7 +28,7 @@ from pressurepose.errors import UserError
 
 def _short(value: Any, limit: int = 60) -> str:
     text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + "..."
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def read_json(path: str | os.PathLike, what: str, hint: str = "") -> Any:
@@ -111,8 +111,10 @@ KINDS = {
     "number": ("a finite number", _is_number),
     "dict": ("a JSON object", lambda v: isinstance(v, dict)),
     "list": ("a JSON list", lambda v: isinstance(v, list)),
-    "sha256": ("a sha256 (64 hex digits)", lambda v: isinstance(v, str) and len(v) == 64
-               and all(c in "0123456789abcdef" for c in v)),
+    "sha256": (
+        "a sha256 (64 hex digits)",
+        lambda v: isinstance(v, str) and len(v) == 64 and all(c in "0123456789abcdef" for c in v),
+    ),
 }
 
 
@@ -122,8 +124,9 @@ def field(doc: Any, key: str, kind: str, path: str | os.PathLike, where: str = "
     expected, ok = KINDS[kind]
     name = f"{where}{key}"
     if not isinstance(doc, dict):
-        raise UserError(f"{path}: {where.rstrip('.[]') or 'the record'} must be a JSON object, got "
-                        f"{type(doc).__name__}{hint}")
+        raise UserError(
+            f"{path}: {where.rstrip('.[]') or 'the record'} must be a JSON object, got {type(doc).__name__}{hint}"
+        )
     if key not in doc:
         raise UserError(f"{path}: field {name!r} is missing; expected {expected}{hint}")
     value = doc[key]
@@ -150,13 +153,17 @@ def check_tensor_shapes(found: dict, expected: dict, path: str | os.PathLike, hi
     missing = [k for k in expected if k not in found]
     unexpected = [k for k in found if k not in expected]
     if missing or unexpected:
-        raise UserError(f"{path} does not match the network its metadata describes: missing tensors "
-                        f"{missing[:3]}, unexpected {unexpected[:3]}{hint}")
+        raise UserError(
+            f"{path} does not match the network its metadata describes: missing tensors "
+            f"{missing[:3]}, unexpected {unexpected[:3]}{hint}"
+        )
     for name, want in expected.items():
         got = tuple(found[name].shape)
         if got != tuple(want):
-            raise UserError(f"{path}: tensor {name!r} has shape {got}, expected {tuple(want)} for the network "
-                            f"its metadata describes{hint}")
+            raise UserError(
+                f"{path}: tensor {name!r} has shape {got}, expected {tuple(want)} for the network "
+                f"its metadata describes{hint}"
+            )
         tensor = found[name]
         if tensor.is_floating_point() and not bool(tensor.isfinite().all()):
             raise UserError(f"{path}: tensor {name!r} holds NaN or infinite values{hint}")
@@ -181,14 +188,18 @@ class BoundedUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str):
         obj = self.allowed(module, name)
         if obj is None:
-            raise UserError(f"{self.source}: refusing to load the global {module}.{name}: only numpy arrays "
-                            "and plain containers are allowed in this file (a pickle can run code when loaded)")
+            raise UserError(
+                f"{self.source}: refusing to load the global {module}.{name}: only numpy arrays "
+                "and plain containers are allowed in this file (a pickle can run code when loaded)"
+            )
         return self._bounded(obj)
 
     def check_allocation(self, nbytes: float, what: str) -> None:
         if not nbytes <= self.budget:
-            raise UserError(f"{self.source}: asks for {what} of {nbytes:.3g} bytes, more than the file's "
-                            f"{self.budget} bytes can hold; not a valid file")
+            raise UserError(
+                f"{self.source}: asks for {what} of {nbytes:.3g} bytes, more than the file's "
+                f"{self.budget} bytes can hold; not a valid file"
+            )
 
     def _nbytes(self, shape, dtype) -> float:
         import numpy as np
@@ -208,38 +219,57 @@ class BoundedUnpickler(pickle.Unpickler):
         import numpy as np
 
         if obj is bytearray:
+
             def make_bytearray(*args):
                 if args and _is_int(args[0]):
                     self.check_allocation(args[0], "a byte array")
                 return bytearray(*args)
+
             return make_bytearray
         if obj is np.ndarray:
+
             class BoundedArray(np.ndarray):  # `ndarray(shape, dtype)` allocates: check first
                 def __new__(cls, shape, dtype=float, *args, **kwargs):
                     self.check_allocation(self._nbytes(shape, dtype), "an array")
                     return np.ndarray.__new__(np.ndarray, shape, dtype, *args, **kwargs)
+
             return BoundedArray
         if getattr(obj, "__name__", "") == "_reconstruct" and "numpy" in getattr(obj, "__module__", ""):
+
             def reconstruct(cls, shape, dtype):
                 self.check_allocation(self._nbytes(shape, dtype), "an array")
                 if isinstance(cls, type) and issubclass(cls, np.ndarray):
                     cls = np.ndarray
                 return obj(cls, shape, dtype)
+
             return reconstruct
         if obj is copyreg._reconstructor:
+
             def reconstructor(cls, base, state):
                 if base is not object:  # base.__init__(state) could allocate anything
                     raise UserError(f"{self.source}: refusing copyreg._reconstructor on {_short(base)}")
                 return obj(cls, base, state)
+
             return reconstructor
         if getattr(obj, "__name__", "") == "encode" and getattr(obj, "__module__", "") == "_codecs":
+
             def encode(text, encoding="utf-8", *args):
                 if encoding not in ("latin1", "latin-1", "iso-8859-1"):
                     raise UserError(f"{self.source}: refusing _codecs.encode with encoding {_short(encoding)}")
                 return obj(text, encoding)
+
             return encode
         return obj
 
 
-__all__ = ["BoundedUnpickler", "KINDS", "check_tensor_shapes", "field", "inside", "read_json", "read_json_object",
-           "read_jsonl", "read_npy"]
+__all__ = [
+    "BoundedUnpickler",
+    "KINDS",
+    "check_tensor_shapes",
+    "field",
+    "inside",
+    "read_json",
+    "read_json_object",
+    "read_jsonl",
+    "read_npy",
+]

@@ -32,6 +32,14 @@ def load_body_model(
 
 
 __all__ = [
-    "BACKENDS", "BodyMeasurements", "BodyModel", "BodyOutput", "BodyParams", "J24_NAMES",
-    "J24_PARENTS", "NUM_JOINTS", "NUM_POSE_JOINTS", "load_body_model",
+    "BACKENDS",
+    "BodyMeasurements",
+    "BodyModel",
+    "BodyOutput",
+    "BodyParams",
+    "J24_NAMES",
+    "J24_PARENTS",
+    "NUM_JOINTS",
+    "NUM_POSE_JOINTS",
+    "load_body_model",
 ]

@@ -42,20 +42,30 @@ C_SMPL_TO_ANNY = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))
 # J24 joint -> Anny bones whose head gives its position (averaged).
 _POSITION_BONES: dict[str, list[str]] = {
     "pelvis": ["root"],
-    "spine1": ["spine04"], "spine2": ["spine02"], "spine3": ["spine01"],
-    "neck": ["neck01"], "head": ["head"],
+    "spine1": ["spine04"],
+    "spine2": ["spine02"],
+    "spine3": ["spine01"],
+    "neck": ["neck01"],
+    "head": ["head"],
 }
 # J24 joint -> Anny bones that take its rotation.
 _ROTATION_BONES: dict[str, list[str]] = {
-    "spine1": ["spine04"], "spine2": ["spine02"], "spine3": ["spine01"],
-    "neck": ["neck01"], "head": ["head"],
+    "spine1": ["spine04"],
+    "spine2": ["spine02"],
+    "spine3": ["spine01"],
+    "neck": ["neck01"],
+    "head": ["head"],
 }
 for _side, _s in (("left", "L"), ("right", "R")):
     _pos = {
-        "hip": [f"upperleg01.{_s}"], "knee": [f"lowerleg01.{_s}"], "ankle": [f"foot.{_s}"],
+        "hip": [f"upperleg01.{_s}"],
+        "knee": [f"lowerleg01.{_s}"],
+        "ankle": [f"foot.{_s}"],
         "foot": [f"toe{i}-1.{_s}" for i in range(1, 6)],
-        "collar": [f"clavicle.{_s}"], "shoulder": [f"upperarm01.{_s}"],
-        "elbow": [f"lowerarm01.{_s}"], "wrist": [f"wrist.{_s}"],
+        "collar": [f"clavicle.{_s}"],
+        "shoulder": [f"upperarm01.{_s}"],
+        "elbow": [f"lowerarm01.{_s}"],
+        "wrist": [f"wrist.{_s}"],
         "hand": [f"finger{i}-1.{_s}" for i in range(2, 6)],
     }
     for _joint, _bones in _pos.items():
@@ -83,7 +93,8 @@ def load_anny(topology: str = DEFAULT_TOPOLOGY):
         if not stamp.exists():
             log.warning(
                 "Building the Anny body-model cache in %s (first use only: about a minute "
-                "and 2 GB of RAM; set PRESSUREPOSE_CACHE to put it elsewhere)", root,
+                "and 2 GB of RAM; set PRESSUREPOSE_CACHE to put it elsewhere)",
+                root,
             )
         model = _quiet(lambda: anny.Anny(topology=topology, skinning_method="lbs"))
         if not stamp.exists():
@@ -208,9 +219,12 @@ class AnnyBody(BodyModel):
         import roma
 
         m = self.anny
-        heads = m.template_bone_heads[sk.bones] + torch.einsum("ba,akx->bkx", coeffs, m.bone_heads_blendshapes[:, sk.bones])
+        heads = m.template_bone_heads[sk.bones] + torch.einsum(
+            "ba,akx->bkx", coeffs, m.bone_heads_blendshapes[:, sk.bones]
+        )
         M = m.bone_template_orientation_matrices[sk.bones] + torch.einsum(
-            "ba,akij->bkij", coeffs, m.bone_orientation_blendshapes[:, sk.bones])
+            "ba,akij->bkij", coeffs, m.bone_orientation_blendshapes[:, sk.bones]
+        )
         R = roma.special_procrustes(M[:, 1:])
         eye = torch.eye(3, dtype=R.dtype, device=R.device).expand(R.shape[0], 1, 3, 3)
         return heads, torch.cat([eye, R], 1)  # the root keeps an identity rest orientation
@@ -230,7 +244,7 @@ class AnnyBody(BodyModel):
         for arm in sk.arms:
             target = torch.tensor([arm["sign"], 0.0, 0.0], dtype=offsets.dtype, device=offsets.device).expand(B, 3)
             upper = offsets[:, arm["upper_chain"]].sum(1)  # shoulder -> elbow
-            fore = offsets[:, arm["fore_chain"]].sum(1)    # elbow -> wrist
+            fore = offsets[:, arm["fore_chain"]].sum(1)  # elbow -> wrist
             G_upper = rotation_between(upper, target)
             G_fore = rotation_between((G_upper @ fore[..., None])[..., 0], target) @ G_upper
             G[:, arm["upper"]] = G_upper[:, None]
@@ -297,8 +311,9 @@ class AnnyBody(BodyModel):
         return sparse_linear_blend_skinning(rest_vertices, self.skin_matrix, T, t) @ self.c_smpl_to_anny, joints
 
     def linear_mesh(self) -> LinearMesh:
-        return LinearMesh(template=self.anny.template_vertices, blendshapes=self.anny.blendshapes,
-                          skinning=self.skin_matrix)
+        return LinearMesh(
+            template=self.anny.template_vertices, blendshapes=self.anny.blendshapes, skinning=self.skin_matrix
+        )
 
     def _zero_pose_skinning(self, shape: torch.Tensor) -> ZeroPoseSkinning:
         sk = self.full
@@ -308,8 +323,7 @@ class AnnyBody(BodyModel):
         t = heads - (T @ rest_heads[..., None])[..., 0]
         # Into SMPL's body axes (v_smpl = C^T v_anny; C permutes and negates axes: exact).
         Ct = self.c_smpl_to_anny.T
-        return ZeroPoseSkinning(coeffs=coeffs, transforms=Ct @ T, translations=t @ self.c_smpl_to_anny,
-                                joints=joints)
+        return ZeroPoseSkinning(coeffs=coeffs, transforms=Ct @ T, translations=t @ self.c_smpl_to_anny, joints=joints)
 
     def native_rest_pose(self, shape: torch.Tensor) -> torch.Tensor:
         """(B, 23, 3) pose that reproduces Anny's own reference (A-)pose for these shapes.
@@ -358,20 +372,27 @@ class _Skeleton(torch.nn.Module):
         self.register_buffer("inverse_order", torch.tensor([position[i] for i in range(len(bones))]), persistent=False)
         for d, level in enumerate(levels):
             self.register_buffer(f"level{d}", torch.tensor(level), persistent=False)
-            self.register_buffer(f"level_parent{d}", torch.tensor([position[parents[i]] for i in level]), persistent=False)
+            self.register_buffer(
+                f"level_parent{d}", torch.tensor([position[parents[i]] for i in level]), persistent=False
+            )
         self.num_levels = len(levels)
         j = {labels[b]: i for i, b in enumerate(bones)}  # bone name -> local index
         self.arms = []
         for s, sign in (("L", 1.0), ("R", -1.0)):
             fore_root = labels.index(f"lowerarm01.{s}")
             fore = [local[b] for b in bones if _descends(all_parents, b, fore_root)]
-            self.arms.append(dict(
-                sign=sign, elbow=j[f"lowerarm01.{s}"], twist=j[f"lowerarm02.{s}"],
-                upper=[j[f"upperarm01.{s}"], j[f"upperarm02.{s}"]], fore=fore,
-                upper_chain=[j[f"upperarm02.{s}"], j[f"lowerarm01.{s}"]],
-                fore_chain=[j[f"lowerarm02.{s}"], j[f"wrist.{s}"]],
-                elbow_joint=J24_NAMES.index("left_elbow" if s == "L" else "right_elbow"),
-            ))
+            self.arms.append(
+                dict(
+                    sign=sign,
+                    elbow=j[f"lowerarm01.{s}"],
+                    twist=j[f"lowerarm02.{s}"],
+                    upper=[j[f"upperarm01.{s}"], j[f"upperarm02.{s}"]],
+                    fore=fore,
+                    upper_chain=[j[f"upperarm02.{s}"], j[f"lowerarm01.{s}"]],
+                    fore_chain=[j[f"lowerarm02.{s}"], j[f"wrist.{s}"]],
+                    elbow_joint=J24_NAMES.index("left_elbow" if s == "L" else "right_elbow"),
+                )
+            )
 
     @property
     def levels(self) -> list[torch.Tensor]:
@@ -414,6 +435,7 @@ def sparse_linear_blend_skinning(
     blended = torch.sparse.mm(weights, affine).view(-1, B, 3, 4)  # (V, B, 3, 4)
     v = rest_vertices.transpose(0, 1)  # (V, B, 3)
     # Written out per column: much faster on CPU than a batched 3x3 matmul of this shape.
-    posed = (blended[..., 3] + blended[..., 0] * v[..., :1] + blended[..., 1] * v[..., 1:2]
-             + blended[..., 2] * v[..., 2:])
+    posed = (
+        blended[..., 3] + blended[..., 0] * v[..., :1] + blended[..., 1] * v[..., 1:2] + blended[..., 2] * v[..., 2:]
+    )
     return posed.transpose(0, 1)

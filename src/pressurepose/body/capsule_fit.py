@@ -26,10 +26,10 @@ _J = J24_NAMES.index
 class Capsules:
     """Capsule geometry of B bodies in their T-pose, body axes, pelvis at the origin."""
 
-    start: torch.Tensor   # (B, 20, 3) axis end points, metres
-    end: torch.Tensor     # (B, 20, 3)
+    start: torch.Tensor  # (B, 20, 3) axis end points, metres
+    end: torch.Tensor  # (B, 20, 3)
     radius: torch.Tensor  # (B, 20)
-    rest: torch.Tensor    # (B, 24, 3) T-pose J24 joints the capsules ride on
+    rest: torch.Tensor  # (B, 24, 3) T-pose J24 joints the capsules ride on
 
     @property
     def batch_size(self) -> int:
@@ -45,8 +45,12 @@ class Capsules:
         r = self.radius
         return math.pi * r**2 * (self.length + 4.0 * r / 3.0)
 
-    def posed(self, pose: torch.Tensor, root_rotation: torch.Tensor | None = None,
-              root_translation: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def posed(
+        self,
+        pose: torch.Tensor,
+        root_rotation: torch.Tensor | None = None,
+        root_translation: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Axis end points (B, 20, 3) x 2 for a (B, 23, 3) pose; with a root rotation
         ((B, 3) axis-angle on top of the supine reference) and translation they are in the
         mat frame, otherwise in body axes with the pelvis at the origin."""
@@ -54,8 +58,9 @@ class Capsules:
         rot, pos = forward_kinematics(self.rest, pose, R0)
         return self.place(rot, pos, root_translation)
 
-    def place(self, rot: torch.Tensor, pos: torch.Tensor,
-              translation: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def place(
+        self, rot: torch.Tensor, pos: torch.Tensor, translation: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Capsule end points for given J24 world rotations (B, 24, 3, 3) and positions."""
         j = list(CAPSULE_JOINTS)
         R, p, r0 = rot[:, j], pos[:, j], self.rest[:, j]
@@ -71,12 +76,12 @@ class Capsules:
 class _CapsuleVertices:
     """What one capsule's fit reads of the T-pose mesh (for a LinearMesh backend)."""
 
-    index: torch.Tensor        # (n,) vertices whose dominant part is one of the capsule's parts
-    template: torch.Tensor     # (1, 3 n) their template positions, coordinate-major
+    index: torch.Tensor  # (n,) vertices whose dominant part is one of the capsule's parts
+    template: torch.Tensor  # (1, 3 n) their template positions, coordinate-major
     blendshapes: torch.Tensor  # (A, 3 n)
-    bones: torch.Tensor        # (k,) bones that skin them
-    weights: torch.Tensor      # (k, n - rigid) dense skinning weights of the vertices after the rigid ones
-    rigid: int = 0             # the first `rigid` vertices ride bone bones[rigid_bone] alone (weight 1)
+    bones: torch.Tensor  # (k,) bones that skin them
+    weights: torch.Tensor  # (k, n - rigid) dense skinning weights of the vertices after the rigid ones
+    rigid: int = 0  # the first `rigid` vertices ride bone bones[rigid_bone] alone (weight 1)
     rigid_bone: int = 0
 
 
@@ -104,7 +109,9 @@ def _build_fit_plan(model: BodyModel):
         for part in spec.parts:
             mask |= labels == part
         if not mask.any():
-            raise ValueError(f"body model {model.name!r} has no vertices on the {spec.name} part; cannot fit its capsule")
+            raise ValueError(
+                f"body model {model.name!r} has no vertices on the {spec.name} part; cannot fit its capsule"
+            )
         index.append(mask.nonzero()[:, 0])
     mesh = model.linear_mesh()
     if mesh is None:
@@ -128,15 +135,17 @@ def _build_fit_plan(model: BodyModel):
             order = torch.cat([rigid.nonzero()[:, 0], (~rigid).nonzero()[:, 0]])
             idx, w = idx[order], w[order]
             n_rigid = int(rigid.sum())
-            plan.append(_CapsuleVertices(
-                index=idx,
-                template=mesh.template[idx].T.reshape(1, -1).contiguous(),
-                blendshapes=mesh.blendshapes[:, idx].permute(0, 2, 1).reshape(A, -1).contiguous(),
-                bones=bones,
-                weights=w[n_rigid:].T.contiguous(),
-                rigid=n_rigid,
-                rigid_bone=rigid_bone,
-            ))
+            plan.append(
+                _CapsuleVertices(
+                    index=idx,
+                    template=mesh.template[idx].T.reshape(1, -1).contiguous(),
+                    blendshapes=mesh.blendshapes[:, idx].permute(0, 2, 1).reshape(A, -1).contiguous(),
+                    bones=bones,
+                    weights=w[n_rigid:].T.contiguous(),
+                    rigid=n_rigid,
+                    rigid_bone=rigid_bone,
+                )
+            )
     return plan
 
 
@@ -190,8 +199,9 @@ def fit_capsules(model: BodyModel, shape: torch.Tensor) -> Capsules:
             k = p.bones.shape[0]
             # Bone transforms into the capsule's frame: (B, k, 3, 4) = [T | t], and for the
             # blend (B, 12, k).
-            aff4 = torch.cat([Qt[:, None] @ skin.transforms[:, p.bones],
-                              (Qt[:, None] @ skin.translations[:, p.bones, :, None])], -1)
+            aff4 = torch.cat(
+                [Qt[:, None] @ skin.transforms[:, p.bones], (Qt[:, None] @ skin.translations[:, p.bones, :, None])], -1
+            )
             aff = aff4.reshape(B, k, 12).transpose(1, 2).contiguous()
             off = (Qt @ origin[..., None])[..., 0]
             nr = p.rigid

@@ -44,8 +44,9 @@ def segment_distance(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: t
     return (c1 - c2).norm(dim=-1)
 
 
-def capsule_clearance(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor,
-                      pairs: torch.Tensor) -> torch.Tensor:
+def capsule_clearance(
+    start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, pairs: torch.Tensor
+) -> torch.Tensor:
     """(B, P) gap between the surfaces of capsule pairs (negative = interpenetrating)."""
     i, j = pairs[:, 0], pairs[:, 1]
     d = segment_distance(start[:, i], end[:, i], start[:, j], end[:, j])

@@ -16,11 +16,11 @@ _J = J24_NAMES.index
 @dataclasses.dataclass(frozen=True)
 class CapsuleSpec:
     name: str
-    joint: int                  # J24 joint the capsule rides on
-    child: int | None           # axis end joint (None: crosswise torso capsule)
-    parts: tuple[int, ...]      # J24 parts whose vertices fit the capsule
-    segment: str                # body segment for the mass distribution
-    extend_end: bool = False    # grow the far end to the last vertex (head, hands, feet)
+    joint: int  # J24 joint the capsule rides on
+    child: int | None  # axis end joint (None: crosswise torso capsule)
+    parts: tuple[int, ...]  # J24 parts whose vertices fit the capsule
+    segment: str  # body segment for the mass distribution
+    extend_end: bool = False  # grow the far end to the last vertex (head, hands, feet)
     extend_start: bool = False  # grow the near end back to the first vertex (heels)
 
     @property
@@ -43,12 +43,25 @@ def _layout() -> tuple[CapsuleSpec, ...]:
             CapsuleSpec(f"{s}_collar", _J(f"{s}_collar"), _J(f"{s}_shoulder"), (_J(f"{s}_collar"),), "trunk"),
             CapsuleSpec(f"{s}_upper_arm", _J(f"{s}_shoulder"), _J(f"{s}_elbow"), (_J(f"{s}_shoulder"),), "upper_arm"),
             CapsuleSpec(f"{s}_forearm", _J(f"{s}_elbow"), _J(f"{s}_wrist"), (_J(f"{s}_elbow"),), "forearm"),
-            CapsuleSpec(f"{s}_hand", _J(f"{s}_wrist"), _J(f"{s}_hand"), (_J(f"{s}_wrist"), _J(f"{s}_hand")),
-                        "hand", extend_end=True),
+            CapsuleSpec(
+                f"{s}_hand",
+                _J(f"{s}_wrist"),
+                _J(f"{s}_hand"),
+                (_J(f"{s}_wrist"), _J(f"{s}_hand")),
+                "hand",
+                extend_end=True,
+            ),
             CapsuleSpec(f"{s}_thigh", _J(f"{s}_hip"), _J(f"{s}_knee"), (_J(f"{s}_hip"),), "thigh"),
             CapsuleSpec(f"{s}_calf", _J(f"{s}_knee"), _J(f"{s}_ankle"), (_J(f"{s}_knee"),), "shank"),
-            CapsuleSpec(f"{s}_foot", _J(f"{s}_ankle"), _J(f"{s}_foot"), (_J(f"{s}_ankle"), _J(f"{s}_foot")),
-                        "foot", extend_end=True, extend_start=True),
+            CapsuleSpec(
+                f"{s}_foot",
+                _J(f"{s}_ankle"),
+                _J(f"{s}_foot"),
+                (_J(f"{s}_ankle"), _J(f"{s}_foot")),
+                "foot",
+                extend_end=True,
+                extend_start=True,
+            ),
         ]
     return tuple(specs)
 
@@ -103,10 +116,26 @@ def collision_pairs(checked: tuple[str, ...] = DISTAL_CAPSULES) -> torch.Tensor:
 # --- mass distribution (REFERENCE.md, Tozeren) ---------------------------------------------
 AVERAGE_MASS_KG = {"female": 62.5, "male": 78.4}
 SEGMENT_FRACTIONS = {  # per side for limbs
-    "female": {"trunk": .508, "head": .094, "thigh": .083, "shank": .055, "foot": .012,
-               "upper_arm": .027, "forearm": .016, "hand": .005},
-    "male": {"trunk": .483, "head": .071, "thigh": .105, "shank": .045, "foot": .015,
-             "upper_arm": .033, "forearm": .019, "hand": .006},
+    "female": {
+        "trunk": 0.508,
+        "head": 0.094,
+        "thigh": 0.083,
+        "shank": 0.055,
+        "foot": 0.012,
+        "upper_arm": 0.027,
+        "forearm": 0.016,
+        "hand": 0.005,
+    },
+    "male": {
+        "trunk": 0.483,
+        "head": 0.071,
+        "thigh": 0.105,
+        "shank": 0.045,
+        "foot": 0.015,
+        "upper_arm": 0.033,
+        "forearm": 0.019,
+        "hand": 0.006,
+    },
 }
 STIFFNESS_REFERENCE_MASS_KG = 70.45
 DAMPING_RATIO = 15.0  # damping = 15 x stiffness (N m s / rad)
@@ -114,14 +143,26 @@ DAMPING_RATIO = 15.0  # damping = 15 x stiffness (N m s / rad)
 # J24 splits it 1/3 collar : 2/3 shoulder, so we use two springs in series, collar 12 and
 # shoulder 6: together 4 N m/rad, and a load bends them 1 : 2 as the sampling split does.
 JOINT_STIFFNESS = {
-    "hip": 6.0, "knee": 3.0, "ankle": 6.0, "collar": 12.0, "shoulder": 6.0, "elbow": 2.0,
-    "wrist": 4.0, "spine1": 200.0, "spine2": 200.0, "spine3": 200.0, "neck": 200.0, "head": 200.0,
+    "hip": 6.0,
+    "knee": 3.0,
+    "ankle": 6.0,
+    "collar": 12.0,
+    "shoulder": 6.0,
+    "elbow": 2.0,
+    "wrist": 4.0,
+    "spine1": 200.0,
+    "spine2": 200.0,
+    "spine3": 200.0,
+    "neck": 200.0,
+    "head": 200.0,
 }
 # Joints of the capsule chain: every joint a capsule rides on, except the root.
 CHAIN_JOINTS: tuple[int, ...] = tuple(j for j in CAPSULE_JOINTS if j != 0)
 HINGE_JOINTS = {  # joint -> hinge axis in SMPL body axes (knees flex about x, elbows about y)
-    _J("left_knee"): (1.0, 0.0, 0.0), _J("right_knee"): (1.0, 0.0, 0.0),
-    _J("left_elbow"): (0.0, 1.0, 0.0), _J("right_elbow"): (0.0, 1.0, 0.0),
+    _J("left_knee"): (1.0, 0.0, 0.0),
+    _J("right_knee"): (1.0, 0.0, 0.0),
+    _J("left_elbow"): (0.0, 1.0, 0.0),
+    _J("right_elbow"): (0.0, 1.0, 0.0),
 }
 
 

@@ -47,8 +47,7 @@ def _containing(points: torch.Tensor, owner: torch.Tensor, caps: Capsules, pairs
     return count
 
 
-def capsule_volumes(caps: Capsules, method: str = "qmc", resolution: float = 0.002,
-                    points: int = 8192) -> torch.Tensor:
+def capsule_volumes(caps: Capsules, method: str = "qmc", resolution: float = 0.002, points: int = 8192) -> torch.Tensor:
     """(B, 20) capsule volumes (m^3) with overlaps shared fractionally (seed A.2).
 
     method "voxel": voxel centres on a `resolution` grid (the seed's 2 mm), each voxel split
@@ -66,8 +65,11 @@ def capsule_volumes(caps: Capsules, method: str = "qmc", resolution: float = 0.0
     L = axis.norm(dim=-1)
     w = axis / L.clamp_min(1e-12)[..., None]
     # An orthonormal frame (w, e1, e2) per capsule.
-    helper = torch.where((w[..., :1].abs() < 0.9), torch.tensor([1.0, 0, 0], dtype=w.dtype, device=w.device),
-                         torch.tensor([0, 1.0, 0], dtype=w.dtype, device=w.device))
+    helper = torch.where(
+        (w[..., :1].abs() < 0.9),
+        torch.tensor([1.0, 0, 0], dtype=w.dtype, device=w.device),
+        torch.tensor([0, 1.0, 0], dtype=w.dtype, device=w.device),
+    )
     e1 = torch.linalg.cross(w, helper, dim=-1)
     e1 = e1 / e1.norm(dim=-1, keepdim=True)
     e2 = torch.linalg.cross(w, e1, dim=-1)
@@ -82,8 +84,12 @@ def capsule_volumes(caps: Capsules, method: str = "qmc", resolution: float = 0.0
     ball = torch.stack([rb * sz * ph2.cos(), rb * sz * ph2.sin(), rb * cz], -1)
 
     def to_world(z, x1, x2):  # (B, 20, N) each -> (B, 20, N, 3)
-        return (a[:, :, None] + z[..., None] * w[:, :, None]
-                + x1[..., None] * e1[:, :, None] + x2[..., None] * e2[:, :, None])
+        return (
+            a[:, :, None]
+            + z[..., None] * w[:, :, None]
+            + x1[..., None] * e1[:, :, None]
+            + x2[..., None] * e2[:, :, None]
+        )
 
     rr = r[..., None]
     cyl_pts = to_world(cyl[:, 2] * L[..., None], cyl[:, 0] * rr, cyl[:, 1] * rr)
@@ -104,7 +110,7 @@ def _voxel_volumes(caps: Capsules, h: float) -> torch.Tensor:
     lo_all = torch.minimum(caps.start, caps.end) - caps.radius[..., None]
     hi_all = torch.maximum(caps.start, caps.end) + caps.radius[..., None]
     for bi in range(caps.batch_size):
-        c1 = Capsules(caps.start[bi:bi + 1], caps.end[bi:bi + 1], caps.radius[bi:bi + 1], caps.rest[bi:bi + 1])
+        c1 = Capsules(caps.start[bi : bi + 1], caps.end[bi : bi + 1], caps.radius[bi : bi + 1], caps.rest[bi : bi + 1])
         pairs = overlap_pairs(c1)
         origin = lo_all[bi].amin(0)
         for c in range(NUM_CAPSULES):

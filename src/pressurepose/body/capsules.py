@@ -67,13 +67,13 @@ class CapsuleBody:
     """Everything sim #1 needs about B capsulised bodies (SI units, body axes, T-pose)."""
 
     capsules: Capsules
-    volume_m3: torch.Tensor       # (B, 20) shared volume
-    mass_kg: torch.Tensor         # (B, 20)
-    inertia: torch.Tensor         # (B, 20, 3) principal moments about the centre (axis, perp, perp)
-    stiffness: torch.Tensor       # (B, 23) N m / rad per J24 pose joint (0: not a chain joint)
-    damping: torch.Tensor         # (B, 23) N m s / rad
-    home_pose: torch.Tensor       # (B, 23, 3) spring equilibrium
-    body_mass_kg: torch.Tensor    # (B,) = mass_kg.sum(-1)
+    volume_m3: torch.Tensor  # (B, 20) shared volume
+    mass_kg: torch.Tensor  # (B, 20)
+    inertia: torch.Tensor  # (B, 20, 3) principal moments about the centre (axis, perp, perp)
+    stiffness: torch.Tensor  # (B, 23) N m / rad per J24 pose joint (0: not a chain joint)
+    damping: torch.Tensor  # (B, 23) N m s / rad
+    home_pose: torch.Tensor  # (B, 23, 3) spring equilibrium
+    body_mass_kg: torch.Tensor  # (B,) = mass_kg.sum(-1)
 
 
 def capsule_inertia(mass: torch.Tensor, radius: torch.Tensor, length: torch.Tensor) -> torch.Tensor:
@@ -102,13 +102,20 @@ def _segment_table(female: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-capsule segment fraction X_R,g (B, 20) (blended by gender) and segment ids (20,)."""
     segments = sorted({c.segment for c in CAPSULES})
     seg_id = torch.tensor([segments.index(c.segment) for c in CAPSULES])
-    f = torch.tensor([SEGMENT_FRACTIONS["female"][c.segment] for c in CAPSULES], dtype=female.dtype, device=female.device)
+    f = torch.tensor(
+        [SEGMENT_FRACTIONS["female"][c.segment] for c in CAPSULES], dtype=female.dtype, device=female.device
+    )
     m = torch.tensor([SEGMENT_FRACTIONS["male"][c.segment] for c in CAPSULES], dtype=female.dtype, device=female.device)
     return female[:, None] * f + (1 - female[:, None]) * m, seg_id.to(female.device)
 
 
-def build_capsule_body(model: BodyModel, shape: torch.Tensor, volume_method: str = "qmc",
-                       volume_points: int = 8192, one_by_one: bool = False) -> CapsuleBody:
+def build_capsule_body(
+    model: BodyModel,
+    shape: torch.Tensor,
+    volume_method: str = "qmc",
+    volume_points: int = 8192,
+    one_by_one: bool = False,
+) -> CapsuleBody:
     """Capsules, masses (seed eq. 11-12, summing to the body model's mass), inertia, joint
     stiffness and damping for (B, S) shapes. `volume_points`: Sobol points per capsule for the
     "qmc" shared volumes (2048 changes a capsule's volume by at most 0.3% against 8192 and
@@ -127,8 +134,9 @@ def build_capsule_body(model: BodyModel, shape: torch.Tensor, volume_method: str
     return _concat_bodies(parts)
 
 
-def _build(model: BodyModel, shape: torch.Tensor, volume_method: str, volume_points: int,
-           avg_cache: dict | None) -> CapsuleBody:
+def _build(
+    model: BodyModel, shape: torch.Tensor, volume_method: str, volume_points: int, avg_cache: dict | None
+) -> CapsuleBody:
     """build_capsule_body of a batch; avg_cache (one-by-one builds): the average bodies'
     capsule volumes by shape, each computed alone."""
     caps = fit_capsules(model, shape)
@@ -147,16 +155,19 @@ def _build(model: BodyModel, shape: torch.Tensor, volume_method: str, volume_poi
         for u in unique:
             key = tuple(u.tolist())
             if key not in avg_cache:
-                avg_cache[key] = capsule_volumes(fit_capsules(model, u[None]), method=volume_method,
-                                                 points=volume_points)[0]
+                avg_cache[key] = capsule_volumes(
+                    fit_capsules(model, u[None]), method=volume_method, points=volume_points
+                )[0]
             rows.append(avg_cache[key])
         avg_volume = torch.stack(rows)
     avg_volume = avg_volume[inverse]
     fraction, seg_id = _segment_table(female)
     # V_R,g of the average body: sum of its capsule volumes over each segment (per side for
     # limbs: a left and a right segment are separate parts, each with fraction X_R).
-    side = torch.tensor([0 if c.segment in ("trunk", "head") else (1 if c.name.startswith("left_") else 2)
-                         for c in CAPSULES], device=shape.device)
+    side = torch.tensor(
+        [0 if c.segment in ("trunk", "head") else (1 if c.name.startswith("left_") else 2) for c in CAPSULES],
+        device=shape.device,
+    )
     group = seg_id * 3 + side
     part_volume = torch.zeros(shape.shape[0], int(group.max()) + 1, dtype=volume.dtype, device=volume.device)
     part_volume.index_add_(1, group, avg_volume)
@@ -171,25 +182,58 @@ def _build(model: BodyModel, shape: torch.Tensor, volume_method: str, volume_poi
         base[j - 1] = JOINT_STIFFNESS[name]
     stiffness = base[None] * (body_mass / STIFFNESS_REFERENCE_MASS_KG)[:, None]
     return CapsuleBody(
-        capsules=caps, volume_m3=volume, mass_kg=mass, inertia=inertia, stiffness=stiffness,
-        damping=DAMPING_RATIO * stiffness, home_pose=home_pose(shape.shape[0], shape.dtype, shape.device),
+        capsules=caps,
+        volume_m3=volume,
+        mass_kg=mass,
+        inertia=inertia,
+        stiffness=stiffness,
+        damping=DAMPING_RATIO * stiffness,
+        home_pose=home_pose(shape.shape[0], shape.dtype, shape.device),
         body_mass_kg=mass.sum(-1),
     )
 
 
 def _concat_bodies(parts: list[CapsuleBody]) -> CapsuleBody:
     def cat(objs):
-        return type(objs[0])(**{f.name: cat([getattr(o, f.name) for o in objs])
-                                if dataclasses.is_dataclass(getattr(objs[0], f.name))
-                                else torch.cat([getattr(o, f.name) for o in objs])
-                                for f in dataclasses.fields(objs[0])})
+        return type(objs[0])(
+            **{
+                f.name: cat([getattr(o, f.name) for o in objs])
+                if dataclasses.is_dataclass(getattr(objs[0], f.name))
+                else torch.cat([getattr(o, f.name) for o in objs])
+                for f in dataclasses.fields(objs[0])
+            }
+        )
+
     return cat(parts)
 
 
 __all__ = [
-    "AVERAGE_MASS_KG", "CAPSULES", "CAPSULE_JOINTS", "CAPSULE_NAMES", "CAPSULE_PARENTS", "CHAIN_JOINTS", "DAMPING_RATIO",
-    "DISTAL_CAPSULES", "HINGE_JOINTS", "JOINT_STIFFNESS", "NUM_CAPSULES", "SEGMENT_FRACTIONS",
-    "STIFFNESS_REFERENCE_MASS_KG", "CapsuleBody", "CapsuleSpec", "Capsules", "build_capsule_body", "capsule_clearance",
-    "capsule_index", "capsule_inertia", "capsule_volumes", "collision_pairs", "female_fraction", "fit_capsules",
-    "home_pose", "overlap_pairs", "point_segment_distance", "segment_distance",
+    "AVERAGE_MASS_KG",
+    "CAPSULES",
+    "CAPSULE_JOINTS",
+    "CAPSULE_NAMES",
+    "CAPSULE_PARENTS",
+    "CHAIN_JOINTS",
+    "DAMPING_RATIO",
+    "DISTAL_CAPSULES",
+    "HINGE_JOINTS",
+    "JOINT_STIFFNESS",
+    "NUM_CAPSULES",
+    "SEGMENT_FRACTIONS",
+    "STIFFNESS_REFERENCE_MASS_KG",
+    "CapsuleBody",
+    "CapsuleSpec",
+    "Capsules",
+    "build_capsule_body",
+    "capsule_clearance",
+    "capsule_index",
+    "capsule_inertia",
+    "capsule_volumes",
+    "collision_pairs",
+    "female_fraction",
+    "fit_capsules",
+    "home_pose",
+    "overlap_pairs",
+    "point_segment_distance",
+    "segment_distance",
 ]

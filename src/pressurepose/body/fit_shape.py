@@ -14,8 +14,9 @@ from pressurepose.body.model import BodyModel
 from pressurepose.errors import UserError
 
 
-def shape_for_height_mass(model: BodyModel, height_m, mass_kg, female: bool | float = 0.0,
-                          iterations: int = 60) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def shape_for_height_mass(
+    model: BodyModel, height_m, mass_kg, female: bool | float = 0.0, iterations: int = 60
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(B, S) shapes, and their (B,) heights (m) and masses (kg), closest to the targets."""
     height = torch.as_tensor(height_m, dtype=model.dtype).reshape(-1)
     mass = torch.as_tensor(mass_kg, dtype=model.dtype).reshape(-1)

@@ -3,35 +3,58 @@
 from __future__ import annotations
 
 J24_NAMES: tuple[str, ...] = (
-    "pelvis",          # 0 (root)
-    "left_hip",        # 1
-    "right_hip",       # 2
-    "spine1",          # 3
-    "left_knee",       # 4
-    "right_knee",      # 5
-    "spine2",          # 6
-    "left_ankle",      # 7
-    "right_ankle",     # 8
-    "spine3",          # 9
-    "left_foot",       # 10
-    "right_foot",      # 11
-    "neck",            # 12
-    "left_collar",     # 13
-    "right_collar",    # 14
-    "head",            # 15
-    "left_shoulder",   # 16
+    "pelvis",  # 0 (root)
+    "left_hip",  # 1
+    "right_hip",  # 2
+    "spine1",  # 3
+    "left_knee",  # 4
+    "right_knee",  # 5
+    "spine2",  # 6
+    "left_ankle",  # 7
+    "right_ankle",  # 8
+    "spine3",  # 9
+    "left_foot",  # 10
+    "right_foot",  # 11
+    "neck",  # 12
+    "left_collar",  # 13
+    "right_collar",  # 14
+    "head",  # 15
+    "left_shoulder",  # 16
     "right_shoulder",  # 17
-    "left_elbow",      # 18
-    "right_elbow",     # 19
-    "left_wrist",      # 20
-    "right_wrist",     # 21
-    "left_hand",       # 22
-    "right_hand",      # 23
+    "left_elbow",  # 18
+    "right_elbow",  # 19
+    "left_wrist",  # 20
+    "right_wrist",  # 21
+    "left_hand",  # 22
+    "right_hand",  # 23
 )
 
 # Parent of each joint (-1 for the root), SMPL's kinematic tree.
 J24_PARENTS: tuple[int, ...] = (
-    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
+    -1,
+    0,
+    0,
+    0,
+    1,
+    2,
+    3,
+    4,
+    5,
+    6,
+    7,
+    8,
+    9,
+    9,
+    9,
+    12,
+    13,
+    14,
+    16,
+    17,
+    18,
+    19,
+    20,
+    21,
 )
 
 NUM_JOINTS = 24
@@ -43,9 +66,7 @@ def joint_index(name: str) -> int:
     try:
         return J24_NAMES.index(name)
     except ValueError:
-        raise ValueError(
-            f"unknown joint name {name!r}; expected one of {', '.join(J24_NAMES)}"
-        ) from None
+        raise ValueError(f"unknown joint name {name!r}; expected one of {', '.join(J24_NAMES)}") from None
 
 
 def _mirror_name(name: str) -> str:

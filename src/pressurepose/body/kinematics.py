@@ -65,9 +65,7 @@ def forward_kinematics(
     return rot, pos
 
 
-def pose_in_mat(
-    rest: torch.Tensor, params: BodyParams
-) -> tuple[torch.Tensor, torch.Tensor]:
+def pose_in_mat(rest: torch.Tensor, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
     """World rotations (B, 24, 3, 3, body axes -> mat frame) and joint positions (B, 24, 3)
     in the mat frame for BodyParams whose shapes have these rest joints."""
     rot, pos = forward_kinematics(rest, params.pose, root_matrix(params.root_rotation))

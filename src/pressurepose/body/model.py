@@ -21,9 +21,9 @@ BODY_DENSITY_KG_M3 = 980.0
 
 @dataclasses.dataclass(frozen=True)
 class BodyMeasurements:
-    height_m: torch.Tensor   # (B,) top of the head to the soles, standing T-pose
+    height_m: torch.Tensor  # (B,) top of the head to the soles, standing T-pose
     volume_m3: torch.Tensor  # (B,) enclosed mesh volume
-    mass_kg: torch.Tensor    # (B,) volume x BODY_DENSITY_KG_M3
+    mass_kg: torch.Tensor  # (B,) volume x BODY_DENSITY_KG_M3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,9 +31,9 @@ class LinearMesh:
     """A backend's rest mesh, linear in per-shape coefficients c (B, A):
     x = template + c @ blendshapes, skinned with the fixed sparse weights (V, K) over K bones."""
 
-    template: torch.Tensor     # (V, 3)
+    template: torch.Tensor  # (V, 3)
     blendshapes: torch.Tensor  # (A, V, 3)
-    skinning: torch.Tensor     # (V, K) sparse, rows sum to 1 (to float32 precision)
+    skinning: torch.Tensor  # (V, K) sparse, rows sum to 1 (to float32 precision)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,10 +42,10 @@ class ZeroPoseSkinning:
     vertex v of body b = sum_k W[v, k] (transforms[b, k] x[b, v] + translations[b, k]), in
     SMPL's body axes (the pelvis not yet at the origin)."""
 
-    coeffs: torch.Tensor        # (B, A)
-    transforms: torch.Tensor    # (B, K, 3, 3)
+    coeffs: torch.Tensor  # (B, A)
+    transforms: torch.Tensor  # (B, K, 3, 3)
     translations: torch.Tensor  # (B, K, 3)
-    joints: torch.Tensor        # (B, 24, 3) J24, same axes and origin as the vertices
+    joints: torch.Tensor  # (B, 24, 3) J24, same axes and origin as the vertices
 
 
 class BodyModel(torch.nn.Module, abc.ABC):

@@ -26,10 +26,10 @@ R_SUPINE = ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
 
 @dataclasses.dataclass(frozen=True)
 class BodyParams:
-    shape: torch.Tensor            # (B, S)
-    root_rotation: torch.Tensor    # (B, 3) rad
+    shape: torch.Tensor  # (B, S)
+    root_rotation: torch.Tensor  # (B, 3) rad
     root_translation: torch.Tensor  # (B, 3) m
-    pose: torch.Tensor             # (B, 23, 3) rad
+    pose: torch.Tensor  # (B, 23, 3) rad
 
     @property
     def batch_size(self) -> int:
@@ -66,12 +66,12 @@ class BodyParams:
     @staticmethod
     def cat(parts: list[BodyParams]) -> BodyParams:
         """One batch of several, in order."""
-        return BodyParams(**{f.name: torch.cat([getattr(p, f.name) for p in parts])
-                             for f in dataclasses.fields(BodyParams)})
+        return BodyParams(
+            **{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(BodyParams)}
+        )
 
     def to(self, *args, **kwargs) -> BodyParams:
-        return BodyParams(**{f.name: getattr(self, f.name).to(*args, **kwargs)
-                             for f in dataclasses.fields(self)})
+        return BodyParams(**{f.name: getattr(self, f.name).to(*args, **kwargs) for f in dataclasses.fields(self)})
 
     def validate(self, shape_dim: int, dtype: torch.dtype, device: torch.device) -> None:
         """Raise ValueError naming the field and what was expected if anything is off."""
@@ -88,24 +88,18 @@ class BodyParams:
                 raise ValueError(f"BodyParams.{name} must be a torch.Tensor, got {type(value).__name__}")
             if value.ndim != 1 + len(tail) or tuple(value.shape[1:]) != tail:
                 want = "(B, " + ", ".join(map(str, tail)) + ")"
-                raise ValueError(
-                    f"BodyParams.{name} must have shape {want}, got {tuple(value.shape)}"
-                )
+                raise ValueError(f"BodyParams.{name} must have shape {want}, got {tuple(value.shape)}")
             if B is None:
                 B = value.shape[0]
             elif value.shape[0] != B:
-                raise ValueError(
-                    f"BodyParams.{name} has batch size {value.shape[0]}, but shape has {B}"
-                )
+                raise ValueError(f"BodyParams.{name} has batch size {value.shape[0]}, but shape has {B}")
             if value.dtype != dtype:
                 raise ValueError(
                     f"BodyParams.{name} has dtype {value.dtype}, but the body model is {dtype}; "
                     f"convert with params.to({dtype}) or model.to({value.dtype})"
                 )
             if value.device.type != device.type:
-                raise ValueError(
-                    f"BodyParams.{name} is on {value.device}, but the body model is on {device}"
-                )
+                raise ValueError(f"BodyParams.{name} is on {value.device}, but the body model is on {device}")
             if not torch.isfinite(value).all():
                 raise ValueError(f"BodyParams.{name} contains NaN or infinite values")
 
@@ -114,10 +108,10 @@ class BodyParams:
 class BodyOutput:
     """A posed body in the mat frame (metres)."""
 
-    vertices: torch.Tensor          # (B, V, 3)
-    joints: torch.Tensor            # (B, 24, 3), J24 order
-    faces: torch.Tensor             # (F, 3) int64
-    part_labels: torch.Tensor       # (V,) int64, J24 index of the body part of each vertex
+    vertices: torch.Tensor  # (B, V, 3)
+    joints: torch.Tensor  # (B, 24, 3), J24 order
+    faces: torch.Tensor  # (F, 3) int64
+    part_labels: torch.Tensor  # (V,) int64, J24 index of the body part of each vertex
     skinning_weights: torch.Tensor  # (V, 24), per-vertex weights summed onto J24 parts
 
     def __post_init__(self) -> None:

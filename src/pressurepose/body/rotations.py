@@ -54,8 +54,9 @@ def rotation_angle(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     P = R1[..., :, :, None] * R2[..., :, None, :]  # P[..., k, i, j] = R1[k, i] R2[k, j]
     M = P[..., 0, :, :] + P[..., 1, :, :] + P[..., 2, :, :]  # R1^T R2
     cos2 = M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2] - 1
-    sin2 = torch.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0],
-                        M[..., 1, 0] - M[..., 0, 1]], -1).norm(dim=-1)
+    sin2 = torch.stack(
+        [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1
+    ).norm(dim=-1)
     return torch.atan2(sin2, cos2)
 
 
@@ -67,20 +68,42 @@ def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
     # pick per element the one with the largest denominator (Shepperd's method).
     cands = torch.stack(
         [
-            torch.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
-                         m[..., 1, 0] - m[..., 0, 1]], -1),
-            torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - trace,
-                         m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0],
-                         1 + 2 * m[..., 1, 1] - trace, m[..., 1, 2] + m[..., 2, 1]], -1),
-            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0],
-                         m[..., 1, 2] + m[..., 2, 1], 1 + 2 * m[..., 2, 2] - trace], -1),
+            torch.stack(
+                [1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1
+            ),
+            torch.stack(
+                [
+                    m[..., 2, 1] - m[..., 1, 2],
+                    1 + 2 * m[..., 0, 0] - trace,
+                    m[..., 0, 1] + m[..., 1, 0],
+                    m[..., 0, 2] + m[..., 2, 0],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    m[..., 0, 2] - m[..., 2, 0],
+                    m[..., 0, 1] + m[..., 1, 0],
+                    1 + 2 * m[..., 1, 1] - trace,
+                    m[..., 1, 2] + m[..., 2, 1],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    m[..., 1, 0] - m[..., 0, 1],
+                    m[..., 0, 2] + m[..., 2, 0],
+                    m[..., 1, 2] + m[..., 2, 1],
+                    1 + 2 * m[..., 2, 2] - trace,
+                ],
+                -1,
+            ),
         ],
         -2,
     )  # (..., 4, 4): row k is candidate k
     diag = torch.stack(
-        [1 + trace, 1 + 2 * m[..., 0, 0] - trace, 1 + 2 * m[..., 1, 1] - trace,
-         1 + 2 * m[..., 2, 2] - trace], -1)
+        [1 + trace, 1 + 2 * m[..., 0, 0] - trace, 1 + 2 * m[..., 1, 1] - trace, 1 + 2 * m[..., 2, 2] - trace], -1
+    )
     best = diag.argmax(-1, keepdim=True)
     q = torch.gather(cands, -2, best[..., None].expand(*best.shape, 4)).squeeze(-2)
     q = q / q.norm(dim=-1, keepdim=True)
@@ -104,8 +127,7 @@ def skew(v: torch.Tensor) -> torch.Tensor:
     zero = torch.zeros_like(v[..., 0])
     x, y, z = v.unbind(-1)
     return torch.stack(
-        [torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1),
-         torch.stack([-y, x, zero], -1)],
+        [torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1), torch.stack([-y, x, zero], -1)],
         -2,
     )
 

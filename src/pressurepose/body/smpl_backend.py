@@ -77,22 +77,37 @@ class _SparseState(_State):
         if not {"data", "indices", "indptr"} <= set(s):
             raise SmplFileError("SMPL file holds a sparse matrix without data/indices/indptr")
         shape = s.get("_shape", s.get("shape"))
-        if not (isinstance(shape, (tuple, list)) and len(shape) == 2
-                and all(isinstance(d, (int, np.integer)) and not isinstance(d, bool) and d >= 0 for d in shape)):
+        if not (
+            isinstance(shape, (tuple, list))
+            and len(shape) == 2
+            and all(isinstance(d, (int, np.integer)) and not isinstance(d, bool) and d >= 0 for d in shape)
+        ):
             raise SmplFileError(f"SMPL file holds a sparse matrix whose shape {shape!r} is not two sizes")
         shape = (int(shape[0]), int(shape[1]))
         if shape[0] * shape[1] > MAX_DENSE:
-            raise SmplFileError(f"SMPL file holds a sparse matrix of shape {shape}, larger than any SMPL model "
-                                f"needs ({MAX_DENSE} values); not a valid model file")
+            raise SmplFileError(
+                f"SMPL file holds a sparse matrix of shape {shape}, larger than any SMPL model "
+                f"needs ({MAX_DENSE} values); not a valid model file"
+            )
         data, indices, indptr = (np.asarray(s[k]) for k in ("data", "indices", "indptr"))
         major_size = shape[1] if self.compressed_axis == 1 else shape[0]
         minor_size = shape[0] if self.compressed_axis == 1 else shape[1]
-        if (indptr.ndim != 1 or len(indptr) != major_size + 1 or indices.shape != data.shape or data.ndim != 1
-                or indptr.dtype.kind not in "iu" or indices.dtype.kind not in "iu" or data.dtype.kind not in "fiu"
-                or indptr[0] != 0 or indptr[-1] != len(data) or (np.diff(indptr) < 0).any()
-                or (len(indices) and (indices.min() < 0 or indices.max() >= minor_size))):
-            raise SmplFileError(f"SMPL file holds a sparse matrix of shape {shape} whose data/indices/indptr "
-                                "do not describe it")
+        if (
+            indptr.ndim != 1
+            or len(indptr) != major_size + 1
+            or indices.shape != data.shape
+            or data.ndim != 1
+            or indptr.dtype.kind not in "iu"
+            or indices.dtype.kind not in "iu"
+            or data.dtype.kind not in "fiu"
+            or indptr[0] != 0
+            or indptr[-1] != len(data)
+            or (np.diff(indptr) < 0).any()
+            or (len(indices) and (indices.min() < 0 or indices.max() >= minor_size))
+        ):
+            raise SmplFileError(
+                f"SMPL file holds a sparse matrix of shape {shape} whose data/indices/indptr do not describe it"
+            )
         dense = np.zeros(shape, dtype=np.float64)
         major = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
         where = (indices, major) if self.compressed_axis == 1 else (major, indices)
@@ -106,11 +121,16 @@ class _CsrState(_SparseState):
 
 class _RestrictedUnpickler(BoundedUnpickler):
     _ALLOWED = {
-        ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy", "ndarray"), ("numpy", "dtype"),
-        ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-        ("copy_reg", "_reconstructor"), ("copyreg", "_reconstructor"),
-        ("__builtin__", "object"), ("builtins", "object"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("copy_reg", "_reconstructor"),
+        ("copyreg", "_reconstructor"),
+        ("__builtin__", "object"),
+        ("builtins", "object"),
         ("_codecs", "encode"),  # how protocol-2 pickles written by Python 3 store bytes
     }
 
@@ -152,16 +172,26 @@ def read_smpl_file(path: Path) -> dict[str, np.ndarray]:
             raise SmplFileError(f"SMPL model file {path}: {key} is not numeric (dtype {a.dtype})")
     V = arrays["v_template"].shape[0]
     expected = {
-        "v_template": (V, 3), "J_regressor": (NUM_JOINTS, V), "weights": (V, NUM_JOINTS),
+        "v_template": (V, 3),
+        "J_regressor": (NUM_JOINTS, V),
+        "weights": (V, NUM_JOINTS),
         "kintree_table": (2, NUM_JOINTS),
     }
     for key, shape in expected.items():
         if arrays[key].shape != shape:
             raise SmplFileError(f"SMPL model file {path}: {key} has shape {arrays[key].shape}, expected {shape}")
-    if arrays["shapedirs"].ndim != 3 or arrays["shapedirs"].shape[:2] != (V, 3) or arrays["shapedirs"].shape[2] < NUM_BETAS:
-        raise SmplFileError(f"SMPL model file {path}: shapedirs has shape {arrays['shapedirs'].shape}, expected ({V}, 3, >={NUM_BETAS})")
+    if (
+        arrays["shapedirs"].ndim != 3
+        or arrays["shapedirs"].shape[:2] != (V, 3)
+        or arrays["shapedirs"].shape[2] < NUM_BETAS
+    ):
+        raise SmplFileError(
+            f"SMPL model file {path}: shapedirs has shape {arrays['shapedirs'].shape}, expected ({V}, 3, >={NUM_BETAS})"
+        )
     if arrays["posedirs"].shape != (V, 3, 9 * (NUM_JOINTS - 1)):
-        raise SmplFileError(f"SMPL model file {path}: posedirs has shape {arrays['posedirs'].shape}, expected ({V}, 3, 207)")
+        raise SmplFileError(
+            f"SMPL model file {path}: posedirs has shape {arrays['posedirs'].shape}, expected ({V}, 3, 207)"
+        )
     for key in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights"):
         if not np.isfinite(arrays[key]).all():
             raise SmplFileError(f"SMPL model file {path}: {key} contains NaN or infinite values")
@@ -185,9 +215,7 @@ class SmplBody(BodyModel):
         try:
             from smplx.lbs import batch_rigid_transform, lbs
         except ImportError:
-            raise SmplFileError(
-                "the smpl backend needs the smplx package: pip install 'pressurepose[smpl]'"
-            ) from None
+            raise SmplFileError("the smpl backend needs the smplx package: pip install 'pressurepose[smpl]'") from None
         self._lbs, self._rigid = lbs, batch_rigid_transform
         if gender not in GENDERS:
             raise ValueError(f"unknown SMPL gender {gender!r}; expected one of {', '.join(GENDERS)}")
@@ -231,8 +259,15 @@ class SmplBody(BodyModel):
             posed, _ = self._rigid(rot, J, self.parents, dtype=shape.dtype)
             return None, posed
         vertices, joints = self._lbs(
-            shape, rot, self.v_template, self.shapedirs, self.posedirs, self.J_regressor,
-            self.parents, self.skinning_weights, pose2rot=False,
+            shape,
+            rot,
+            self.v_template,
+            self.shapedirs,
+            self.posedirs,
+            self.J_regressor,
+            self.parents,
+            self.skinning_weights,
+            pose2rot=False,
         )
         return vertices, joints
 
@@ -246,13 +281,34 @@ def write_synthetic_smpl_file(path: str | Path, seed: int = 0, num_vertices: int
     """
     rng = np.random.default_rng(seed)
     # Approximate SMPL rest joints (m), body axes: x = left, y = up, z = front.
-    J = np.array([
-        [0, 0, 0], [.06, -.09, 0], [-.06, -.09, 0], [0, .11, -.02], [.1, -.47, 0], [-.1, -.47, 0],
-        [0, .24, -.01], [.09, -.87, -.03], [-.09, -.87, -.03], [0, .29, 0], [.11, -.93, .1],
-        [-.11, -.93, .1], [0, .51, -.02], [.08, .42, -.01], [-.08, .42, -.01], [0, .6, .03],
-        [.18, .45, -.02], [-.18, .45, -.02], [.44, .45, -.03], [-.44, .45, -.03],
-        [.7, .45, -.02], [-.7, .45, -.02], [.79, .45, -.02], [-.79, .45, -.02],
-    ])
+    J = np.array(
+        [
+            [0, 0, 0],
+            [0.06, -0.09, 0],
+            [-0.06, -0.09, 0],
+            [0, 0.11, -0.02],
+            [0.1, -0.47, 0],
+            [-0.1, -0.47, 0],
+            [0, 0.24, -0.01],
+            [0.09, -0.87, -0.03],
+            [-0.09, -0.87, -0.03],
+            [0, 0.29, 0],
+            [0.11, -0.93, 0.1],
+            [-0.11, -0.93, 0.1],
+            [0, 0.51, -0.02],
+            [0.08, 0.42, -0.01],
+            [-0.08, 0.42, -0.01],
+            [0, 0.6, 0.03],
+            [0.18, 0.45, -0.02],
+            [-0.18, 0.45, -0.02],
+            [0.44, 0.45, -0.03],
+            [-0.44, 0.45, -0.03],
+            [0.7, 0.45, -0.02],
+            [-0.7, 0.45, -0.02],
+            [0.79, 0.45, -0.02],
+            [-0.79, 0.45, -0.02],
+        ]
+    )
     parents = np.array((-1,) + J24_PARENTS[1:])
     owner = rng.integers(0, NUM_JOINTS, num_vertices)
     child_of = {int(p): c for c, p in enumerate(parents) if p >= 0}
@@ -270,7 +326,10 @@ def write_synthetic_smpl_file(path: str | Path, seed: int = 0, num_vertices: int
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {
-        "v_template": v, "f": faces.astype(np.int64), "weights": weights, "J_regressor": J_regressor,
+        "v_template": v,
+        "f": faces.astype(np.int64),
+        "weights": weights,
+        "J_regressor": J_regressor,
         "kintree_table": np.stack([np.r_[4294967295, parents[1:]], np.arange(NUM_JOINTS)]).astype(np.int64),
         "shapedirs": rng.normal(0, 0.01, (num_vertices, 3, NUM_BETAS)),
         "posedirs": rng.normal(0, 0.001, (num_vertices, 3, 207)),

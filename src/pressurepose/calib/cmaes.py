@@ -39,12 +39,12 @@ class CMASettings:
     popsize: int = 50
     max_iter: int = 3000
     max_fevals: int = 100_000_000
-    cmean: float = 0.25          # mean learning rate
-    tolfun: float = 1e-3         # function tolerance
-    tolfunhist: float = 1e-12    # function history tolerance
-    tolx: float = 5e-4           # x-change tolerance
-    maxstd: float = 4.0          # max standard deviation
-    tolstagnation: int = 100     # stagnation tolerance (iterations)
+    cmean: float = 0.25  # mean learning rate
+    tolfun: float = 1e-3  # function tolerance
+    tolfunhist: float = 1e-12  # function history tolerance
+    tolx: float = 5e-4  # x-change tolerance
+    maxstd: float = 4.0  # max standard deviation
+    tolstagnation: int = 100  # stagnation tolerance (iterations)
     # Not in the seed: cma stops after 1 generation of equal values by default; penalised
     # proposals share values, so a plateau of a few generations is tolerated.
     tolflatfitness: int = 10
@@ -63,10 +63,20 @@ class CMASettings:
 
     def options(self, randn) -> dict:
         return {
-            "popsize": self.popsize, "maxiter": self.max_iter, "maxfevals": self.max_fevals,
-            "CMA_cmean": self.cmean, "tolfun": self.tolfun, "tolfunhist": self.tolfunhist, "tolx": self.tolx,
-            "maxstd": self.maxstd, "tolstagnation": self.tolstagnation, "tolflatfitness": self.tolflatfitness,
-            "randn": randn, "verbose": -9, "verb_disp": 0, "verb_log": 0,
+            "popsize": self.popsize,
+            "maxiter": self.max_iter,
+            "maxfevals": self.max_fevals,
+            "CMA_cmean": self.cmean,
+            "tolfun": self.tolfun,
+            "tolfunhist": self.tolfunhist,
+            "tolx": self.tolx,
+            "maxstd": self.maxstd,
+            "tolstagnation": self.tolstagnation,
+            "tolflatfitness": self.tolflatfitness,
+            "randn": randn,
+            "verbose": -9,
+            "verb_disp": 0,
+            "verb_log": 0,
         }
 
 
@@ -110,9 +120,16 @@ def _covariance(es) -> np.ndarray:
     return C if C.ndim == 2 else np.diag(C)
 
 
-def minimise(evaluate: Callable[[list[np.ndarray]], list[float]], x0: np.ndarray, settings: CMASettings,
-             state_path: Path | None = None, signature: dict | None = None, resume: bool = True,
-             stop_after: int = 0, on_generation: Callable[[int, float, float], None] | None = None) -> CMAResult:
+def minimise(
+    evaluate: Callable[[list[np.ndarray]], list[float]],
+    x0: np.ndarray,
+    settings: CMASettings,
+    state_path: Path | None = None,
+    signature: dict | None = None,
+    resume: bool = True,
+    stop_after: int = 0,
+    on_generation: Callable[[int, float, float], None] | None = None,
+) -> CMAResult:
     """Minimise with CMA-ES; `evaluate` maps a generation's candidates to their losses.
 
     `state_path`: the state file (written after every generation; resumed from when it exists
@@ -122,8 +139,9 @@ def minimise(evaluate: Callable[[list[np.ndarray]], list[float]], x0: np.ndarray
     """
     import cma
 
-    signature = dict(signature or {}, settings=dataclasses.asdict(settings), x0=[float(v) for v in x0],
-                     cma_version=cma.__version__)
+    signature = dict(
+        signature or {}, settings=dataclasses.asdict(settings), x0=[float(v) for v in x0], cma_version=cma.__version__
+    )
     es, randn = _new_strategy(x0, settings)
     X_hist: list[np.ndarray] = []
     F_hist: list[np.ndarray] = []
@@ -151,20 +169,35 @@ def minimise(evaluate: Callable[[list[np.ndarray]], list[float]], x0: np.ndarray
             on_generation(es.countiter, float(es.best.f), float(es.sigma))
     stop = {k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in dict(es.stop()).items()}
     return CMAResult(
-        best_x=np.asarray(es.best.x, dtype=np.float64), best_f=float(es.best.f), mean=np.asarray(es.mean).copy(),
-        sigma=float(es.sigma), iterations=int(es.countiter), evaluations=int(es.countevals), stop=stop,
-        history_f=np.array(F_hist).reshape(len(F_hist), -1), history_mean=np.array(means).reshape(len(means), -1),
-        history_std=np.array(sigmas), resumed_from=resumed)
+        best_x=np.asarray(es.best.x, dtype=np.float64),
+        best_f=float(es.best.f),
+        mean=np.asarray(es.mean).copy(),
+        sigma=float(es.sigma),
+        iterations=int(es.countiter),
+        evaluations=int(es.countevals),
+        stop=stop,
+        history_f=np.array(F_hist).reshape(len(F_hist), -1),
+        history_mean=np.array(means).reshape(len(means), -1),
+        history_std=np.array(sigmas),
+        resumed_from=resumed,
+    )
 
 
 def _save_state(path: Path, es, randn: CountedNormal, signature: dict, X_hist, F_hist) -> None:
     arrays = {
-        "format": np.array(STATE_FORMAT), "signature": np.array(json.dumps(signature, sort_keys=True)),
-        "mean": np.asarray(es.mean, dtype=np.float64), "sigma": np.array(float(es.sigma)),
-        "covariance": _covariance(es), "iteration": np.array(int(es.countiter)),
-        "evaluations": np.array(int(es.countevals)), "best_x": np.asarray(es.best.x, dtype=np.float64),
-        "best_f": np.array(float(es.best.f)), "rng_seed": np.array(randn.seed), "rng_count": np.array(randn.count),
-        "candidates": np.stack(X_hist), "losses": np.stack(F_hist),
+        "format": np.array(STATE_FORMAT),
+        "signature": np.array(json.dumps(signature, sort_keys=True)),
+        "mean": np.asarray(es.mean, dtype=np.float64),
+        "sigma": np.array(float(es.sigma)),
+        "covariance": _covariance(es),
+        "iteration": np.array(int(es.countiter)),
+        "evaluations": np.array(int(es.countevals)),
+        "best_x": np.asarray(es.best.x, dtype=np.float64),
+        "best_f": np.array(float(es.best.f)),
+        "rng_seed": np.array(randn.seed),
+        "rng_count": np.array(randn.count),
+        "candidates": np.stack(X_hist),
+        "losses": np.stack(F_hist),
     }
 
     def write(tmp):
@@ -184,23 +217,35 @@ def _replay(es, path: Path, signature: dict):
         raise UserError(f"{path} is not a pressurepose CMA state file; delete it or run with --restart")
     stored = json.loads(str(data["signature"]))
     if stored != json.loads(json.dumps(signature, sort_keys=True)):
-        diff = sorted(k for k in set(stored) | set(signature) if stored.get(k) != json.loads(json.dumps(signature.get(k))))
-        raise UserError(f"{path} was written by a run with other settings ({', '.join(diff)} differ); "
-                         "use the same settings to resume, or --restart to start over")
+        diff = sorted(
+            k for k in set(stored) | set(signature) if stored.get(k) != json.loads(json.dumps(signature.get(k)))
+        )
+        raise UserError(
+            f"{path} was written by a run with other settings ({', '.join(diff)} differ); "
+            "use the same settings to resume, or --restart to start over"
+        )
     X_all, F_all = data["candidates"], data["losses"]
     means, sigmas = [], []
     for g in range(X_all.shape[0]):
         X = es.ask()
         if not np.array_equal(np.asarray(X), X_all[g]):
-            raise UserError(f"{path}: replaying generation {g} drew other candidates than were stored (another "
-                             "cma or numpy version?); use --restart to start over")
+            raise UserError(
+                f"{path}: replaying generation {g} drew other candidates than were stored (another "
+                "cma or numpy version?); use --restart to start over"
+            )
         es.tell(X, F_all[g].tolist())
         means.append(np.asarray(es.mean, dtype=np.float64).copy())
         sigmas.append(float(np.max(es.stds)))
-    if (int(es.countiter) != int(data["iteration"]) or not np.array_equal(np.asarray(es.mean), data["mean"])
-            or float(es.sigma) != float(data["sigma"]) or not np.array_equal(_covariance(es), data["covariance"])):
-        raise UserError(f"{path}: the replayed strategy does not match the stored mean, sigma and covariance; "
-                         "use --restart to start over")
+    if (
+        int(es.countiter) != int(data["iteration"])
+        or not np.array_equal(np.asarray(es.mean), data["mean"])
+        or float(es.sigma) != float(data["sigma"])
+        or not np.array_equal(_covariance(es), data["covariance"])
+    ):
+        raise UserError(
+            f"{path}: the replayed strategy does not match the stored mean, sigma and covariance; "
+            "use --restart to start over"
+        )
     return [x for x in X_all], [f for f in F_all], means, sigmas
 
 

@@ -34,8 +34,12 @@ class Evaluator:
         self.workers = workers
         self.pool = None
         if workers > 1:
-            self.pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                               initargs=(loss.measurements, loss.space, loss.margin_m, loss.sub))
+            self.pool = cf.ProcessPoolExecutor(
+                workers,
+                mp_context=mp.get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(loss.measurements, loss.space, loss.margin_m, loss.sub),
+            )
 
     def __call__(self, X) -> list[float]:
         if self.pool is None:

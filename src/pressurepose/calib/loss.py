@@ -43,18 +43,33 @@ PENALTY = 1.0e3
 DEFAULT_FREE = ("k1_pa_per_m", "k3_pa_per_m3", "spread_m", "c0_mmhg", "c1_mmhg_per_mm", "c2_mmhg_per_mm2")
 # Typical magnitude of each field: CMA-ES works on theta / scale, so one sigma means alike.
 SCALES = {
-    "k1_pa_per_m": 2.0e4, "k3_pa_per_m3": 6.0e7, "spread_m": 0.01, "thickness_m": 0.15,
-    "mat_stiffness_pa_per_mm": 133.322, "c0_mmhg": 1.0, "c1_mmhg_per_mm": 1.0, "c2_mmhg_per_mm2": 0.01,
-    "noise_mmhg": 1.0, "damping_s": 0.05, "friction": 0.5,
+    "k1_pa_per_m": 2.0e4,
+    "k3_pa_per_m3": 6.0e7,
+    "spread_m": 0.01,
+    "thickness_m": 0.15,
+    "mat_stiffness_pa_per_mm": 133.322,
+    "c0_mmhg": 1.0,
+    "c1_mmhg_per_mm": 1.0,
+    "c2_mmhg_per_mm2": 0.01,
+    "noise_mmhg": 1.0,
+    "damping_s": 0.05,
+    "friction": 0.5,
 }
 # Plausible ranges: outside them the range penalty applies. c0 > 0 would make every taxel
 # that the load spreading reaches at all (its Gaussian tails run to 3 sigma) read >= c0, so
 # the contact area would follow the truncation of the Gaussian: c0 is a threshold, <= 0.
 RANGES = {
-    "k1_pa_per_m": (1.0e3, 2.0e5), "k3_pa_per_m3": (0.0, 2.0e9), "spread_m": (0.0, 0.05),
-    "thickness_m": (0.03, 0.5), "mat_stiffness_pa_per_mm": (1.0, 1.0e4), "c0_mmhg": (-20.0, 0.0),
-    "c1_mmhg_per_mm": (0.05, 20.0), "c2_mmhg_per_mm2": (0.0, 1.0), "noise_mmhg": (0.0, 20.0),
-    "damping_s": (0.0, 1.0), "friction": (0.0, 2.0),
+    "k1_pa_per_m": (1.0e3, 2.0e5),
+    "k3_pa_per_m3": (0.0, 2.0e9),
+    "spread_m": (0.0, 0.05),
+    "thickness_m": (0.03, 0.5),
+    "mat_stiffness_pa_per_mm": (1.0, 1.0e4),
+    "c0_mmhg": (-20.0, 0.0),
+    "c1_mmhg_per_mm": (0.05, 20.0),
+    "c2_mmhg_per_mm2": (0.0, 1.0),
+    "noise_mmhg": (0.0, 20.0),
+    "damping_s": (0.0, 1.0),
+    "friction": (0.0, 2.0),
 }
 _MAY_BE_NEGATIVE = ("c0_mmhg",)
 
@@ -104,8 +119,10 @@ class ParamSpace:
         known = {f.name for f in dataclasses.fields(MattressParams)}
         bad = [n for n in self.free if n not in known]
         if bad or not self.free or len(set(self.free)) != len(self.free):
-            raise UserError(f"free parameters must be distinct MattressParams fields ({', '.join(sorted(known))}), "
-                             f"got {list(self.free)}")
+            raise UserError(
+                f"free parameters must be distinct MattressParams fields ({', '.join(sorted(known))}), "
+                f"got {list(self.free)}"
+            )
 
     @property
     def scales(self) -> np.ndarray:
@@ -141,8 +158,8 @@ class ParamSpace:
 @dataclasses.dataclass(frozen=True)
 class LossBreakdown:
     total: float
-    force: np.ndarray        # (N,) LF per object (nan when not simulated)
-    contact: np.ndarray      # (N,) LC
+    force: np.ndarray  # (N,) LF per object (nan when not simulated)
+    contact: np.ndarray  # (N,) LC
     compression: np.ndarray  # (N,) LQ
     penalty: float
     failures: tuple[str, ...]
@@ -152,8 +169,14 @@ class CalibrationLoss:
     """Eq. 13 over every object of the measurements, plus penalties, as a function of the
     CMA-ES vector x. Builds the simulator and the object regions once."""
 
-    def __init__(self, measurements: Measurements, space: ParamSpace, margin_m: float = 0.06,
-                 mat: MatSpec | None = None, sub: int = 2):
+    def __init__(
+        self,
+        measurements: Measurements,
+        space: ParamSpace,
+        margin_m: float = 0.06,
+        mat: MatSpec | None = None,
+        sub: int = 2,
+    ):
         if not margin_m >= 0:
             raise UserError(f"region margin must be >= 0 m, got {margin_m}")
         self.mat = mat or MatSpec()
@@ -169,13 +192,16 @@ class CalibrationLoss:
             masks = [object_region(o, self.mat, margin_m) for o in scene.objects]
             for j in range(len(masks)):
                 if not masks[j].any():
-                    raise UserError(f"scene {i}, object {j}: its region holds no sensing taxel; place it over "
-                                     "the sensing area")
+                    raise UserError(
+                        f"scene {i}, object {j}: its region holds no sensing taxel; place it over the sensing area"
+                    )
                 for k in range(j):
                     if (masks[j] & masks[k]).any():
-                        raise UserError(f"scene {i}: objects {k} and {j} lie within {2 * margin_m:.3f} m of each "
-                                         "other, so their loss regions overlap; place them further apart or lower "
-                                         "the region margin")
+                        raise UserError(
+                            f"scene {i}: objects {k} and {j} lie within {2 * margin_m:.3f} m of each "
+                            "other, so their loss regions overlap; place them further apart or lower "
+                            "the region margin"
+                        )
             self.regions += masks
 
     def __call__(self, x: np.ndarray) -> float:
@@ -190,8 +216,9 @@ class CalibrationLoss:
         res = self.sim(self.space.params(x))
         failed = sum(bool(f) for f in res.failure)
         if failed:
-            return LossBreakdown(PENALTY + failed / n + pen, nan, nan, nan, PENALTY + failed / n + pen,
-                                 tuple(res.failure))
+            return LossBreakdown(
+                PENALTY + failed / n + pen, nan, nan, nan, PENALTY + failed / n + pen, tuple(res.failure)
+            )
         return self.terms(res.reading_mmhg.numpy(), res.compression_m.numpy(), pen, tuple(res.failure))
 
     def of_params(self, params: MattressParams) -> float:
@@ -217,6 +244,15 @@ class CalibrationLoss:
 
 
 __all__ = [
-    "CalibrationLoss", "DEFAULT_FREE", "LossBreakdown", "PENALTY", "ParamSpace", "RANGES", "SCALES",
-    "compression_term", "contact_term", "force_term", "object_region",
+    "CalibrationLoss",
+    "DEFAULT_FREE",
+    "LossBreakdown",
+    "PENALTY",
+    "ParamSpace",
+    "RANGES",
+    "SCALES",
+    "compression_term",
+    "contact_term",
+    "force_term",
+    "object_region",
 ]

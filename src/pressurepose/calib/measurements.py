@@ -62,9 +62,19 @@ class Measurements:
         for s in self.scenes:
             objs = []
             for o, q in zip(s.objects, s.compression_m):
-                objs.append({"name": o.name, "shape": "capsule", "length_m": o.length_m, "radius_m": o.radius_m,
-                             "mass_kg": o.mass_kg, "x_m": o.x_m, "y_m": o.y_m, "yaw_deg": o.yaw_deg,
-                             "compression_m": float(q)})
+                objs.append(
+                    {
+                        "name": o.name,
+                        "shape": "capsule",
+                        "length_m": o.length_m,
+                        "radius_m": o.radius_m,
+                        "mass_kg": o.mass_kg,
+                        "x_m": o.x_m,
+                        "y_m": o.y_m,
+                        "yaw_deg": o.yaw_deg,
+                        "compression_m": float(q),
+                    }
+                )
             scenes.append({"name": s.name, "pressure_mmhg": s.pressure_mmhg.tolist(), "objects": objs})
         return {"format": FORMAT, "scenes": scenes}
 
@@ -82,30 +92,33 @@ def load_measurements(path: str | os.PathLike, mat: MatSpec | None = None) -> Me
 def parse_measurements(doc, mat: MatSpec | None = None, source: str = "measurements") -> Measurements:
     mat = mat or MatSpec()
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise UserError(f"{source}: not a pressurepose measurement file (expected \"format\": \"{FORMAT}\"; "
-                         "see docs/calibration.md)")
+        raise UserError(
+            f'{source}: not a pressurepose measurement file (expected "format": "{FORMAT}"; see docs/calibration.md)'
+        )
     scenes = doc.get("scenes")
     if not isinstance(scenes, list) or not scenes:
-        raise UserError(f"{source}: \"scenes\" must be a non-empty list")
+        raise UserError(f'{source}: "scenes" must be a non-empty list')
     out = []
     for i, s in enumerate(scenes):
         where = f"{source}: scene {i}"
         if not isinstance(s, dict):
-            raise UserError(f"{where} must be an object with \"pressure_mmhg\" and \"objects\"")
+            raise UserError(f'{where} must be an object with "pressure_mmhg" and "objects"')
         for key in ("pressure_mmhg", "objects"):
             if key not in s:
-                raise UserError(f"{where} is missing \"{key}\"")
+                raise UserError(f'{where} is missing "{key}"')
         try:
             image = np.asarray(s["pressure_mmhg"], dtype=np.float64)
         except (TypeError, ValueError):
             raise UserError(f"{where}: pressure_mmhg must be a {mat.rows} x {mat.cols} array of numbers") from None
         if image.shape != mat.shape:
-            raise UserError(f"{where}: pressure_mmhg must have shape {mat.shape} (rows along the bed, head first), "
-                             f"got {image.shape}")
+            raise UserError(
+                f"{where}: pressure_mmhg must have shape {mat.shape} (rows along the bed, head first), "
+                f"got {image.shape}"
+            )
         if not np.isfinite(image).all() or image.min() < 0 or image.max() > mat.max_pressure_mmhg:
             raise UserError(f"{where}: pressure_mmhg must be finite and within [0, {mat.max_pressure_mmhg:g}] mmHg")
         if not isinstance(s["objects"], list) or not s["objects"]:
-            raise UserError(f"{where}: \"objects\" must be a non-empty list")
+            raise UserError(f'{where}: "objects" must be a non-empty list')
         objects, q = [], []
         for j, o in enumerate(s["objects"]):
             obj, comp = _parse_object(o, f"{where}, object {j}", mat)
@@ -120,36 +133,52 @@ def _parse_object(o, where: str, mat: MatSpec) -> tuple[CalibObject, float]:
         raise UserError(f"{where} must be an object")
     shape = o.get("shape", "capsule")
     if shape != "capsule":
-        raise UserError(f"{where}: shape {shape!r} is not supported (only \"capsule\")")
+        raise UserError(f'{where}: shape {shape!r} is not supported (only "capsule")')
     for key in _OBJECT_FIELDS:
         if key not in o:
-            raise UserError(f"{where} is missing \"{key}\"")
+            raise UserError(f'{where} is missing "{key}"')
         v = o[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise UserError(f"{where}: {key} must be a finite number, got {v!r}")
     if o["mass_kg"] <= 0:
         raise UserError(f"{where}: mass_kg must be > 0 (a weight in kg), got {o['mass_kg']}")
     if o["compression_m"] < 0 or o["compression_m"] > 1.0:
-        raise UserError(f"{where}: compression_m is the sinking depth in metres, >= 0 (and < 1), "
-                         f"got {o['compression_m']}")
+        raise UserError(
+            f"{where}: compression_m is the sinking depth in metres, >= 0 (and < 1), got {o['compression_m']}"
+        )
     yaw = o.get("yaw_deg", 90.0)
     try:
-        obj = CalibObject(float(o["length_m"]), float(o["radius_m"]), float(o["mass_kg"]), float(o["x_m"]),
-                          float(o["y_m"]), yaw, str(o.get("name", "")))
+        obj = CalibObject(
+            float(o["length_m"]),
+            float(o["radius_m"]),
+            float(o["mass_kg"]),
+            float(o["x_m"]),
+            float(o["y_m"]),
+            yaw,
+            str(o.get("name", "")),
+        )
     except ValueError as exc:
         raise UserError(f"{where}: {exc}") from None
     (xa, ya), (xb, yb) = obj.axis_ends_m()
     (x0, x1), (y0, y1) = mat.mattress_bounds_m
     r = obj.radius_m
     if min(xa, xb) - r < x0 or max(xa, xb) + r > x1 or min(ya, yb) - r < y0 or max(ya, yb) + r > y1:
-        raise UserError(f"{where}: the capsule at ({obj.x_m}, {obj.y_m}) m does not lie wholly on the mattress "
-                         f"(x in [{x0:.3f}, {x1:.3f}], y in [{y0:.3f}, {y1:.3f}] m in the mat frame)")
+        raise UserError(
+            f"{where}: the capsule at ({obj.x_m}, {obj.y_m}) m does not lie wholly on the mattress "
+            f"(x in [{x0:.3f}, {x1:.3f}], y in [{y0:.3f}, {y1:.3f}] m in the mat frame)"
+        )
     return obj, float(o["compression_m"])
 
 
-def synthetic_measurements(scenes: list[list[CalibObject]], params: MattressParams, noise_mmhg: float = 0.0,
-                           compression_noise_m: float = 0.0, seed: int = 0, mat: MatSpec | None = None,
-                           sub: int = 2) -> Measurements:
+def synthetic_measurements(
+    scenes: list[list[CalibObject]],
+    params: MattressParams,
+    noise_mmhg: float = 0.0,
+    compression_noise_m: float = 0.0,
+    seed: int = 0,
+    mat: MatSpec | None = None,
+    sub: int = 2,
+) -> Measurements:
     """Measurements made by our own simulator with `params` (the hidden truth), sensor noise
     of `noise_mmhg` on loaded taxels and Gaussian noise of `compression_noise_m` on the
     measured compressions (the proof that calibration recovers known parameters)."""
@@ -160,13 +189,21 @@ def synthetic_measurements(scenes: list[list[CalibObject]], params: MattressPara
     bad = [f"{o.name or i}: {f}" for i, (o, f) in enumerate(zip(sim.objects, res.failure)) if f]
     if bad:
         raise UserError(f"the hidden parameters give no rest for some objects ({'; '.join(bad)})")
-    q = res.compression_m.numpy() + compression_noise_m * torch.randn(len(sim.objects), generator=gen,
-                                                                      dtype=torch.float64).numpy()
+    q = (
+        res.compression_m.numpy()
+        + compression_noise_m * torch.randn(len(sim.objects), generator=gen, dtype=torch.float64).numpy()
+    )
     q = np.maximum(q, 0.0)
     out, k = [], 0
     for i, objs in enumerate(scenes):
-        out.append(Scene(tuple(objs), res.reading_mmhg[i].numpy().astype(np.float64), q[k:k + len(objs)].copy(),
-                         name=f"scene {i}"))
+        out.append(
+            Scene(
+                tuple(objs),
+                res.reading_mmhg[i].numpy().astype(np.float64),
+                q[k : k + len(objs)].copy(),
+                name=f"scene {i}",
+            )
+        )
         k += len(objs)
     return Measurements(tuple(out))
 

@@ -69,8 +69,9 @@ class CalibObject:
         """Closed capsule mesh at its placement, 1 cm above the mattress: (V, 3), (F, 3)."""
         v, f = capsule_mesh(self.length_m, self.radius_m, dtype=dtype, **_MESH)
         a = math.radians(self.yaw_deg)
-        rot = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
-                           dtype=dtype)
+        rot = torch.tensor(
+            [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]], dtype=dtype
+        )
         centre = torch.tensor([self.x_m, self.y_m, self.radius_m + 0.01], dtype=dtype)
         return v @ rot.T + centre, f
 
@@ -83,10 +84,20 @@ def seed_objects(mat: MatSpec | None = None, radius_m: float = SEED_RADIUS_M) ->
     for length, weights in SEED_WEIGHTS_KG.items():
         n = len(weights)
         step = mat.sensing_length_m / n
-        scenes.append([
-            CalibObject(length, radius_m, m, x_m=step * (i + 0.5), y_m=mat.sensing_width_m / 2, yaw_deg=90.0,
-                        name=f"L{round(length * 100)}cm_{m:g}kg")
-            for i, m in enumerate(weights)])
+        scenes.append(
+            [
+                CalibObject(
+                    length,
+                    radius_m,
+                    m,
+                    x_m=step * (i + 0.5),
+                    y_m=mat.sensing_width_m / 2,
+                    yaw_deg=90.0,
+                    name=f"L{round(length * 100)}cm_{m:g}kg",
+                )
+                for i, m in enumerate(weights)
+            ]
+        )
     return scenes
 
 
@@ -94,10 +105,10 @@ def seed_objects(mat: MatSpec | None = None, radius_m: float = SEED_RADIUS_M) ->
 class SceneResult:
     """What the simulated bed shows for S scenes holding N objects in all."""
 
-    reading_mmhg: torch.Tensor     # (S, rows, cols) sensor readings of each scene
-    pressure_pa: torch.Tensor      # (S, covered_rows, covered_cols) summed pressure before the sensor
-    compression_m: torch.Tensor    # (N,) each object's deepest compression of the mattress
-    failure: list[str]             # (N,) "" or why the object found no rest (foundation.FAIL_*)
+    reading_mmhg: torch.Tensor  # (S, rows, cols) sensor readings of each scene
+    pressure_pa: torch.Tensor  # (S, covered_rows, covered_cols) summed pressure before the sensor
+    compression_m: torch.Tensor  # (N,) each object's deepest compression of the mattress
+    failure: list[str]  # (N,) "" or why the object found no rest (foundation.FAIL_*)
 
 
 class SceneSimulator:
@@ -107,8 +118,7 @@ class SceneSimulator:
     gradients: CMA-ES needs values only), sums them per scene and applies the sensor.
     """
 
-    def __init__(self, scenes: list[list[CalibObject]], mat: MatSpec | None = None, sub: int = 2,
-                 dtype=torch.float64):
+    def __init__(self, scenes: list[list[CalibObject]], mat: MatSpec | None = None, sub: int = 2, dtype=torch.float64):
         if not scenes or any(not s for s in scenes):
             raise UserError("need at least one scene, each with at least one object")
         self.mat = mat or MatSpec()

@@ -84,9 +84,19 @@ class CalibrateConfig:
     coupling_check: bool = True
 
     def settings(self) -> CMASettings:
-        return CMASettings(popsize=self.popsize, max_iter=self.max_iter, max_fevals=self.max_fevals,
-                           cmean=self.cmean, tolfun=self.tolfun, tolfunhist=self.tolfunhist, tolx=self.tolx,
-                           maxstd=self.maxstd, tolstagnation=self.tolstagnation, sigma0=self.sigma0, seed=self.seed)
+        return CMASettings(
+            popsize=self.popsize,
+            max_iter=self.max_iter,
+            max_fevals=self.max_fevals,
+            cmean=self.cmean,
+            tolfun=self.tolfun,
+            tolfunhist=self.tolfunhist,
+            tolx=self.tolx,
+            maxstd=self.maxstd,
+            tolstagnation=self.tolstagnation,
+            sigma0=self.sigma0,
+            seed=self.seed,
+        )
 
 
 def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> Written:
@@ -103,8 +113,13 @@ def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> Written:
     state = out / "cma_state.npz"
     if cfg.restart and state.exists():
         state.unlink()
-    signature = {"free": list(space.free), "base": base.to_dict(), "margin_m": cfg.margin_m, "sub": cfg.sub,
-                 "measurements_sha256": hashlib.sha256(Path(cfg.measurements).read_bytes()).hexdigest()}
+    signature = {
+        "free": list(space.free),
+        "base": base.to_dict(),
+        "margin_m": cfg.margin_m,
+        "sub": cfg.sub,
+        "measurements_sha256": hashlib.sha256(Path(cfg.measurements).read_bytes()).hexdigest(),
+    }
     workers = cfg.workers or (os.cpu_count() or 1)
     x0 = space.encode(base)
     t0 = time.perf_counter()
@@ -122,14 +137,28 @@ def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> Written:
     finished = not (cfg.stop_after and not result.stop)
     record = {
         "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
-        "finished": finished, "stop": result.stop, "iterations": result.iterations,
-        "evaluations": result.evaluations, "resumed_from_generation": result.resumed_from,
-        "seconds_this_run": round(seconds, 2), "workers": workers, "best_loss": result.best_f,
+        "finished": finished,
+        "stop": result.stop,
+        "iterations": result.iterations,
+        "evaluations": result.evaluations,
+        "resumed_from_generation": result.resumed_from,
+        "seconds_this_run": round(seconds, 2),
+        "workers": workers,
+        "best_loss": result.best_f,
         "start_loss": float(result.history_f[0].min()) if len(result.history_f) else None,
-        "params": best.to_dict(), "start_params": base.to_dict(),
-        "objects": [{"name": o.name, "mass_kg": o.mass_kg, "length_m": o.length_m,
-                     "LF": _num(breakdown.force[i]), "LC": _num(breakdown.contact[i]),
-                     "LQ": _num(breakdown.compression[i])} for i, o in enumerate(loss.sim.objects)],
+        "params": best.to_dict(),
+        "start_params": base.to_dict(),
+        "objects": [
+            {
+                "name": o.name,
+                "mass_kg": o.mass_kg,
+                "length_m": o.length_m,
+                "LF": _num(breakdown.force[i]),
+                "LC": _num(breakdown.contact[i]),
+                "LQ": _num(breakdown.compression[i]),
+            }
+            for i, o in enumerate(loss.sim.objects)
+        ],
     }
     if cfg.coupling_check and finished:
         record["coupling"] = coupling_check(loss, best)
@@ -143,16 +172,29 @@ def _num(v) -> float | None:
 
 
 def _minimise_with_progress(evaluator, x0, settings, state, signature, cfg, progress) -> CMAResult:
-    columns = (TextColumn("calibrate"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-               TimeElapsedColumn())
+    columns = (
+        TextColumn("calibrate"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[info]}"),
+        TimeElapsedColumn(),
+    )
     with Progress(*columns, disable=not progress, transient=False) as bar:
         task = bar.add_task("cma", total=settings.max_iter, info="")
 
         def report(it, best_f, sigma):
             bar.update(task, completed=it, info=f"best {best_f:.4g} sigma {sigma:.3g}")
 
-        return minimise(evaluator, x0, settings, state, signature, resume=not cfg.restart,
-                        stop_after=cfg.stop_after, on_generation=report)
+        return minimise(
+            evaluator,
+            x0,
+            settings,
+            state,
+            signature,
+            resume=not cfg.restart,
+            stop_after=cfg.stop_after,
+            on_generation=report,
+        )
 
 
 def calibrate(cfg: CalibrateConfig) -> None:
@@ -161,8 +203,10 @@ def calibrate(cfg: CalibrateConfig) -> None:
     written = run_calibrate(cfg)
     record = written.record
     state = "finished" if record["finished"] else "stopped (resume with the same command)"
-    print(f"{state} after {record['iterations']} generations, {record['evaluations']} evaluations: loss "
-          f"{record['start_loss']:.4g} -> {record['best_loss']:.4g}; parameters -> {written['params']}")
+    print(
+        f"{state} after {record['iterations']} generations, {record['evaluations']} evaluations: loss "
+        f"{record['start_loss']:.4g} -> {record['best_loss']:.4g}; parameters -> {written['params']}"
+    )
 
 
 __all__ = ["CalibrateConfig", "calibrate", "run_calibrate"]

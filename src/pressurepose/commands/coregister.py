@@ -51,8 +51,10 @@ def coregister(cfg: CoregisterConfig) -> None:
     """Co-register a camera with the mat from clicked corner markers (seed A.6): camera.json
     (pose), coregister.png and, with --cloud, the point cloud in the mat frame."""
     record = run_coregister(cfg).record
-    print(f"camera at {[round(v, 3) for v in record['camera_position_in_mat_m']]} m in the mat frame, "
-          f"reprojection RMS {record['rms_px']:.2f} px -> {cfg.out}")
+    print(
+        f"camera at {[round(v, 3) for v in record['camera_position_in_mat_m']]} m in the mat frame, "
+        f"reprojection RMS {record['rms_px']:.2f} px -> {cfg.out}"
+    )
 
 
 __all__ = ["CoregisterConfig", "coregister", "run_coregister"]

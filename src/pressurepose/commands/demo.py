@@ -62,15 +62,18 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     t0 = time.perf_counter()
     data = out / "data"
     log.info("1/3 generating fresh samples into %s", data)
-    run_generate(GenerateConfig(out=data, preset="tiny", seed=cfg.seed, workers=cfg.workers, backend=backend),
-                 progress=cfg.progress)
+    run_generate(
+        GenerateConfig(out=data, preset="tiny", seed=cfg.seed, workers=cfg.workers, backend=backend),
+        progress=cfg.progress,
+    )
     info = dataset_info(data, sheet=12, seed=cfg.seed)
     timings["generate_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     log.info("2/3 estimating the generated bodies with %s", model_dir)
-    synthetic = run_evaluate(EvaluateConfig(data=data, model=model_dir, out=out / "synthetic", split="test",
-                                            failures=4))
+    synthetic = run_evaluate(
+        EvaluateConfig(data=data, model=model_dir, out=out / "synthetic", split="test", failures=4)
+    )
     timings["synthetic_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -79,8 +82,9 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     timings["real_s"] = time.perf_counter() - t0
 
     summary = _summary(synthetic.record, real.record)
-    summary.update(model=str(model_dir), seed=cfg.seed, samples=info["total"],
-                   seconds={k: round(v, 1) for k, v in timings.items()})
+    summary.update(
+        model=str(model_dir), seed=cfg.seed, samples=info["total"], seconds={k: round(v, 1) for k, v in timings.items()}
+    )
     paths = {"synthetic": synthetic["markdown"], "real": real["markdown"]}
     paths["json"] = write_text(out / "demo.json", json.dumps(summary, indent=1))
     paths["markdown"] = write_text(out / "report.md", _markdown(summary))
@@ -93,39 +97,58 @@ def _summary(synthetic: dict, real: dict) -> dict:
     height_err = np.array([abs(r["estimated_height_m"] - r["height_m"]) for r in rows])
     o = synthetic["overall"]
     return {
-        "synthetic": {"count": synthetic["count"], "vpe_m": o["vpe_m"]["mean"], "mpjpe_m": o["mpjpe_m"]["mean"],
-                      "baselines": {k: v["mean"] for k, v in synthetic["baselines_vpe_m"].items()}},
-        "real": {"frames": len(rows),
-                 "posture_accuracy": float(np.mean([r["posture"] == r["estimated_posture"] for r in rows])),
-                 "height_median_abs_error_m": float(np.median(height_err)),
-                 "mass_median_abs_error_kg": float(np.median([abs(r["estimated_mass_kg"] - r["mass_kg"])
-                                                              for r in rows])),
-                 "by_mattress": {m: {"posture_accuracy": s["posture_accuracy"], "height_mae_m": s["height_mae_m"]}
-                                 for m, s in real["by_mattress"].items()}},
+        "synthetic": {
+            "count": synthetic["count"],
+            "vpe_m": o["vpe_m"]["mean"],
+            "mpjpe_m": o["mpjpe_m"]["mean"],
+            "baselines": {k: v["mean"] for k, v in synthetic["baselines_vpe_m"].items()},
+        },
+        "real": {
+            "frames": len(rows),
+            "posture_accuracy": float(np.mean([r["posture"] == r["estimated_posture"] for r in rows])),
+            "height_median_abs_error_m": float(np.median(height_err)),
+            "mass_median_abs_error_kg": float(np.median([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in rows])),
+            "by_mattress": {
+                m: {"posture_accuracy": s["posture_accuracy"], "height_mae_m": s["height_mae_m"]}
+                for m, s in real["by_mattress"].items()
+            },
+        },
     }
 
 
 def _markdown(s: dict) -> str:
     syn, real = s["synthetic"], s["real"]
     lines = [
-        "# pressurepose demo", "",
-        f"Network: `{s['model']}`. Seconds: " + ", ".join(f"{k[:-2]} {v}" for k, v in s["seconds"].items()) + ".", "",
+        "# pressurepose demo",
+        "",
+        f"Network: `{s['model']}`. Seconds: " + ", ".join(f"{k[:-2]} {v}" for k, v in s["seconds"].items()) + ".",
+        "",
         f"## Synthetic: {s['samples']} fresh samples simulated (seed {s['seed']}), {syn['count']} test samples estimated",
         "",
         f"- 3DVPE {syn['vpe_m'] * 100:.2f} cm, MPJPE {syn['mpjpe_m'] * 1000:.0f} mm "
         "(the seed's best synthetic 3DVPE: ~3.9-4.0 cm)",
     ]
     lines += [f"- baseline {k}: 3DVPE {v * 100:.2f} cm" for k, v in syn["baselines"].items()]
-    lines += ["- tables per partition, cases and failures: [synthetic/report.md](synthetic/report.md), "
-              "samples: [data/contact_sheet.png](data/contact_sheet.png)", "",
-              f"## Real: PmatData experiment II, {real['frames']} frames", "",
-              f"- posture (supine/left/right from the estimated root roll): {real['posture_accuracy'] * 100:.1f}% correct",
-              f"- height: median absolute error {real['height_median_abs_error_m'] * 100:.1f} cm; "
-              f"mass: {real['mass_median_abs_error_kg']:.1f} kg"]
-    lines += [f"- {m}: posture {v['posture_accuracy'] * 100:.1f}%, height MAE {v['height_mae_m'] * 100:.1f} cm"
-              for m, v in real["by_mattress"].items()]
-    lines += ["- per frame, confusion and scatter: [real/real.md](real/real.md)", "",
-              "Browse it: `pressurepose view` on the synthetic report or the data folder.", ""]
+    lines += [
+        "- tables per partition, cases and failures: [synthetic/report.md](synthetic/report.md), "
+        "samples: [data/contact_sheet.png](data/contact_sheet.png)",
+        "",
+        f"## Real: PmatData experiment II, {real['frames']} frames",
+        "",
+        f"- posture (supine/left/right from the estimated root roll): {real['posture_accuracy'] * 100:.1f}% correct",
+        f"- height: median absolute error {real['height_median_abs_error_m'] * 100:.1f} cm; "
+        f"mass: {real['mass_median_abs_error_kg']:.1f} kg",
+    ]
+    lines += [
+        f"- {m}: posture {v['posture_accuracy'] * 100:.1f}%, height MAE {v['height_mae_m'] * 100:.1f} cm"
+        for m, v in real["by_mattress"].items()
+    ]
+    lines += [
+        "- per frame, confusion and scatter: [real/real.md](real/real.md)",
+        "",
+        "Browse it: `pressurepose view` on the synthetic report or the data folder.",
+        "",
+    ]
     return "\n".join(lines)
 
 

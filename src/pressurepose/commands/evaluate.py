@@ -68,14 +68,35 @@ def run_evaluate(cfg: EvaluateConfig) -> Written:
     if train is not None and len(train) == 0:
         train = None
     t0 = time.perf_counter()
-    columns = (TextColumn("evaluating"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[rate]}"),
-               TimeRemainingColumn())
+    columns = (
+        TextColumn("evaluating"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]}"),
+        TimeRemainingColumn(),
+    )
     with Progress(*columns, transient=True) as bar:
         task = bar.add_task("eval", total=n, rate="")
-        result = E.evaluate_network(net, test, n, cfg.batch, train, cfg.baseline_samples, on_batch=lambda done: bar.update(
-            task, completed=done, rate=f"{done / (time.perf_counter() - t0):.1f} img/s"))
-    return _write_report(cfg, result.rows, result.baselines, lambda i: E.case_meshes(net.body, test, result.estimates, i),
-                         net.body.faces.numpy(), result.seconds, result.estimates)
+        result = E.evaluate_network(
+            net,
+            test,
+            n,
+            cfg.batch,
+            train,
+            cfg.baseline_samples,
+            on_batch=lambda done: bar.update(
+                task, completed=done, rate=f"{done / (time.perf_counter() - t0):.1f} img/s"
+            ),
+        )
+    return _write_report(
+        cfg,
+        result.rows,
+        result.baselines,
+        lambda i: E.case_meshes(net.body, test, result.estimates, i),
+        net.body.faces.numpy(),
+        result.seconds,
+        result.estimates,
+    )
 
 
 def _summary(values: list[float]) -> dict[str, float]:
@@ -99,8 +120,9 @@ def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
     return out
 
 
-def _write_report(cfg: EvaluateConfig, rows: dict, base: dict, case, faces: np.ndarray,
-                  seconds: float, estimates: BodyParams) -> Written:
+def _write_report(
+    cfg: EvaluateConfig, rows: dict, base: dict, case, faces: np.ndarray, seconds: float, estimates: BodyParams
+) -> Written:
     cfg.out.mkdir(parents=True, exist_ok=True)
     vpe = np.asarray(rows["vpe_m"])
     order = np.argsort(vpe)
@@ -123,10 +145,16 @@ def _write_report(cfg: EvaluateConfig, rows: dict, base: dict, case, faces: np.n
         "seed_reference": "Bodies at Rest, Table 5 (synthetic test sets, best network)",
     }
     paths = {}
-    paths["cases"] = atomic_write(cfg.out / "cases.png", lambda tmp: plot_cases(
-        tmp, [(f"{k}: 3DVPE {vpe[i] * 100:.1f} cm", *case(i)) for k, i in picks.items()], faces))
-    paths["failures"] = atomic_write(cfg.out / "failures.png", lambda tmp: plot_cases(
-        tmp, [(f"#{i} {rows['partition'][i]}: {vpe[i] * 100:.1f} cm", *case(i)) for i in failures], faces))
+    paths["cases"] = atomic_write(
+        cfg.out / "cases.png",
+        lambda tmp: plot_cases(tmp, [(f"{k}: 3DVPE {vpe[i] * 100:.1f} cm", *case(i)) for k, i in picks.items()], faces),
+    )
+    paths["failures"] = atomic_write(
+        cfg.out / "failures.png",
+        lambda tmp: plot_cases(
+            tmp, [(f"#{i} {rows['partition'][i]}: {vpe[i] * 100:.1f} cm", *case(i)) for i in failures], faces
+        ),
+    )
     paths["predictions"] = write_predictions(cfg.out / PREDICTIONS, estimates)
     paths["json"] = write_text(cfg.out / "report.json", json.dumps(record, indent=1))
     paths["markdown"] = write_text(cfg.out / "report.md", _markdown(record))
@@ -139,9 +167,13 @@ def _cm(x: float | None) -> str:
 
 def _markdown(r: dict) -> str:
     has_base = bool(r["baselines_vpe_m"])
-    lines = [f"# Evaluation: {r['config']['model']} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
-             "", "All errors unaligned except PA-MPJPE; 3DVPE as released (camera-facing vertices, two-way, "
-             "area-weighted). Seed = Bodies at Rest Table 5, synthetic, best network.", ""]
+    lines = [
+        f"# Evaluation: {r['config']['model']} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
+        "",
+        "All errors unaligned except PA-MPJPE; 3DVPE as released (camera-facing vertices, two-way, "
+        "area-weighted). Seed = Bodies at Rest Table 5, synthetic, best network.",
+        "",
+    ]
     for key, title in (("by_partition", "pose partition"), ("by_gender", "gender partition")):
         head = f"| {title} | test ct. | 3DVPE (cm) | seed 3DVPE (cm) | v2v (cm) | MPJPE (cm) | PA-MPJPE (cm) |"
         sep = "| --- | --- | --- | --- | --- | --- | --- |"
@@ -152,25 +184,44 @@ def _markdown(r: dict) -> str:
         for e in r[key]:
             name = e["partition" if key == "by_partition" else "gender"]
             seed = e["seed_synth_vpe_cm"]
-            row = (f"| {name} | {e['count']} | {_cm(e['vpe_m'])} | {'-' if seed is None else f'{seed:.2f}'} | "
-                   f"{_cm(e['v2v_m'])} | {_cm(e['mpjpe_m'])} | {_cm(e['pa_mpjpe_m'])} |")
+            row = (
+                f"| {name} | {e['count']} | {_cm(e['vpe_m'])} | {'-' if seed is None else f'{seed:.2f}'} | "
+                f"{_cm(e['v2v_m'])} | {_cm(e['mpjpe_m'])} | {_cm(e['pa_mpjpe_m'])} |"
+            )
             if has_base:
-                row += (f" {_cm(e.get('baseline_mean_body_vpe_m'))} | {_cm(e.get('baseline_nearest_image_vpe_m'))} |")
+                row += f" {_cm(e.get('baseline_mean_body_vpe_m'))} | {_cm(e.get('baseline_nearest_image_vpe_m'))} |"
             lines.append(row)
         lines.append("")
     o = r["overall"]
-    lines += ["## Overall (mean / median / 90th percentile)", "", "| metric | mean | median | p90 |",
-              "| --- | --- | --- | --- |"]
-    labels = {"vpe_m": ("3DVPE", "cm", 100.0), "v2v_m": ("v2v", "cm", 100.0), "mpjpe_m": ("MPJPE", "cm", 100.0),
-              "pa_mpjpe_m": ("PA-MPJPE", "cm", 100.0), "root_pos_m": ("root position", "cm", 100.0),
-              "root_rot_deg": ("root orientation", "deg", 1.0), "height_err_m": ("height", "cm", 100.0),
-              "mass_err_kg": ("mass", "kg", 1.0)}
+    lines += [
+        "## Overall (mean / median / 90th percentile)",
+        "",
+        "| metric | mean | median | p90 |",
+        "| --- | --- | --- | --- |",
+    ]
+    labels = {
+        "vpe_m": ("3DVPE", "cm", 100.0),
+        "v2v_m": ("v2v", "cm", 100.0),
+        "mpjpe_m": ("MPJPE", "cm", 100.0),
+        "pa_mpjpe_m": ("PA-MPJPE", "cm", 100.0),
+        "root_pos_m": ("root position", "cm", 100.0),
+        "root_rot_deg": ("root orientation", "deg", 1.0),
+        "height_err_m": ("height", "cm", 100.0),
+        "mass_err_kg": ("mass", "kg", 1.0),
+    }
     for m in METRICS:
         name, unit, scale = labels[m]
         s = o[m]
-        lines.append(f"| {name} ({unit}) | {s['mean'] * scale:.2f} | {s['median'] * scale:.2f} | {s['p90'] * scale:.2f} |")
-    lines += ["", "## Joint error per body region (cm, mean / median / p90)", "", "| region | mean | median | p90 |",
-              "| --- | --- | --- | --- |"]
+        lines.append(
+            f"| {name} ({unit}) | {s['mean'] * scale:.2f} | {s['median'] * scale:.2f} | {s['p90'] * scale:.2f} |"
+        )
+    lines += [
+        "",
+        "## Joint error per body region (cm, mean / median / p90)",
+        "",
+        "| region | mean | median | p90 |",
+        "| --- | --- | --- | --- |",
+    ]
     for reg, s in r["regions_m"].items():
         lines.append(f"| {reg} | {s['mean'] * 100:.2f} | {s['median'] * 100:.2f} | {s['p90'] * 100:.2f} |")
     if has_base:
@@ -179,8 +230,17 @@ def _markdown(r: dict) -> str:
             lines.append(f"- {k.replace('_', ' ')}: {s['mean'] * 100:.2f} / {s['median'] * 100:.2f}")
     else:
         lines += ["", "No training split in the dataset: baselines not computed."]
-    lines += ["", "## Cases", "", "![best, median, worst](cases.png)", "", "## Failures", "",
-              "![worst cases](failures.png)", ""]
+    lines += [
+        "",
+        "## Cases",
+        "",
+        "![best, median, worst](cases.png)",
+        "",
+        "## Failures",
+        "",
+        "![worst cases](failures.png)",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -190,9 +250,13 @@ def _cm(x: float | None) -> str:
 
 def _markdown(r: dict) -> str:
     has_base = bool(r["baselines_vpe_m"])
-    lines = [f"# Evaluation: {r['config']['model']} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
-             "", "All errors unaligned except PA-MPJPE; 3DVPE as released (camera-facing vertices, two-way, "
-             "area-weighted). Seed = Bodies at Rest Table 5, synthetic, best network.", ""]
+    lines = [
+        f"# Evaluation: {r['config']['model']} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
+        "",
+        "All errors unaligned except PA-MPJPE; 3DVPE as released (camera-facing vertices, two-way, "
+        "area-weighted). Seed = Bodies at Rest Table 5, synthetic, best network.",
+        "",
+    ]
     for key, title in (("by_partition", "pose partition"), ("by_gender", "gender partition")):
         head = f"| {title} | test ct. | 3DVPE (cm) | seed 3DVPE (cm) | v2v (cm) | MPJPE (cm) | PA-MPJPE (cm) |"
         sep = "| --- | --- | --- | --- | --- | --- | --- |"
@@ -203,25 +267,44 @@ def _markdown(r: dict) -> str:
         for e in r[key]:
             name = e["partition" if key == "by_partition" else "gender"]
             seed = e["seed_synth_vpe_cm"]
-            row = (f"| {name} | {e['count']} | {_cm(e['vpe_m'])} | {'-' if seed is None else f'{seed:.2f}'} | "
-                   f"{_cm(e['v2v_m'])} | {_cm(e['mpjpe_m'])} | {_cm(e['pa_mpjpe_m'])} |")
+            row = (
+                f"| {name} | {e['count']} | {_cm(e['vpe_m'])} | {'-' if seed is None else f'{seed:.2f}'} | "
+                f"{_cm(e['v2v_m'])} | {_cm(e['mpjpe_m'])} | {_cm(e['pa_mpjpe_m'])} |"
+            )
             if has_base:
-                row += (f" {_cm(e.get('baseline_mean_body_vpe_m'))} | {_cm(e.get('baseline_nearest_image_vpe_m'))} |")
+                row += f" {_cm(e.get('baseline_mean_body_vpe_m'))} | {_cm(e.get('baseline_nearest_image_vpe_m'))} |"
             lines.append(row)
         lines.append("")
     o = r["overall"]
-    lines += ["## Overall (mean / median / 90th percentile)", "", "| metric | mean | median | p90 |",
-              "| --- | --- | --- | --- |"]
-    labels = {"vpe_m": ("3DVPE", "cm", 100.0), "v2v_m": ("v2v", "cm", 100.0), "mpjpe_m": ("MPJPE", "cm", 100.0),
-              "pa_mpjpe_m": ("PA-MPJPE", "cm", 100.0), "root_pos_m": ("root position", "cm", 100.0),
-              "root_rot_deg": ("root orientation", "deg", 1.0), "height_err_m": ("height", "cm", 100.0),
-              "mass_err_kg": ("mass", "kg", 1.0)}
+    lines += [
+        "## Overall (mean / median / 90th percentile)",
+        "",
+        "| metric | mean | median | p90 |",
+        "| --- | --- | --- | --- |",
+    ]
+    labels = {
+        "vpe_m": ("3DVPE", "cm", 100.0),
+        "v2v_m": ("v2v", "cm", 100.0),
+        "mpjpe_m": ("MPJPE", "cm", 100.0),
+        "pa_mpjpe_m": ("PA-MPJPE", "cm", 100.0),
+        "root_pos_m": ("root position", "cm", 100.0),
+        "root_rot_deg": ("root orientation", "deg", 1.0),
+        "height_err_m": ("height", "cm", 100.0),
+        "mass_err_kg": ("mass", "kg", 1.0),
+    }
     for m in METRICS:
         name, unit, scale = labels[m]
         s = o[m]
-        lines.append(f"| {name} ({unit}) | {s['mean'] * scale:.2f} | {s['median'] * scale:.2f} | {s['p90'] * scale:.2f} |")
-    lines += ["", "## Joint error per body region (cm, mean / median / p90)", "", "| region | mean | median | p90 |",
-              "| --- | --- | --- | --- |"]
+        lines.append(
+            f"| {name} ({unit}) | {s['mean'] * scale:.2f} | {s['median'] * scale:.2f} | {s['p90'] * scale:.2f} |"
+        )
+    lines += [
+        "",
+        "## Joint error per body region (cm, mean / median / p90)",
+        "",
+        "| region | mean | median | p90 |",
+        "| --- | --- | --- | --- |",
+    ]
     for reg, s in r["regions_m"].items():
         lines.append(f"| {reg} | {s['mean'] * 100:.2f} | {s['median'] * 100:.2f} | {s['p90'] * 100:.2f} |")
     if has_base:
@@ -230,8 +313,17 @@ def _markdown(r: dict) -> str:
             lines.append(f"- {k.replace('_', ' ')}: {s['mean'] * 100:.2f} / {s['median'] * 100:.2f}")
     else:
         lines += ["", "No training split in the dataset: baselines not computed."]
-    lines += ["", "## Cases", "", "![best, median, worst](cases.png)", "", "## Failures", "",
-              "![worst cases](failures.png)", ""]
+    lines += [
+        "",
+        "## Cases",
+        "",
+        "![best, median, worst](cases.png)",
+        "",
+        "## Failures",
+        "",
+        "![worst cases](failures.png)",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -242,8 +334,10 @@ def evaluate(cfg: EvaluateConfig) -> None:
     written = run_evaluate(cfg)
     record = written.record
     o = record["overall"]
-    print(f"{record['count']} samples: 3DVPE {o['vpe_m']['mean'] * 100:.2f} cm, MPJPE {o['mpjpe_m']['mean'] * 100:.2f} cm "
-          f"-> {written['markdown']}")
+    print(
+        f"{record['count']} samples: 3DVPE {o['vpe_m']['mean'] * 100:.2f} cm, MPJPE {o['mpjpe_m']['mean'] * 100:.2f} cm "
+        f"-> {written['markdown']}"
+    )
 
 
 __all__ = ["EvaluateConfig", "evaluate", "run_evaluate"]

@@ -79,8 +79,9 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
 
     groups = [g for g in cfg.groups if g in GROUP_POSTURE]
     if not groups or len(groups) != len(cfg.groups):
-        raise UserError(f"groups must be letters of {''.join(GROUP_POSTURE)} (B supine, C right, D left), "
-                         f"got {cfg.groups!r}")
+        raise UserError(
+            f"groups must be letters of {''.join(GROUP_POSTURE)} (B supine, C right, D left), got {cfg.groups!r}"
+        )
     records = [r for r in load_index(cfg.pmatdata) if r.group in groups]
     if not records:
         raise UserError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
@@ -94,8 +95,12 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
         for lo in range(0, len(records), cfg.batch):
             sl = slice(lo, lo + cfg.batch)
             p = images[sl]
-            inputs = NetInputs(pressure_mmhg=p, gender=torch.full((p.shape[0],), GENDER_UNKNOWN),
-                               height_m=torch.tensor(heights[sl]), mass_kg=torch.tensor(masses[sl]))
+            inputs = NetInputs(
+                pressure_mmhg=p,
+                gender=torch.full((p.shape[0],), GENDER_UNKNOWN),
+                height_m=torch.tensor(heights[sl]),
+                mass_kg=torch.tensor(masses[sl]),
+            )
             est = net(inputs, mesh=False)[-1].params
             meas = net.body.measure(est.shape)
             rolls.append(roll_deg(est.root_rotation.to(torch.float64)))
@@ -104,16 +109,28 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     seconds = time.perf_counter() - t0
     roll = torch.cat(rolls)
     predicted = posture_of(roll)
-    rows = [{"file": str(r.path.relative_to(Path(cfg.pmatdata))), "subject": r.subject, "mattress": r.mattress,
-             "posture": GROUP_POSTURE[r.group], "estimated_posture": e, "roll_deg": float(a),
-             "height_m": r.height_cm / 100, "estimated_height_m": float(h), "mass_kg": r.weight_kg,
-             "estimated_mass_kg": float(m)}
-            for r, e, a, h, m in zip(records, predicted, roll, torch.cat(est_h), torch.cat(est_m))]
+    rows = [
+        {
+            "file": str(r.path.relative_to(Path(cfg.pmatdata))),
+            "subject": r.subject,
+            "mattress": r.mattress,
+            "posture": GROUP_POSTURE[r.group],
+            "estimated_posture": e,
+            "roll_deg": float(a),
+            "height_m": r.height_cm / 100,
+            "estimated_height_m": float(h),
+            "mass_kg": r.weight_kg,
+            "estimated_mass_kg": float(m),
+        }
+        for r, e, a, h, m in zip(records, predicted, roll, torch.cat(est_h), torch.cat(est_m))
+    ]
     summary = {}
     for mattress in sorted({r["mattress"] for r in rows}):
         sel = [r for r in rows if r["mattress"] == mattress]
-        confusion = {t: {e: sum(1 for r in sel if r["posture"] == t and r["estimated_posture"] == e) for e in POSTURES}
-                     for t in ("supine", "left", "right")}
+        confusion = {
+            t: {e: sum(1 for r in sel if r["posture"] == t and r["estimated_posture"] == e) for e in POSTURES}
+            for t in ("supine", "left", "right")
+        }
         summary[mattress] = {
             "frames": len(sel),
             "posture_accuracy": sum(r["posture"] == r["estimated_posture"] for r in sel) / len(sel),
@@ -122,9 +139,14 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "mass_mae_kg": float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in sel])),
         }
     cfg.out.mkdir(parents=True, exist_ok=True)
-    record = {"command": "evaluate-real",
-              "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
-              "frames": len(rows), "seconds": round(seconds, 2), "by_mattress": summary, "per_frame": rows}
+    record = {
+        "command": "evaluate-real",
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "frames": len(rows),
+        "seconds": round(seconds, 2),
+        "by_mattress": summary,
+        "per_frame": rows,
+    }
     paths = {"figure": atomic_write(cfg.out / "real.png", lambda tmp: plot_real(tmp, rows, summary))}
     paths["json"] = write_text(cfg.out / "real.json", json.dumps(record, indent=1))
     paths["markdown"] = write_text(cfg.out / "real.md", _markdown(record))
@@ -132,15 +154,25 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
 
 
 def _markdown(r: dict) -> str:
-    lines = [f"# {r['config']['model']} on PmatData experiment II ({r['frames']} frames, groups "
-             f"{r['config']['groups']})", "",
-             "| mattress | frames | posture accuracy | height MAE (cm) | mass MAE (kg) |", "| --- | --- | --- | --- | --- |"]
+    lines = [
+        f"# {r['config']['model']} on PmatData experiment II ({r['frames']} frames, groups {r['config']['groups']})",
+        "",
+        "| mattress | frames | posture accuracy | height MAE (cm) | mass MAE (kg) |",
+        "| --- | --- | --- | --- | --- |",
+    ]
     for name, s in r["by_mattress"].items():
-        lines.append(f"| {name} | {s['frames']} | {s['posture_accuracy'] * 100:.1f}% | {s['height_mae_m'] * 100:.1f} | "
-                     f"{s['mass_mae_kg']:.1f} |")
+        lines.append(
+            f"| {name} | {s['frames']} | {s['posture_accuracy'] * 100:.1f}% | {s['height_mae_m'] * 100:.1f} | "
+            f"{s['mass_mae_kg']:.1f} |"
+        )
     for name, s in r["by_mattress"].items():
-        lines += ["", f"Confusion ({name}; rows: true, columns: estimated)", "",
-                  "| | " + " | ".join(POSTURES) + " |", "| --- |" + " --- |" * len(POSTURES)]
+        lines += [
+            "",
+            f"Confusion ({name}; rows: true, columns: estimated)",
+            "",
+            "| | " + " | ".join(POSTURES) + " |",
+            "| --- |" + " --- |" * len(POSTURES),
+        ]
         for t, row in s["confusion"].items():
             lines.append(f"| {t} | " + " | ".join(str(row[e]) for e in POSTURES) + " |")
     lines += ["", "![real](real.png)", ""]
@@ -154,8 +186,11 @@ def run_evaluate_cloud(cfg) -> Written:
     n = len(images)
     net, _ = load_network(cfg.model)
     genders = arrays.get("gender")
-    gender = torch.tensor([{"female": 1.0, "male": 0.0}.get(str(g), GENDER_UNKNOWN) for g in genders]
-                          if genders is not None else [GENDER_UNKNOWN] * n)
+    gender = torch.tensor(
+        [{"female": 1.0, "male": 0.0}.get(str(g), GENDER_UNKNOWN) for g in genders]
+        if genders is not None
+        else [GENDER_UNKNOWN] * n
+    )
     height = torch.tensor(arrays["height_m"], dtype=torch.float32) if "height_m" in arrays else None
     mass = torch.tensor(arrays["mass_kg"], dtype=torch.float32) if "mass_kg" in arrays else None
     if net.config.height_weight and (height is None or mass is None):
@@ -166,24 +201,34 @@ def run_evaluate_cloud(cfg) -> Written:
     with torch.no_grad():
         for lo in range(0, n, cfg.batch):
             sl = slice(lo, lo + cfg.batch)
-            inputs = NetInputs(pressure_mmhg=images[sl], gender=gender[sl],
-                               height_m=None if height is None else height[sl],
-                               mass_kg=None if mass is None else mass[sl])
+            inputs = NetInputs(
+                pressure_mmhg=images[sl],
+                gender=gender[sl],
+                height_m=None if height is None else height[sl],
+                mass_kg=None if mass is None else mass[sl],
+            )
             est = net(inputs, mesh=True, maps=False)[-1]
             meas = net.body.measure(est.params.shape)
             est_h.append(meas.height_m)
             est_m.append(meas.mass_kg)
             for j, verts in enumerate(est.vertices):
                 i = lo + j
-                cloud = torch.from_numpy(arrays["cloud_points"][arrays["cloud_offsets"][i]:arrays["cloud_offsets"][i + 1]])
-                vpes.append(float(vpe_to_cloud(verts, faces, cloud.to(verts.dtype), camera=cfg.camera_m,
-                                               voxel_m=cfg.voxel_m)))
+                cloud = torch.from_numpy(
+                    arrays["cloud_points"][arrays["cloud_offsets"][i] : arrays["cloud_offsets"][i + 1]]
+                )
+                vpes.append(
+                    float(vpe_to_cloud(verts, faces, cloud.to(verts.dtype), camera=cfg.camera_m, voxel_m=cfg.voxel_m))
+                )
     seconds = time.perf_counter() - t0
     est_h, est_m = torch.cat(est_h).tolist(), torch.cat(est_m).tolist()
     rows = []
     for i in range(n):
-        r = {"subject": str(arrays["subject"][i]), "vpe_m": vpes[i], "estimated_height_m": est_h[i],
-             "estimated_mass_kg": est_m[i]}
+        r = {
+            "subject": str(arrays["subject"][i]),
+            "vpe_m": vpes[i],
+            "estimated_height_m": est_h[i],
+            "estimated_mass_kg": est_m[i],
+        }
         for k in ("pose_set", "pose_type", "index", "height_m", "mass_kg"):
             if k in arrays:
                 v = arrays[k][i]
@@ -197,17 +242,25 @@ def run_evaluate_cloud(cfg) -> Written:
             e["height_error_m"] = float(np.mean([r["estimated_height_m"] - r["height_m"] for r in sel]))
             e["mass_error_kg"] = float(np.mean([r["estimated_mass_kg"] - r["mass_kg"] for r in sel]))
         by_subject[s] = e
-    overall = {"participants": len(by_subject),
-               "vpe_m": float(np.mean([e["vpe_m"] for e in by_subject.values()])),
-               "vpe_m_over_frames": float(np.mean(vpes))}
+    overall = {
+        "participants": len(by_subject),
+        "vpe_m": float(np.mean([e["vpe_m"] for e in by_subject.values()])),
+        "vpe_m_over_frames": float(np.mean(vpes)),
+    }
     if "height_m" in arrays:
         overall["height_mae_m"] = float(np.mean([abs(r["estimated_height_m"] - r["height_m"]) for r in rows]))
         overall["mass_mae_kg"] = float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in rows]))
     cfg.out.mkdir(parents=True, exist_ok=True)
-    record = {"command": "evaluate-real", "kind": "point-cloud",
-              "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(cfg).items()},
-              "frames": n, "seconds": round(seconds, 2), "overall": overall, "by_participant": by_subject,
-              "per_frame": rows}
+    record = {
+        "command": "evaluate-real",
+        "kind": "point-cloud",
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(cfg).items()},
+        "frames": n,
+        "seconds": round(seconds, 2),
+        "overall": overall,
+        "by_participant": by_subject,
+        "per_frame": rows,
+    }
     paths = {"figure": atomic_write(cfg.out / "real.png", lambda tmp: plot_real_cloud(tmp, rows, by_subject))}
     paths["json"] = write_text(cfg.out / "real.json", json.dumps(record, indent=1))
     paths["markdown"] = write_text(cfg.out / "real.md", _cloud_markdown(record))
@@ -216,10 +269,13 @@ def run_evaluate_cloud(cfg) -> Written:
 
 def _cloud_markdown(r: dict) -> str:
     o = r["overall"]
-    lines = [f"# {r['config']['model']} on {r['config']['data']} ({r['frames']} frames, {o['participants']} "
-             "participants)", "",
-             f"3DVPE against the point clouds: **{o['vpe_m'] * 100:.2f} cm** (mean of the participants' means, as "
-             f"released; {o['vpe_m_over_frames'] * 100:.2f} cm over frames).", ""]
+    lines = [
+        f"# {r['config']['model']} on {r['config']['data']} ({r['frames']} frames, {o['participants']} participants)",
+        "",
+        f"3DVPE against the point clouds: **{o['vpe_m'] * 100:.2f} cm** (mean of the participants' means, as "
+        f"released; {o['vpe_m_over_frames'] * 100:.2f} cm over frames).",
+        "",
+    ]
     if "height_mae_m" in o:
         lines += [f"Height MAE {o['height_mae_m'] * 100:.1f} cm, mass MAE {o['mass_mae_kg']:.1f} kg.", ""]
     has_hw = all("height_error_m" in e for e in r["by_participant"].values())
@@ -243,13 +299,21 @@ def evaluate_real(cfg: RealEvalConfig) -> None:
     record = written.record
     if record.get("kind") == "point-cloud":
         o = record["overall"]
-        extra = (f", height MAE {o['height_mae_m'] * 100:.1f} cm, mass MAE {o['mass_mae_kg']:.1f} kg"
-                 if "height_mae_m" in o else "")
-        print(f"{record['frames']} frames of {o['participants']} participants: 3DVPE {o['vpe_m'] * 100:.2f} cm"
-              f"{extra} -> {written['markdown']}")
+        extra = (
+            f", height MAE {o['height_mae_m'] * 100:.1f} cm, mass MAE {o['mass_mae_kg']:.1f} kg"
+            if "height_mae_m" in o
+            else ""
+        )
+        print(
+            f"{record['frames']} frames of {o['participants']} participants: 3DVPE {o['vpe_m'] * 100:.2f} cm"
+            f"{extra} -> {written['markdown']}"
+        )
         return
-    parts = [f"{k}: posture {v['posture_accuracy'] * 100:.0f}%, height MAE {v['height_mae_m'] * 100:.1f} cm, "
-             f"mass MAE {v['mass_mae_kg']:.1f} kg" for k, v in record["by_mattress"].items()]
+    parts = [
+        f"{k}: posture {v['posture_accuracy'] * 100:.0f}%, height MAE {v['height_mae_m'] * 100:.1f} cm, "
+        f"mass MAE {v['mass_mae_kg']:.1f} kg"
+        for k, v in record["by_mattress"].items()
+    ]
     print(f"{record['frames']} frames; " + "; ".join(parts) + f" -> {written['markdown']}")
 
 

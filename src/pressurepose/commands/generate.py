@@ -10,9 +10,11 @@ def generate(cfg: GenerateConfig) -> None:
     """Generate a dataset (sampling, sim #1, sim #2, sensor) into Parquet shards and
     manifest.json; re-running the same command resumes an interrupted run."""
     s = run_generate(cfg)
-    print(f"{s['total']} samples in {s['shards']} shards -> {cfg.out} ({s['made']} made now, {s['resumed']} "
-          f"already there; {s['rejected']} rejected and replaced)"
-          + (f", {s['made'] / s['seconds']:.2f} samples/s" if s["made"] else ""))
+    print(
+        f"{s['total']} samples in {s['shards']} shards -> {cfg.out} ({s['made']} made now, {s['resumed']} "
+        f"already there; {s['rejected']} rejected and replaced)"
+        + (f", {s['made'] / s['seconds']:.2f} samples/s" if s["made"] else "")
+    )
 
 
 __all__ = ["GenerateConfig", "generate"]

@@ -16,9 +16,13 @@ from pressurepose.data.pressurepose_real import import_pressurepose_real as conv
 from pressurepose.data.slp import import_slp as convert_slp
 
 
-def import_original(files: tyro.conf.Positional[list[Path]], out: Path = Path("out/imported"),
-                    split: Literal["train", "test"] | None = None, gender: Literal["female", "male"] | None = None,
-                    partition: str | None = None) -> None:
+def import_original(
+    files: tyro.conf.Positional[list[Path]],
+    out: Path = Path("out/imported"),
+    split: Literal["train", "test"] | None = None,
+    gender: Literal["female", "male"] | None = None,
+    partition: str | None = None,
+) -> None:
     """Convert original PressurePose synthetic files (Python 2 pickles of dicts of lists) into a
     dataset folder (Parquet shards + manifest.json). Only numpy arrays and plain containers are
     accepted from the pickles; anything else is refused.
@@ -34,8 +38,13 @@ def import_original(files: tyro.conf.Positional[list[Path]], out: Path = Path("o
     print(f"{json.loads(path.read_text())['total']} samples from {len(files)} files -> {out}")
 
 
-def import_pmatdata(pmatdata: Path = Path("pmatdata"), out: Path = Path("out/pmatdata.npz"),
-                    groups: str | None = None, mattress: str | None = None, threshold: float = 20.0) -> None:
+def import_pmatdata(
+    pmatdata: Path = Path("pmatdata"),
+    out: Path = Path("out/pmatdata.npz"),
+    groups: str | None = None,
+    mattress: str | None = None,
+    threshold: float = 20.0,
+) -> None:
     """Convert PmatData (PhysioNet) frames into one .npz of 64 x 27 mmHg images (row 0 at the
     head) with their subject, posture and mattress, ready for `predict`.
 
@@ -50,10 +59,14 @@ def import_pmatdata(pmatdata: Path = Path("pmatdata"), out: Path = Path("out/pma
     print(f"{res['frames']} frames of {res['subjects']} subjects -> {res['out']}")
 
 
-def import_pressurepose_real(src: tyro.conf.Positional[Path], out: Path = Path("out/pressurepose_real.npz"),
-                             pose_sets: tuple[Literal["prescribed", "p_select"], ...] = ("prescribed", "p_select"),
-                             pressure: Literal["release", "weight", "stored"] = "release", bed_angle_deg: float = 0.0,
-                             frame: CloudFrame = CloudFrame()) -> None:
+def import_pressurepose_real(
+    src: tyro.conf.Positional[Path],
+    out: Path = Path("out/pressurepose_real.npz"),
+    pose_sets: tuple[Literal["prescribed", "p_select"], ...] = ("prescribed", "p_select"),
+    pressure: Literal["release", "weight", "stored"] = "release",
+    bed_angle_deg: float = 0.0,
+    frame: CloudFrame = CloudFrame(),
+) -> None:
     """Convert the original PressurePose real dataset (participant folders S103 ... of Python 2
     pickles) into one .npz: 64 x 27 mmHg images (row 0 at the head), participant, gender,
     height, mass, bed angle, and the Kinect point clouds in the mat frame, for `predict` and
@@ -69,13 +82,21 @@ def import_pressurepose_real(src: tyro.conf.Positional[Path], out: Path = Path("
         frame: Where the release's cloud frame sits in the mat frame.
     """
     res = convert_pressurepose_real(src, out, tuple(pose_sets), pressure, bed_angle_deg, frame)
-    print(f"{res['frames']} frames of {res['participants']} participants ({res['points']} cloud points) -> {res['out']}")
+    print(
+        f"{res['frames']} frames of {res['participants']} participants ({res['points']} cloud points) -> {res['out']}"
+    )
 
 
-def import_slp(slp: tyro.conf.Positional[Path], out: Path = Path("out/slp.npz"),
-               covers: tuple[Literal["uncover", "cover1", "cover2"], ...] = ("uncover", "cover1", "cover2"),
-               subjects: list[int] | None = None, calibration: Literal["weight", "pmcali"] = "weight",
-               pitch_m: float = 0.01, head_row: Literal["first", "last"] = "first", flip_columns: bool = False) -> None:
+def import_slp(
+    slp: tyro.conf.Positional[Path],
+    out: Path = Path("out/slp.npz"),
+    covers: tuple[Literal["uncover", "cover1", "cover2"], ...] = ("uncover", "cover1", "cover2"),
+    subjects: list[int] | None = None,
+    calibration: Literal["weight", "pmcali"] = "weight",
+    pitch_m: float = 0.01,
+    head_row: Literal["first", "last"] = "first",
+    flip_columns: bool = False,
+) -> None:
     """Convert SLP pressure maps (danaLab/NNNNN/PMarray/COVER/NNNNNN.npy, 192 x 84 at 1 cm)
     into one .npz of 64 x 27 mmHg images on the BT3510 grid (area resampling, row 0 at the
     head) with subject, cover, frame, gender, height and mass, ready for `predict`.

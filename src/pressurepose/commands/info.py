@@ -40,10 +40,13 @@ def dataset_info(root: str | Path, sheet: int = 24, seed: int = 0) -> dict:
     for r in manifest["shards"]:
         p = _read_columns(root / r["file"], ["pressure_mmhg"])["pressure_mmhg"].astype(np.float64)  # (B, 64, 27)
         if len(p) != r["count"]:
-            raise CorruptShardError(f"shard {root / r['file']} holds {len(p)} samples but the manifest records "
-                                    f"{r['count']}; re-run `pressurepose generate` to regenerate the dataset")
-        s = stats.setdefault(r["partition"], {"n": 0, "sum": 0.0, "contact_taxels": 0, "contact_sum": 0.0,
-                                              "peaks": [], "nan": 0})
+            raise CorruptShardError(
+                f"shard {root / r['file']} holds {len(p)} samples but the manifest records "
+                f"{r['count']}; re-run `pressurepose generate` to regenerate the dataset"
+            )
+        s = stats.setdefault(
+            r["partition"], {"n": 0, "sum": 0.0, "contact_taxels": 0, "contact_sum": 0.0, "peaks": [], "nan": 0}
+        )
         touching = p > 0
         s["n"] += len(p)
         s["sum"] += float(p.sum())
@@ -61,24 +64,35 @@ def dataset_info(root: str | Path, sheet: int = 24, seed: int = 0) -> dict:
             "peak_mmhg_p95": round(float(np.percentile(peaks, 95)), 2) if len(peaks) else None,
             "nan_values": s["nan"],
         }
-    info = {"root": str(root), "total": manifest["total"], "shards": len(manifest["shards"]),
-            "counts": manifest["counts"], "candidates": manifest["candidates"], "rejected": manifest["rejected"],
-            "rejections": manifest["rejections"], "sampling_rejections": manifest["sampling_rejections"],
-            "pressure": pressure, "config": manifest["config"]}
+    info = {
+        "root": str(root),
+        "total": manifest["total"],
+        "shards": len(manifest["shards"]),
+        "counts": manifest["counts"],
+        "candidates": manifest["candidates"],
+        "rejected": manifest["rejected"],
+        "rejections": manifest["rejections"],
+        "sampling_rejections": manifest["sampling_rejections"],
+        "pressure": pressure,
+        "config": manifest["config"],
+    }
     if sheet > 0 and manifest["total"] > 0:
         info["contact_sheet"] = str(_contact_sheet(root, manifest, sheet, seed))
     return info
 
 
 def _contact_sheet(root: Path, manifest: dict, k: int, seed: int) -> Path:
-    ds = PressurePoseDataset(root, columns=("pressure_mmhg", "partition", "gender", "index", "mass_kg",
-                                            "head_angle_deg"), verify=False)
+    ds = PressurePoseDataset(
+        root, columns=("pressure_mmhg", "partition", "gender", "index", "mass_kg", "head_angle_deg"), verify=False
+    )
     rows = np.sort(np.random.default_rng(seed).choice(len(ds), size=min(k, len(ds)), replace=False))
     items = [ds[int(i)] for i in rows]
     images = np.stack([it["pressure_mmhg"].numpy() for it in items])
-    labels = [f"{it['partition']} {it['gender'][0]} #{int(it['index'])}\n{float(it['mass_kg']):.0f} kg"
-              + (f", bed {float(it['head_angle_deg']):.0f} deg" if float(it["head_angle_deg"]) else "")
-              for it in items]
+    labels = [
+        f"{it['partition']} {it['gender'][0]} #{int(it['index'])}\n{float(it['mass_kg']):.0f} kg"
+        + (f", bed {float(it['head_angle_deg']):.0f} deg" if float(it["head_angle_deg"]) else "")
+        for it in items
+    ]
     return atomic_write(root / SHEET, lambda tmp: plot_contact_sheet(tmp, images, labels))
 
 
@@ -93,9 +107,11 @@ def format_info(info: dict) -> str:
     lines.append("sampling: " + json.dumps(info["sampling_rejections"]))
     lines.append("pressure per partition (mmHg; contact = taxels > 0):")
     for part, p in info["pressure"].items():
-        lines.append(f"  {part:18s} n={p['samples']} mean on contact {p['mean_contact_pressure_mmhg']}, "
-                     f"contact taxels {p['mean_contact_taxels']}, peak median {p['peak_mmhg_median']} "
-                     f"p95 {p['peak_mmhg_p95']}, NaN {p['nan_values']}")
+        lines.append(
+            f"  {part:18s} n={p['samples']} mean on contact {p['mean_contact_pressure_mmhg']}, "
+            f"contact taxels {p['mean_contact_taxels']}, peak median {p['peak_mmhg_median']} "
+            f"p95 {p['peak_mmhg_p95']}, NaN {p['nan_values']}"
+        )
     if "contact_sheet" in info:
         lines.append(f"contact sheet: {info['contact_sheet']}")
     return "\n".join(lines)

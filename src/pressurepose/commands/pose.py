@@ -58,14 +58,17 @@ def run_pose(cfg: PoseConfig) -> dict[str, Path]:
         v = body.vertices[0]
         # Centre the body along and across the bed; rest its lowest point on z = 0.
         cx, cy = mat.centre_m
-        shift = torch.tensor([cx - (v[:, 0].max() + v[:, 0].min()) / 2,
-                              cy - (v[:, 1].max() + v[:, 1].min()) / 2, -v[:, 2].min()])
+        shift = torch.tensor(
+            [cx - (v[:, 0].max() + v[:, 0].min()) / 2, cy - (v[:, 1].max() + v[:, 1].min()) / 2, -v[:, 2].min()]
+        )
         params = params.replace(root_translation=params.root_translation + shift)
         body = model(params)
         measures = model.measure(params.shape)
     cfg.out.mkdir(parents=True, exist_ok=True)
-    title = (f"{model.name}: {measures.height_m.item():.2f} m, {measures.mass_kg.item():.1f} kg, "
-             "supine on the mat (no physics)")
+    title = (
+        f"{model.name}: {measures.height_m.item():.2f} m, {measures.mass_kg.item():.1f} kg, "
+        "supine on the mat (no physics)"
+    )
     png = plot_body_on_mat(body.vertices[0].numpy(), body.joints[0].numpy(), mat, cfg.out / "body.png", title)
     record = {
         "config": {"backend": cfg.backend},

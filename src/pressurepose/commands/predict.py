@@ -103,12 +103,13 @@ def run_predict(cfg: PredictConfig) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t_net = 0.0
     for start in range(0, len(items), cfg.batch_size):
-        chunk = items[start:start + cfg.batch_size]
+        chunk = items[start : start + cfg.batch_size]
         B = len(chunk)
         pressure = torch.from_numpy(np.stack([im for _, im in chunk])).to(device)
         full = lambda v: None if v is None else torch.full((B,), float(v), device=device)  # noqa: E731
-        inputs = NetInputs(pressure, gender=full(GENDERS[cfg.gender]), height_m=full(cfg.height_m),
-                           mass_kg=full(cfg.mass_kg))
+        inputs = NetInputs(
+            pressure, gender=full(GENDERS[cfg.gender]), height_m=full(cfg.height_m), mass_kg=full(cfg.mass_kg)
+        )
         t0 = time.perf_counter()
         if cfg.refine_steps > 0:
             est, _ = refine(net, inputs, steps=cfg.refine_steps)
@@ -128,13 +129,15 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
     vertices = est.vertices[i].detach().cpu().numpy()
     joints = est.joints[i].detach().cpu().numpy()
     record = {
-        "model": str(cfg.model), "backend": net.config.backend,
+        "model": str(cfg.model),
+        "backend": net.config.backend,
         "shape": dict(zip(net.body.shape_names, p.shape[i].tolist())),
         "root_rotation_axis_angle": p.root_rotation[i].tolist(),
         "root_translation_m": p.root_translation[i].tolist(),
         "pose_axis_angle": {n: v for n, v in zip(J24_NAMES[1:], p.pose[i].tolist())},
         "joints_m": {n: v for n, v in zip(J24_NAMES, joints.tolist())},
-        "height_m": float(measured.height_m[i]), "mass_kg": float(measured.mass_kg[i]),
+        "height_m": float(measured.height_m[i]),
+        "mass_kg": float(measured.mass_kg[i]),
     }
     write_text(out / f"{name}.json", json.dumps(record, indent=1))
     faces = net.faces.cpu().numpy()
@@ -161,8 +164,10 @@ def predict(cfg: PredictConfig) -> None:
     """Estimate the body from pressure images with a trained network: JSON parameters, meshes
     (.ply) and one figure per image in --out."""
     summary = run_predict(cfg)
-    print(f"{summary['images']} images -> {summary['out']} "
-          f"({summary['network_ms_per_image']:.1f} ms per image for the network and body model)")
+    print(
+        f"{summary['images']} images -> {summary['out']} "
+        f"({summary['network_ms_per_image']:.1f} ms per image for the network and body model)"
+    )
 
 
 __all__ = ["PredictConfig", "predict", "read_inputs", "read_mesh", "run_predict", "write_mesh"]

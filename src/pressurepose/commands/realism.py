@@ -66,7 +66,9 @@ class RealSubject:
     mass_kg: float
 
 
-def load_real(root: Path, threshold: float) -> tuple[dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]], list[RealSubject]]:
+def load_real(
+    root: Path, threshold: float
+) -> tuple[dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]], list[RealSubject]]:
     """Real frames of the flat bed per (posture, mattress): images (N, 64, 27) mmHg, heights
     (N,) m and subject ids (N,); and the subjects."""
     from pressurepose.data.pmatdata import load_images, load_index
@@ -75,15 +77,20 @@ def load_real(root: Path, threshold: float) -> tuple[dict[tuple[str, str], tuple
     root = resolve_pmatdata(root)
     records = [r for r in load_index(root) if r.bed_incline_deg == 0 and r.posture in POSTURES and r.group != "E"]
     if not records:
-        raise UserError(f"{root / 'index.csv'}: no flat-bed supine, left or right frames (columns posture, "
-                         "bed_incline_deg); see docs/realism.md for the format")
+        raise UserError(
+            f"{root / 'index.csv'}: no flat-bed supine, left or right frames (columns posture, "
+            "bed_incline_deg); see docs/realism.md for the format"
+        )
     out = {}
     for posture in POSTURES:
         for mattress in sorted({r.mattress for r in records}):
             rs = [r for r in records if r.posture == posture and r.mattress == mattress]
             if rs:
-                out[(posture, mattress)] = (load_images(rs, threshold), np.array([r.height_cm / 100 for r in rs]),
-                                            np.array([r.subject for r in rs]))
+                out[(posture, mattress)] = (
+                    load_images(rs, threshold),
+                    np.array([r.height_cm / 100 for r in rs]),
+                    np.array([r.subject for r in rs]),
+                )
     subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in records})
     return out, [RealSubject(s, h / 100, w) for s, h, w in subjects]
 
@@ -123,8 +130,9 @@ def frame_placement(images: np.ndarray, pitch_row_m: float, pitch_col_m: float) 
     return np.stack([cx, cy], 1), 0.5 * np.arctan2(2 * sxy, sxx - syy)
 
 
-def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=None, articulated=None,
-                      scenes: dict | None = None):
+def simulate_subjects(
+    subjects: list[RealSubject], cfg: RealismConfig, mattress=None, articulated=None, scenes: dict | None = None
+):
     """Side-lying bodies hold their trunk's roll (sampling.partitions.HOLD_ROLL_M, in both
     simulations), as the generator's `lateral_straight` partition does. Per posture (or per
     (posture, mattress) with `scenes`): sensor images (N, 64, 27) mmHg of the accepted bodies, their heights (N,), the rejection reasons and the seconds it took.
@@ -162,15 +170,18 @@ def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=
     row_of = {s.subject: i for i, s in enumerate(subjects)}
     if scenes is None:
         centre = np.array([[0.85, mat.sensing_width_m / 2]] * len(subjects))
-        scenes = {(p, None): (np.array([s.subject for s in subjects]), centre, np.zeros(len(subjects))) for p in POSTURES}
+        scenes = {
+            (p, None): (np.array([s.subject for s in subjects]), centre, np.zeros(len(subjects))) for p in POSTURES
+        }
     out = {}
     for (posture, mattress_name), (ids, centres, angles) in scenes.items():
         idx = torch.tensor([row_of[int(i)] for i in ids])
         B = len(idx)
         roll = axis_angle_to_matrix(torch.tensor([[ROLL_RAD[posture], 0.0, 0.0]] * B, dtype=torch.float64))
         yaw = axis_angle_to_matrix(torch.from_numpy(np.stack([np.zeros(B), np.zeros(B), angles], 1)))
-        params = BodyParams.zeros(B, shapes[idx]).replace(pose=resting_pose(posture, B),
-                                                          root_rotation=matrix_to_axis_angle(yaw @ roll))
+        params = BodyParams.zeros(B, shapes[idx]).replace(
+            pose=resting_pose(posture, B), root_rotation=matrix_to_axis_angle(yaw @ roll)
+        )
         # The centre of mass over the target point (the rest keeps the horizontal placement).
         com = mesh_centroid(model(params).vertices, model.faces)
         # Real subjects lie up to 0.22 m off the mat's centre line; a side-lying body placed
@@ -179,17 +190,31 @@ def simulate_subjects(subjects: list[RealSubject], cfg: RealismConfig, mattress=
         target = torch.from_numpy(np.asarray(centres, dtype=np.float64)).clone()
         mid = mat.sensing_width_m / 2
         target[:, 1] = target[:, 1].clamp(mid - SIDE_MARGIN_M, mid + SIDE_MARGIN_M)
-        params = params.replace(root_translation=torch.cat([target - com[:, :2], torch.full((B, 1), 0.3, dtype=torch.float64)], 1))
+        params = params.replace(
+            root_translation=torch.cat([target - com[:, :2], torch.full((B, 1), 0.3, dtype=torch.float64)], 1)
+        )
         t0 = time.perf_counter()
         art = articulated or ArticulatedConfig()
         if posture != "supine" and art.hold_roll_m == 0:
             art = dataclasses.replace(art, hold_roll_m=HOLD_ROLL_M)
         settle_config = SettleConfig(hold_roll_m=HOLD_ROLL_M) if posture != "supine" else None
-        sim = simulate_poses(model, params, bed_for(mattress_name), mat, settle=cfg.settle, sim2=cfg.sim2, articulated=art,
-                             settle_config=settle_config)
+        sim = simulate_poses(
+            model,
+            params,
+            bed_for(mattress_name),
+            mat,
+            settle=cfg.settle,
+            sim2=cfg.sim2,
+            articulated=art,
+            settle_config=settle_config,
+        )
         ok = [i for i, r in enumerate(sim.reason) if not r]
-        out[(posture, mattress_name)] = (sim.pressure_mmhg[ok].numpy(), h.numpy()[idx.numpy()][ok],
-                                         [r for r in sim.reason if r], time.perf_counter() - t0)
+        out[(posture, mattress_name)] = (
+            sim.pressure_mmhg[ok].numpy(),
+            h.numpy()[idx.numpy()][ok],
+            [r for r in sim.reason if r],
+            time.perf_counter() - t0,
+        )
     return out
 
 
@@ -225,9 +250,15 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
             images, heights, reasons, seconds = sims[(posture, mattress if scenes else None)]
             sim_set = R.summarise(images, heights, *pitch) if len(images) else None
             real_set = real_sets[(p, mattress)]
-            row = {"posture": posture, "mattress": mattress, "real": _set_dict(real_set),
-                   "simulated": _set_dict(sim_set) if sim_set else None, "rejected": reasons,
-                   "simulated_bodies": int(len(images)), "sim_seconds": round(seconds, 2)}
+            row = {
+                "posture": posture,
+                "mattress": mattress,
+                "real": _set_dict(real_set),
+                "simulated": _set_dict(sim_set) if sim_set else None,
+                "rejected": reasons,
+                "simulated_bodies": int(len(images)),
+                "sim_seconds": round(seconds, 2),
+            }
             if sim_set:
                 row["comparison"] = dataclasses.asdict(R.compare(real_set, sim_set))
                 figures[(posture, mattress)] = (real_set, sim_set)
@@ -237,56 +268,97 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
             if len(ids) >= 2:
                 a = np.isin(subj, ids[: len(ids) // 2])
                 c = R.compare(R.summarise(imgs[a], hts[a], *pitch), R.summarise(imgs[~a], hts[~a], *pitch))
-                ceilings.append({"posture": posture, "between": f"{mattress}: subjects {ids[:len(ids)//2]} vs rest",
-                                 **dataclasses.asdict(c)})
+                ceilings.append(
+                    {
+                        "posture": posture,
+                        "between": f"{mattress}: subjects {ids[: len(ids) // 2]} vs rest",
+                        **dataclasses.asdict(c),
+                    }
+                )
         mats = sorted(m for (p, m) in real if p == posture)
         if len(mats) == 2:
             c = R.compare(real_sets[(posture, mats[0])], real_sets[(posture, mats[1])])
             ceilings.append({"posture": posture, "between": f"{mats[0]} vs {mats[1]}", **dataclasses.asdict(c)})
     cfg.out.mkdir(parents=True, exist_ok=True)
-    record = {"command": "realism", "config": {k: str(v) for k, v in dataclasses.asdict(cfg).items()},
-              "rows": rows, "ceilings": ceilings}
+    record = {
+        "command": "realism",
+        "config": {k: str(v) for k, v in dataclasses.asdict(cfg).items()},
+        "rows": rows,
+        "ceilings": ceilings,
+    }
     paths = {"json": write_text(cfg.out / "report.json", json.dumps(record, indent=1))}
     paths["markdown"] = write_text(cfg.out / "report.md", _markdown(record))
     from pressurepose.viz.realism import plot_realism
 
     for (posture, mattress), (a, b) in figures.items():
-        paths[f"{posture}_{mattress}"] = plot_realism(cfg.out / f"realism_{posture}_{mattress}.png", a, b,
-                                                     f"{posture}, {mattress} mattress")
+        paths[f"{posture}_{mattress}"] = plot_realism(
+            cfg.out / f"realism_{posture}_{mattress}.png", a, b, f"{posture}, {mattress} mattress"
+        )
     return paths
 
 
 def _set_dict(s: R.FrameSet) -> dict:
-    return {"frames": s.n, "area_m2": round(s.area_m2, 4), "mean_mmhg": round(s.mean_mmhg, 2),
-            "peak_mmhg": round(s.peak_mmhg, 1), "coverage": round(s.coverage, 3),
-            "regions": {k: round(v, 3) for k, v in s.regions.items()}}
+    return {
+        "frames": s.n,
+        "area_m2": round(s.area_m2, 4),
+        "mean_mmhg": round(s.mean_mmhg, 2),
+        "peak_mmhg": round(s.peak_mmhg, 1),
+        "coverage": round(s.coverage, 3),
+        "regions": {k: round(v, 3) for k, v in s.regions.items()},
+    }
 
 
 def _markdown(record: dict) -> str:
-    lines = ["# Realism: simulated vs real pressure images", "",
-             f"sim #2 `{record['config']['sim2']}`, sim #1 `{record['config']['settle']}`, "
-             f"placement `{record['config']['placement']}`, "
-             f"real frames `{record['config']['real']}`", "",
-             "| posture | mattress | along | across | area sim/real | coverage sim (real) | mean mmHg sim (real) "
-             "| peak mmHg sim (real) | bodies |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "# Realism: simulated vs real pressure images",
+        "",
+        f"sim #2 `{record['config']['sim2']}`, sim #1 `{record['config']['settle']}`, "
+        f"placement `{record['config']['placement']}`, "
+        f"real frames `{record['config']['real']}`",
+        "",
+        "| posture | mattress | along | across | area sim/real | coverage sim (real) | mean mmHg sim (real) "
+        "| peak mmHg sim (real) | bodies |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for r in record["rows"]:
         s, re_, c = r["simulated"], r["real"], r.get("comparison")
         if not s:
-            lines.append(f"| {r['posture']} | {r['mattress']} | - | - | - | - | - | - | 0 ({len(r['rejected'])} rejected) |")
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | - | - | - | - | - | - | 0 ({len(r['rejected'])} rejected) |"
+            )
             continue
-        lines.append(f"| {r['posture']} | {r['mattress']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} "
-                     f"| {s['coverage']:.2f} ({re_['coverage']:.2f}) | {s['mean_mmhg']:.1f} ({re_['mean_mmhg']:.1f}) "
-                     f"| {s['peak_mmhg']:.0f} ({re_['peak_mmhg']:.0f}) | {r['simulated_bodies']} |")
-    lines += ["", "Load share per body region, simulated (real):", "",
-              "| posture | mattress | " + " | ".join(R.REGION_NAMES) + " |", "| --- | --- |" + " --- |" * len(R.REGION_NAMES)]
+        lines.append(
+            f"| {r['posture']} | {r['mattress']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} "
+            f"| {s['coverage']:.2f} ({re_['coverage']:.2f}) | {s['mean_mmhg']:.1f} ({re_['mean_mmhg']:.1f}) "
+            f"| {s['peak_mmhg']:.0f} ({re_['peak_mmhg']:.0f}) | {r['simulated_bodies']} |"
+        )
+    lines += [
+        "",
+        "Load share per body region, simulated (real):",
+        "",
+        "| posture | mattress | " + " | ".join(R.REGION_NAMES) + " |",
+        "| --- | --- |" + " --- |" * len(R.REGION_NAMES),
+    ]
     for r in record["rows"]:
         if r["simulated"]:
-            lines.append(f"| {r['posture']} | {r['mattress']} | " + " | ".join(
-                f"{r['simulated']['regions'][k]:.2f} ({r['real']['regions'][k]:.2f})" for k in R.REGION_NAMES) + " |")
-    lines += ["", "Ceiling (real against real, the same measures):", "", "| posture | between | along | across | area ratio |",
-              "| --- | --- | --- | --- | --- |"]
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | "
+                + " | ".join(
+                    f"{r['simulated']['regions'][k]:.2f} ({r['real']['regions'][k]:.2f})" for k in R.REGION_NAMES
+                )
+                + " |"
+            )
+    lines += [
+        "",
+        "Ceiling (real against real, the same measures):",
+        "",
+        "| posture | between | along | across | area ratio |",
+        "| --- | --- | --- | --- | --- |",
+    ]
     for c in record["ceilings"]:
-        lines.append(f"| {c['posture']} | {c['between']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} |")
+        lines.append(
+            f"| {c['posture']} | {c['between']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -298,5 +370,13 @@ def realism(cfg: RealismConfig) -> None:
     print(f"realism report: {paths['markdown']}")
 
 
-__all__ = ["RealismConfig", "realism", "frame_placement", "load_real", "real_scenes", "resting_pose", "run_realism",
-           "simulate_subjects"]
+__all__ = [
+    "RealismConfig",
+    "realism",
+    "frame_placement",
+    "load_real",
+    "real_scenes",
+    "resting_pose",
+    "run_realism",
+    "simulate_subjects",
+]

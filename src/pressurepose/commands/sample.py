@@ -72,8 +72,13 @@ def run_sample(cfg: SampleConfig) -> Written:
     cfg.out.mkdir(parents=True, exist_ok=True)
     parts: list[InitialPoses] = []
     t0 = time.perf_counter()
-    columns = (TextColumn("sampling"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[rate]}"),
-               TimeRemainingColumn())
+    columns = (
+        TextColumn("sampling"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]}"),
+        TimeRemainingColumn(),
+    )
     with Progress(*columns, transient=True) as bar:
         task = bar.add_task("sample", total=cfg.n, rate="")
         for lo in range(cfg.start, cfg.start + cfg.n, cfg.batch):
@@ -85,9 +90,14 @@ def run_sample(cfg: SampleConfig) -> Written:
     poses = InitialPoses.cat(parts)
 
     arrays = {
-        "shape": poses.params.shape.numpy(), "root_rotation": poses.params.root_rotation.numpy(),
-        "root_translation": poses.params.root_translation.numpy(), "pose": poses.params.pose.numpy(),
-        "joints": poses.joints.numpy(), "index": poses.index, "cells": poses.cells, "root_draw": poses.root_draw,
+        "shape": poses.params.shape.numpy(),
+        "root_rotation": poses.params.root_rotation.numpy(),
+        "root_translation": poses.params.root_translation.numpy(),
+        "pose": poses.params.pose.numpy(),
+        "joints": poses.joints.numpy(),
+        "index": poses.index,
+        "cells": poses.cells,
+        "root_draw": poses.root_draw,
         "head_angle_deg": poses.head_angle_deg,
     }
     arrays.update({f"rejections_{k}": v for k, v in poses.rejections.items()})
@@ -95,14 +105,20 @@ def run_sample(cfg: SampleConfig) -> Written:
 
     title = f"{sampling.partition}, {sampling.gender}, over_bed={sampling.over_bed}: {cfg.n} samples"
     paths = {"poses": npz}
-    paths["cells"] = atomic_write(cfg.out / "cells.png", lambda tmp: plot_cells(
-        poses.joints.numpy(), poses.root_draw, poses.cells, tmp, title=f"{title} - distal joints over the cells"))
+    paths["cells"] = atomic_write(
+        cfg.out / "cells.png",
+        lambda tmp: plot_cells(
+            poses.joints.numpy(), poses.root_draw, poses.cells, tmp, title=f"{title} - distal joints over the cells"
+        ),
+    )
     k = min(cfg.figures, cfg.n)
     if k > 0:
         sub = poses.params.index(slice(0, k))
         labels = [f"#{i} cells {c.tolist()}" for i, c in zip(poses.index[:k], poses.cells[:k])]
         vertices = posed_vertices(model, sub)
-        paths["bodies"] = atomic_write(cfg.out / "bodies.png", lambda tmp: plot_bodies(vertices, MatSpec(), tmp, labels))
+        paths["bodies"] = atomic_write(
+            cfg.out / "bodies.png", lambda tmp: plot_bodies(vertices, MatSpec(), tmp, labels)
+        )
 
     low, high = shape_bounds(model.name, sampling.gender, model.shape_names)
     record = {
@@ -117,12 +133,16 @@ def run_sample(cfg: SampleConfig) -> Written:
         "count": cfg.n,
         "seconds": round(seconds, 3),
         "samples_per_second": round(cfg.n / seconds, 1),
-        "cell_counts": {name: np.bincount(poses.cells[:, i], minlength=8 if "arm" in name else 4).tolist()
-                        for i, name in enumerate(("left_leg", "right_leg", "left_arm", "right_arm"))},
+        "cell_counts": {
+            name: np.bincount(poses.cells[:, i], minlength=8 if "arm" in name else 4).tolist()
+            for i, name in enumerate(("left_leg", "right_leg", "left_arm", "right_arm"))
+        },
         "rejections_total": {k: int(v.sum()) for k, v in poses.rejections.items()},
         "files": {k: p.name for k, p in paths.items()},
     }
-    paths["config"] = atomic_write(cfg.out / "config.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
+    paths["config"] = atomic_write(
+        cfg.out / "config.json", lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1))
+    )
     log.info("%d poses in %.1f s (%.0f/s)", cfg.n, seconds, cfg.n / seconds)
     return Written(paths, record)
 
@@ -132,8 +152,10 @@ def sample(cfg: SampleConfig) -> None:
     bodies.png."""
     written = run_sample(cfg)
     record, paths = written.record, written.paths
-    print(f"{record['count']} poses ({record['samples_per_second']:.0f}/s) -> {cfg.out}: "
-          + ", ".join(p.name for p in paths.values()))
+    print(
+        f"{record['count']} poses ({record['samples_per_second']:.0f}/s) -> {cfg.out}: "
+        + ", ".join(p.name for p in paths.values())
+    )
 
 
 def load_poses(path: str | Path) -> dict[str, np.ndarray]:
@@ -145,4 +167,6 @@ def load_poses(path: str | Path) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError) as exc:
-        raise UserError(f"{path} is not a readable poses file ({exc}); write it again with `pressurepose sample`") from None
+        raise UserError(
+            f"{path} is not a readable poses file ({exc}); write it again with `pressurepose sample`"
+        ) from None

@@ -58,11 +58,19 @@ def run_simulate(cfg: SimulateConfig) -> Written:
     bed = initial.beds()[0]
     if cfg.head_angle_deg is not None:
         if sampling.spec.raised and cfg.head_angle_deg != bed.head_angle_deg:
-            raise UserError(f"partition {sampling.partition!r} sits sample {cfg.index} up on a bed raised "
-                             f"{bed.head_angle_deg:g} deg; leave out --head-angle-deg (or pick another index)")
+            raise UserError(
+                f"partition {sampling.partition!r} sits sample {cfg.index} up on a bed raised "
+                f"{bed.head_angle_deg:g} deg; leave out --head-angle-deg (or pick another index)"
+            )
         bed = BedShape(cfg.head_angle_deg)
-    sim = simulate_poses(model, initial.params, mattress, seed=sampling.seed * 1_000_003 + cfg.index, bed=bed,
-                         settle_config=settle_config_for(sampling.partition))
+    sim = simulate_poses(
+        model,
+        initial.params,
+        mattress,
+        seed=sampling.seed * 1_000_003 + cfg.index,
+        bed=bed,
+        settle_config=settle_config_for(sampling.partition),
+    )
     t2 = time.perf_counter()
     cfg.out.mkdir(parents=True, exist_ok=True)
     reason = sim.reason[0]
@@ -76,8 +84,12 @@ def run_simulate(cfg: SimulateConfig) -> Written:
         "reason": reason,
         "mass_kg": round(float(sim.mass_kg[0]), 3),
         "settle_steps": int(sim.settle_steps[0]),
-        "timing_ms": {"sample": round((t1 - t0) * 1e3, 1), "sim1": round(float(sim.settle_ms[0]), 1),
-                      "sim2": round(sim.press_ms, 1), "total": round((t2 - t0) * 1e3, 1)},
+        "timing_ms": {
+            "sample": round((t1 - t0) * 1e3, 1),
+            "sim1": round(float(sim.settle_ms[0]), 1),
+            "sim2": round(sim.press_ms, 1),
+            "total": round((t2 - t0) * 1e3, 1),
+        },
         "contact_area_m2": round(float((p > 0).sum() * mat.taxel_area_m2), 4),
         "mean_contact_pressure_mmhg": round(float(p[p > 0].mean()) if (p > 0).any() else 0.0, 2),
         "peak_pressure_mmhg": round(float(p.max()), 2),
@@ -86,29 +98,39 @@ def run_simulate(cfg: SimulateConfig) -> Written:
     }
     paths = {}
     arrays = {
-        "pressure_mmhg": p.astype(np.float32), "depth_mm": sim.depth_mm[0].numpy().astype(np.float32),
-        "contact": sim.contact[0].numpy().astype(np.uint8), "shape": sim.params.shape[0].numpy(),
-        "root_rotation": sim.params.root_rotation[0].numpy(), "root_translation": sim.params.root_translation[0].numpy(),
-        "pose": sim.params.pose[0].numpy(), "joints": sim.joints[0].numpy(), "mass_kg": sim.mass_kg[:1].numpy(),
+        "pressure_mmhg": p.astype(np.float32),
+        "depth_mm": sim.depth_mm[0].numpy().astype(np.float32),
+        "contact": sim.contact[0].numpy().astype(np.uint8),
+        "shape": sim.params.shape[0].numpy(),
+        "root_rotation": sim.params.root_rotation[0].numpy(),
+        "root_translation": sim.params.root_translation[0].numpy(),
+        "pose": sim.params.pose[0].numpy(),
+        "joints": sim.joints[0].numpy(),
+        "mass_kg": sim.mass_kg[:1].numpy(),
     }
     if not reason:
         paths["sample"] = atomic_write(cfg.out / "sample.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
-        title = (f"{sampling.partition}, {sampling.gender}, index {cfg.index}: {record['mass_kg']} kg, "
-                 f"area {record['contact_area_m2']} m^2, mean {record['mean_contact_pressure_mmhg']} mmHg, "
-                 f"peak {record['peak_pressure_mmhg']} mmHg")
+        title = (
+            f"{sampling.partition}, {sampling.gender}, index {cfg.index}: {record['mass_kg']} kg, "
+            f"area {record['contact_area_m2']} m^2, mean {record['mean_contact_pressure_mmhg']} mmHg, "
+            f"peak {record['peak_pressure_mmhg']} mmHg"
+        )
         profile = None
         if not bed.flat:
             (x0, x1), _ = mat.mattress_bounds_m
             s_pts = torch.tensor([[x0, 0.0, 0.0], [bed.hinge_x(mat), 0.0, 0.0], [x1, 0.0, 0.0]], dtype=torch.float64)
             profile = bed.to_world(s_pts, mat)[:, [0, 2]].numpy()
             title += f", head of the bed {bed.head_angle_deg:g} deg"
-        paths["figure"] = plot_sample(cfg.out / "simulate.png", p, arrays["depth_mm"], sim.vertices[0].numpy(),
-                                      title, bed_profile=profile)
+        paths["figure"] = plot_sample(
+            cfg.out / "simulate.png", p, arrays["depth_mm"], sim.vertices[0].numpy(), title, bed_profile=profile
+        )
     record["files"] = {k: v.name for k, v in paths.items()}
     paths["record"] = write_text(cfg.out / "simulate.json", json.dumps(record, indent=1))
     if reason:
-        raise UserError(f"sample {cfg.index} of {sampling.partition}/{sampling.gender} was rejected ({reason}); "
-                         f"the generator skips such samples - try another --index (details in {paths['record']})")
+        raise UserError(
+            f"sample {cfg.index} of {sampling.partition}/{sampling.gender} was rejected ({reason}); "
+            f"the generator skips such samples - try another --index (details in {paths['record']})"
+        )
     return Written(paths, record)
 
 
@@ -116,13 +138,12 @@ def simulate(cfg: SimulateConfig) -> None:
     """Simulate one sample: initial pose, settling (sim #1), pressure (sim #2), sensor and
     label maps; writes sample.npz, simulate.json and simulate.png."""
     record = run_simulate(cfg).record
-    print(f"{record['mass_kg']} kg: contact {record['contact_area_m2']} m^2, mean "
-          f"{record['mean_contact_pressure_mmhg']} mmHg, peak {record['peak_pressure_mmhg']} mmHg, "
-          f"sim #1 {record['timing_ms']['sim1']} ms ({record['settle_steps']} steps), "
-          f"sim #2 {record['timing_ms']['sim2']} ms -> {cfg.out}")
+    print(
+        f"{record['mass_kg']} kg: contact {record['contact_area_m2']} m^2, mean "
+        f"{record['mean_contact_pressure_mmhg']} mmHg, peak {record['peak_pressure_mmhg']} mmHg, "
+        f"sim #1 {record['timing_ms']['sim1']} ms ({record['settle_steps']} steps), "
+        f"sim #2 {record['timing_ms']['sim2']} ms -> {cfg.out}"
+    )
 
 
 __all__ = ["SimulateConfig", "run_simulate", "simulate"]
-
-
-

@@ -31,8 +31,10 @@ def train(cfg: TrainConfig) -> None:
     rows = loop.read_metrics(run)
     last = rows[-1] if rows else {}
     val = f", val MPJPE {last['val_mpjpe_mm']:.1f} mm" if "val_mpjpe_mm" in last else ""
-    print(f"{len(rows)} epochs -> {run}: loss {last.get('loss', float('nan')):.4f}, train MPJPE "
-          f"{last.get('train_mpjpe_mm', float('nan')):.1f} mm{val}")
+    print(
+        f"{len(rows)} epochs -> {run}: loss {last.get('loss', float('nan')):.4f}, train MPJPE "
+        f"{last.get('train_mpjpe_mm', float('nan')):.1f} mm{val}"
+    )
 
 
 __all__ = ["run_train", "train", "write_metrics_plot"]

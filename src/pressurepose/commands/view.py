@@ -23,8 +23,11 @@ def click(cfg: ClickConfig) -> None:
     """Click the mat's corner markers in a camera image on a local web page (127.0.0.1) and
     save the marker file `coregister --markers` reads (docs/real_data.md). Ctrl-C stops it."""
     server = make_click_server(cfg)
-    viewer.run_local(server, cfg.open, ready=lambda url: print(
-        f"clicking {cfg.image} at {url} -> {cfg.out} (Ctrl-C stops)", flush=True))
+    viewer.run_local(
+        server,
+        cfg.open,
+        ready=lambda url: print(f"clicking {cfg.image} at {url} -> {cfg.out} (Ctrl-C stops)", flush=True),
+    )
     print("click page stopped")
 
 

@@ -37,8 +37,12 @@ def corner_markers(mat: MatSpec | None = None) -> dict[str, np.ndarray]:
     """Mat-frame positions (m) of the four named corner markers."""
     mat = mat or MatSpec()
     L, W, z = mat.sensing_length_m, mat.sensing_width_m, CUBE_M / 2
-    return {"head_left": np.array([0.0, 0.0, z]), "head_right": np.array([0.0, W, z]),
-            "foot_left": np.array([L, 0.0, z]), "foot_right": np.array([L, W, z])}
+    return {
+        "head_left": np.array([0.0, 0.0, z]),
+        "head_right": np.array([0.0, W, z]),
+        "foot_left": np.array([L, 0.0, z]),
+        "foot_right": np.array([L, W, z]),
+    }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,8 +72,8 @@ class Markers:
 class CameraPose:
     """X_cam = R X_mat + t; residuals per marker in pixels."""
 
-    R: np.ndarray          # (3, 3)
-    t: np.ndarray          # (3,) m
+    R: np.ndarray  # (3, 3)
+    t: np.ndarray  # (3,) m
     rms_px: float
     residual_px: np.ndarray  # (N,)
 
@@ -86,10 +90,15 @@ class CameraPose:
         return np.asarray(points_mat, dtype=np.float64) @ self.R.T + self.t
 
     def to_dict(self) -> dict:
-        return {"format": "pressurepose.camera_pose/1", "R": self.R.tolist(), "t_m": self.t.tolist(),
-                "camera_position_in_mat_m": self.position_m.tolist(), "rms_px": self.rms_px,
-                "residual_px": self.residual_px.tolist(),
-                "convention": "X_cam = R X_mat + t; camera x right, y down, z forward"}
+        return {
+            "format": "pressurepose.camera_pose/1",
+            "R": self.R.tolist(),
+            "t_m": self.t.tolist(),
+            "camera_position_in_mat_m": self.position_m.tolist(),
+            "rms_px": self.rms_px,
+            "residual_px": self.residual_px.tolist(),
+            "convention": "X_cam = R X_mat + t; camera x right, y down, z forward",
+        }
 
 
 # --- reading -------------------------------------------------------------------------------
@@ -117,8 +126,10 @@ def parse_markers(data: dict, mat: MatSpec | None = None) -> Markers:
         raise UserError(f"focal lengths must be > 0, got fx={K.fx}, fy={K.fy}")
     items = data.get("markers")
     if not isinstance(items, list) or len(items) < 4:
-        raise UserError(f'marker file needs "markers": a list of at least 4 (the mat corners), '
-                         f"got {0 if not isinstance(items, list) else len(items)}")
+        raise UserError(
+            f'marker file needs "markers": a list of at least 4 (the mat corners), '
+            f"got {0 if not isinstance(items, list) else len(items)}"
+        )
     corners = corner_markers(mat)
     names, xyz, pix, depth = [], [], [], []
     for k, m in enumerate(items):
@@ -201,8 +212,9 @@ def _initial_pose(mk: Markers) -> tuple[np.ndarray, np.ndarray]:
     n = np.cross(e1, e2)  # a right-handed plane frame, so R below is a rotation
     ab = np.stack([(X - c) @ e1, (X - c) @ e2], 1)
     if np.abs((X - c) @ n).max() > 0.05:
-        raise UserError("markers are not coplanar and have no depth: give depth_m for at least 3, "
-                         "or use markers on the mat")
+        raise UserError(
+            "markers are not coplanar and have no depth: give depth_m for at least 3, or use markers on the mat"
+        )
     A = []
     for (a, b), (x, y, _) in zip(ab, rays):
         A.append([a, b, 1, 0, 0, 0, -x * a, -x * b, -x])
@@ -260,8 +272,9 @@ def _refine_cma(mk: Markers, R: np.ndarray, t: np.ndarray, seed: int = 0) -> tup
         r = _residuals(mk, _rodrigues(x[:3]) @ R, t + x[3:])
         return float(r @ r) if np.all(np.isfinite(r)) else 1e12
 
-    es = cma.CMAEvolutionStrategy(np.zeros(6), 0.01, {"seed": seed + 1, "verbose": -9, "tolfun": 1e-12,
-                                                      "tolx": 1e-12, "maxfevals": 20000})
+    es = cma.CMAEvolutionStrategy(
+        np.zeros(6), 0.01, {"seed": seed + 1, "verbose": -9, "tolfun": 1e-12, "tolx": 1e-12, "maxfevals": 20000}
+    )
     es.optimize(loss)
     x = es.result.xbest
     return _rodrigues(x[:3]) @ R, t + x[3:]
@@ -302,5 +315,17 @@ def load_cloud(path: Path, intr: Intrinsics) -> np.ndarray:
     raise UserError(f"{path} must be an (N, 3) point cloud or an (H, W) depth image, got shape {arr.shape}")
 
 
-__all__ = ["CUBE_M", "FORMAT", "CameraPose", "Intrinsics", "Markers", "corner_markers", "depth_to_points",
-           "load_cloud", "parse_markers", "project", "read_markers", "solve_camera_pose"]
+__all__ = [
+    "CUBE_M",
+    "FORMAT",
+    "CameraPose",
+    "Intrinsics",
+    "Markers",
+    "corner_markers",
+    "depth_to_points",
+    "load_cloud",
+    "parse_markers",
+    "project",
+    "read_markers",
+    "solve_camera_pose",
+]

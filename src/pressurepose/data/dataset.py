@@ -24,8 +24,19 @@ from pressurepose.data.schema import FIELD_BY_NAME, NAMES, from_table
 from pressurepose.data.shards import CorruptShardError
 from pressurepose.errors import UserError
 
-DEFAULT_COLUMNS = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose",
-                   "joints_m", "mass_kg", "height_m", "head_angle_deg")
+DEFAULT_COLUMNS = (
+    "pressure_mmhg",
+    "depth_mm",
+    "contact",
+    "shape",
+    "root_rotation",
+    "root_translation",
+    "pose",
+    "joints_m",
+    "mass_kg",
+    "height_m",
+    "head_angle_deg",
+)
 
 
 class PressurePoseDataset(torch.utils.data.Dataset):
@@ -43,9 +54,17 @@ class PressurePoseDataset(torch.utils.data.Dataset):
     Items: {"pressure_mmhg": (64, 27) float32, ..., "joints_m": (24, 3) float64, ...}.
     """
 
-    def __init__(self, root: str | Path, split: str | None = None, partitions=None, genders=None,
-                 over_bed: bool | None = None, columns=DEFAULT_COLUMNS, cache_row_groups: int = 8,
-                 verify: bool = True) -> None:
+    def __init__(
+        self,
+        root: str | Path,
+        split: str | None = None,
+        partitions=None,
+        genders=None,
+        over_bed: bool | None = None,
+        columns=DEFAULT_COLUMNS,
+        cache_row_groups: int = 8,
+        verify: bool = True,
+    ) -> None:
         self.root = Path(root)
         manifest = load_manifest(self.root, verify=verify)
         self.manifest = manifest
@@ -91,8 +110,10 @@ class PressurePoseDataset(torch.utils.data.Dataset):
         try:
             return pq.ParquetFile(path)
         except (OSError, pa.ArrowException) as exc:  # ArrowInvalid for a damaged footer
-            raise CorruptShardError(f"shard {path} cannot be read ({exc}); re-run `pressurepose generate` "
-                                    "with the same arguments to regenerate it") from None
+            raise CorruptShardError(
+                f"shard {path} cannot be read ({exc}); re-run `pressurepose generate` "
+                "with the same arguments to regenerate it"
+            ) from None
 
     def _row_group(self, s: int, row: int) -> tuple[dict, int]:
         starts = self.row_groups(s)
@@ -113,9 +134,11 @@ class PressurePoseDataset(torch.utils.data.Dataset):
             meta = self._file(s).metadata
             starts = np.cumsum([0] + [meta.row_group(g).num_rows for g in range(meta.num_row_groups)]).tolist()
             if starts[-1] != self.shards[s]["count"]:
-                raise CorruptShardError(f"shard {self.root / self.shards[s]['file']} holds {starts[-1]} rows but the "
-                                        f"manifest records {self.shards[s]['count']}; re-run `pressurepose generate` "
-                                        "with the same arguments to regenerate the dataset")
+                raise CorruptShardError(
+                    f"shard {self.root / self.shards[s]['file']} holds {starts[-1]} rows but the "
+                    f"manifest records {self.shards[s]['count']}; re-run `pressurepose generate` "
+                    "with the same arguments to regenerate the dataset"
+                )
             self._groups[s] = starts
         return self._groups[s]
 
@@ -161,7 +184,7 @@ class BlockShuffleSampler(torch.utils.data.Sampler):
         rng = np.random.default_rng([self.seed, self.epoch])
         order = rng.permutation(len(self.blocks))
         for k in range(0, len(order), self.blocks_in_memory):
-            rows = np.concatenate([np.arange(*self.blocks[b]) for b in order[k:k + self.blocks_in_memory]])
+            rows = np.concatenate([np.arange(*self.blocks[b]) for b in order[k : k + self.blocks_in_memory]])
             yield from rng.permutation(rows).tolist()
 
 

@@ -35,7 +35,7 @@ ORIGINAL_KEYS = {
     "images": ("pressure_mmhg", (ROWS, COLS)),
     "markers_xyz_m": ("joints_m", (24, 3)),
     "body_shape": ("shape", (10,)),
-    "joint_angles": ("pose72", (72,)),          # root axis-angle (3) + 23 joints (69)
+    "joint_angles": ("pose72", (72,)),  # root axis-angle (3) + 23 joints (69)
     "root_xyz_shift": ("root_translation", (3,)),
     "mesh_depth": ("depth_mm", (ROWS, COLS)),
     "mesh_contact": ("contact", (ROWS, COLS)),
@@ -57,12 +57,24 @@ def _resolve(candidates: tuple[tuple[str, str], ...]):
 
 # (module, name) in a pickle -> where this numpy keeps it (numpy 2 moved numpy.core to numpy._core).
 _ALLOWED = {
-    ("numpy.core.multiarray", "_reconstruct"): (("numpy._core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "_reconstruct")),
-    ("numpy._core.multiarray", "_reconstruct"): (("numpy._core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "_reconstruct")),
+    ("numpy.core.multiarray", "_reconstruct"): (
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "_reconstruct"),
+    ),
+    ("numpy._core.multiarray", "_reconstruct"): (
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "_reconstruct"),
+    ),
     ("numpy.core.multiarray", "scalar"): (("numpy._core.multiarray", "scalar"), ("numpy.core.multiarray", "scalar")),
     ("numpy._core.multiarray", "scalar"): (("numpy._core.multiarray", "scalar"), ("numpy.core.multiarray", "scalar")),
-    ("numpy.core.numeric", "_frombuffer"): (("numpy._core.numeric", "_frombuffer"), ("numpy.core.numeric", "_frombuffer")),
-    ("numpy._core.numeric", "_frombuffer"): (("numpy._core.numeric", "_frombuffer"), ("numpy.core.numeric", "_frombuffer")),
+    ("numpy.core.numeric", "_frombuffer"): (
+        ("numpy._core.numeric", "_frombuffer"),
+        ("numpy.core.numeric", "_frombuffer"),
+    ),
+    ("numpy._core.numeric", "_frombuffer"): (
+        ("numpy._core.numeric", "_frombuffer"),
+        ("numpy.core.numeric", "_frombuffer"),
+    ),
     ("numpy", "ndarray"): (("numpy", "ndarray"),),
     ("numpy", "dtype"): (("numpy", "dtype"),),
     # Python 3 pickles bytes under protocol 2 as _codecs.encode(text, "latin1").
@@ -90,9 +102,22 @@ def load_restricted(data: bytes, source: str | Path = "pickle"):
         return RestrictedUnpickler(io.BytesIO(data), budget=len(data), source=source, encoding="latin1").load()
     except UserError:
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, IndexError, KeyError, AttributeError,
-            OverflowError, MemoryError, RecursionError, UnicodeError) as exc:
-        raise UserError(f"{source}: not a readable pickle ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        ValueError,
+        TypeError,
+        IndexError,
+        KeyError,
+        AttributeError,
+        OverflowError,
+        MemoryError,
+        RecursionError,
+        UnicodeError,
+    ) as exc:
+        raise UserError(
+            f"{source}: not a readable pickle ({type(exc).__name__}: {' '.join(str(exc).split())})"
+        ) from None
 
 
 def _leaves(value, limit: int) -> int:
@@ -114,7 +139,13 @@ def _text(key) -> str:
     return key.decode("latin1") if isinstance(key, bytes) else str(key)
 
 
-_PARTITION_HINTS = (("_xl_", "crossed_legs"), ("_sl_", "straight_limbs"), ("hbh", "hands_behind_head"), ("roll180", "prone_hands_up"), ("roll0", "supine"))
+_PARTITION_HINTS = (
+    ("_xl_", "crossed_legs"),
+    ("_sl_", "straight_limbs"),
+    ("hbh", "hands_behind_head"),
+    ("roll180", "prone_hands_up"),
+    ("roll0", "supine"),
+)
 
 
 def infer_labels(path: Path) -> dict:
@@ -127,8 +158,9 @@ def infer_labels(path: Path) -> dict:
     return {"split": split, "gender": gender, "partition": partition}
 
 
-def read_original(path: str | Path, split: str | None = None, gender: str | None = None,
-                  partition: str | None = None) -> tuple[SampleBatch, list[str]]:
+def read_original(
+    path: str | Path, split: str | None = None, gender: str | None = None, partition: str | None = None
+) -> tuple[SampleBatch, list[str]]:
     """One original file -> (SampleBatch, original keys it lacked)."""
     path = Path(path)
     if not path.is_file():
@@ -140,8 +172,9 @@ def read_original(path: str | Path, split: str | None = None, gender: str | None
     doc = {_text(k): v for k, v in doc.items()}
     missing_required = [k for k in REQUIRED if k not in doc]
     if missing_required:
-        raise UserError(f"{path}: missing keys {missing_required}; an original PressurePose file has "
-                         f"{', '.join(ORIGINAL_KEYS)}")
+        raise UserError(
+            f"{path}: missing keys {missing_required}; an original PressurePose file has {', '.join(ORIGINAL_KEYS)}"
+        )
     labels = infer_labels(path)
     split, gender = split or labels["split"] or "train", gender or labels["gender"]
     partition = partition or labels["partition"] or "unknown"
@@ -164,8 +197,10 @@ def read_original(path: str | Path, split: str | None = None, gender: str | None
             raise UserError(f"{path}: key {key!r} has {len(values)} entries but 'images' has {n}")
         size = n * int(np.prod(shape))
         if size > budget or _leaves(values, size) != size:
-            raise UserError(f"{path}: key {key!r} entries are not numbers of shape {shape} (or the file asks for "
-                            f"more numbers than its {len(data)} bytes hold)")
+            raise UserError(
+                f"{path}: key {key!r} entries are not numbers of shape {shape} (or the file asks for "
+                f"more numbers than its {len(data)} bytes hold)"
+            )
         try:
             a = np.asarray([np.asarray(v, dtype=np.float64).reshape(shape) for v in values]).reshape(n, *shape)
         except (ValueError, TypeError):
@@ -175,21 +210,31 @@ def read_original(path: str | Path, split: str | None = None, gender: str | None
         arrays[field] = a
     pose72 = arrays.pop("pose72")
     batch = SampleBatch(
-        split=np.array([split] * n, dtype=object), partition=np.array([partition] * n, dtype=object),
-        gender=np.array([gender] * n, dtype=object), over_bed=np.zeros(n, dtype=bool),
+        split=np.array([split] * n, dtype=object),
+        partition=np.array([partition] * n, dtype=object),
+        gender=np.array([gender] * n, dtype=object),
+        over_bed=np.zeros(n, dtype=bool),
         index=np.arange(n, dtype=np.int64),
-        pressure_mmhg=arrays["pressure_mmhg"].astype(np.float32), depth_mm=arrays["depth_mm"].astype(np.float32),
-        contact=(arrays["contact"] > 0).astype(np.uint8), shape=arrays["shape"],
-        root_rotation=pose72[:, :3], root_translation=arrays["root_translation"],
-        pose=pose72[:, 3:].reshape(n, 23, 3), joints_m=arrays["joints_m"], mass_kg=arrays["mass_kg"],
-        height_m=arrays["height_m"], head_angle_deg=arrays["head_angle_deg"],
-        settle_steps=np.zeros(n, dtype=np.int32), sink_mm=np.zeros(n, dtype=np.float32),
+        pressure_mmhg=arrays["pressure_mmhg"].astype(np.float32),
+        depth_mm=arrays["depth_mm"].astype(np.float32),
+        contact=(arrays["contact"] > 0).astype(np.uint8),
+        shape=arrays["shape"],
+        root_rotation=pose72[:, :3],
+        root_translation=arrays["root_translation"],
+        pose=pose72[:, 3:].reshape(n, 23, 3),
+        joints_m=arrays["joints_m"],
+        mass_kg=arrays["mass_kg"],
+        height_m=arrays["height_m"],
+        head_angle_deg=arrays["head_angle_deg"],
+        settle_steps=np.zeros(n, dtype=np.int32),
+        sink_mm=np.zeros(n, dtype=np.float32),
     )
     return batch, missing
 
 
-def import_original(paths: list[Path], out: Path, split: str | None = None, gender: str | None = None,
-                    partition: str | None = None) -> Path:
+def import_original(
+    paths: list[Path], out: Path, split: str | None = None, gender: str | None = None, partition: str | None = None
+) -> Path:
     """Convert original files into a dataset folder (one shard per file); returns manifest path."""
     from pressurepose import __version__
 
@@ -202,15 +247,33 @@ def import_original(paths: list[Path], out: Path, split: str | None = None, gend
         if missing:
             log.warning("%s lacks %s: filled with zeros", path, ", ".join(missing))
         shard_id = f"import-{k:05d}-{re.sub(r'[^A-Za-z0-9_]+', '_', Path(path).stem)[:60]}"
-        record = {"split": str(batch.split[0]), "partition": str(batch.partition[0]),
-                  "gender": str(batch.gender[0]), "over_bed": False, "number": k, "first_slot": 0,
-                  "count": len(batch), "candidates": len(batch), "rejections": {}, "sampling_rejections": {}}
+        record = {
+            "split": str(batch.split[0]),
+            "partition": str(batch.partition[0]),
+            "gender": str(batch.gender[0]),
+            "over_bed": False,
+            "number": k,
+            "first_slot": 0,
+            "count": len(batch),
+            "candidates": len(batch),
+            "rejections": {},
+            "sampling_rejections": {},
+        }
         records.append(write_shard(out, shard_id, table_bytes(to_table(batch)), record))
         sources.append({"file": str(path), "samples": len(batch), "missing": missing})
-    header = {"pressurepose_version": __version__, "config": {"source": "original PressurePose pickles"},
-              "import": {"files": sources, "conventions": "original (mat frame, SMPL joints, units as stored)"}}
+    header = {
+        "pressurepose_version": __version__,
+        "config": {"source": "original PressurePose pickles"},
+        "import": {"files": sources, "conventions": "original (mat frame, SMPL joints, units as stored)"},
+    }
     return write_manifest(out, header, records)
 
 
-__all__ = ["ORIGINAL_KEYS", "RestrictedUnpickler", "import_original", "infer_labels", "load_restricted",
-           "read_original"]
+__all__ = [
+    "ORIGINAL_KEYS",
+    "RestrictedUnpickler",
+    "import_original",
+    "infer_labels",
+    "load_restricted",
+    "read_original",
+]

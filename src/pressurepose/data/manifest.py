@@ -37,21 +37,33 @@ def summarise(records: list[dict]) -> dict:
         sampling.update(r["sampling_rejections"])
         candidates += r["candidates"]
     total = sum(r["count"] for r in records)
-    return {"total": total, "counts": counts, "candidates": candidates,
-            "rejected": candidates - total, "rejections": dict(sorted(rejections.items())),
-            "sampling_rejections": dict(sorted(sampling.items()))}
+    return {
+        "total": total,
+        "counts": counts,
+        "candidates": candidates,
+        "rejected": candidates - total,
+        "rejections": dict(sorted(rejections.items())),
+        "sampling_rejections": dict(sorted(sampling.items())),
+    }
 
 
 def write_manifest(root: Path, header: dict, records: list[dict]) -> Path:
-    manifest = {"format": FORMAT, "format_version": FORMAT_VERSION, **header, **summarise(records),
-                "shards": records}
+    manifest = {"format": FORMAT, "format_version": FORMAT_VERSION, **header, **summarise(records), "shards": records}
     text = json.dumps(manifest, indent=1, sort_keys=True)
     return atomic_write(Path(root) / MANIFEST, lambda tmp: Path(tmp).write_text(text))
 
 
 # Fields every manifest has, with their kinds (pressurepose.validate.KINDS).
-TOP_FIELDS = {"total": "count", "counts": "dict", "candidates": "count", "rejected": "int",
-              "rejections": "dict", "sampling_rejections": "dict", "config": "dict", "shards": "list"}
+TOP_FIELDS = {
+    "total": "count",
+    "counts": "dict",
+    "candidates": "count",
+    "rejected": "int",
+    "rejections": "dict",
+    "sampling_rejections": "dict",
+    "config": "dict",
+    "shards": "list",
+}
 SPLITS, GENDERS = ("train", "test"), ("female", "male")
 
 
@@ -61,8 +73,7 @@ def check_manifest(manifest, path: Path) -> dict:
     if not isinstance(manifest, dict):
         raise UserError(f"{path}: expected a JSON object (a {FORMAT} manifest), got {type(manifest).__name__}")
     if manifest.get("format") != FORMAT or manifest.get("format_version") != FORMAT_VERSION:
-        raise UserError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest (fields 'format' and "
-                        "'format_version')")
+        raise UserError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest (fields 'format' and 'format_version')")
     for key, kind in TOP_FIELDS.items():
         field(manifest, key, kind, path)
     for k, record in enumerate(manifest["shards"]):
@@ -91,8 +102,10 @@ def load_manifest(root: Path, verify: bool = True) -> dict:
         raise UserError(f"{root}: no such dataset folder")
     if not path.exists():
         if (root / "generate.json").exists():
-            raise UserError(f"{root} holds an unfinished dataset (no {MANIFEST}); re-run the same "
-                            "`pressurepose generate` command to finish it")
+            raise UserError(
+                f"{root} holds an unfinished dataset (no {MANIFEST}); re-run the same "
+                "`pressurepose generate` command to finish it"
+            )
         raise UserError(f"{root} is not a pressurepose dataset (no {MANIFEST})")
     manifest = check_manifest(read_json(path, "manifest", "; re-run `pressurepose generate` to rewrite it"), path)
     if verify:

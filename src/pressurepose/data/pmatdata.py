@@ -83,22 +83,33 @@ def load_index(root: str | Path) -> list[PmatRecord]:
     out = []
     with path.open() as fh:
         for row in csv.DictReader(fh):
-            out.append(PmatRecord(
-                path=root / row["file"], subject=int(row["subject"]), mattress=row["mattress"], group=row["group"],
-                index=int(row["index"]), posture=row["posture"], bed_incline_deg=float(row["bed_incline_deg"] or 0),
-                height_cm=float(row["height_cm"]), weight_kg=float(row["weight_kg"])))
+            out.append(
+                PmatRecord(
+                    path=root / row["file"],
+                    subject=int(row["subject"]),
+                    mattress=row["mattress"],
+                    group=row["group"],
+                    index=int(row["index"]),
+                    posture=row["posture"],
+                    bed_incline_deg=float(row["bed_incline_deg"] or 0),
+                    height_cm=float(row["height_cm"]),
+                    weight_kg=float(row["weight_kg"]),
+                )
+            )
     return out
 
 
 def load_images(records: list[PmatRecord], threshold: float = 20.0) -> np.ndarray:
     """(N, 64, 27) float32 mmHg images of index records, row 0 at the head: normalised as the
     data README says and clipped at the sensor model's 100 mmHg."""
-    return np.stack([np.minimum(normalise(read_frame(r.path), r.weight_kg, threshold), 100.0)
-                     for r in records]).astype(np.float32)
+    return np.stack([np.minimum(normalise(read_frame(r.path), r.weight_kg, threshold), 100.0) for r in records]).astype(
+        np.float32
+    )
 
 
-def import_pmatdata(root: str | Path, out: str | Path, groups: str | None = None, mattress: str | None = None,
-                    threshold: float = 20.0) -> dict:
+def import_pmatdata(
+    root: str | Path, out: str | Path, groups: str | None = None, mattress: str | None = None, threshold: float = 20.0
+) -> dict:
     """PmatData frames -> one .npz in the project's image convention, ready for `predict`:
     pressure_mmhg (N, 64, 27) float32 (row 0 at the head; normalised as the README says and
     clipped at the sensor's 100 mmHg), with per frame: path, subject, mattress, group, index,

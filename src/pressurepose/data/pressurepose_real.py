@@ -97,8 +97,10 @@ def read_participant_info(folder: Path) -> dict:
         raise UserError(f"{path}: height_in and weight_lbs must be numbers") from None
     # Plausible adults only: a file in other units (cm, kg) fails here instead of downstream.
     if not (40 <= height_in <= 90 and 60 <= weight_lbs <= 500):
-        raise UserError(f"{path}: height {height_in} in / weight {weight_lbs} lbs are not plausible (the release "
-                         "stores inches and pounds)")
+        raise UserError(
+            f"{path}: height {height_in} in / weight {weight_lbs} lbs are not plausible (the release "
+            "stores inches and pounds)"
+        )
     return {"gender": gender, "height_m": height_in * INCH_M, "mass_kg": weight_lbs * POUND_KG}
 
 
@@ -125,8 +127,10 @@ def read_pose_set(folder: Path, pose_set: str) -> dict:
     doc = _load_dict(path, f"{pose_set} poses")
     missing = [k for k in ("images", "pc") if k not in doc]
     if missing:
-        raise UserError(f"{path}: missing keys {missing}; a PressurePose real file holds images, pc, pose_type, "
-                         "pmat_corners, RGB, depth")
+        raise UserError(
+            f"{path}: missing keys {missing}; a PressurePose real file holds images, pc, pose_type, "
+            "pmat_corners, RGB, depth"
+        )
     frames, clouds = doc["images"], doc["pc"]
     if not isinstance(frames, (list, tuple, np.ndarray)) or not isinstance(clouds, (list, tuple)):
         raise UserError(f"{path}: 'images' and 'pc' must be per-frame lists")
@@ -140,8 +144,10 @@ def read_pose_set(folder: Path, pose_set: str) -> dict:
         except (TypeError, ValueError):
             a = None
         if a is None or a.size != ROWS * COLS:
-            raise UserError(f"{path}: image {i} is not {ROWS} x {COLS} = {ROWS * COLS} numbers "
-                             f"(got shape {None if a is None else a.shape})")
+            raise UserError(
+                f"{path}: image {i} is not {ROWS} x {COLS} = {ROWS * COLS} numbers "
+                f"(got shape {None if a is None else a.shape})"
+            )
         images[i] = a.reshape(ROWS, COLS)
     if not np.isfinite(images).all() or (images < 0).any():
         raise UserError(f"{path}: images must be finite and >= 0")
@@ -155,8 +161,9 @@ def read_pose_set(folder: Path, pose_set: str) -> dict:
         except (TypeError, ValueError):
             a = None
         if a is None or a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
-            raise UserError(f"{path}: point cloud {i} must be a non-empty (P, 3) array, got "
-                             f"{None if a is None else a.shape}")
+            raise UserError(
+                f"{path}: point cloud {i} must be a non-empty (P, 3) array, got {None if a is None else a.shape}"
+            )
         a = a[np.isfinite(a).all(1)]
         if a.shape[0] == 0:
             raise UserError(f"{path}: point cloud {i} has no finite points")
@@ -180,9 +187,14 @@ def participant_folders(src: str | Path) -> list[Path]:
     return found
 
 
-def import_pressurepose_real(src: str | Path, out: str | Path, pose_sets: tuple[str, ...] = POSE_SETS,
-                             pressure: PressureScale = "release", bed_angle_deg: float = 0.0,
-                             cloud_frame: CloudFrame | None = None) -> dict:
+def import_pressurepose_real(
+    src: str | Path,
+    out: str | Path,
+    pose_sets: tuple[str, ...] = POSE_SETS,
+    pressure: PressureScale = "release",
+    bed_angle_deg: float = 0.0,
+    cloud_frame: CloudFrame | None = None,
+) -> dict:
     """PressurePose real participants -> one .npz (no pickles inside):
     pressure_mmhg (N, 64, 27) float32, row 0 at the head, scaled by `pressure` and clipped at
     100 mmHg; per frame subject, pose_set, pose_type, index, gender, height_m, mass_kg,
@@ -196,8 +208,9 @@ def import_pressurepose_real(src: str | Path, out: str | Path, pose_sets: tuple[
     if not np.isfinite(bed_angle_deg) or not 0 <= bed_angle_deg <= 90:
         raise UserError(f"bed angle must lie in [0, 90] degrees, got {bed_angle_deg}")
     frame = cloud_frame or CloudFrame()
-    cols: dict[str, list] = {k: [] for k in ("pressure_mmhg", "subject", "pose_set", "pose_type", "index", "gender",
-                                             "height_m", "mass_kg")}
+    cols: dict[str, list] = {
+        k: [] for k in ("pressure_mmhg", "subject", "pose_set", "pose_type", "index", "gender", "height_m", "mass_kg")
+    }
     clouds = []
     folders = participant_folders(src)
     for folder in folders:
@@ -222,18 +235,26 @@ def import_pressurepose_real(src: str | Path, out: str | Path, pose_sets: tuple[
     counts = np.array([len(c) for c in clouds], dtype=np.int64)
     arrays = {
         "pressure_mmhg": np.concatenate(cols["pressure_mmhg"]).astype(np.float32),
-        "subject": np.array(cols["subject"]), "pose_set": np.array(cols["pose_set"]),
-        "pose_type": np.array(cols["pose_type"]), "index": np.array(cols["index"], dtype=np.int64),
-        "gender": np.array(cols["gender"]), "height_m": np.array(cols["height_m"]),
-        "mass_kg": np.array(cols["mass_kg"]), "bed_angle_deg": np.full(len(clouds), float(bed_angle_deg)),
+        "subject": np.array(cols["subject"]),
+        "pose_set": np.array(cols["pose_set"]),
+        "pose_type": np.array(cols["pose_type"]),
+        "index": np.array(cols["index"], dtype=np.int64),
+        "gender": np.array(cols["gender"]),
+        "height_m": np.array(cols["height_m"]),
+        "mass_kg": np.array(cols["mass_kg"]),
+        "bed_angle_deg": np.full(len(clouds), float(bed_angle_deg)),
         "cloud_points": np.concatenate(clouds).astype(np.float32),
         "cloud_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
     }
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(out, lambda tmp: np.savez_compressed(tmp, **arrays))
-    return {"frames": len(clouds), "participants": len(set(cols["subject"])), "points": int(counts.sum()),
-            "out": str(out)}
+    return {
+        "frames": len(clouds),
+        "participants": len(set(cols["subject"])),
+        "points": int(counts.sum()),
+        "out": str(out),
+    }
 
 
 def cloud_of(arrays, i: int) -> np.ndarray:
@@ -242,5 +263,13 @@ def cloud_of(arrays, i: int) -> np.ndarray:
     return np.asarray(arrays["cloud_points"][lo:hi])
 
 
-__all__ = ["CloudFrame", "POSE_SETS", "cloud_of", "import_pressurepose_real", "participant_folders",
-           "read_participant_info", "read_pose_set", "scale_images"]
+__all__ = [
+    "CloudFrame",
+    "POSE_SETS",
+    "cloud_of",
+    "import_pressurepose_real",
+    "participant_folders",
+    "read_participant_info",
+    "read_pose_set",
+    "scale_images",
+]

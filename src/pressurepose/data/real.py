@@ -24,8 +24,13 @@ def _overlap(n_src: int, pitch_src: float, n_dst: int, pitch_dst: float, offset:
     return np.clip(np.minimum(d0 + pitch_dst, s0 + pitch_src) - np.maximum(d0, s0), 0.0, None)
 
 
-def resample_to_mat(image: np.ndarray, pitch_row_m: float, pitch_col_m: float, mat: MatSpec | None = None,
-                    offset_m: tuple[float, float] | None = None) -> np.ndarray:
+def resample_to_mat(
+    image: np.ndarray,
+    pitch_row_m: float,
+    pitch_col_m: float,
+    mat: MatSpec | None = None,
+    offset_m: tuple[float, float] | None = None,
+) -> np.ndarray:
     """(H, W) pressure image (row 0 at the head) at another pitch -> (64, 27) on our grid.
 
     offset_m: where the source's first taxel corner lies in our mat frame (x along, y across);

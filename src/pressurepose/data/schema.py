@@ -15,7 +15,7 @@ import dataclasses
 import numpy as np
 
 ROWS, COLS = 64, 27  # BT3510 taxels: rows along the bed (row 0 at the head end), columns across
-NUM_JOINTS = 24      # J24 (SMPL's joint names and order)
+NUM_JOINTS = 24  # J24 (SMPL's joint names and order)
 NUM_POSE_JOINTS = 23
 
 
@@ -23,7 +23,7 @@ NUM_POSE_JOINTS = 23
 class Field:
     name: str
     shape: tuple[int, ...]  # per sample; () for a scalar; -1 = set by the body model (shape)
-    dtype: str              # numpy dtype name, or "str"
+    dtype: str  # numpy dtype name, or "str"
     unit: str
     doc: str
 
@@ -33,8 +33,13 @@ FIELDS: tuple[Field, ...] = (
     Field("partition", (), "str", "", "seed Table 4 partition (sampling.partitions.PARTITIONS)"),
     Field("gender", (), "str", "", "female or male"),
     Field("over_bed", (), "bool", "", "limbs sampled over the mattress (seed A.7)"),
-    Field("index", (), "int64", "", "sampler index: the initial pose is PoseSampler(seed, partition, gender, "
-                                    "over_bed).sample([index])"),
+    Field(
+        "index",
+        (),
+        "int64",
+        "",
+        "sampler index: the initial pose is PoseSampler(seed, partition, gender, over_bed).sample([index])",
+    ),
     Field("pressure_mmhg", (ROWS, COLS), "float32", "mmHg", "simulated BT3510 reading, clipped to [0, 100]"),
     Field("depth_mm", (ROWS, COLS), "float32", "mm", "depth map Q of the body's underside (PMR target)"),
     Field("contact", (ROWS, COLS), "uint8", "", "contact map C (1 where the body touches the mattress)"),

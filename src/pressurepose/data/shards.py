@@ -56,11 +56,14 @@ def shard_paths(root: Path, shard_id: str) -> tuple[Path, Path]:
 
 def explain_os_error(exc: OSError, path: Path) -> OSError:
     if exc.errno == errno.ENOSPC:
-        return OSError(f"no space left on the device writing {path}; shards already written are intact - "
-                       "free some space and re-run the same command to resume")
+        return OSError(
+            f"no space left on the device writing {path}; shards already written are intact - "
+            "free some space and re-run the same command to resume"
+        )
     if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-        return OSError(f"cannot write {path} (permission denied or read-only file system); "
-                       "choose a writable --out folder")
+        return OSError(
+            f"cannot write {path} (permission denied or read-only file system); choose a writable --out folder"
+        )
     return OSError(f"cannot write {path}: {exc.strerror or exc}")
 
 
@@ -68,11 +71,18 @@ def write_shard(root: Path, shard_id: str, data: bytes, record: dict) -> dict:
     """Write a shard's bytes, then its record (with sha256 and size added), both atomically.
     Returns the record. OSErrors come back with a message that says what to do."""
     parquet, meta = shard_paths(root, shard_id)
-    record = {**record, "id": shard_id, "file": f"{SHARD_DIR}/{parquet.name}", "sha256": sha256_bytes(data),
-              "bytes": len(data)}
+    record = {
+        **record,
+        "id": shard_id,
+        "file": f"{SHARD_DIR}/{parquet.name}",
+        "sha256": sha256_bytes(data),
+        "bytes": len(data),
+    }
     text = json.dumps(record, indent=1, sort_keys=True)
-    for path, write in ((parquet, lambda tmp: Path(tmp).write_bytes(data)),
-                        (meta, lambda tmp: Path(tmp).write_text(text))):
+    for path, write in (
+        (parquet, lambda tmp: Path(tmp).write_bytes(data)),
+        (meta, lambda tmp: Path(tmp).write_text(text)),
+    ):
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(path, lambda tmp: _write_synced(tmp, write))
@@ -92,8 +102,16 @@ def _write_synced(tmp, write) -> None:
 
 
 # The fields of a shard record (its .json, and its entry in the manifest) and their kinds.
-RECORD_FIELDS = {"file": "str", "sha256": "sha256", "bytes": "count", "count": "count", "split": "name",
-                 "partition": "name", "gender": "name", "over_bed": "bool"}
+RECORD_FIELDS = {
+    "file": "str",
+    "sha256": "sha256",
+    "bytes": "count",
+    "count": "count",
+    "split": "name",
+    "partition": "name",
+    "gender": "name",
+    "over_bed": "bool",
+}
 
 
 def check_shard_record(record, path: Path, root: Path, where: str = "") -> dict:
@@ -124,15 +142,30 @@ def verify_shard(root: Path, record: dict, contents: bool = True) -> None:
     `contents=False` checks only its recorded size (a stat, for a quick look: the viewer)."""
     path = inside(root, record["file"], f"the record of shard {record.get('id', '?')}", "file")
     if not path.is_file():
-        raise CorruptShardError(f"shard {path} is missing; re-run `pressurepose generate` with the same "
-                                "arguments to regenerate it")
+        raise CorruptShardError(
+            f"shard {path} is missing; re-run `pressurepose generate` with the same arguments to regenerate it"
+        )
     size = path.stat().st_size
     if size != record["bytes"] or (contents and sha256_file(path) != record["sha256"]):
         what = f"truncated ({size} of {record['bytes']} bytes)" if size < record["bytes"] else "corrupted"
         raise CorruptShardError(
             f"shard {path} is {what}: its sha256 does not match the recorded {record['sha256'][:16]}...; "
-            "re-run `pressurepose generate` with the same arguments to regenerate it")
+            "re-run `pressurepose generate` with the same arguments to regenerate it"
+        )
 
 
-__all__ = ["CorruptShardError", "RECORD_FIELDS", "check_shard_record", "explain_os_error", "ROW_GROUP_ROWS", "SHARD_DIR", "read_record", "sha256_bytes", "sha256_file",
-           "shard_paths", "table_bytes", "verify_shard", "write_shard"]
+__all__ = [
+    "CorruptShardError",
+    "RECORD_FIELDS",
+    "check_shard_record",
+    "explain_os_error",
+    "ROW_GROUP_ROWS",
+    "SHARD_DIR",
+    "read_record",
+    "sha256_bytes",
+    "sha256_file",
+    "shard_paths",
+    "table_bytes",
+    "verify_shard",
+    "write_shard",
+]

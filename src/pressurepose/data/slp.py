@@ -48,10 +48,15 @@ def read_physique(root: Path) -> np.ndarray:
         raise UserError(f"{path}: expected a numeric (subjects, >= 3) array, got {arr.dtype} {arr.shape}")
     gender, height_cm, mass_kg = arr[:, 0].astype(float), arr[:, 1].astype(float), arr[:, 2].astype(float)
     # The column order is read from SLP's reader, not from a data description: check it.
-    if not (np.isin(gender, (0, 1)).all() and ((height_cm > 100) & (height_cm < 230)).all()
-            and ((mass_kg > 25) & (mass_kg < 250)).all()):
-        raise UserError(f"{path}: columns 0-2 are not gender (0/1), height (cm), weight (kg) as SLP's reader "
-                         "implies; check the file")
+    if not (
+        np.isin(gender, (0, 1)).all()
+        and ((height_cm > 100) & (height_cm < 230)).all()
+        and ((mass_kg > 25) & (mass_kg < 250)).all()
+    ):
+        raise UserError(
+            f"{path}: columns 0-2 are not gender (0/1), height (cm), weight (kg) as SLP's reader "
+            "implies; check the file"
+        )
     return np.stack([1.0 - gender, height_cm / 100, mass_kg], 1)
 
 
@@ -87,9 +92,16 @@ def read_calibration(folder: Path) -> np.ndarray:
     return cali.astype(np.float64)
 
 
-def frame_to_mat(pm: np.ndarray, mass_kg: float, calibration: Calibration, cali_factor: float | None = None,
-                 pitch_m: float = SLP_PITCH_M, head_row: str = "first", flip_columns: bool = False,
-                 mat: MatSpec | None = None) -> np.ndarray:
+def frame_to_mat(
+    pm: np.ndarray,
+    mass_kg: float,
+    calibration: Calibration,
+    cali_factor: float | None = None,
+    pitch_m: float = SLP_PITCH_M,
+    head_row: str = "first",
+    flip_columns: bool = False,
+    mat: MatSpec | None = None,
+) -> np.ndarray:
     """One SLP frame -> (64, 27) mmHg on our grid, clipped at the mat's maximum."""
     mat = mat or MatSpec()
     p = orient(pm, head_row, flip_columns)
@@ -106,9 +118,16 @@ def frame_to_mat(pm: np.ndarray, mass_kg: float, calibration: Calibration, cali_
     return np.minimum(p, mat.max_pressure_mmhg)
 
 
-def import_slp(root: str | Path, out: str | Path, covers: tuple[str, ...] = COVERS, subjects: list[int] | None = None,
-               calibration: Calibration = "weight", pitch_m: float = SLP_PITCH_M, head_row: str = "first",
-               flip_columns: bool = False) -> dict:
+def import_slp(
+    root: str | Path,
+    out: str | Path,
+    covers: tuple[str, ...] = COVERS,
+    subjects: list[int] | None = None,
+    calibration: Calibration = "weight",
+    pitch_m: float = SLP_PITCH_M,
+    head_row: str = "first",
+    flip_columns: bool = False,
+) -> dict:
     """SLP danaLab pressure maps -> one .npz: pressure_mmhg (N, 64, 27) float32 (row 0 at the
     head), with per frame subject, cover, frame (1-based, as in the file names), gender
     ('female'/'male'), height_m, mass_kg, bed_angle_deg (0: SLP's bed was flat)."""
@@ -125,8 +144,9 @@ def import_slp(root: str | Path, out: str | Path, covers: tuple[str, ...] = COVE
     if not pitch_m > 0:
         raise UserError(f"pitch must be > 0 m, got {pitch_m}")
     physique = read_physique(root)
-    rows: dict[str, list] = {k: [] for k in ("pressure_mmhg", "subject", "cover", "frame", "gender", "height_m",
-                                             "mass_kg")}
+    rows: dict[str, list] = {
+        k: [] for k in ("pressure_mmhg", "subject", "cover", "frame", "gender", "height_m", "mass_kg")
+    }
     for subject, folder in _subject_folders(root, subjects):
         if subject > len(physique):
             raise UserError(f"subject {subject:05d} has no row in physiqueData.npy ({len(physique)} rows)")
@@ -143,8 +163,15 @@ def import_slp(root: str | Path, out: str | Path, covers: tuple[str, ...] = COVE
                 if cali is not None and k > cali.shape[1]:
                     raise UserError(f"{folder / 'PMcali.npy'} has {cali.shape[1]} frames; {f} needs frame {k}")
                 try:
-                    img = frame_to_mat(read_pm(f), mass_kg, calibration, None if cali is None else cali[c, k - 1],
-                                       pitch_m, head_row, flip_columns)
+                    img = frame_to_mat(
+                        read_pm(f),
+                        mass_kg,
+                        calibration,
+                        None if cali is None else cali[c, k - 1],
+                        pitch_m,
+                        head_row,
+                        flip_columns,
+                    )
                 except ValueError as exc:
                     msg = str(exc)
                     raise UserError(msg if msg.startswith(str(f)) else f"{f}: {msg}") from None
@@ -157,16 +184,29 @@ def import_slp(root: str | Path, out: str | Path, covers: tuple[str, ...] = COVE
                 rows["mass_kg"].append(mass_kg)
     if not rows["subject"]:
         raise UserError(f"no SLP frames of covers {list(covers)} under {root}")
-    arrays = {"pressure_mmhg": np.stack(rows["pressure_mmhg"]).astype(np.float32),
-              "subject": np.array(rows["subject"], dtype=np.int64), "cover": np.array(rows["cover"]),
-              "frame": np.array(rows["frame"], dtype=np.int64), "gender": np.array(rows["gender"]),
-              "height_m": np.array(rows["height_m"]), "mass_kg": np.array(rows["mass_kg"]),
-              "bed_angle_deg": np.zeros(len(rows["subject"]))}
+    arrays = {
+        "pressure_mmhg": np.stack(rows["pressure_mmhg"]).astype(np.float32),
+        "subject": np.array(rows["subject"], dtype=np.int64),
+        "cover": np.array(rows["cover"]),
+        "frame": np.array(rows["frame"], dtype=np.int64),
+        "gender": np.array(rows["gender"]),
+        "height_m": np.array(rows["height_m"]),
+        "mass_kg": np.array(rows["mass_kg"]),
+        "bed_angle_deg": np.zeros(len(rows["subject"])),
+    }
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(out, lambda tmp: np.savez_compressed(tmp, **arrays))
     return {"frames": len(rows["subject"]), "subjects": len(set(rows["subject"])), "out": str(out)}
 
 
-__all__ = ["COVERS", "SLP_PITCH_M", "SLP_SHAPE", "frame_to_mat", "import_slp", "read_calibration", "read_physique",
-           "read_pm"]
+__all__ = [
+    "COVERS",
+    "SLP_PITCH_M",
+    "SLP_SHAPE",
+    "frame_to_mat",
+    "import_slp",
+    "read_calibration",
+    "read_physique",
+    "read_pm",
+]

@@ -27,8 +27,16 @@ from pressurepose.net.model import NetInputs
 from pressurepose.train.data import open_dataset, standardise
 
 # Seed Table 5, synthetic test sets: 3DVPE (cm) of the best network.
-SEED_SYNTH_VPE_CM = {"straight_limbs": 2.68, "supine": 3.40, "crossed_legs": 3.41, "prone_hands_up": 4.24,
-                     "general": 4.30, "hands_behind_head": 4.40, "female": 3.85, "male": 4.04}
+SEED_SYNTH_VPE_CM = {
+    "straight_limbs": 2.68,
+    "supine": 3.40,
+    "crossed_legs": 3.41,
+    "prone_hands_up": 4.24,
+    "general": 4.30,
+    "hands_behind_head": 4.40,
+    "female": 3.85,
+    "male": 4.04,
+}
 REGIONS = {
     "head": ("neck", "head"),
     "torso": ("pelvis", "spine1", "spine2", "spine3", "left_collar", "right_collar"),
@@ -74,11 +82,15 @@ def check_backend(net, dataset, data: Path) -> None:
     manifest = getattr(dataset, "manifest", None)  # generated datasets record their body model
     backend = manifest.get("config", {}).get("backend") if isinstance(manifest, dict) else None
     if backend is not None and backend != net.config.backend:
-        raise UserError(f"the network estimates {net.config.backend} bodies but {data} holds {backend} bodies; "
-                         f"evaluate on a dataset generated with --backend {net.config.backend}")
+        raise UserError(
+            f"the network estimates {net.config.backend} bodies but {data} holds {backend} bodies; "
+            f"evaluate on a dataset generated with --backend {net.config.backend}"
+        )
     if shape_dim != len(net.body.shape_names):
-        raise UserError(f"the dataset's shapes have {shape_dim} parameters but the network's {net.config.backend} "
-                         f"model has {len(net.body.shape_names)}: a dataset of another body model")
+        raise UserError(
+            f"the dataset's shapes have {shape_dim} parameters but the network's {net.config.backend} "
+            f"model has {len(net.body.shape_names)}: a dataset of another body model"
+        )
 
 
 def _baseline_data(train, n: int, dtype) -> tuple[BodyParams, torch.Tensor, BodyParams]:
@@ -92,9 +104,12 @@ def _baseline_data(train, n: int, dtype) -> tuple[BodyParams, torch.Tensor, Body
     bodies = BodyParams.cat(parts)
     U, _, Vh = torch.linalg.svd(axis_angle_to_matrix(bodies.root_rotation).mean(0))
     R = U @ torch.diag(torch.tensor([1.0, 1.0, float(torch.linalg.det(U @ Vh))], dtype=dtype)) @ Vh
-    mean = BodyParams(shape=bodies.shape.mean(0, keepdim=True), root_rotation=matrix_to_axis_angle(R[None]),
-                      root_translation=bodies.root_translation.mean(0, keepdim=True),
-                      pose=bodies.pose.mean(0, keepdim=True))
+    mean = BodyParams(
+        shape=bodies.shape.mean(0, keepdim=True),
+        root_rotation=matrix_to_axis_angle(R[None]),
+        root_translation=bodies.root_translation.mean(0, keepdim=True),
+        pose=bodies.pose.mean(0, keepdim=True),
+    )
     return mean, torch.cat(imgs), bodies
 
 
@@ -103,8 +118,15 @@ def _normalised(p: torch.Tensor) -> torch.Tensor:
     return flat / flat.sum(1, keepdim=True).clamp_min(1e-6)
 
 
-def _sample_metrics(body, est: BodyParams, true: BodyParams, true_joints: torch.Tensor,
-                    true_out, true_measure, true_facing: M.FacingMeshes | None = None) -> dict[str, torch.Tensor]:
+def _sample_metrics(
+    body,
+    est: BodyParams,
+    true: BodyParams,
+    true_joints: torch.Tensor,
+    true_out,
+    true_measure,
+    true_facing: M.FacingMeshes | None = None,
+) -> dict[str, torch.Tensor]:
     """Every per-sample metric of a batch; `true_facing` = the true meshes packed for 3DVPE
     (`M.facing_meshes`), when the caller compares them with other meshes too."""
     out = body(est)
@@ -140,14 +162,22 @@ class Evaluation:
     seconds: float
 
 
-def evaluate_network(net, test, n: int, batch: int, train=None, baseline_samples: int = 4096,
-                     on_batch: Callable[[int], None] | None = None) -> Evaluation:
+def evaluate_network(
+    net,
+    test,
+    n: int,
+    batch: int,
+    train=None,
+    baseline_samples: int = 4096,
+    on_batch: Callable[[int], None] | None = None,
+) -> Evaluation:
     """The first n samples of `test` through `net` (no gradients) against their true bodies;
     with `train`, the mean-body and nearest-image baselines. `on_batch(done)` reports progress."""
     body = net.body
     dtype = torch.float32
-    mean_body, train_imgs, train_bodies = (_baseline_data(train, baseline_samples, dtype) if train is not None
-                                           else (None, None, None))
+    mean_body, train_imgs, train_bodies = (
+        _baseline_data(train, baseline_samples, dtype) if train is not None else (None, None, None)
+    )
     with torch.no_grad():  # the mean body is one mesh for every sample: packed once
         mean_facing = None if mean_body is None else M.facing_meshes(body(mean_body).vertices, body.faces)
 
@@ -162,8 +192,9 @@ def evaluate_network(net, test, n: int, batch: int, train=None, baseline_samples
             true_out = body(true)
             true_facing = M.facing_meshes(true_out.vertices, body.faces)  # shared by the three 3DVPE
             true_measure = body.measure(true.shape)
-            inputs = NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
-                               mass_kg=b["mass_kg"])
+            inputs = NetInputs(
+                pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"], mass_kg=b["mass_kg"]
+            )
             est = net(inputs, mesh=False)[-1].params
             res = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure, true_facing)
             for k, v in res.items():
@@ -175,8 +206,9 @@ def evaluate_network(net, test, n: int, batch: int, train=None, baseline_samples
                 base_rows["mean_body"] += M.vpe_between(mean_facing, true_facing).tolist()
                 nearest = torch.cdist(_normalised(b["pressure_mmhg"]), train_imgs).argmin(1)
                 nearest_out = body(train_bodies.index(nearest))
-                base_rows["nearest_image"] += M.vpe_between(M.facing_meshes(nearest_out.vertices, body.faces),
-                                                            true_facing).tolist()
+                base_rows["nearest_image"] += M.vpe_between(
+                    M.facing_meshes(nearest_out.vertices, body.faces), true_facing
+                ).tolist()
             done += len(labels)
             if on_batch is not None:
                 on_batch(done)
@@ -221,5 +253,16 @@ def read_predictions(path: Path) -> tuple[np.ndarray, BodyParams]:
     return index, params
 
 
-__all__ = ["METRICS", "PREDICTIONS", "REGIONS", "SEED_SYNTH_VPE_CM", "Evaluation", "case_meshes",
-           "check_backend", "evaluate_network", "open_split", "read_predictions", "write_predictions"]
+__all__ = [
+    "METRICS",
+    "PREDICTIONS",
+    "REGIONS",
+    "SEED_SYNTH_VPE_CM",
+    "Evaluation",
+    "case_meshes",
+    "check_backend",
+    "evaluate_network",
+    "open_split",
+    "read_predictions",
+    "write_predictions",
+]

@@ -41,8 +41,10 @@ def _check_pair(a: torch.Tensor, b: torch.Tensor, what: str) -> None:
     _check_points(f"estimated {what}", a)
     _check_points(f"true {what}", b)
     if a.shape != b.shape:
-        raise ValueError(f"estimated and true {what} differ in shape: {tuple(a.shape)} vs {tuple(b.shape)} "
-                         "(are they from the same body model?)")
+        raise ValueError(
+            f"estimated and true {what} differ in shape: {tuple(a.shape)} vs {tuple(b.shape)} "
+            "(are they from the same body model?)"
+        )
 
 
 # --- joints and vertices in correspondence ---------------------------------------------------
@@ -82,16 +84,20 @@ def pa_mpjpe(est_joints: torch.Tensor, true_joints: torch.Tensor) -> torch.Tenso
 def root_position_error(est_translation: torch.Tensor, true_translation: torch.Tensor) -> torch.Tensor:
     """(B,) distance between estimated and true pelvis positions (B, 3)."""
     if est_translation.shape != true_translation.shape or est_translation.shape[-1:] != (3,):
-        raise ValueError(f"root translations must both have shape (B, 3), got {tuple(est_translation.shape)} "
-                         f"and {tuple(true_translation.shape)}")
+        raise ValueError(
+            f"root translations must both have shape (B, 3), got {tuple(est_translation.shape)} "
+            f"and {tuple(true_translation.shape)}"
+        )
     return (est_translation - true_translation).norm(dim=-1)
 
 
 def root_orientation_error(est_rotation: torch.Tensor, true_rotation: torch.Tensor) -> torch.Tensor:
     """(B,) geodesic angle (rad, 0..pi) between root rotations given as axis-angle (B, 3)."""
     if est_rotation.shape != true_rotation.shape or est_rotation.shape[-1:] != (3,):
-        raise ValueError(f"root rotations must both have shape (B, 3), got {tuple(est_rotation.shape)} "
-                         f"and {tuple(true_rotation.shape)}")
+        raise ValueError(
+            f"root rotations must both have shape (B, 3), got {tuple(est_rotation.shape)} "
+            f"and {tuple(true_rotation.shape)}"
+        )
     return rotation_angle(axis_angle_to_matrix(est_rotation), axis_angle_to_matrix(true_rotation))
 
 
@@ -136,8 +142,9 @@ def facing_meshes(vertices: torch.Tensor, faces: torch.Tensor, camera=CAMERA_M) 
     """`FacingMeshes` of B meshes (B, V, 3) with faces (F, 3); ValueError if one of them has no
     vertex facing the camera. Pack a mesh once to compare it with several others."""
     mask, areas = camera_facing(vertices, faces, camera)
-    return _facing_sets([vertices[k][mask[k]] for k in range(vertices.shape[0])],
-                        [areas[k][mask[k]] for k in range(vertices.shape[0])])
+    return _facing_sets(
+        [vertices[k][mask[k]] for k in range(vertices.shape[0])], [areas[k][mask[k]] for k in range(vertices.shape[0])]
+    )
 
 
 def _facing_sets(points: list[torch.Tensor], weights: list[torch.Tensor]) -> FacingMeshes:
@@ -163,16 +170,22 @@ def _weighted_mean(dist: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     return (dist * weights).sum() / weights.sum()
 
 
-def vpe(est_vertices: torch.Tensor, true_vertices: torch.Tensor, faces: torch.Tensor,
-        camera=CAMERA_M, true_faces: torch.Tensor | None = None) -> torch.Tensor:
+def vpe(
+    est_vertices: torch.Tensor,
+    true_vertices: torch.Tensor,
+    faces: torch.Tensor,
+    camera=CAMERA_M,
+    true_faces: torch.Tensor | None = None,
+) -> torch.Tensor:
     """(B,) 3DVPE (m): estimated (B, V, 3) and true (B, V', 3) meshes with faces (F, 3)
     (`true_faces` when the true mesh has another topology), camera position (3,) m.
     Nearest neighbours are exact (`eval.nearest`): identical meshes give exactly 0."""
     _check_points("estimated vertices", est_vertices)
     _check_points("true vertices", true_vertices)
     if est_vertices.shape[0] != true_vertices.shape[0]:
-        raise ValueError(f"estimated and true meshes differ in batch size: {est_vertices.shape[0]} vs "
-                         f"{true_vertices.shape[0]}")
+        raise ValueError(
+            f"estimated and true meshes differ in batch size: {est_vertices.shape[0]} vs {true_vertices.shape[0]}"
+        )
     true_faces = faces if true_faces is None else true_faces
     return vpe_between(facing_meshes(est_vertices, faces, camera), facing_meshes(true_vertices, true_faces, camera))
 
@@ -192,8 +205,9 @@ def voxel_downsample(points: torch.Tensor, voxel_m: float = VOXEL_M) -> torch.Te
     return sums / counts[:, None]
 
 
-def vpe_to_cloud(est_vertices: torch.Tensor, faces: torch.Tensor, cloud: torch.Tensor, camera=CAMERA_M,
-                 voxel_m: float = VOXEL_M) -> torch.Tensor:
+def vpe_to_cloud(
+    est_vertices: torch.Tensor, faces: torch.Tensor, cloud: torch.Tensor, camera=CAMERA_M, voxel_m: float = VOXEL_M
+) -> torch.Tensor:
     """() 3DVPE (m) of one estimated mesh (V, 3) against a real point cloud (N, 3) in the mat
     frame (e.g. a depth camera's, co-registered): the cloud voxel-downsampled and weighted
     uniformly, the mesh's camera-facing vertices by area, the two directions averaged."""
@@ -203,6 +217,21 @@ def vpe_to_cloud(est_vertices: torch.Tensor, faces: torch.Tensor, cloud: torch.T
     return vpe_between(mesh, _facing_sets([cloud], [torch.ones(cloud.shape[0], dtype=cloud.dtype)]))[0]
 
 
-__all__ = ["CAMERA_M", "FacingMeshes", "VOXEL_M", "camera_facing", "facing_meshes", "mpjpe", "pa_mpjpe",
-           "per_vertex_error", "procrustes_align", "root_orientation_error", "root_position_error",
-           "vertex_normals_and_areas", "voxel_downsample", "vpe", "vpe_between", "vpe_to_cloud"]
+__all__ = [
+    "CAMERA_M",
+    "FacingMeshes",
+    "VOXEL_M",
+    "camera_facing",
+    "facing_meshes",
+    "mpjpe",
+    "pa_mpjpe",
+    "per_vertex_error",
+    "procrustes_align",
+    "root_orientation_error",
+    "root_position_error",
+    "vertex_normals_and_areas",
+    "voxel_downsample",
+    "vpe",
+    "vpe_between",
+    "vpe_to_cloud",
+]

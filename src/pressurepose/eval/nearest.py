@@ -28,10 +28,10 @@ import math
 
 import torch
 
-LEAF = 32          # slots per leaf: larger leaves vectorise better, smaller ones prune tighter
-_GUESSES = 2       # leaves of the other set whose exact distances give the first bound
+LEAF = 32  # slots per leaf: larger leaves vectorise better, smaller ones prune tighter
+_GUESSES = 2  # leaves of the other set whose exact distances give the first bound
 _PAIR_BLOCK = 512  # leaf pairs per distance block: block x LEAF^2 values (2 MB in float32)
-_SLACK = 1e-5      # relative slack on the squared bound: a pair that round-off would drop stays
+_SLACK = 1e-5  # relative slack on the squared bound: a pair that round-off would drop stays
 _BRUTE_CHUNK = 2048  # query points per block of the brute force
 
 
@@ -163,8 +163,14 @@ def nearest_pairs(fa: Forest, fb: Forest, pairs: list[tuple[int, int]]) -> list[
         near_b = centre.topk(ka, dim=1, largest=False).indices  # (na, ka): leaves of j per leaf of i
         near_a = centre.topk(kb, dim=0, largest=False).indices  # (kb, nb): leaves of i per leaf of j
         rows_a, rows_b = torch.arange(a1 - a0, device=dev), torch.arange(b1 - b0, device=dev)
-        local.append(torch.stack([torch.cat([rows_a.repeat_interleave(ka), near_a.T.reshape(-1)]),
-                                  torch.cat([near_b.reshape(-1), rows_b.repeat_interleave(kb)])]))
+        local.append(
+            torch.stack(
+                [
+                    torch.cat([rows_a.repeat_interleave(ka), near_a.T.reshape(-1)]),
+                    torch.cat([near_b.reshape(-1), rows_b.repeat_interleave(kb)]),
+                ]
+            )
+        )
         guesses.append(local[-1] + torch.tensor([[ra[p]], [rb[p]]], device=dev))
         gaps.append(_box_gap2(fa.lo[a0:a1], fa.hi[a0:a1], fb.lo[b0:b1], fb.hi[b0:b1]))
     guesses = torch.cat(guesses, 1)
@@ -173,14 +179,16 @@ def nearest_pairs(fa: Forest, fb: Forest, pairs: list[tuple[int, int]]) -> list[
     bound_a, bound_b = best_a.amax(1) * (1 + _SLACK), best_b.amax(1) * (1 + _SLACK)
     todo = []
     for p, gap2 in enumerate(gaps):
-        need = (gap2 <= bound_a[ra[p]:ra[p + 1], None]) | (gap2 <= bound_b[None, rb[p]:rb[p + 1]])
+        need = (gap2 <= bound_a[ra[p] : ra[p + 1], None]) | (gap2 <= bound_b[None, rb[p] : rb[p + 1]])
         need[local[p][0], local[p][1]] = False  # the guessed pairs are in the minima already
         rows_a, rows_b = need.nonzero(as_tuple=True)
         todo.append(torch.stack([rows_a + ra[p], rows_b + rb[p]]))
     todo = torch.cat(todo, 1)
     _reduce_pairs(fa.leaves, fb.leaves, leaf_a, leaf_b, todo[0], todo[1], best_a, best_b)
-    return [(_unleaf(fa, i, best_a[ra[p]:ra[p + 1]]), _unleaf(fb, j, best_b[rb[p]:rb[p + 1]]))
-            for p, (i, j) in enumerate(pairs)]
+    return [
+        (_unleaf(fa, i, best_a[ra[p] : ra[p + 1]]), _unleaf(fb, j, best_b[rb[p] : rb[p + 1]]))
+        for p, (i, j) in enumerate(pairs)
+    ]
 
 
 def _reduce_pairs(leaves_a, leaves_b, leaf_a, leaf_b, rows_a, rows_b, best_a, best_b) -> None:
@@ -188,9 +196,10 @@ def _reduce_pairs(leaves_a, leaves_b, leaf_a, leaf_b, rows_a, rows_b, best_a, be
     leaf_a[rows_a[k]] and leaf leaf_b[rows_b[k]], for every k, block by block."""
     la, lb = leaf_a[rows_a], leaf_b[rows_b]
     for lo in range(0, rows_a.shape[0], _PAIR_BLOCK):
-        qa, qb = rows_a[lo:lo + _PAIR_BLOCK], rows_b[lo:lo + _PAIR_BLOCK]
-        d2 = _pair_d2(leaves_a.index_select(0, la[lo:lo + _PAIR_BLOCK]),
-                      leaves_b.index_select(0, lb[lo:lo + _PAIR_BLOCK]))  # (K, Sa, Sb)
+        qa, qb = rows_a[lo : lo + _PAIR_BLOCK], rows_b[lo : lo + _PAIR_BLOCK]
+        d2 = _pair_d2(
+            leaves_a.index_select(0, la[lo : lo + _PAIR_BLOCK]), leaves_b.index_select(0, lb[lo : lo + _PAIR_BLOCK])
+        )  # (K, Sa, Sb)
         best_a.scatter_reduce_(0, qa[:, None].expand(-1, d2.shape[1]), d2.amin(2), reduce="amin")
         best_b.scatter_reduce_(0, qb[:, None].expand(-1, d2.shape[2]), d2.amin(1), reduce="amin")
 
@@ -199,7 +208,7 @@ def _unleaf(f: Forest, k: int, best2: torch.Tensor) -> torch.Tensor:
     """(N_k,) distances of set k from its leaves' squared distances (n_leaves, S)."""
     a0, a1 = int(f.first[k]), int(f.first[k + 1])
     out = best2.new_empty(int(f.offsets[k + 1] - f.offsets[k]))
-    out[f.index[a0 * f.leaf:a1 * f.leaf] - f.offsets[k]] = best2.reshape(-1).sqrt()  # repeats agree
+    out[f.index[a0 * f.leaf : a1 * f.leaf] - f.offsets[k]] = best2.reshape(-1).sqrt()  # repeats agree
     return out
 
 
@@ -215,7 +224,7 @@ def nearest_brute(query: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     out = []
     pp = (points * points).sum(-1)
     for lo in range(0, query.shape[0], _BRUTE_CHUNK):
-        q = query[lo:lo + _BRUTE_CHUNK]
+        q = query[lo : lo + _BRUTE_CHUNK]
         nearest = torch.addmm(pp[None], q, points.T, alpha=-2).argmin(-1)
         out.append((q - points[nearest]).norm(dim=-1))
     return torch.cat(out) if out else query.new_zeros(0)

@@ -37,10 +37,18 @@ def load_cloud_file(path: Path) -> dict[str, np.ndarray]:
     n = len(arrays["pressure_mmhg"])
     off = arrays["cloud_offsets"]
     pts = arrays["cloud_points"]
-    if (off.shape != (n + 1,) or off[0] != 0 or off[-1] != len(pts) or (np.diff(off) <= 0).any()
-            or pts.ndim != 2 or pts.shape[1:] != (3,)):
-        raise UserError(f"{path}: cloud_offsets must be (N + 1,) increasing from 0 to len(cloud_points), every "
-                         "frame with at least one point, and cloud_points (P, 3)")
+    if (
+        off.shape != (n + 1,)
+        or off[0] != 0
+        or off[-1] != len(pts)
+        or (np.diff(off) <= 0).any()
+        or pts.ndim != 2
+        or pts.shape[1:] != (3,)
+    ):
+        raise UserError(
+            f"{path}: cloud_offsets must be (N + 1,) increasing from 0 to len(cloud_points), every "
+            "frame with at least one point, and cloud_points (P, 3)"
+        )
     for k in ("subject", "gender", "height_m", "mass_kg"):
         if k in arrays and len(arrays[k]) != n:
             raise UserError(f"{path}: {k} has {len(arrays[k])} entries for {n} images")

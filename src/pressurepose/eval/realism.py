@@ -57,7 +57,7 @@ def coverage(image: np.ndarray, share: float = COVERAGE_SHARE) -> float:
     loaded = np.nonzero(rows > 0)[0]
     if total <= 0 or loaded.size == 0:
         return 0.0
-    span = rows[loaded[0]: loaded[-1] + 1]
+    span = rows[loaded[0] : loaded[-1] + 1]
     return float((span >= share * total).mean())
 
 
@@ -99,10 +99,10 @@ class FrameSet:
     mean_mmhg: float
     peak_mmhg: float
     coverage: float
-    regions: dict[str, float]    # mean share per region
-    along: np.ndarray            # (rows,) mean unit-sum row profile
-    across: np.ndarray           # (cols,)
-    mean_image: np.ndarray       # (rows, cols) mean image (mmHg)
+    regions: dict[str, float]  # mean share per region
+    along: np.ndarray  # (rows,) mean unit-sum row profile
+    across: np.ndarray  # (cols,)
+    mean_image: np.ndarray  # (rows, cols) mean image (mmHg)
 
 
 def summarise(images: np.ndarray, heights_m: np.ndarray, pitch_row_m: float, pitch_col_m: float) -> FrameSet:
@@ -118,11 +118,15 @@ def summarise(images: np.ndarray, heights_m: np.ndarray, pitch_row_m: float, pit
     mean = np.array([im[im > 0].mean() for im in images])
     regions = [region_shares(im, h, pitch_row_m, pitch_col_m) for im, h in zip(images, heights)]
     return FrameSet(
-        n=images.shape[0], area_m2=float(np.median(area)), mean_mmhg=float(np.median(mean)),
+        n=images.shape[0],
+        area_m2=float(np.median(area)),
+        mean_mmhg=float(np.median(mean)),
         peak_mmhg=float(np.median(images.max((1, 2)))),
         coverage=float(np.mean([coverage(im) for im in images])),
         regions={k: float(np.mean([r[k] for r in regions])) for k in REGION_NAMES},
-        along=_mean_profile(images.sum(2)), across=_mean_profile(images.sum(1)), mean_image=images.mean(0),
+        along=_mean_profile(images.sum(2)),
+        across=_mean_profile(images.sum(1)),
+        mean_image=images.mean(0),
     )
 
 
@@ -142,7 +146,9 @@ def shifted(values: np.ndarray, shift: int, axis: int = 0) -> np.ndarray:
         return out
     src = [slice(None)] * values.ndim
     dst = [slice(None)] * values.ndim
-    src[axis], dst[axis] = (slice(0, n - shift), slice(shift, n)) if shift >= 0 else (slice(-shift, n), slice(0, n + shift))
+    src[axis], dst[axis] = (
+        (slice(0, n - shift), slice(shift, n)) if shift >= 0 else (slice(-shift, n), slice(0, n + shift))
+    )
     out[tuple(dst)] = values[tuple(src)]
     return out
 
@@ -171,18 +177,33 @@ class Comparison:
     across: float
     shift_rows: int
     shift_cols: int
-    area_ratio: float       # b / a
-    coverage_ratio: float   # b / a
+    area_ratio: float  # b / a
+    coverage_ratio: float  # b / a
 
 
 def compare(a: FrameSet, b: FrameSet) -> Comparison:
     """b against a (a is the reference: real frames)."""
     along, sr = profile_similarity(a.along, b.along, ROW_SHIFTS)
     across, sc = profile_similarity(a.across, b.across, COL_SHIFTS)
-    return Comparison(along=along, across=across, shift_rows=sr, shift_cols=sc,
-                      area_ratio=b.area_m2 / a.area_m2 if a.area_m2 > 0 else float("nan"),
-                      coverage_ratio=b.coverage / a.coverage if a.coverage > 0 else float("nan"))
+    return Comparison(
+        along=along,
+        across=across,
+        shift_rows=sr,
+        shift_cols=sc,
+        area_ratio=b.area_m2 / a.area_m2 if a.area_m2 > 0 else float("nan"),
+        coverage_ratio=b.coverage / a.coverage if a.coverage > 0 else float("nan"),
+    )
 
 
-__all__ = ["Comparison", "FrameSet", "REGIONS", "REGION_NAMES", "compare", "coverage", "profile_similarity",
-           "region_shares", "shifted", "summarise"]
+__all__ = [
+    "Comparison",
+    "FrameSet",
+    "REGIONS",
+    "REGION_NAMES",
+    "compare",
+    "coverage",
+    "profile_similarity",
+    "region_shares",
+    "shifted",
+    "summarise",
+]

@@ -60,7 +60,7 @@ class ShardSpec:
     """One unit of work: `count` samples of a group, slots first_slot .. first_slot + count - 1."""
 
     group: Group
-    number: int       # shard number within its group
+    number: int  # shard number within its group
     first_slot: int
     count: int
 
@@ -199,5 +199,14 @@ def plan_shards(cfg: GenerateConfig) -> list[ShardSpec]:
     return shards
 
 
-__all__ = ["GenerateConfig", "Group", "PAPER_TABLE4", "PARTITIONS", "PRESETS", "ShardSpec", "plan_groups",
-           "plan_shards", "preset_rows"]
+__all__ = [
+    "GenerateConfig",
+    "Group",
+    "PAPER_TABLE4",
+    "PARTITIONS",
+    "PRESETS",
+    "ShardSpec",
+    "plan_groups",
+    "plan_shards",
+    "preset_rows",
+]

@@ -47,8 +47,12 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
     from pressurepose.sampling.partitions import SamplingConfig
 
     sampling = SamplingConfig()
-    return {"pressurepose_version": __version__, "config": cfg.identity(), "mattress": mattress,
-            "sampling_limits": {k: getattr(sampling, k) for k in ("max_failures", "max_shapes", "max_limb_draws")}}
+    return {
+        "pressurepose_version": __version__,
+        "config": cfg.identity(),
+        "mattress": mattress,
+        "sampling_limits": {k: getattr(sampling, k) for k in ("max_failures", "max_shapes", "max_limb_draws")},
+    }
 
 
 def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
@@ -56,7 +60,9 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
     try:
         (out / SHARD_DIR).mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OSError(f"cannot create the dataset folder {out} ({exc.strerror or exc}); choose a writable --out") from None
+        raise OSError(
+            f"cannot create the dataset folder {out} ({exc.strerror or exc}); choose a writable --out"
+        ) from None
     path = out / SETTINGS
     text = json.dumps(settings, indent=1, sort_keys=True)
     if path.exists():
@@ -65,11 +71,16 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
         except ValueError:
             old = None
         if old != settings:
-            diff = sorted(k for k in set(settings["config"]) | set((old or {}).get("config", {}))
-                          if settings["config"].get(k) != (old or {}).get("config", {}).get(k))
+            diff = sorted(
+                k
+                for k in set(settings["config"]) | set((old or {}).get("config", {}))
+                if settings["config"].get(k) != (old or {}).get("config", {}).get(k)
+            )
             what = ", ".join(diff) if diff else "mattress parameters or package version"
-            raise UserError(f"{out} holds a dataset made with other settings ({what} differ, see {path}); "
-                             "re-run with the same settings to resume, or choose another --out")
+            raise UserError(
+                f"{out} holds a dataset made with other settings ({what} differ, see {path}); "
+                "re-run with the same settings to resume, or choose another --out"
+            )
         return
     if any((out / SHARD_DIR).iterdir()) or (out / MANIFEST).exists():
         raise UserError(f"{out} is not empty and has no {SETTINGS}; choose another --out")
@@ -150,8 +161,15 @@ def _generate(cfg: GenerateConfig, out: Path, settings: dict, mattress: dict, pr
     resumed = sum(r["count"] for r in records.values())
     if resumed:
         log.info("resuming: %d of %d samples already in %s", resumed, total, out)
-    ctx = WorkContext(seed=cfg.seed, batch=cfg.batch, backend=cfg.backend,
-                      smpl_dir=str(cfg.smpl_dir) if cfg.smpl_dir else None, mattress=mattress, sim2=cfg.sim2_engine, settle=cfg.settle)
+    ctx = WorkContext(
+        seed=cfg.seed,
+        batch=cfg.batch,
+        backend=cfg.backend,
+        smpl_dir=str(cfg.smpl_dir) if cfg.smpl_dir else None,
+        mattress=mattress,
+        sim2=cfg.sim2_engine,
+        settle=cfg.settle,
+    )
 
     t0 = time.perf_counter()
     made = 0
@@ -165,24 +183,38 @@ def _generate(cfg: GenerateConfig, out: Path, settings: dict, mattress: dict, pr
                 bar.advance(record["count"], record["candidates"] - record["count"])
     seconds = time.perf_counter() - t0
 
-    header = {**settings, "seeds": {
-        "dataset": cfg.seed,
-        "initial_pose": "PoseSampler(SamplingConfig(partition, gender, over_bed, seed)).sample([index])",
-        "sensor_noise": "per simulated chunk of a shard: SeedSequence([seed, crc32(shard id), chunk])",
-        "test_index_base": TEST_INDEX_BASE, "replacement_base": REPLACEMENT_BASE,
-        "replacement_span": REPLACEMENT_SPAN,
-    }}
+    header = {
+        **settings,
+        "seeds": {
+            "dataset": cfg.seed,
+            "initial_pose": "PoseSampler(SamplingConfig(partition, gender, over_bed, seed)).sample([index])",
+            "sensor_noise": "per simulated chunk of a shard: SeedSequence([seed, crc32(shard id), chunk])",
+            "test_index_base": TEST_INDEX_BASE,
+            "replacement_base": REPLACEMENT_BASE,
+            "replacement_span": REPLACEMENT_SPAN,
+        },
+    }
     ordered = [records[s.id] for s in shards]
-    timing = {"samples_made": made, "seconds": round(seconds, 2),
-              "samples_per_second": round(made / seconds, 3) if made and seconds > 0 else None,
-              "engine": cfg.engine, "workers": cfg.workers}
+    timing = {
+        "samples_made": made,
+        "seconds": round(seconds, 2),
+        "samples_per_second": round(made / seconds, 3) if made and seconds > 0 else None,
+        "engine": cfg.engine,
+        "workers": cfg.workers,
+    }
     try:
         write_manifest(out, header, ordered)
         atomic_write(out / TIMING, lambda tmp: Path(tmp).write_text(json.dumps(timing, indent=1)))
     except OSError as exc:
         raise explain_os_error(exc, out / MANIFEST) from None
-    return {"total": total, "made": made, "resumed": resumed, "seconds": seconds, "shards": len(shards),
-            "rejected": sum(r["candidates"] - r["count"] for r in ordered)}
+    return {
+        "total": total,
+        "made": made,
+        "resumed": resumed,
+        "seconds": seconds,
+        "shards": len(shards),
+        "rejected": sum(r["candidates"] - r["count"] for r in ordered),
+    }
 
 
 def _engine(cfg: GenerateConfig, pending: list[ShardSpec], ctx: WorkContext, on_chunk) -> Iterator[tuple]:
@@ -229,8 +261,9 @@ def _run_pool(pending: list[ShardSpec], ctx: WorkContext, workers: int) -> Itera
     todo = list(pending)
     import os
 
-    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                initargs=(os.getpid(),)) as pool:
+    with cf.ProcessPoolExecutor(
+        workers, mp_context=mp.get_context("spawn"), initializer=_init_worker, initargs=(os.getpid(),)
+    ) as pool:
         running: dict = {}
         while todo or running:
             while todo and len(running) < 2 * workers:
@@ -254,12 +287,17 @@ class _Progress:
         if self.enabled:
             from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-            self.bar = Progress(TextColumn("generating"), BarColumn(), MofNCompleteColumn(),
-                                TextColumn("{task.fields[rate]}"), TextColumn("{task.fields[rejected]}"),
-                                TimeRemainingColumn(), transient=True)
+            self.bar = Progress(
+                TextColumn("generating"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[rate]}"),
+                TextColumn("{task.fields[rejected]}"),
+                TimeRemainingColumn(),
+                transient=True,
+            )
             self.bar.__enter__()
-            self.task = self.bar.add_task("generate", total=self.total, completed=self.done, rate="",
-                                          rejected="")
+            self.task = self.bar.add_task("generate", total=self.total, completed=self.done, rate="", rejected="")
         return self
 
     def advance(self, kept: int, rejected: int) -> None:
@@ -267,8 +305,7 @@ class _Progress:
         self.rejected += rejected
         if self.enabled:
             rate = self.made / max(time.perf_counter() - self.start, 1e-9)
-            self.bar.update(self.task, advance=kept, rate=f"{rate:.2f} samples/s",
-                            rejected=f"{self.rejected} rejected")
+            self.bar.update(self.task, advance=kept, rate=f"{rate:.2f} samples/s", rejected=f"{self.rejected} rejected")
 
     def __exit__(self, *exc):
         if self.enabled:

@@ -77,8 +77,9 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
     t0 = time.perf_counter()
     model = _model(ctx)
     g = spec.group
-    sampler = PoseSampler(model, SamplingConfig(partition=g.partition, gender=g.gender, over_bed=g.over_bed,
-                                                seed=ctx.seed))
+    sampler = PoseSampler(
+        model, SamplingConfig(partition=g.partition, gender=g.gender, over_bed=g.over_bed, seed=ctx.seed)
+    )
     mattress = MattressParams(**ctx.mattress)
     kept: list[SampleBatch] = []
     rejections: Counter = Counter()
@@ -88,14 +89,14 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
     while n_kept < spec.count:
         todo = spec.count - n_kept
         if candidates < len(primary):
-            indices = primary[candidates:candidates + min(ctx.batch, len(primary) - candidates)]
+            indices = primary[candidates : candidates + min(ctx.batch, len(primary) - candidates)]
         else:  # replacements for rejected samples: exactly as many as missing, from this shard's stream
             indices = [spec.replacement_index(replacements + r) for r in range(min(ctx.batch, todo))]
             replacements += len(indices)
         candidates += len(indices)
-        batch, reasons, counts = simulate_indices(model, sampler, indices, mattress,
-                                                  noise_seed(ctx.seed, spec.id, chunk), g.split, ctx.sim2,
-                                                  ctx.settle)
+        batch, reasons, counts = simulate_indices(
+            model, sampler, indices, mattress, noise_seed(ctx.seed, spec.id, chunk), g.split, ctx.sim2, ctx.settle
+        )
         chunk += 1
         sampling_rejections.update(counts)
         rejections.update(r for r in reasons if r)
@@ -105,13 +106,23 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
         if on_chunk is not None:
             on_chunk(0 if batch is None else len(batch), sum(1 for r in reasons if r))
         if candidates - n_kept > MAX_REJECTED_FRACTION * candidates and candidates >= max(4 * ctx.batch, 32):
-            raise UserError(f"shard {spec.id}: {candidates - n_kept} of {candidates} samples rejected "
-                             f"({dict(rejections)}); check the mattress parameters (--params)")
+            raise UserError(
+                f"shard {spec.id}: {candidates - n_kept} of {candidates} samples rejected "
+                f"({dict(rejections)}); check the mattress parameters (--params)"
+            )
     data = SampleBatch.concat(kept)
-    record = {"split": g.split, "partition": g.partition, "gender": g.gender, "over_bed": g.over_bed,
-              "number": spec.number, "first_slot": spec.first_slot, "count": len(data), "candidates": candidates,
-              "rejections": dict(sorted(rejections.items())),
-              "sampling_rejections": {k: int(v) for k, v in sorted(sampling_rejections.items())}}
+    record = {
+        "split": g.split,
+        "partition": g.partition,
+        "gender": g.gender,
+        "over_bed": g.over_bed,
+        "number": spec.number,
+        "first_slot": spec.first_slot,
+        "count": len(data),
+        "candidates": candidates,
+        "rejections": dict(sorted(rejections.items())),
+        "sampling_rejections": {k: int(v) for k, v in sorted(sampling_rejections.items())},
+    }
     log.debug("shard %s: %d samples in %.1f s", spec.id, len(data), time.perf_counter() - t0)
     return table_bytes(to_table(data)), record
 
@@ -134,8 +145,9 @@ def _sample(sampler, indices: list[int]):
         return (sampler.sample(ok) if ok else None), bad
 
 
-def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, split: str, sim2: str = "rigid",
-                     settle: str = "mujoco"):
+def simulate_indices(
+    model, sampler, indices: list[int], mattress, seed: int, split: str, sim2: str = "rigid", settle: str = "mujoco"
+):
     """Sample and simulate `indices`; (SampleBatch of the accepted ones or None, reason per
     index ("" = kept), summed sampling rejection counts)."""
     from pressurepose.sim.articulated import ArticulatedConfig
@@ -149,21 +161,36 @@ def simulate_indices(model, sampler, indices: list[int], mattress, seed: int, sp
     # Each sample rests on its own bed (raised head section for half_sitting, flat otherwise).
     cfg = sampler.config
     settle_cfg = settle_config_for(cfg.partition)
-    sim = simulate_poses(model, initial.params, mattress, seed=seed, bed=initial.beds(), settle_config=settle_cfg,
-                         settle=settle, sim2=sim2, articulated=ArticulatedConfig(hold_roll_m=settle_cfg.hold_roll_m))
+    sim = simulate_poses(
+        model,
+        initial.params,
+        mattress,
+        seed=seed,
+        bed=initial.beds(),
+        settle_config=settle_cfg,
+        settle=settle,
+        sim2=sim2,
+        articulated=ArticulatedConfig(hold_roll_m=settle_cfg.hold_roll_m),
+    )
     height = model.measure(sim.params.shape).height_m.detach().numpy()
     p = sim.params
     arrays = dict(
-        split=np.array([split] * B, dtype=object), partition=np.array([cfg.partition] * B, dtype=object),
-        gender=np.array([cfg.gender] * B, dtype=object), over_bed=np.full(B, cfg.over_bed),
+        split=np.array([split] * B, dtype=object),
+        partition=np.array([cfg.partition] * B, dtype=object),
+        gender=np.array([cfg.gender] * B, dtype=object),
+        over_bed=np.full(B, cfg.over_bed),
         index=np.asarray(initial.index, dtype=np.int64),
         pressure_mmhg=sim.pressure_mmhg.detach().numpy().astype(np.float32),
         depth_mm=sim.depth_mm.detach().numpy().astype(np.float32),
         contact=(sim.contact.detach().numpy() > 0.5).astype(np.uint8),
-        shape=p.shape.detach().numpy(), root_rotation=p.root_rotation.detach().numpy(),
-        root_translation=p.root_translation.detach().numpy(), pose=p.pose.detach().numpy(),
-        joints_m=sim.joints.detach().numpy(), mass_kg=sim.mass_kg.detach().numpy().astype(np.float64),
-        height_m=height.astype(np.float64), head_angle_deg=np.asarray(sim.head_angle_deg, dtype=np.float64),
+        shape=p.shape.detach().numpy(),
+        root_rotation=p.root_rotation.detach().numpy(),
+        root_translation=p.root_translation.detach().numpy(),
+        pose=p.pose.detach().numpy(),
+        joints_m=sim.joints.detach().numpy(),
+        mass_kg=sim.mass_kg.detach().numpy().astype(np.float64),
+        height_m=height.astype(np.float64),
+        head_angle_deg=np.asarray(sim.head_angle_deg, dtype=np.float64),
         settle_steps=np.asarray(sim.settle_steps, dtype=np.int32),
         sink_mm=(np.asarray(sim.sink_m, dtype=np.float64) * 1e3).astype(np.float32),
     )

@@ -29,8 +29,10 @@ def resolve_model(path: str | Path) -> Path:
     if not path.exists() and str(path) == DEFAULT:
         folder = default_model_dir()
         if not (folder / "model.safetensors").is_file():
-            raise UserError("no default model in this installation (pressurepose/models/default/"
-                             "model.safetensors missing); reinstall pressurepose or pass --model RUN")
+            raise UserError(
+                "no default model in this installation (pressurepose/models/default/"
+                "model.safetensors missing); reinstall pressurepose or pass --model RUN"
+            )
         return folder
     return path
 

@@ -26,11 +26,19 @@ class PaperCNN(nn.Module):
     def __init__(self, in_channels: int, out_features: int, dropout: float = 0.1) -> None:
         super().__init__()
         self.features = nn.Sequential(
-            nn.Conv2d(in_channels, 192, 7, stride=2, padding=3), nn.Tanh(), nn.Dropout(dropout),
+            nn.Conv2d(in_channels, 192, 7, stride=2, padding=3),
+            nn.Tanh(),
+            nn.Dropout(dropout),
             nn.MaxPool2d(3, stride=2),
-            nn.Conv2d(192, 192, 3), nn.Tanh(), nn.Dropout(dropout),
-            nn.Conv2d(192, 384, 3), nn.Tanh(), nn.Dropout(dropout),
-            nn.Conv2d(384, 384, 3), nn.Tanh(), nn.Dropout(dropout),
+            nn.Conv2d(192, 192, 3),
+            nn.Tanh(),
+            nn.Dropout(dropout),
+            nn.Conv2d(192, 384, 3),
+            nn.Tanh(),
+            nn.Dropout(dropout),
+            nn.Conv2d(384, 384, 3),
+            nn.Tanh(),
+            nn.Dropout(dropout),
         )
         self.fc = nn.Linear(384 * 25 * 7, out_features)
         # Inputs are sums of 20,000 spread over ~600 taxels (tens per taxel) and contact 100:
@@ -42,8 +50,9 @@ class PaperCNN(nn.Module):
 
 
 def _block(cin: int, cout: int, stride: int, kernel: int = 3) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=False),
-                         nn.BatchNorm2d(cout), nn.SiLU())
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=False), nn.BatchNorm2d(cout), nn.SiLU()
+    )
 
 
 class FastCNN(nn.Module):
@@ -54,10 +63,14 @@ class FastCNN(nn.Module):
         super().__init__()
         c = 32 * width  # width multiplies every layer's channels (1: 1.3 M parameters, 2: ~5 M)
         self.features = nn.Sequential(
-            _block(in_channels, c, 2, kernel=5), _block(c, 2 * c, 2), _block(2 * c, 4 * c, 2), _block(4 * c, 4 * c, 1),
+            _block(in_channels, c, 2, kernel=5),
+            _block(c, 2 * c, 2),
+            _block(2 * c, 4 * c, 2),
+            _block(4 * c, 4 * c, 1),
         )
-        self.fc = nn.Sequential(nn.Linear(4 * c * 8 * 4, 256 * width), nn.SiLU(), nn.Dropout(dropout),
-                                nn.Linear(256 * width, out_features))
+        self.fc = nn.Sequential(
+            nn.Linear(4 * c * 8 * 4, 256 * width), nn.SiLU(), nn.Dropout(dropout), nn.Linear(256 * width, out_features)
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, C, 64, 27) -> (B, out_features)."""

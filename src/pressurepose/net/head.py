@@ -51,8 +51,7 @@ class OutputLayout:
         if raw.ndim != 2 or raw.shape[1] != self.size:
             raise ValueError(f"raw output must have shape (B, {self.size}), got {tuple(raw.shape)}")
         S = self.shape_dim
-        return (raw[:, :S], raw[:, S:S + 3], raw[:, S + 3:S + 9],
-                raw[:, S + 9:].reshape(-1, NUM_POSE_JOINTS, 3))
+        return (raw[:, :S], raw[:, S : S + 3], raw[:, S + 3 : S + 9], raw[:, S + 9 :].reshape(-1, NUM_POSE_JOINTS, 3))
 
 
 def rotation_6d_to_matrix(d6: torch.Tensor) -> torch.Tensor:
@@ -79,8 +78,9 @@ def union_shape_bounds(backend: str, shape_names: tuple[str, ...]) -> tuple[torc
 class ParamHead(torch.nn.Module):
     """Raw (B, D) -> BodyParams, with the limits as (non-persistent) buffers."""
 
-    def __init__(self, backend: str, shape_names: tuple[str, ...], mat: MatSpec | None = None,
-                 alpha: float = ALPHA) -> None:
+    def __init__(
+        self, backend: str, shape_names: tuple[str, ...], mat: MatSpec | None = None, alpha: float = ALPHA
+    ) -> None:
         super().__init__()
         mat = mat or MatSpec()
         self.layout = OutputLayout(len(shape_names))
@@ -90,8 +90,10 @@ class ParamHead(torch.nn.Module):
         limits = JointLimits.default(torch.float64)
         cx, cy = mat.centre_m
         buffers = {
-            "shape_mid": (low + high) / 2, "shape_half": (high - low) / 2,
-            "pose_lower": limits.lower, "pose_upper": limits.upper,
+            "shape_mid": (low + high) / 2,
+            "shape_half": (high - low) / 2,
+            "pose_lower": limits.lower,
+            "pose_upper": limits.upper,
             "root_guess": torch.tensor([cx, cy, ROOT_Z_GUESS_M], dtype=torch.float64),
             "root_half": torch.tensor([mat.sensing_length_m / 2, mat.sensing_width_m / 2, 0.1], dtype=torch.float64),
             "rot6d_identity": torch.tensor(ROT6D_IDENTITY, dtype=torch.float64),
@@ -111,15 +113,14 @@ class ParamHead(torch.nn.Module):
         shape = torch.minimum(torch.maximum(self.shape_mid + self.shape_half * torch.tanh(shape_raw), low), high)
         if gender is not None and self.gender_index is not None:
             g = gender.to(shape).reshape(-1, 1)
-            shape = torch.cat([shape[:, :self.gender_index], g, shape[:, self.gender_index + 1:]], 1)
+            shape = torch.cat([shape[:, : self.gender_index], g, shape[:, self.gender_index + 1 :]], 1)
         translation = self.root_guess + self.root_half * trans_raw
         R = rotation_6d_to_matrix(self.rot6d_identity + rot_raw)
         mid = (self.pose_lower + self.pose_upper) / 2
         half = (self.pose_upper - self.pose_lower) / 2
         limits = JointLimits(lower=self.pose_lower, upper=self.pose_upper)
         pose = limits.squash(mid + half * pose_raw, self.alpha)
-        return BodyParams(shape=shape, root_rotation=matrix_to_axis_angle(R), root_translation=translation,
-                          pose=pose)
+        return BodyParams(shape=shape, root_rotation=matrix_to_axis_angle(R), root_translation=translation, pose=pose)
 
     def shape_scale(self) -> torch.Tensor:
         """(S,) standard deviation of each shape parameter under the uniform sampling bounds:

@@ -33,8 +33,9 @@ MAX_PLAUSIBLE_MMHG = 1000.0
 SUFFIXES = (".npy", ".npz", ".parquet", ".csv", ".txt")
 
 
-def read_pressure_file(path: str | Path, text_units: Literal["raw", "mmhg"] = "raw",
-                       mass_kg: float = 70.0, force: bool = False) -> np.ndarray:
+def read_pressure_file(
+    path: str | Path, text_units: Literal["raw", "mmhg"] = "raw", mass_kg: float = 70.0, force: bool = False
+) -> np.ndarray:
     """(N, 64, 27) float32 mmHg images of one file (see module doc). `force` accepts pressures
     above MAX_PLAUSIBLE_MMHG."""
     path = Path(path)
@@ -87,8 +88,9 @@ def check_images(images: np.ndarray, path: Path, force: bool = False) -> np.ndar
     if images.ndim == 2:
         images = images[None]
     if images.ndim != 3 or images.shape[1:] != (ROWS, COLS):
-        raise UserError(f"{path}: expected a ({ROWS}, {COLS}) pressure image or a stack (N, {ROWS}, {COLS}), "
-                        f"got shape {shape}")
+        raise UserError(
+            f"{path}: expected a ({ROWS}, {COLS}) pressure image or a stack (N, {ROWS}, {COLS}), got shape {shape}"
+        )
     if images.shape[0] == 0:
         raise UserError(f"{path}: holds no images")
     if not np.issubdtype(images.dtype, np.number) or images.dtype == bool or images.dtype.kind == "c":
@@ -99,16 +101,20 @@ def check_images(images: np.ndarray, path: Path, force: bool = False) -> np.ndar
         raise UserError(f"{path}: image {int(np.argmax(bad))} contains NaN or infinite values")
     neg = (values < 0).any((1, 2))
     if neg.any():
-        raise UserError(f"{path}: image {int(np.argmax(neg))} has negative pressures (min {values.min():.3g}); "
-                        "readings must be >= 0 mmHg")
+        raise UserError(
+            f"{path}: image {int(np.argmax(neg))} has negative pressures (min {values.min():.3g}); "
+            "readings must be >= 0 mmHg"
+        )
     empty = ~(values > 0).any((1, 2))
     if empty.any():
         raise UserError(f"{path}: image {int(np.argmax(empty))} is empty (no loaded taxel): nobody on the mat")
     high = (values > MAX_PLAUSIBLE_MMHG).any((1, 2))
     if high.any() and not force:
-        raise UserError(f"{path}: image {int(np.argmax(high))} reads up to {values.max():.3g} mmHg, more than "
-                        f"{MAX_PLAUSIBLE_MMHG:g} mmHg (no body on a mattress presses that hard: wrong units?); "
-                        "pass --force to use it anyway (the network clips at 100 mmHg)")
+        raise UserError(
+            f"{path}: image {int(np.argmax(high))} reads up to {values.max():.3g} mmHg, more than "
+            f"{MAX_PLAUSIBLE_MMHG:g} mmHg (no body on a mattress presses that hard: wrong units?); "
+            "pass --force to use it anyway (the network clips at 100 mmHg)"
+        )
     if high.any():
         values = np.minimum(values, MAX_PLAUSIBLE_MMHG)  # forced: clipped, so the float32 cast stays finite
     return values.astype(np.float32)
@@ -159,8 +165,10 @@ def _load_text(path: Path, units: str, mass_kg: float) -> np.ndarray:
     rows = [re.split(r"[\s,;]+", line.strip()) for line in text.strip().splitlines() if line.strip()]
     if len(rows) != ROWS or any(len(r) != COLS for r in rows):
         counts = sorted({len(r) for r in rows})
-        raise UserError(f"{path}: expected {ROWS} lines of {COLS} numbers (a PmatData frame), got {len(rows)} "
-                         f"lines of {counts} values")
+        raise UserError(
+            f"{path}: expected {ROWS} lines of {COLS} numbers (a PmatData frame), got {len(rows)} "
+            f"lines of {counts} values"
+        )
     try:
         raw = np.array(rows, dtype=np.float64)[::-1].copy()  # PmatData: row 0 at the foot end
     except ValueError:

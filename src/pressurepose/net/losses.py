@@ -25,10 +25,10 @@ DEPTH_CAP_MM = 100.0
 class Targets:
     """Ground truth of a batch (mat frame, SI; maps as the generator writes them)."""
 
-    joints: torch.Tensor                   # (B, 24, 3) m
-    shape: torch.Tensor                    # (B, S)
-    depth_mm: torch.Tensor | None = None   # (B, 64, 27)
-    contact: torch.Tensor | None = None    # (B, 64, 27)
+    joints: torch.Tensor  # (B, 24, 3) m
+    shape: torch.Tensor  # (B, S)
+    depth_mm: torch.Tensor | None = None  # (B, 64, 27)
+    contact: torch.Tensor | None = None  # (B, 64, 27)
 
 
 def joint_error_m(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
@@ -36,9 +36,14 @@ def joint_error_m(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
     return (pred - true).norm(dim=-1).mean(-1)
 
 
-def module_loss(joints: torch.Tensor, shape: torch.Tensor, targets: Targets, shape_scale: torch.Tensor,
-                depth_mm: torch.Tensor | None = None, contact: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, dict[str, float]]:
+def module_loss(
+    joints: torch.Tensor,
+    shape: torch.Tensor,
+    targets: Targets,
+    shape_scale: torch.Tensor,
+    depth_mm: torch.Tensor | None = None,
+    contact: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
     """Scalar loss and its parts (floats, for logging). PMR terms when maps are given."""
     parts = {
         "joints": joint_error_m(joints, targets.joints).mean() / JOINT_SCALE_M,
@@ -54,5 +59,12 @@ def module_loss(joints: torch.Tensor, shape: torch.Tensor, targets: Targets, sha
     return total, {k: float(v.detach()) for k, v in parts.items()}
 
 
-__all__ = ["CONTACT_SCALE", "DEPTH_CAP_MM", "DEPTH_SCALE_MM", "JOINT_SCALE_M", "Targets", "joint_error_m",
-           "module_loss"]
+__all__ = [
+    "CONTACT_SCALE",
+    "DEPTH_CAP_MM",
+    "DEPTH_SCALE_MM",
+    "JOINT_SCALE_M",
+    "Targets",
+    "joint_error_m",
+    "module_loss",
+]

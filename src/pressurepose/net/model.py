@@ -41,11 +41,11 @@ class NetConfig:
     arch: Literal["paper", "fast"] = "fast"
     backend: Literal["anny", "smpl"] = "anny"
     modules: Literal[1, 2] = 1
-    gender_input: bool = True    # gender given as an input (plane + Anny's gender entry)
+    gender_input: bool = True  # gender given as an input (plane + Anny's gender entry)
     height_weight: bool = False  # height (m) and mass (/100 kg) given as constant planes
     smpl_dir: str | None = None  # SMPL model folder, backend smpl only
-    dropout: float = 0.1         # the seed's dropout after every tanh (paper) / in the FC head (fast)
-    width: int = 1               # channel multiplier of the fast CNN (1: 1.3 M parameters)
+    dropout: float = 0.1  # the seed's dropout after every tanh (paper) / in the FC head (fast)
+    width: int = 1  # channel multiplier of the fast CNN (1: 1.3 M parameters)
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast"):
@@ -68,10 +68,10 @@ class NetConfig:
 class NetInputs:
     """A batch of network inputs. gender (B,) in [0, 1] (1 female, 0.5 unknown)."""
 
-    pressure_mmhg: torch.Tensor          # (B, 64, 27)
-    gender: torch.Tensor | None = None   # (B,)
+    pressure_mmhg: torch.Tensor  # (B, 64, 27)
+    gender: torch.Tensor | None = None  # (B,)
     height_m: torch.Tensor | None = None  # (B,)
-    mass_kg: torch.Tensor | None = None   # (B,)
+    mass_kg: torch.Tensor | None = None  # (B,)
 
     @property
     def batch_size(self) -> int:
@@ -82,12 +82,12 @@ class NetInputs:
 class Estimate:
     """One module's estimate. Mesh and maps only when asked for (Mod1 training needs joints)."""
 
-    raw: torch.Tensor                     # (B, D) before unpacking
+    raw: torch.Tensor  # (B, D) before unpacking
     params: BodyParams
-    joints: torch.Tensor                  # (B, 24, 3) mat frame, m
+    joints: torch.Tensor  # (B, 24, 3) mat frame, m
     vertices: torch.Tensor | None = None  # (B, V, 3)
     depth_mm: torch.Tensor | None = None  # (B, 64, 27) Q-hat
-    contact: torch.Tensor | None = None   # (B, 64, 27) C-hat
+    contact: torch.Tensor | None = None  # (B, 64, 27) C-hat
 
 
 class PressureNet(nn.Module):
@@ -101,8 +101,11 @@ class PressureNet(nn.Module):
         self.head = ParamHead(config.backend, self.body.shape_names, self.mat)
         D = self.head.size
         self.mod1 = make_cnn(config.arch, config.in_channels, D, config.dropout, config.width)
-        self.mod2 = (make_cnn(config.arch, config.in_channels + 2, D, config.dropout, config.width)
-                     if config.modules == 2 else None)
+        self.mod2 = (
+            make_cnn(config.arch, config.in_channels + 2, D, config.dropout, config.width)
+            if config.modules == 2
+            else None
+        )
         if self.mod2 is not None:  # Mod2 starts as "no correction"
             last = self.mod2.fc if isinstance(self.mod2.fc, nn.Linear) else self.mod2.fc[-1]
             with torch.no_grad():
@@ -132,12 +135,14 @@ class PressureNet(nn.Module):
         missing, unexpected = self.load_state_dict(state, strict=False)
         missing = [k for k in missing if not k.startswith("body.")]
         if missing or unexpected:
-            raise ValueError(f"checkpoint does not match the network: missing {missing[:5]}, "
-                             f"unexpected {unexpected[:5]}")
+            raise ValueError(
+                f"checkpoint does not match the network: missing {missing[:5]}, unexpected {unexpected[:5]}"
+            )
 
     # --- inputs -------------------------------------------------------------------------
-    def channels(self, inputs: NetInputs, augment: bool = False,
-                 generator: torch.Generator | None = None) -> torch.Tensor:
+    def channels(
+        self, inputs: NetInputs, augment: bool = False, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
         """(B, C, 64, 27) Mod1 input channels (before any upsampling)."""
         check_pressure(inputs.pressure_mmhg)
         x = pressure_channels(inputs.pressure_mmhg, augment, generator)
@@ -172,11 +177,23 @@ class PressureNet(nn.Module):
         if not maps:
             return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices)
         maps = reconstruct_maps(out.vertices, out.faces, self.mat)
-        return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices,
-                        depth_mm=maps.depth_mm, contact=maps.contact)
+        return Estimate(
+            raw=raw,
+            params=params,
+            joints=out.joints,
+            vertices=out.vertices,
+            depth_mm=maps.depth_mm,
+            contact=maps.contact,
+        )
 
-    def forward(self, inputs: NetInputs, augment: bool = False, generator: torch.Generator | None = None,
-                mesh: bool = True, maps: bool = True) -> list[Estimate]:
+    def forward(
+        self,
+        inputs: NetInputs,
+        augment: bool = False,
+        generator: torch.Generator | None = None,
+        mesh: bool = True,
+        maps: bool = True,
+    ) -> list[Estimate]:
         """[Mod1's estimate] or [Mod1's, Mod2's]. `mesh`: pose the final mesh; `maps`: and
         reconstruct its PMR maps (Mod1's mesh and maps are always made when Mod2 follows,
         since Mod2 reads them)."""

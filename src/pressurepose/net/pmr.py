@@ -27,11 +27,15 @@ CONTACT_SOFTNESS_MM = 5.0
 @dataclasses.dataclass(frozen=True)
 class ReconstructedMaps:
     depth_mm: torch.Tensor  # (B, 64, 27) Q-hat: lowest surface point per taxel, mm, capped at +500
-    contact: torch.Tensor   # (B, 64, 27) C-hat in {0, 1}, straight-through gradient
+    contact: torch.Tensor  # (B, 64, 27) C-hat in {0, 1}, straight-through gradient
 
 
-def reconstruct_maps(vertices: torch.Tensor, faces: torch.Tensor, mat: MatSpec | None = None,
-                     contact_softness_mm: float = CONTACT_SOFTNESS_MM) -> ReconstructedMaps:
+def reconstruct_maps(
+    vertices: torch.Tensor,
+    faces: torch.Tensor,
+    mat: MatSpec | None = None,
+    contact_softness_mm: float = CONTACT_SOFTNESS_MM,
+) -> ReconstructedMaps:
     """Q-hat and C-hat of meshes (B, V, 3) in the mat frame (m), faces (F, 3), flat bed."""
     mat = mat or MatSpec()
     depth = depth_map(vertices, faces, mat)

@@ -75,8 +75,9 @@ def _to_sum(images: torch.Tensor) -> torch.Tensor:
     return images * (SUM_TOTAL / total.clamp(min=1e-6))
 
 
-def pressure_channels(pressure_mmhg: torch.Tensor, augment: bool = False,
-                      generator: torch.Generator | None = None) -> torch.Tensor:
+def pressure_channels(
+    pressure_mmhg: torch.Tensor, augment: bool = False, generator: torch.Generator | None = None
+) -> torch.Tensor:
     """(B, 64, 27) mmHg -> (B, 3, 64, 27): contact, pressure, Sobel (see module doc)."""
     p = pressure_mmhg.clamp(0.0, MAX_MMHG)
     loaded = p > 0
@@ -121,6 +122,11 @@ def upsample2(x: torch.Tensor) -> torch.Tensor:
 
 
 __all__ = [
-    "check_pressure", "constant_planes", "gaussian_blur", "pressure_channels", "reconstruction_channels",
-    "sobel_magnitude", "upsample2",
+    "check_pressure",
+    "constant_planes",
+    "gaussian_blur",
+    "pressure_channels",
+    "reconstruction_channels",
+    "sobel_magnitude",
+    "upsample2",
 ]

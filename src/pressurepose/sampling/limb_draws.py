@@ -85,8 +85,10 @@ class LimbDraws:
             stop = int(ends[j])
             W = stop - start
             step = max(1, _WINDOW_DRAWS // W)
-            won = [self._window(batch, ctx, pending[lo:lo + step], limb, start, W, reachable, done)
-                   for lo in range(0, P, step)]
+            won = [
+                self._window(batch, ctx, pending[lo : lo + step], limb, start, W, reachable, done)
+                for lo in range(0, P, step)
+            ]
             pending = pending[~torch.cat(won)]
             start, j = stop, j + 1
         for r in pending.tolist():  # budget exhausted: this attempt fails
@@ -105,7 +107,9 @@ class LimbDraws:
         P = pending.numel()
         ends = self._round_ends
         states = [batch.states[r] for r in pending.tolist()]
-        one_round = int(np.searchsorted(ends, start, side="right")) == int(np.searchsorted(ends, start + W - 1, side="right"))
+        one_round = int(np.searchsorted(ends, start, side="right")) == int(
+            np.searchsorted(ends, start + W - 1, side="right")
+        )
         saved = None if one_round else [st.rng.bit_generator.state for st in states]
         u = np.empty((P, W, limb.low.shape[0]))
         for p, st in enumerate(states):
@@ -190,19 +194,29 @@ class LimbDraws:
         # Legs are measured against the bed as they will lie once a raised-bed body sits up.
         frame, shift = (batch.leg_frame, batch.leg_shift) if leg else (batch.frame, batch.shift)
         ctx = dict(
-            o1=reach_off[0].to(f32), o2=reach_off[1].to(f32), frame32=frame.to(f32),
-            lo32=(lo - m).to(f32), hi32=(hi + m).to(f32), prox32=rest[:, limb.proximal].to(f32),
+            o1=reach_off[0].to(f32),
+            o2=reach_off[1].to(f32),
+            frame32=frame.to(f32),
+            lo32=(lo - m).to(f32),
+            hi32=(hi + m).to(f32),
+            prox32=rest[:, limb.proximal].to(f32),
             shift32=shift.to(f32),
             # bed-outline slack: the margin (legs), or the collar's reach per radian (arms)
             slack32=(torch.full_like(cell, m) if leg else offsets[:, 0].norm(dim=-1) / 3).to(f32),
             left_ankle32=(batch.left_ankle_x - m).to(f32),
             # Exact tests (float64).
-            offsets=offsets, root=rest[:, chain[0]], frame=frame, shift=shift,
-            cell=batch.cells[:, slot], length=batch.lengths[:, 0 if leg else 1],
+            offsets=offsets,
+            root=rest[:, chain[0]],
+            frame=frame,
+            shift=shift,
+            cell=batch.cells[:, slot],
+            length=batch.lengths[:, 0 if leg else 1],
             left_ankle=batch.left_ankle_x,
             local=torch.cat([batch.start0[:, caps] - rj, batch.end0[:, caps] - rj], 1),  # (R, 2c, 3)
             cap_joints=[ci[CAPSULES[k].joint] for k in caps] * 2,
-            over_bed=[ci[j] for j in limb.over_bed], distal=ci[limb.distal], proximal=ci[limb.proximal],
+            over_bed=[ci[j] for j in limb.over_bed],
+            distal=ci[limb.distal],
+            proximal=ci[limb.proximal],
         )
         return ctx
 
@@ -222,8 +236,8 @@ class LimbDraws:
         ps, ks = [], []
         step = max(1, _SCREEN_ELEMENTS // M)
         for lo in range(0, P, step):
-            rows = pending[lo:lo + step]
-            x = u[lo:lo + step].permute(2, 0, 1).to(f32, memory_format=torch.contiguous_format)  # (4, p, M)
+            rows = pending[lo : lo + step]
+            x = u[lo : lo + step].permute(2, 0, 1).to(f32, memory_format=torch.contiguous_format)  # (4, p, M)
             rot = rodrigues(tuple(low[i] + span[i] * x[i] for i in range(3)))
             o2 = cols(ctx["o2"][rows])
             if not self.part.straight_limbs:

@@ -21,14 +21,13 @@ DEG = math.pi / 180
 # Joint-angle sampling ranges (REFERENCE.md, degrees, left side; the right side mirrors:
 # (x, y, z) -> (x, -y, -z)). The shoulder triple is split 1/3 collar, 2/3 shoulder.
 HIP_DEG = ((-90.0, 17.8), (-33.7, 32.6), (-30.5, 38.6))
-KNEE_DEG = (-1.3, 139.9)   # about x
+KNEE_DEG = (-1.3, 139.9)  # about x
 SHOULDER_DEG = ((-88.9, 81.4), (-140.7, 43.7), (-90.0, 80.4))
 ELBOW_DEG = (-147.3, 2.8)  # about y
 GEOMETRY_QUANTUM_M = 1e-9
 
 LIMBS = ("left_leg", "right_leg", "left_arm", "right_arm")  # the order limbs are drawn in
 TORSO_JOINTS = tuple(J(n) for n in ("pelvis", "spine1", "spine2", "spine3", "neck", "head"))
-
 
 
 def _mirror(ranges, side):
@@ -42,11 +41,11 @@ def _mirror(ranges, side):
 class Limb:
     name: str
     side: str
-    chain: tuple[int, ...]      # J24 joints from the limb's root to its tip (root's parent has identity)
-    proximal: int               # J24 joint the cell is measured from
-    distal: int                 # J24 joint that must reach the cell
-    over_bed: tuple[int, ...]   # joints that must lie over the mattress
-    low: np.ndarray             # (k,) sampling range of the drawn angles, radians
+    chain: tuple[int, ...]  # J24 joints from the limb's root to its tip (root's parent has identity)
+    proximal: int  # J24 joint the cell is measured from
+    distal: int  # J24 joint that must reach the cell
+    over_bed: tuple[int, ...]  # joints that must lie over the mattress
+    low: np.ndarray  # (k,) sampling range of the drawn angles, radians
     high: np.ndarray
 
 
@@ -60,9 +59,15 @@ def limb_table(limits: JointLimits) -> dict[str, Limb]:
         bounds = [limits.bounds_of(f"{side}_hip")[k] for k in range(3)] + [limits.bounds_of(f"{side}_knee")[0]]
         low, high = _intersect(low, high, bounds)
         out[f"{side}_leg"] = Limb(
-            f"{side}_leg", side, (J(f"{side}_hip"), J(f"{side}_knee"), J(f"{side}_ankle"), J(f"{side}_foot")),
-            J(f"{side}_hip"), J(f"{side}_ankle"),
-            (J(f"{side}_knee"), J(f"{side}_ankle"), J(f"{side}_foot")), low, high)
+            f"{side}_leg",
+            side,
+            (J(f"{side}_hip"), J(f"{side}_knee"), J(f"{side}_ankle"), J(f"{side}_foot")),
+            J(f"{side}_hip"),
+            J(f"{side}_ankle"),
+            (J(f"{side}_knee"), J(f"{side}_ankle"), J(f"{side}_foot")),
+            low,
+            high,
+        )
         sh = _mirror(SHOULDER_DEG, side)
         el = ELBOW_DEG if side == "left" else (-ELBOW_DEG[1], -ELBOW_DEG[0])
         low = [r[0] * DEG for r in sh] + [el[0] * DEG]
@@ -73,10 +78,15 @@ def limb_table(limits: JointLimits) -> dict[str, Limb]:
         bounds = [sb[k] for k in range(3)] + [limits.bounds_of(f"{side}_elbow")[1]]
         low, high = _intersect(low, high, bounds)
         out[f"{side}_arm"] = Limb(
-            f"{side}_arm", side,
+            f"{side}_arm",
+            side,
             (J(f"{side}_collar"), J(f"{side}_shoulder"), J(f"{side}_elbow"), J(f"{side}_wrist"), J(f"{side}_hand")),
-            J(f"{side}_shoulder"), J(f"{side}_wrist"),
-            (J(f"{side}_elbow"), J(f"{side}_wrist"), J(f"{side}_hand")), low, high)
+            J(f"{side}_shoulder"),
+            J(f"{side}_wrist"),
+            (J(f"{side}_elbow"), J(f"{side}_wrist"), J(f"{side}_hand")),
+            low,
+            high,
+        )
     return out
 
 
@@ -113,7 +123,9 @@ def rotation_matrix(aa: torch.Tensor) -> torch.Tensor:
     zero = torch.zeros_like(x)
     K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).view(-1, 3, 3)
     eye = torch.eye(3, dtype=aa.dtype)
-    return eye + a[:, None, None] * K + b[:, None, None] * (aa[:, :, None] * aa[:, None, :] - theta2[:, None, None] * eye)
+    return (
+        eye + a[:, None, None] * K + b[:, None, None] * (aa[:, :, None] * aa[:, None, :] - theta2[:, None, None] * eye)
+    )
 
 
 def rotating_joints(limb: Limb) -> tuple[int, ...]:
@@ -160,12 +172,11 @@ def vdot(a: Vec, b: Vec) -> torch.Tensor:
 
 def cols(x: torch.Tensor) -> Vec:
     """(..., 3) -> three (..., 1) column tensors (broadcast against (..., M) draws)."""
-    return tuple(x[..., i:i + 1] for i in range(3))
+    return tuple(x[..., i : i + 1] for i in range(3))
 
 
 def split_xyz(x: torch.Tensor) -> Vec:
     return tuple(x[..., i] for i in range(3))
-
 
 
 def leg_cell(drop: torch.Tensor, L: torch.Tensor) -> torch.Tensor:

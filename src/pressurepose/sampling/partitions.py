@@ -38,8 +38,8 @@ class Partition:
 
     name: str
     description: str
-    roll: tuple[float, float]                 # root roll about the bed's long axis, uniform
-    either_side: bool = False                 # the drawn roll's sign at random (left or right side)
+    roll: tuple[float, float]  # root roll about the bed's long axis, uniform
+    either_side: bool = False  # the drawn roll's sign at random (left or right side)
     yaw: tuple[float, float] = (-math.pi / 6, math.pi / 6)  # in the bed plane, uniform
     shift_x: tuple[float, float] = (-0.2, 0.2)  # pelvis along the bed from the mattress centre
     shift_y: tuple[float, float] = (-0.2, 0.2)  # pelvis across the bed
@@ -52,7 +52,8 @@ class Partition:
     # Capsules checked for self-collision (seed A.1); the hands may touch the head when they
     # rest behind it, so that partition leaves them out, as the original did.
     checked_capsules: tuple[str, ...] = tuple(
-        f"{s}_{p}" for s in ("left", "right") for p in ("hand", "forearm", "foot", "calf"))
+        f"{s}_{p}" for s in ("left", "right") for p in ("hand", "forearm", "foot", "calf")
+    )
     over_bed_choices: tuple[bool, ...] = (False, True)  # Table 4 rows that exist
     # Head-of-bed angles (deg) drawn per sample; (0,) = the flat bed. On a raised bed the body
     # is sat up after its limbs are drawn (sampling.sitting), and shift_x places the midpoint
@@ -72,14 +73,30 @@ def _partitions() -> dict[str, Partition]:
     parts = [
         Partition("general", "any roll, even leg and arm space", roll=(-math.pi, math.pi)),
         Partition("supine", "supine general: on the back, even leg and arm space", roll=(0.0, 0.0)),
-        Partition("hands_behind_head", "supine, even leg space, both hands behind the head (Fig. 10b)",
-                  roll=(0.0, 0.0), arm_cells=(0, 1, 2, 3), hands_behind_head=True,
-                  checked_capsules=no_hands, over_bed_choices=(True,)),
-        Partition("prone_hands_up", "prone, even leg space, hands above the shoulders",
-                  roll=(math.pi, math.pi), arm_cells=(0, 1, 2, 3), over_bed_choices=(True,)),
+        Partition(
+            "hands_behind_head",
+            "supine, even leg space, both hands behind the head (Fig. 10b)",
+            roll=(0.0, 0.0),
+            arm_cells=(0, 1, 2, 3),
+            hands_behind_head=True,
+            checked_capsules=no_hands,
+            over_bed_choices=(True,),
+        ),
+        Partition(
+            "prone_hands_up",
+            "prone, even leg space, hands above the shoulders",
+            roll=(math.pi, math.pi),
+            arm_cells=(0, 1, 2, 3),
+            over_bed_choices=(True,),
+        ),
         # Crossed feet cannot be near the buttocks (leg cell 0: no solution in 1e5 draws).
-        Partition("crossed_legs", "supine, even leg and arm space, feet crossed (left ankle right of the right)",
-                  roll=(0.0, 0.0), leg_cells=(1, 2, 3), crossed_legs=True),
+        Partition(
+            "crossed_legs",
+            "supine, even leg and arm space, feet crossed (left ankle right of the right)",
+            roll=(0.0, 0.0),
+            leg_cells=(1, 2, 3),
+            crossed_legs=True,
+        ),
         # A straight leg held within 10 cm of the hip's height ends more than 3/4 of its length
         # below the hip (hip abduction <= 38.6 deg), so only the last leg cell is reachable.
         # Over the bed, a straight arm held out sideways - cells 3 to 5, wrist between A/2
@@ -87,34 +104,56 @@ def _partitions() -> dict[str, Partition]:
         # has its hand off the mattress when it points outward and crosses the torso when it
         # points inward, for most bodies and roots (docs/sampling.md: reached for 9-13% of male
         # and 21-62% of female body and root draws): those cells are not drawn there.
-        Partition("straight_limbs", "supine, knees and elbows straight, even arm space",
-                  roll=(0.0, 0.0), leg_cells=(LEG_CELLS - 1,), straight_limbs=True,
-                  over_bed_arm_cells=(0, 1, 2, 6, 7)),
+        Partition(
+            "straight_limbs",
+            "supine, knees and elbows straight, even arm space",
+            roll=(0.0, 0.0),
+            leg_cells=(LEG_CELLS - 1,),
+            straight_limbs=True,
+            over_bed_arm_cells=(0, 1, 2, 6, 7),
+        ),
         # Beyond Table 4 (seed A.2: sitting poses on a bent bed). PmatData group F's subjects
         # rest with the buttocks 6-19 taxel rows (0.17-0.54 m) foot-ward of the hinge at
         # angles of 0-60 deg in steps of 10; the yaw stays small, as a sitting person's.
-        Partition("half_sitting", "supine, half-sitting in a bed with the head section raised 10-60 deg, "
-                  "even leg and arm space", roll=(0.0, 0.0), yaw=(-math.pi / 18, math.pi / 18),
-                  shift_x=(0.05, 0.3), shift_y=(-0.15, 0.15), head_angles_deg=(10.0, 20.0, 30.0, 40.0, 50.0, 60.0),
-                  # Over the bed, a hand raised above the head (arm cells 0, 1) passes the
-                  # head end of the short raised section (0.52 m of mattress above the hinge).
-                  over_bed_arm_cells=(2, 3, 4, 5, 6, 7)),
+        Partition(
+            "half_sitting",
+            "supine, half-sitting in a bed with the head section raised 10-60 deg, even leg and arm space",
+            roll=(0.0, 0.0),
+            yaw=(-math.pi / 18, math.pi / 18),
+            shift_x=(0.05, 0.3),
+            shift_y=(-0.15, 0.15),
+            head_angles_deg=(10.0, 20.0, 30.0, 40.0, 50.0, 60.0),
+            # Over the bed, a hand raised above the head (arm cells 0, 1) passes the
+            # head end of the short raised section (0.52 m of mattress above the hinge).
+            over_bed_arm_cells=(2, 3, 4, 5, 6, 7),
+        ),
         # Beyond Table 4: side-lying as people rest on a side (PmatData groups C and D, SLP's
         # lateral postures): the roll within 20 deg of a side, the ankles at most 3/4 of the leg
         # below the hips (hips and knees bent; a body on its side with straight legs rolls onto
         # its front or back in sim #1), the wrists between above the shoulder and the waist.
-        Partition("lateral", "on the left or right side, hips and knees bent, arms in front",
-                  roll=(math.pi / 2 - math.pi / 9, math.pi / 2 + math.pi / 9), either_side=True,
-                  yaw=(-math.pi / 18, math.pi / 18), leg_cells=(1, 2, 3), arm_cells=(2, 3, 4, 5)),
+        Partition(
+            "lateral",
+            "on the left or right side, hips and knees bent, arms in front",
+            roll=(math.pi / 2 - math.pi / 9, math.pi / 2 + math.pi / 9),
+            either_side=True,
+            yaw=(-math.pi / 18, math.pi / 18),
+            leg_cells=(1, 2, 3),
+            arm_cells=(2, 3, 4, 5),
+        ),
         # Beyond Table 4: side-lying with the legs nearly straight (ankles more than 3/4 of the
         # leg below the hips), as PmatData's side-lying subjects lie. A passive body in that
         # pose rolls onto its front or back, so sim #1 holds the trunk's roll (a person's muscle
         # tone; SettleConfig.hold_roll_m) while the limbs settle.
-        Partition("lateral_straight", "on the left or right side, legs nearly straight, arms in front "
-                  "(trunk roll held in sim #1)",
-                  roll=(math.pi / 2 - math.pi / 9, math.pi / 2 + math.pi / 9), either_side=True,
-                  yaw=(-math.pi / 18, math.pi / 18), leg_cells=(LEG_CELLS - 1,), arm_cells=(2, 3, 4, 5),
-                  hold_roll_m=HOLD_ROLL_M),
+        Partition(
+            "lateral_straight",
+            "on the left or right side, legs nearly straight, arms in front (trunk roll held in sim #1)",
+            roll=(math.pi / 2 - math.pi / 9, math.pi / 2 + math.pi / 9),
+            either_side=True,
+            yaw=(-math.pi / 18, math.pi / 18),
+            leg_cells=(LEG_CELLS - 1,),
+            arm_cells=(2, 3, 4, 5),
+            hold_roll_m=HOLD_ROLL_M,
+        ),
     ]
     return {p.name: p for p in parts}
 
@@ -179,6 +218,7 @@ class SamplingConfig:
 
 def limb_cells(partition: Partition, over_bed: bool) -> tuple[tuple[int, ...], tuple[int, ...]]:
     """(leg cells, arm cells) a partition draws from, with or without the bed outline."""
-    arms = partition.over_bed_arm_cells if (over_bed and partition.over_bed_arm_cells is not None) \
-        else partition.arm_cells
+    arms = (
+        partition.over_bed_arm_cells if (over_bed and partition.over_bed_arm_cells is not None) else partition.arm_cells
+    )
     return partition.leg_cells, arms

@@ -16,20 +16,26 @@ from pressurepose.sampling.partitions import (
     SamplingConfig,
 )
 
-REJECTION_KEYS = ("limb_draws_rejected", "limb_failures", "collisions", "shape_resamples", "cell_redraws",
-                  "sit_up_rejections")
+REJECTION_KEYS = (
+    "limb_draws_rejected",
+    "limb_failures",
+    "collisions",
+    "shape_resamples",
+    "cell_redraws",
+    "sit_up_rejections",
+)
 
 
 @dataclasses.dataclass
 class InitialPoses:
     """A batch of sampled initial poses (float64) with their provenance."""
 
-    params: BodyParams                 # shape, root (mat frame; lowest capsule point on z = 0), pose
-    joints: torch.Tensor               # (B, 24, 3) J24 in the mat frame
-    index: np.ndarray                  # (B,) sample index within (seed, partition, gender, over_bed)
-    cells: np.ndarray                  # (B, 4) target cell of left leg, right leg, left arm, right arm
-    root_draw: np.ndarray              # (B, 4) drawn roll, yaw (rad), shift along, across (m)
-    head_angle_deg: np.ndarray         # (B,) head-of-bed angle the pose rests on (0: flat bed)
+    params: BodyParams  # shape, root (mat frame; lowest capsule point on z = 0), pose
+    joints: torch.Tensor  # (B, 24, 3) J24 in the mat frame
+    index: np.ndarray  # (B,) sample index within (seed, partition, gender, over_bed)
+    cells: np.ndarray  # (B, 4) target cell of left leg, right leg, left arm, right arm
+    root_draw: np.ndarray  # (B, 4) drawn roll, yaw (rad), shift along, across (m)
+    head_angle_deg: np.ndarray  # (B,) head-of-bed angle the pose rests on (0: flat bed)
     rejections: dict[str, np.ndarray]  # REJECTION_KEYS -> (B,) counts
     config: SamplingConfig
     backend: str
@@ -47,12 +53,15 @@ class InitialPoses:
         """One InitialPoses from several of the same config, in order."""
         first = parts[0]
         return cls(
-            params=BodyParams.cat([p.params for p in parts]), joints=torch.cat([p.joints for p in parts]),
-            index=np.concatenate([p.index for p in parts]), cells=np.concatenate([p.cells for p in parts]),
+            params=BodyParams.cat([p.params for p in parts]),
+            joints=torch.cat([p.joints for p in parts]),
+            index=np.concatenate([p.index for p in parts]),
+            cells=np.concatenate([p.cells for p in parts]),
             root_draw=np.concatenate([p.root_draw for p in parts]),
             head_angle_deg=np.concatenate([p.head_angle_deg for p in parts]),
             rejections={k: np.concatenate([p.rejections[k] for p in parts]) for k in REJECTION_KEYS},
-            config=first.config, backend=first.backend,
+            config=first.config,
+            backend=first.backend,
         )
 
 
@@ -62,8 +71,13 @@ class UnreachableConstraints(UserError):
 
 def sample_key(config: SamplingConfig, index: int) -> list[int]:
     """The entropy a sample's generator is seeded from."""
-    return [int(config.seed), zlib.crc32(config.partition.encode()), int(config.gender == "female"),
-            int(config.over_bed), int(index)]
+    return [
+        int(config.seed),
+        zlib.crc32(config.partition.encode()),
+        int(config.gender == "female"),
+        int(config.over_bed),
+        int(index),
+    ]
 
 
 def root_axis_angle(roll: float, yaw: float) -> np.ndarray:

@@ -97,8 +97,9 @@ class PoseSampler(LimbDraws):
     >>> poses = sampler.sample(range(100))
     """
 
-    def __init__(self, model: BodyModel, config: SamplingConfig, mat: MatSpec | None = None,
-                 partition: Partition | None = None) -> None:
+    def __init__(
+        self, model: BodyModel, config: SamplingConfig, mat: MatSpec | None = None, partition: Partition | None = None
+    ) -> None:
         """`partition` overrides the named preset of `config` (for experiments)."""
         if not isinstance(config, SamplingConfig):
             raise ValueError(f"expected a SamplingConfig, got {type(config).__name__}")
@@ -125,8 +126,11 @@ class PoseSampler(LimbDraws):
             mine = [i for i, c in enumerate(CAPSULES) if c.joint in self.limbs[name].chain]
             self._limb_capsules[name] = mine
             known = placed | set(mine)
-            keep = [k for k, (i, j) in enumerate(self.pairs.tolist())
-                    if (i in mine and j in known) or (j in mine and i in known)]
+            keep = [
+                k
+                for k, (i, j) in enumerate(self.pairs.tolist())
+                if (i in mine and j in known) or (j in mine and i in known)
+            ]
             self._limb_pairs[name] = self.pairs[keep]
             placed |= set(mine)
         (self.x_lo, self.x_hi), (self.y_lo, self.y_hi) = self.mat.mattress_bounds_m
@@ -188,8 +192,11 @@ class PoseSampler(LimbDraws):
                             f"after {self.config.max_shapes} shapes x {self.config.max_failures + 1} attempts; "
                             f"its constraints are unreachable with these settings "
                             f"(raise max_shapes or max_limb_draws, or use another partition); "
-                            + (f"last blocked: {last} in cell {st.cells[LIMBS.index(last)]}" if last is not None
-                               else "the last pose failed when sat up on the raised bed")
+                            + (
+                                f"last blocked: {last} in cell {st.cells[LIMBS.index(last)]}"
+                                if last is not None
+                                else "the last pose failed when sat up on the raised bed"
+                            )
                         )
                     st.shape = None
                     st.failures = 0
@@ -239,6 +246,7 @@ class PoseSampler(LimbDraws):
         if self.part.raised:  # shift_x places the hips' midpoint relative to the hinge
             hips = (R_root @ rest[:, list(HIP_JOINTS)].mean(1)[..., None])[..., 0]
             shift[:, 0] = BedShape().hinge_x(self.mat) + torch.from_numpy(root[:, 2]) - hips[:, 0]
+
         def seg(a, b):  # written out: the same bits whatever the batch
             d = rest[:, a] - rest[:, b]
             return (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]).sqrt()
@@ -253,7 +261,7 @@ class PoseSampler(LimbDraws):
             st.shift = shift[i]
             st.leg_frame, st.leg_shift = frame[i], shift[i]
             if self.part.raised:
-                self._pitch(st, root_aa[i:i + 1])
+                self._pitch(st, root_aa[i : i + 1])
             st.lengths = (float(leg[i]), float(arm[i]))
 
     def _pitch(self, st: SampleState, root_aa: torch.Tensor) -> None:
@@ -271,8 +279,11 @@ class PoseSampler(LimbDraws):
         if getattr(self, "_model64", None) is None:
             m = self.model
             with torch.inference_mode(False):  # a plain model, whatever mode we are called in
-                self._model64 = m if (m.dtype == torch.float64 and m.device.type == "cpu") else \
-                    copy.deepcopy(m).to(dtype=torch.float64, device="cpu")
+                self._model64 = (
+                    m
+                    if (m.dtype == torch.float64 and m.device.type == "cpu")
+                    else copy.deepcopy(m).to(dtype=torch.float64, device="cpu")
+                )
         return self._model64
 
     def _pose(self, states: list[SampleState]) -> torch.Tensor:
@@ -342,14 +353,15 @@ class PoseSampler(LimbDraws):
         )
 
 
-
 def _lying(st: SampleState, root_aa: torch.Tensor, pose: torch.Tensor) -> tuple[Capsules, BodyParams]:
     """A sample's capsules and its pose lying flat (pelvis over the bed, height 0), batch of 1."""
     caps = Capsules(st.caps[0][None], st.caps[1][None], st.caps[2][None], st.rest[None])
-    return caps, BodyParams(shape=torch.from_numpy(st.shape)[None], root_rotation=root_aa,
-                            root_translation=st.shift[None].clone(), pose=pose)
-
-
+    return caps, BodyParams(
+        shape=torch.from_numpy(st.shape)[None],
+        root_rotation=root_aa,
+        root_translation=st.shift[None].clone(),
+        pose=pose,
+    )
 
 
 __all__ = ["InitialPoses", "PoseSampler", "UnreachableConstraints", "root_axis_angle", "sample_key"]

@@ -19,10 +19,22 @@ from __future__ import annotations
 import numpy as np
 
 ANNY_RANGES = {  # phenotype -> (low, high) per gender
-    "female": {"gender": (1.0, 1.0), "age": (0.77, 0.852), "muscle": (0.0, 1.0), "weight": (0.25, 1.0),
-               "height": (0.20, 0.63), "proportions": (0.0, 1.0)},
-    "male": {"gender": (0.0, 0.0), "age": (0.77, 0.852), "muscle": (0.0, 1.0), "weight": (0.10, 1.0),
-             "height": (0.12, 0.60), "proportions": (0.0, 1.0)},
+    "female": {
+        "gender": (1.0, 1.0),
+        "age": (0.77, 0.852),
+        "muscle": (0.0, 1.0),
+        "weight": (0.25, 1.0),
+        "height": (0.20, 0.63),
+        "proportions": (0.0, 1.0),
+    },
+    "male": {
+        "gender": (0.0, 0.0),
+        "age": (0.77, 0.852),
+        "muscle": (0.0, 1.0),
+        "weight": (0.10, 1.0),
+        "height": (0.12, 0.60),
+        "proportions": (0.0, 1.0),
+    },
 }
 SMPL_BETA_RANGE = (-3.0, 3.0)
 

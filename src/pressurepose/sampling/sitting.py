@@ -33,13 +33,13 @@ from pressurepose.mat import MatSpec
 HIP_JOINTS = (J24_NAMES.index("left_hip"), J24_NAMES.index("right_hip"))
 # Capsules that rest on the bed when sitting (none moves with a limb, so the pitch depends on
 # the shape, root and bed only).
-TRUNK_CAPSULES = tuple(i for i, c in enumerate(CAPSULES)
-                       if c.name in ("pelvis", "spine1", "spine2", "spine3", "neck", "head"))
+TRUNK_CAPSULES = tuple(
+    i for i, c in enumerate(CAPSULES) if c.name in ("pelvis", "spine1", "spine2", "spine3", "neck", "head")
+)
 PITCH_ITERATIONS = 18  # bisection steps: pitch to within 60 deg / 2^18 ~ 0.0002 deg
 
 
-def fold_params(params: BodyParams, rest: torch.Tensor, pitch: torch.Tensor,
-                keep_thighs: bool = True) -> BodyParams:
+def fold_params(params: BodyParams, rest: torch.Tensor, pitch: torch.Tensor, keep_thighs: bool = True) -> BodyParams:
     """Sit B bodies up: trunk, head and arms pitched up by `pitch` (B,) rad about the mat's y
     axis through the midpoint of the hip joints. keep_thighs: the thighs keep their
     orientation (hip rotations conjugated by the pitch); otherwise the whole body turns
@@ -67,8 +67,9 @@ def _planes(bed: BedShape, mat: MatSpec, like: torch.Tensor) -> tuple[torch.Tens
     return torch.tensor([list(n) for n in normals], dtype=like.dtype, device=like.device), hinge
 
 
-def capsule_gaps(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, bed: BedShape,
-                 mat: MatSpec) -> torch.Tensor:
+def capsule_gaps(
+    start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, bed: BedShape, mat: MatSpec
+) -> torch.Tensor:
     """(B, C, K) clearance (m) of each capsule (end points (B, C, 3), radius (B, C)) above each
     section plane of the undeformed mattress top (negative: inside)."""
     normals, hinge = _planes(bed, mat, start)
@@ -77,8 +78,7 @@ def capsule_gaps(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, b
     return torch.minimum(da, db) - radius[..., None]
 
 
-def bed_lift(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, bed: BedShape,
-             mat: MatSpec) -> torch.Tensor:
+def bed_lift(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, bed: BedShape, mat: MatSpec) -> torch.Tensor:
     """(B,) vertical shift (m) that makes the lowest capsule surface touch the bed: the mattress
     fills the half-spaces under the section planes, so every capsule must clear every plane."""
     normals, _ = _planes(bed, mat, start)
@@ -137,8 +137,14 @@ def pitch_matrix(root_rotation: torch.Tensor, pitch: torch.Tensor) -> torch.Tens
     return R0.transpose(1, 2) @ P @ R0
 
 
-def sit_up(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec, pitch: torch.Tensor | None = None,
-           keep_thighs: bool = True) -> tuple[BodyParams, torch.Tensor]:
+def sit_up(
+    caps: Capsules,
+    params: BodyParams,
+    bed: BedShape,
+    mat: MatSpec,
+    pitch: torch.Tensor | None = None,
+    keep_thighs: bool = True,
+) -> tuple[BodyParams, torch.Tensor]:
     """Sit bodies up on a raised bed and lower them onto it.
 
     caps: their capsules (T-pose); params: the pose in the trunk's frame with the pelvis placed
@@ -153,14 +159,18 @@ def sit_up(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec, pitc
     lift = bed_lift(a, b, caps.radius, bed, mat)
     trans = p.root_translation.clone()
     trans[:, 2] = trans[:, 2] + lift
-    a, b = a + lift[:, None, None] * a.new_tensor([0.0, 0.0, 1.0]), b + lift[:, None, None] * b.new_tensor([0.0, 0.0, 1.0])
+    a, b = (
+        a + lift[:, None, None] * a.new_tensor([0.0, 0.0, 1.0]),
+        b + lift[:, None, None] * b.new_tensor([0.0, 0.0, 1.0]),
+    )
     trunk = list(TRUNK_CAPSULES)
     seat = capsule_gaps(a[:, trunk], b[:, trunk], caps.radius[:, trunk], bed, mat).flatten(1).amin(-1)
     return p.replace(root_translation=trans), seat
 
 
-def half_sitting_params(model, shape: torch.Tensor, bed: BedShape, mat: MatSpec | None = None,
-                        hip_offset_m: float = 0.15) -> BodyParams:
+def half_sitting_params(
+    model, shape: torch.Tensor, bed: BedShape, mat: MatSpec | None = None, hip_offset_m: float = 0.15
+) -> BodyParams:
     """BodyParams (float64) of B bodies in the home pose (legs straight, arms at the sides)
     half-sitting on a raised bed: hips `hip_offset_m` foot-ward of the hinge, centred across
     the bed, sat up and lowered onto it as the half_sitting partition does."""
@@ -174,12 +184,26 @@ def half_sitting_params(model, shape: torch.Tensor, bed: BedShape, mat: MatSpec 
     caps = Capsules(*(x.to(torch.float64).cpu() for x in (caps.start, caps.end, caps.radius, caps.rest)))
     root = torch.zeros(B, 3, dtype=torch.float64)
     hips = (root_matrix(root) @ caps.rest[:, list(HIP_JOINTS)].mean(1)[..., None])[..., 0]
-    trans = torch.stack([bed.hinge_x(mat) + hip_offset_m - hips[:, 0],
-                         torch.full((B,), mat.sensing_width_m / 2, dtype=torch.float64) - hips[:, 1],
-                         torch.zeros(B, dtype=torch.float64)], -1)
+    trans = torch.stack(
+        [
+            bed.hinge_x(mat) + hip_offset_m - hips[:, 0],
+            torch.full((B,), mat.sensing_width_m / 2, dtype=torch.float64) - hips[:, 1],
+            torch.zeros(B, dtype=torch.float64),
+        ],
+        -1,
+    )
     params = BodyParams(shape=shape.cpu(), root_rotation=root, root_translation=trans, pose=home_pose(B))
     return sit_up(caps, params, bed, mat)[0]
 
 
-__all__ = ["PITCH_ITERATIONS", "TRUNK_CAPSULES", "bed_lift", "capsule_gaps", "fold_params",
-           "half_sitting_params", "pitch_matrix", "sit_up", "trunk_pitch"]
+__all__ = [
+    "PITCH_ITERATIONS",
+    "TRUNK_CAPSULES",
+    "bed_lift",
+    "capsule_gaps",
+    "fold_params",
+    "half_sitting_params",
+    "pitch_matrix",
+    "sit_up",
+    "trunk_pitch",
+]

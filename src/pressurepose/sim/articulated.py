@@ -44,12 +44,19 @@ from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_ang
 from pressurepose.maps import cell_centres, grid_shape, surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulation import (
-    Dofs, apply_motion, dof_axes_pivots, dof_geometry, from_part_frames, joint_stiffness, part_mass_and_com, tissue_depth,
+    Dofs,
+    apply_motion,
+    dof_axes_pivots,
+    dof_geometry,
+    from_part_frames,
+    joint_stiffness,
+    part_mass_and_com,
+    tissue_depth,
     to_part_frames,
 )
-from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
+from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.self_contact import SELF_CONTACT_SINK_M, SelfContact
 from pressurepose.sim.soft_contact import lowest_points
 
@@ -113,15 +120,15 @@ class ArticulatedRest:
     """B bodies at articulated rest. Pressures in Pa on the covered grid (cells), before the
     mat/cover and the sensor."""
 
-    params: BodyParams            # the pose at rest
-    vertices: torch.Tensor        # (B, V, 3) mesh at rest (mat frame, m)
-    joints: torch.Tensor          # (B, 24, 3)
-    foundation_pa: torch.Tensor   # (B, rows*sub, cols*sub) foam pressure per cell
-    force_n: torch.Tensor         # (B,)
+    params: BodyParams  # the pose at rest
+    vertices: torch.Tensor  # (B, V, 3) mesh at rest (mat frame, m)
+    joints: torch.Tensor  # (B, 24, 3)
+    foundation_pa: torch.Tensor  # (B, rows*sub, cols*sub) foam pressure per cell
+    force_n: torch.Tensor  # (B,)
     max_compression_m: torch.Tensor  # (B,) deepest compression of the foam
-    part_force_n: torch.Tensor    # (B, 24) contact force carried by each J24 part
+    part_force_n: torch.Tensor  # (B, 24) contact force carried by each J24 part
     self_penetration_m: torch.Tensor  # (B,) deepest overlap of the capsule pairs that started apart
-    iterations: torch.Tensor      # (B,) Newton steps
+    iterations: torch.Tensor  # (B,) Newton steps
     failure: list[str]
     sub: int
 
@@ -133,9 +140,14 @@ _LIMIT_STIFFNESS_RATIO = 100.0
 TISSUE_REFERENCE_DEPTH_M = 0.05
 
 
-def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor | None = None,
-                     mattress: MattressParams | None = None, mat: MatSpec | None = None,
-                     config: ArticulatedConfig | None = None) -> ArticulatedRest:
+def rest_articulated(
+    model: BodyModel,
+    params: BodyParams,
+    mass_kg: torch.Tensor | None = None,
+    mattress: MattressParams | None = None,
+    mat: MatSpec | None = None,
+    config: ArticulatedConfig | None = None,
+) -> ArticulatedRest:
     """Rest B posed bodies (BodyParams, float64 model) on the flat mattress, every part on its
     own contact with compliant joints (module doc). The bodies may start above the bed or in
     it; their horizontal placement and yaw are kept. Failures are reported per sample."""
@@ -164,11 +176,13 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
     dof_hi = torch.maximum(dof_hi[None], start_angle)
     rest = rest_joints(model, params.shape)
     out = model(params)
-    total_mass = (model.measure(params.shape).mass_kg if mass_kg is None
-                  else torch.as_tensor(mass_kg, dtype=dtype, device=device).reshape(-1))
+    total_mass = (
+        model.measure(params.shape).mass_kg
+        if mass_kg is None
+        else torch.as_tensor(mass_kg, dtype=dtype, device=device).reshape(-1)
+    )
     weight = total_mass * GRAVITY_M_S2
-    k = joint_stiffness(total_mass, dofs, cfg.stiffness_scale, cfg.neck_stiffness_scale,
-                        cfg.spine_stiffness_scale)
+    k = joint_stiffness(total_mass, dofs, cfg.stiffness_scale, cfg.neck_stiffness_scale, cfg.spine_stiffness_scale)
     # The trunk's roll hold (a person's muscle tone on a side; sim #1's SettleConfig.hold_roll_m):
     # a spring on the root's roll about the bed's long axis, back to the roll it starts with.
     k[:, 1] = cfg.hold_roll_m * total_mass * GRAVITY_M_S2
@@ -202,8 +216,9 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
             rot, joints = pose_in_mat(rest, cur)
         com = (rot @ local_com[..., None])[..., 0] + joints
         body_com = (mass[..., None] * com).sum(1) / mass.sum(1)[:, None]
-        h, part, cell_tissue = lowest_points(from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub,
-                                      point_tissue)
+        h, part, cell_tissue = lowest_points(
+            from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub, point_tissue
+        )
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
         axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)
@@ -211,10 +226,29 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         if friction is not None and solved is not None:
             friction.update(rot, joints, *solved, active=~settled)
             springs.append(friction.linearise(rot, joints, axes, pivots, dof_parts))
-        lin = Linearised(h, part, xy, dof_a, mass, com, e, k, dofs, area, cell_tissue,
-                          (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k), springs)
-        q, it = minimise(lin, h.new_zeros(B, dofs.n), mp, weight, cfg,
-                          max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing)
+        lin = Linearised(
+            h,
+            part,
+            xy,
+            dof_a,
+            mass,
+            com,
+            e,
+            k,
+            dofs,
+            area,
+            cell_tissue,
+            (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k),
+            springs,
+        )
+        q, it = minimise(
+            lin,
+            h.new_zeros(B, dofs.n),
+            mp,
+            weight,
+            cfg,
+            max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing,
+        )
         iters += it
         if outer == cfg.outer:
             break
@@ -234,8 +268,11 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
         w = (w - f / area / lin.tissue).clamp(min=0)  # the foam's share of the compression
     final = apply_motion(cur, q, dofs, rot, joints, body_com)
     out = model(final)
-    penetration = (torch.zeros(B, dtype=dtype, device=device) if contact is None
-                   else contact.penetration(*pose_in_mat(rest, final)))
+    penetration = (
+        torch.zeros(B, dtype=dtype, device=device)
+        if contact is None
+        else contact.penetration(*pose_in_mat(rest, final))
+    )
     nr, nc = grid_shape(mat, cfg.sub, True)
     foundation = (lin.unpack(f, nr * nc) / area).view(B, nr, nc)
     part_force = h.new_zeros(B, NUM_JOINTS).scatter_add_(1, lin.part, f * lin.mask)
@@ -255,10 +292,19 @@ def rest_articulated(model: BodyModel, params: BodyParams, mass_kg: torch.Tensor
             failure.append("")
     bad = torch.tensor([bool(x) for x in failure], device=device)
     foundation = torch.where(bad[:, None, None], torch.zeros_like(foundation), foundation)
-    return ArticulatedRest(params=final, vertices=out.vertices, joints=out.joints, foundation_pa=foundation,
-                           force_n=force, max_compression_m=w.amax(1), part_force_n=part_force,
-                           self_penetration_m=penetration,
-                           iterations=iters, failure=failure, sub=cfg.sub)
+    return ArticulatedRest(
+        params=final,
+        vertices=out.vertices,
+        joints=out.joints,
+        foundation_pa=foundation,
+        force_n=force,
+        max_compression_m=w.amax(1),
+        part_force_n=part_force,
+        self_penetration_m=penetration,
+        iterations=iters,
+        failure=failure,
+        sub=cfg.sub,
+    )
 
 
 def _tissue_modulus(points, labels, joints, mp: MattressParams, cfg: ArticulatedConfig):

@@ -59,8 +59,13 @@ class Dofs:
         jk = self.joint
         related_kl = desc[jk][:, jk].bool().to(device)  # l's joint in k's subtree
         related_lk = related_kl.T
-        deeper = torch.where(related_kl, jk[None, :].expand(self.n, self.n),
-                             torch.where(related_lk, jk[:, None].expand(self.n, self.n), torch.full_like(related_kl, -1, dtype=torch.long)))
+        deeper = torch.where(
+            related_kl,
+            jk[None, :].expand(self.n, self.n),
+            torch.where(
+                related_lk, jk[:, None].expand(self.n, self.n), torch.full_like(related_kl, -1, dtype=torch.long)
+            ),
+        )
         self.deeper = deeper
 
     def axes(self, rot: torch.Tensor) -> torch.Tensor:
@@ -89,8 +94,9 @@ class Dofs:
         return torch.where(hinge, limits.lower[jj, ax], -inf), torch.where(hinge, limits.upper[jj, ax], inf)
 
 
-def joint_stiffness(mass_kg: torch.Tensor, dofs: Dofs, scale: float = 1.0, neck_scale: float = 1.0,
-                    spine_scale: float = 1.0) -> torch.Tensor:
+def joint_stiffness(
+    mass_kg: torch.Tensor, dofs: Dofs, scale: float = 1.0, neck_scale: float = 1.0, spine_scale: float = 1.0
+) -> torch.Tensor:
     """(B, N) spring stiffness (N m / rad) per DoF: the seed's per joint, x mass / 70.45 kg,
     x `scale` (x `neck_scale` on the neck and head, x `spine_scale` on spine1-3); 0 on the
     root's DoFs."""
@@ -110,8 +116,9 @@ def joint_stiffness(mass_kg: torch.Tensor, dofs: Dofs, scale: float = 1.0, neck_
     return base_t[None] * (mass_kg / STIFFNESS_REFERENCE_MASS_KG)[:, None]
 
 
-def part_mass_and_com(vertices: torch.Tensor, faces: torch.Tensor, face_part: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
+def part_mass_and_com(
+    vertices: torch.Tensor, faces: torch.Tensor, face_part: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Mass (B, 24) kg and centre of mass (B, 24, 3) of each J24 part of a closed mesh: each
     part's triangles with tetrahedra to the part's own centre (the mean of its triangles'
     centroids, inside the part), density BODY_DENSITY_KG_M3. The part surfaces are open where
@@ -129,7 +136,9 @@ def part_mass_and_com(vertices: torch.Tensor, faces: torch.Tensor, face_part: to
     vol = (rel[:, :, 0] * torch.linalg.cross(rel[:, :, 1], rel[:, :, 2])).sum(-1) / 6.0
     cen = apex[:, face_part] + rel.sum(2) / 4.0
     mass = vertices.new_zeros(B, NUM_JOINTS).scatter_add_(1, idx, vol) * BODY_DENSITY_KG_M3
-    moment = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), vol[..., None] * cen)
+    moment = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(
+        1, idx[..., None].expand(-1, -1, 3), vol[..., None] * cen
+    )
     com = torch.where(mass[..., None] > 0, moment * BODY_DENSITY_KG_M3 / mass.clamp(min=1e-12)[..., None], apex)
     return mass.clamp(min=0), com
 
@@ -235,5 +244,14 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
     return params.replace(pose=pose, root_rotation=root, root_translation=moved)
 
 
-__all__ = ["Dofs", "apply_motion", "dof_axes_pivots", "dof_geometry", "from_part_frames", "joint_stiffness",
-           "part_mass_and_com", "tissue_depth", "to_part_frames"]
+__all__ = [
+    "Dofs",
+    "apply_motion",
+    "dof_axes_pivots",
+    "dof_geometry",
+    "from_part_frames",
+    "joint_stiffness",
+    "part_mass_and_com",
+    "tissue_depth",
+    "to_part_frames",
+]

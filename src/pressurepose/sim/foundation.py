@@ -54,15 +54,15 @@ SMALL_TILT_RAD = 0.02  # below it one pass is enough (the linearised rest is rig
 class PressureResult:
     """Sim #2's rest of B bodies. Pressures in Pa on the covered grid, before the sensor."""
 
-    pressure_pa: torch.Tensor      # (B, covered_rows, covered_cols) per taxel, after spreading
-    foundation_pa: torch.Tensor    # (B, covered_rows*sub, covered_cols*sub) before spreading
-    vertices: torch.Tensor         # (B, V, 3) the mesh at rest (mat frame, m)
-    shift_m: torch.Tensor          # (B,) total vertical shift applied
-    tilt_rad: torch.Tensor         # (B, 2) roll about x, pitch about y (through the COM)
-    force_n: torch.Tensor          # (B,) total foundation force
+    pressure_pa: torch.Tensor  # (B, covered_rows, covered_cols) per taxel, after spreading
+    foundation_pa: torch.Tensor  # (B, covered_rows*sub, covered_cols*sub) before spreading
+    vertices: torch.Tensor  # (B, V, 3) the mesh at rest (mat frame, m)
+    shift_m: torch.Tensor  # (B,) total vertical shift applied
+    tilt_rad: torch.Tensor  # (B, 2) roll about x, pitch about y (through the COM)
+    force_n: torch.Tensor  # (B,) total foundation force
     max_compression_m: torch.Tensor  # (B,)
-    iterations: torch.Tensor       # (B,) Newton iterations (both passes)
-    failure: list[str]             # (B,) "" when at rest, else the reason
+    iterations: torch.Tensor  # (B,) Newton iterations (both passes)
+    failure: list[str]  # (B,) "" when at rest, else the reason
     sub: int
     friction_ratio: torch.Tensor | None = None  # (B,) tangential / normal force the bed needs (0 when flat)
     rotation: torch.Tensor | None = None  # (B, 3, 3) and translation (B, 3): vertices_out = R v_in + t
@@ -86,9 +86,11 @@ def _centroid_and_points(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[t
     v0, v1, v2 = tri.unbind(2)
     tri_sum = v0 + v1 + v2
     # 6 x signed volume (B, F): v0 . (v1 x v2), written out (faster than linalg.cross here)
-    vol = (v0[..., 0] * (v1[..., 1] * v2[..., 2] - v1[..., 2] * v2[..., 1])
-           + v0[..., 1] * (v1[..., 2] * v2[..., 0] - v1[..., 0] * v2[..., 2])
-           + v0[..., 2] * (v1[..., 0] * v2[..., 1] - v1[..., 1] * v2[..., 0]))
+    vol = (
+        v0[..., 0] * (v1[..., 1] * v2[..., 2] - v1[..., 2] * v2[..., 1])
+        + v0[..., 1] * (v1[..., 2] * v2[..., 0] - v1[..., 0] * v2[..., 2])
+        + v0[..., 2] * (v1[..., 0] * v2[..., 1] - v1[..., 1] * v2[..., 0])
+    )
     centroid = (vol[..., None] * tri_sum).sum(1) / (4.0 * vol.sum(1)[:, None])
     return centroid, surface_points(vertices, faces, corners=tri)
 
@@ -164,7 +166,6 @@ class _Grid:
         hq = self.h + torch.bmm(self.c, q[:, :3, None])[..., 0]
         return torch.relu(-hq) * self.mask
 
-
     def residual(self, q, params, weight):
         """(B, 4) residual (N, N m, N m, N) and the cell forces and compressions (packed)."""
         w = self.compression(q)
@@ -178,8 +179,8 @@ class _Grid:
         k = params.foundation_stiffness(w) * self.area * (w > 0).to(w.dtype)
         f = params.foundation_pressure(w) * self.area
         A = self.NT + q[:, 3, None, None] * self.TT
-        J_motion = -torch.bmm(A, k[..., None] * self.c)         # through f
-        J_mu = torch.bmm(self.TT, f[..., None])                 # mu directly
+        J_motion = -torch.bmm(A, k[..., None] * self.c)  # through f
+        J_mu = torch.bmm(self.TT, f[..., None])  # mu directly
         return torch.cat([J_motion, J_mu], -1)
 
     def depth_slope(self, q, params):
@@ -227,8 +228,9 @@ def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
         short = R[:, 0] < 0
         ub = torch.where(short, torch.minimum(ub, q[:, 0]), ub)
         lb = torch.where(~short, torch.maximum(lb, q[:, 0]), lb)
-        d_newton = torch.where(slope < 0, -R[:, 0] / torch.where(slope < 0, slope, -torch.ones_like(slope)),
-                               torch.full_like(slope, -0.02)).clamp(-0.02, 0.02)
+        d_newton = torch.where(
+            slope < 0, -R[:, 0] / torch.where(slope < 0, slope, -torch.ones_like(slope)), torch.full_like(slope, -0.02)
+        ).clamp(-0.02, 0.02)
         cand = q[:, 0] + d_newton
         bracketed = torch.isfinite(ub) & torch.isfinite(lb)
         cand = torch.where(bracketed & ((cand >= ub) | (cand <= lb)), (ub + lb) / 2, cand)
@@ -246,7 +248,7 @@ def _newton(grid: _Grid, params, weight, q0, max_iter, tol):
             break
         J = grid.jacobian(q, params)
         diag = J.diagonal(dim1=-2, dim2=-1).abs()
-        reg = (1e-9 * weight[:, None] + 1e-6 * diag.amax(-1, keepdim=True)) [..., None] * eye
+        reg = (1e-9 * weight[:, None] + 1e-6 * diag.amax(-1, keepdim=True))[..., None] * eye
         step = torch.linalg.solve(J - reg, -R[..., None])[..., 0]
         step = torch.maximum(torch.minimum(step, step_max), -step_max)
         step = torch.where(done[:, None], torch.zeros_like(step), step)
@@ -280,10 +282,18 @@ def _motion(com, q):
     return R, t
 
 
-def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torch.Tensor,
-                      params: MattressParams | None = None, mat: MatSpec | None = None,
-                      sub: int = 2, max_iter: int = 60, tol: float = 1e-6,
-                      passes: int = 2, bed: BedShape | None = None) -> PressureResult:
+def simulate_pressure(
+    vertices: torch.Tensor,
+    faces: torch.Tensor,
+    mass_kg: torch.Tensor,
+    params: MattressParams | None = None,
+    mat: MatSpec | None = None,
+    sub: int = 2,
+    max_iter: int = 60,
+    tol: float = 1e-6,
+    passes: int = 2,
+    bed: BedShape | None = None,
+) -> PressureResult:
     """Rest the rigid meshes (B, V, 3) (mat frame, m; faces (F, 3)) of mass (B,) kg on the
     mattress and return the pressure on the covered grid (Pa) and the mesh at rest.
 
@@ -374,9 +384,19 @@ def simulate_pressure(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: torc
     foundation = torch.where(bad[:, None, None], torch.zeros_like(foundation), foundation)
     pressure = taxel_pressure(foundation, params, mat, sub)
     return PressureResult(
-        pressure_pa=pressure, foundation_pa=foundation, vertices=verts, shift_m=total_q[:, 0],
-        tilt_rad=total_q[:, 1:], force_n=f.sum((1, 2)), max_compression_m=w.amax((1, 2)),
-        iterations=iters, failure=failure, sub=sub, friction_ratio=mu, rotation=R_acc, translation=t_acc,
+        pressure_pa=pressure,
+        foundation_pa=foundation,
+        vertices=verts,
+        shift_m=total_q[:, 0],
+        tilt_rad=total_q[:, 1:],
+        force_n=f.sum((1, 2)),
+        max_compression_m=w.amax((1, 2)),
+        iterations=iters,
+        failure=failure,
+        sub=sub,
+        friction_ratio=mu,
+        rotation=R_acc,
+        translation=t_acc,
     )
 
 
@@ -390,6 +410,14 @@ def _detached(params: MattressParams) -> MattressParams:
 
 
 __all__ = [
-    "FAIL_BOTTOM", "FAIL_NOT_CONVERGED", "FAIL_NO_SUPPORT", "FAIL_SLIDES", "FAIL_TILT", "PressureResult",
-    "gaussian_spread", "mesh_centroid", "simulate_pressure", "taxel_pressure",
+    "FAIL_BOTTOM",
+    "FAIL_NOT_CONVERGED",
+    "FAIL_NO_SUPPORT",
+    "FAIL_SLIDES",
+    "FAIL_TILT",
+    "PressureResult",
+    "gaussian_spread",
+    "mesh_centroid",
+    "simulate_pressure",
+    "taxel_pressure",
 ]

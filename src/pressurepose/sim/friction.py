@@ -15,9 +15,9 @@ mu N / k slides after its part (slip); a part that lifts off forgets its anchor.
 
 from __future__ import annotations
 
-import torch
-
 import dataclasses
+
+import torch
 
 from pressurepose.body.joints import NUM_JOINTS
 
@@ -98,8 +98,9 @@ class Friction:
         B = force.shape[0]
         load = force.new_zeros(B, NUM_JOINTS).scatter_add_(1, part, force)
         k = force.new_zeros(B, NUM_JOINTS).scatter_add_(1, part, stiffness)
-        moment = force.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, part[..., None].expand(-1, -1, 3),
-                                                                 force[..., None] * xyz)
+        moment = force.new_zeros(B, NUM_JOINTS, 3).scatter_add_(
+            1, part[..., None].expand(-1, -1, 3), force[..., None] * xyz
+        )
         touching = load > 0
         cop = moment / load.clamp(min=1e-12)[..., None]
         new = touching & ~self.anchored

@@ -27,8 +27,7 @@ class Linearised:
     (packed, K per body), their height h, part and (1, x, y), the DoFs' geometry, gravity's
     gradient, the springs and the limits."""
 
-    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None,
-                 springs=()):
+    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None, springs=()):
         # springs: sim.self_contact.LinearSprings (self-contact, friction anchors) added to the energy.
         self.springs = tuple(springs)
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
@@ -52,7 +51,7 @@ class Linearised:
         sub_g = torch.einsum("js,bst->bjt", dofs.desc, gb)  # (B, 24, 3)
         self.g_grav = (dof_a * sub_g[:, dofs.joint]).sum(-1)
         self.e, self.k = e, k
-        self.deeper_ok = (dofs.deeper >= 0)
+        self.deeper_ok = dofs.deeper >= 0
         self.deeper = dofs.deeper.clamp(min=0)
 
     def compression(self, q):
@@ -65,8 +64,12 @@ class Linearised:
     def energy(self, q, mp: MattressParams):
         w = self.compression(q)
         _, _, phi = series_law(w, mp, self.tissue)
-        out = ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
-               + self._limit(q)[0])
+        out = (
+            (self.g_grav * q).sum(1)
+            + 0.5 * (self.k * (self.e + q) ** 2).sum(1)
+            + phi.sum(1) * self.area
+            + self._limit(q)[0]
+        )
         for s in self.springs:
             out = out + s.energy(q)
         return out
@@ -89,13 +92,17 @@ class Linearised:
         f = p * self.area
         c = dp * self.area * (w > 0)
         B = q.shape[0]
-        f_part = q.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, self.part[..., None].expand(-1, -1, 3),
-                                                           f[..., None] * self.cell_basis)
+        f_part = q.new_zeros(B, NUM_JOINTS, 3).scatter_add_(
+            1, self.part[..., None].expand(-1, -1, 3), f[..., None] * self.cell_basis
+        )
         e_lim, g_lim, c_lim = self._limit(q)
-        energy = ((self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area
-                  + e_lim)
-        grad = (self.g_grav + self.k * (self.e + q) + g_lim
-                - torch.einsum("bnt,ns,bst->bn", self.dof_a, self.dof_parts, f_part))
+        energy = (self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area + e_lim
+        grad = (
+            self.g_grav
+            + self.k * (self.e + q)
+            + g_lim
+            - torch.einsum("bnt,ns,bst->bn", self.dof_a, self.dof_parts, f_part)
+        )
         # Hessian from the parts' stiffness moments sum c (1, x, y)(1, x, y)^T, summed over
         # subtrees: H_nl = a_n^T M[overlap(n, l)] a_l.
         outer = (c[..., None, None] * self.basis[..., :, None] * self.basis[..., None, :]).reshape(B, -1, 9)

@@ -65,7 +65,7 @@ class MattressParams:
             if _scalar(getattr(self, name)) <= 0:
                 raise UserError(f"MattressParams.{name} must be > 0, got {getattr(self, name)}")
 
-    def replace(self, **changes) -> "MattressParams":
+    def replace(self, **changes) -> MattressParams:
         return dataclasses.replace(self, **changes)
 
     def foundation_pressure(self, w):
@@ -86,7 +86,7 @@ class MattressParams:
         atomic_write(Path(path), lambda tmp: Path(tmp).write_text(text))
 
     @classmethod
-    def preset(cls, name: str) -> "MattressParams":
+    def preset(cls, name: str) -> MattressParams:
         """A named bed: `PRESETS` (PmatData's mattresses fitted through the articulated sim #2,
         docs/realism.md)."""
         if name not in PRESETS:
@@ -94,7 +94,7 @@ class MattressParams:
         return cls(**PRESETS[name])
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "MattressParams":
+    def load(cls, path: str | os.PathLike) -> MattressParams:
         """A parameter file, or a preset's name (`PRESETS`) when no such file exists."""
         from pressurepose.validate import read_json
 
@@ -103,16 +103,24 @@ class MattressParams:
         path = Path(path)
         if not path.exists():
             raise UserError(f"mattress parameter file {path} does not exist (presets: {', '.join(PRESETS)})")
-        doc = read_json(path, "mattress parameter file",
-                        "; write one with `pressurepose calibrate` or MattressParams.save")
-        if not isinstance(doc, dict) or doc.get("format") != "pressurepose.mattress/1" or not isinstance(doc.get("params"), dict):
-            raise UserError(f"{path} is not a pressurepose mattress parameter file "
-                             "(expected {'format': 'pressurepose.mattress/1', 'params': {...}})")
+        doc = read_json(
+            path, "mattress parameter file", "; write one with `pressurepose calibrate` or MattressParams.save"
+        )
+        if (
+            not isinstance(doc, dict)
+            or doc.get("format") != "pressurepose.mattress/1"
+            or not isinstance(doc.get("params"), dict)
+        ):
+            raise UserError(
+                f"{path} is not a pressurepose mattress parameter file "
+                "(expected {'format': 'pressurepose.mattress/1', 'params': {...}})"
+            )
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(doc["params"]) - known)
         if unknown:
-            raise UserError(f"{path}: unknown mattress parameters {', '.join(unknown)}; "
-                             f"valid ones: {', '.join(sorted(known))}")
+            raise UserError(
+                f"{path}: unknown mattress parameters {', '.join(unknown)}; valid ones: {', '.join(sorted(known))}"
+            )
         return cls(**doc["params"])
 
 

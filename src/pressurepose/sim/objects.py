@@ -16,8 +16,15 @@ from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 
-def capsule_mesh(length_m: float, radius_m: float, centre=(0.0, 0.0, 0.0), n_around: int = 32,
-                 n_cap: int = 8, n_along: int = 16, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+def capsule_mesh(
+    length_m: float,
+    radius_m: float,
+    centre=(0.0, 0.0, 0.0),
+    n_around: int = 32,
+    n_cap: int = 8,
+    n_along: int = 16,
+    dtype=torch.float64,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Closed, outward-oriented triangle mesh of a capsule lying along x: (V, 3), (F, 3)."""
     if not (length_m >= 0 and radius_m > 0):
         raise ValueError(f"capsule needs length >= 0 and radius > 0, got {length_m}, {radius_m}")
@@ -54,9 +61,17 @@ def capsule_mesh(length_m: float, radius_m: float, centre=(0.0, 0.0, 0.0), n_aro
     return v, torch.tensor(faces, dtype=torch.long)
 
 
-def settle_capsule(length_m: float, radius_m: float, mass_kg: float, xy=(0.9, 0.37),
-                   params: MattressParams | None = None, mat: MatSpec | None = None,
-                   timestep_s: float = 0.0103, max_steps: int = 3000, grid_sub: int = 1) -> dict:
+def settle_capsule(
+    length_m: float,
+    radius_m: float,
+    mass_kg: float,
+    xy=(0.9, 0.37),
+    params: MattressParams | None = None,
+    mat: MatSpec | None = None,
+    timestep_s: float = 0.0103,
+    max_steps: int = 3000,
+    grid_sub: int = 1,
+) -> dict:
     """Drop a horizontal rigid capsule (axis along the bed) onto sim #1's mattress and let it
     rest. Returns {"sink_m": deepest compression, "z_m": axis height, "steps", "settled"}."""
     import mujoco
@@ -82,8 +97,18 @@ def settle_capsule(length_m: float, radius_m: float, mass_kg: float, xy=(0.9, 0.
         a = d.xpos[1] + R @ np.array([-length_m / 2, 0, 0])
         b = d.xpos[1] + R @ np.array([length_m / 2, 0, 0])
         d.xfrc_applied[:] = 0
-        res = found.forces(a[None], b[None], np.array([radius_m]), d.cvel[1:2], d.subtree_com[0:1],
-                           d.xipos[1:2], mass, inertia, np.zeros(1, dtype=np.int64), timestep_s)
+        res = found.forces(
+            a[None],
+            b[None],
+            np.array([radius_m]),
+            d.cvel[1:2],
+            d.subtree_com[0:1],
+            d.xipos[1:2],
+            mass,
+            inertia,
+            np.zeros(1, dtype=np.int64),
+            timestep_s,
+        )
         if res is not None:
             ft, _, w, _ = res
             wmax = float(w.max())

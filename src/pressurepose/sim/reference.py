@@ -26,18 +26,28 @@ from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 @dataclasses.dataclass
 class ReferenceResult:
-    pressure_pa: torch.Tensor   # (covered_rows, covered_cols)
+    pressure_pa: torch.Tensor  # (covered_rows, covered_cols)
     force_n: float
     steps: int
     at_rest: bool
     vertices: torch.Tensor
 
 
-def dynamic_reference(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: float,
-                      params: MattressParams | None = None, mat: MatSpec | None = None, sub: int = 2,
-                      dt: float = 1e-3, max_steps: int = 60_000, node_mass_kg: float = 0.05,
-                      contact_stiffness: float = 5.0e3, tol_speed: float = 1e-3,
-                      body_damping: float = 20.0, refresh: int = 5) -> ReferenceResult:
+def dynamic_reference(
+    vertices: torch.Tensor,
+    faces: torch.Tensor,
+    mass_kg: float,
+    params: MattressParams | None = None,
+    mat: MatSpec | None = None,
+    sub: int = 2,
+    dt: float = 1e-3,
+    max_steps: int = 60_000,
+    node_mass_kg: float = 0.05,
+    contact_stiffness: float = 5.0e3,
+    tol_speed: float = 1e-3,
+    body_damping: float = 20.0,
+    refresh: int = 5,
+) -> ReferenceResult:
     """Drop one rigid mesh (V, 3) (float64, mat frame) onto the node grid and run to rest."""
     params = params or MattressParams()
     mat = mat or MatSpec()
@@ -54,7 +64,7 @@ def dynamic_reference(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: floa
     z = -float(underside_height(v0[None], faces, mat, sub=sub).min())
     a = b = 0.0
     vz = va = vb = 0.0
-    w = torch.zeros_like(X)   # node compression (m, down)
+    w = torch.zeros_like(X)  # node compression (m, down)
     wd = torch.zeros_like(X)  # node velocity (down)
     c_contact = 2.0 * (contact_stiffness * node_mass_kg) ** 0.5
     weight = mass_kg * GRAVITY_M_S2
@@ -97,11 +107,18 @@ def dynamic_reference(vertices: torch.Tensor, faces: torch.Tensor, mass_kg: floa
             if still and abs(Fz - weight) < 5e-3 * weight:
                 at_rest = True
                 break
-    spring = (k1 * torch.relu(w) + k3 * torch.relu(w) ** 3)
-    spread = gaussian_spread(spring[None], params.spread_m / (mat.pitch_row_m / sub), params.spread_m / (mat.pitch_col_m / sub))
+    spring = k1 * torch.relu(w) + k3 * torch.relu(w) ** 3
+    spread = gaussian_spread(
+        spring[None], params.spread_m / (mat.pitch_row_m / sub), params.spread_m / (mat.pitch_col_m / sub)
+    )
     pressure = F.avg_pool2d(spread[:, None], sub)[0, 0]
-    return ReferenceResult(pressure_pa=pressure, force_n=float(spring.sum()) * area, steps=steps, at_rest=at_rest,
-                           vertices=_pose(v0, com0, z, a, b))
+    return ReferenceResult(
+        pressure_pa=pressure,
+        force_n=float(spring.sum()) * area,
+        steps=steps,
+        at_rest=at_rest,
+        vertices=_pose(v0, com0, z, a, b),
+    )
 
 
 def _pose(v0, com0, z, a, b):

@@ -35,19 +35,19 @@ if TYPE_CHECKING:
 class SimulatedSamples:
     """B samples after both simulations. Rejected samples carry a reason and zero images."""
 
-    params: BodyParams             # resting pose (sim #1, then sim #2's shift and tilt on the root)
-    vertices: torch.Tensor         # (B, V, 3) mesh at rest, mat frame
-    joints: torch.Tensor           # (B, 24, 3) J24 at rest, mat frame
-    pressure_mmhg: torch.Tensor    # (B, 64, 27) sensor reading
-    depth_mm: torch.Tensor         # (B, 64, 27) Q
-    contact: torch.Tensor          # (B, 64, 27) C
-    mass_kg: torch.Tensor          # (B,)
-    reason: list[str]              # "" = accepted
+    params: BodyParams  # resting pose (sim #1, then sim #2's shift and tilt on the root)
+    vertices: torch.Tensor  # (B, V, 3) mesh at rest, mat frame
+    joints: torch.Tensor  # (B, 24, 3) J24 at rest, mat frame
+    pressure_mmhg: torch.Tensor  # (B, 64, 27) sensor reading
+    depth_mm: torch.Tensor  # (B, 64, 27) Q
+    contact: torch.Tensor  # (B, 64, 27) C
+    mass_kg: torch.Tensor  # (B,)
+    reason: list[str]  # "" = accepted
     settle_steps: np.ndarray
     settle_ms: np.ndarray
-    press_ms: float                # sim #2 wall time for the batch
-    sink_m: np.ndarray             # sim #2 deepest compression
-    head_angle_deg: np.ndarray     # (B,) the bed each sample rests on (0: flat)
+    press_ms: float  # sim #2 wall time for the batch
+    sink_m: np.ndarray  # sim #2 deepest compression
+    head_angle_deg: np.ndarray  # (B,) the bed each sample rests on (0: flat)
 
 
 def settle_config_for(partition: str) -> SettleConfig:
@@ -56,13 +56,18 @@ def settle_config_for(partition: str) -> SettleConfig:
     return SettleConfig(hold_roll_m=get_partition(partition).hold_roll_m)
 
 
-def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
-                   mat: MatSpec | None = None, seed: int = 0,
-                   bed: BedShape | Sequence[BedShape] | None = None,
-                   settle_config: SettleConfig | None = None,
-                   settle: Literal["mujoco", "articulated", "none"] = "mujoco",
-                   sim2: Literal["rigid", "articulated"] = "rigid",
-                   articulated: ArticulatedConfig | None = None) -> SimulatedSamples:
+def simulate_poses(
+    model: BodyModel,
+    params: BodyParams,
+    mattress: MattressParams | None = None,
+    mat: MatSpec | None = None,
+    seed: int = 0,
+    bed: BedShape | Sequence[BedShape] | None = None,
+    settle_config: SettleConfig | None = None,
+    settle: Literal["mujoco", "articulated", "none"] = "mujoco",
+    sim2: Literal["rigid", "articulated"] = "rigid",
+    articulated: ArticulatedConfig | None = None,
+) -> SimulatedSamples:
     """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses on a flat bed,
     a bent one (`bed`), or one bed per sample (a sequence of B, e.g. `InitialPoses.beds()`:
     samples on the same bed are simulated together, results come back in input order).
@@ -74,8 +79,10 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
     and its field is the image, whatever `sim2` says; raised beds fall back to MuJoCo and the
     rigid rest."""
     if settle not in ("mujoco", "articulated", "none") or sim2 not in ("rigid", "articulated"):
-        raise ValueError(f"settle must be 'mujoco', 'articulated' or 'none' and sim2 'rigid' or 'articulated', "
-                         f"got {settle!r}, {sim2!r}")
+        raise ValueError(
+            f"settle must be 'mujoco', 'articulated' or 'none' and sim2 'rigid' or 'articulated', "
+            f"got {settle!r}, {sim2!r}"
+        )
     options = {"settle": settle, "sim2": sim2, "articulated": articulated}
     mattress = mattress or MattressParams()
     mat = mat or MatSpec()
@@ -83,8 +90,9 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
         return _simulate_one_bed(model, params, mattress, mat, seed, bed or BedShape(), settle_config, **options)
     beds = list(bed)
     if len(beds) != params.batch_size or not all(isinstance(b, BedShape) for b in beds):
-        raise UserError(f"bed must be one BedShape or a sequence of {params.batch_size} (one per sample), "
-                         f"got {len(beds)} items")
+        raise UserError(
+            f"bed must be one BedShape or a sequence of {params.batch_size} (one per sample), got {len(beds)} items"
+        )
     groups: dict[BedShape, list[int]] = {}
     for i, b in enumerate(beds):
         groups.setdefault(b, []).append(i)
@@ -92,8 +100,11 @@ def simulate_poses(model: BodyModel, params: BodyParams, mattress: MattressParam
         return _simulate_one_bed(model, params, mattress, mat, seed, beds[0], settle_config, **options)
     parts, order = [], []
     for k, (b, rows) in enumerate(groups.items()):
-        parts.append(_simulate_one_bed(model, params.index(torch.tensor(rows)), mattress, mat, seed + 7919 * k, b,
-                                       settle_config, **options))
+        parts.append(
+            _simulate_one_bed(
+                model, params.index(torch.tensor(rows)), mattress, mat, seed + 7919 * k, b, settle_config, **options
+            )
+        )
         order += rows
     back = torch.from_numpy(np.argsort(np.array(order)))
     return _concat(parts, back)
@@ -107,16 +118,34 @@ def _concat(parts: list[SimulatedSamples], back: torch.Tensor) -> SimulatedSampl
     params = BodyParams.cat([p.params for p in parts]).index(back)
     reason = [r for p in parts for r in p.reason]
     return SimulatedSamples(
-        params=params, vertices=cat_t("vertices"), joints=cat_t("joints"), pressure_mmhg=cat_t("pressure_mmhg"),
-        depth_mm=cat_t("depth_mm"), contact=cat_t("contact"), mass_kg=cat_t("mass_kg"),
-        reason=[reason[i] for i in back.tolist()], settle_steps=cat_n("settle_steps"), settle_ms=cat_n("settle_ms"),
-        press_ms=sum(p.press_ms for p in parts), sink_m=cat_n("sink_m"), head_angle_deg=cat_n("head_angle_deg"),
+        params=params,
+        vertices=cat_t("vertices"),
+        joints=cat_t("joints"),
+        pressure_mmhg=cat_t("pressure_mmhg"),
+        depth_mm=cat_t("depth_mm"),
+        contact=cat_t("contact"),
+        mass_kg=cat_t("mass_kg"),
+        reason=[reason[i] for i in back.tolist()],
+        settle_steps=cat_n("settle_steps"),
+        settle_ms=cat_n("settle_ms"),
+        press_ms=sum(p.press_ms for p in parts),
+        sink_m=cat_n("sink_m"),
+        head_angle_deg=cat_n("head_angle_deg"),
     )
 
 
-def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressParams, mat: MatSpec,
-                      seed: int, bed: BedShape, settle_config: SettleConfig | None = None, settle: str = "mujoco",
-                      sim2: str = "rigid", articulated: ArticulatedConfig | None = None) -> SimulatedSamples:
+def _simulate_one_bed(
+    model: BodyModel,
+    params: BodyParams,
+    mattress: MattressParams,
+    mat: MatSpec,
+    seed: int,
+    bed: BedShape,
+    settle_config: SettleConfig | None = None,
+    settle: str = "mujoco",
+    sim2: str = "rigid",
+    articulated: ArticulatedConfig | None = None,
+) -> SimulatedSamples:
 
     model64 = as_float64(model)
     B = params.batch_size
@@ -126,14 +155,23 @@ def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressPa
         settled = settle_bodies(model64, params, mattress, mat, config=settle_config, bed=bed)
         rest, reason1, steps, settle_ms = settled.params, settled.reason, settled.steps, settled.wall_ms
     else:
-        rest, reason1, steps, settle_ms = params.to(dtype=torch.float64), [""] * B, np.zeros(B, dtype=np.int64), np.zeros(B)
+        rest, reason1, steps, settle_ms = (
+            params.to(dtype=torch.float64),
+            [""] * B,
+            np.zeros(B, dtype=np.int64),
+            np.zeros(B),
+        )
     mass = model64.measure(rest.shape).mass_kg
     t0 = time.perf_counter()
     if sim2 == "articulated" and bed.flat:  # raised beds keep the rigid rest (docs/physics.md)
         from pressurepose.sim.articulated import rest_articulated
 
         art = rest_articulated(model64, rest, mass, mattress, mat, articulated)
-        pressure_pa, failure2, sink = taxel_pressure(art.foundation_pa, mattress, mat, art.sub), art.failure, art.max_compression_m
+        pressure_pa, failure2, sink = (
+            taxel_pressure(art.foundation_pa, mattress, mat, art.sub),
+            art.failure,
+            art.max_compression_m,
+        )
         shifted, vertices, joints = art.params, art.vertices, art.joints
     else:
         out = model64(rest)
@@ -148,14 +186,22 @@ def _simulate_one_bed(model: BodyModel, params: BodyParams, mattress: MattressPa
     gen = torch.Generator().manual_seed(seed)
     reading = taxel_reading(sensing_area(pressure_pa, mat).detach(), mattress, mat, generator=gen)
     depth, contact = label_maps(vertices.detach(), model64.faces, mat, bed)
-    reason = [f"sim #1: {r1}" if r1 else (f"sim #2: {r2}" if r2 else "")
-              for r1, r2 in zip(reason1, failure2)]
+    reason = [f"sim #1: {r1}" if r1 else (f"sim #2: {r2}" if r2 else "") for r1, r2 in zip(reason1, failure2)]
     bad = torch.tensor([bool(r) for r in reason])
     reading = torch.where(bad[:, None, None], torch.zeros_like(reading), reading)
     return SimulatedSamples(
-        params=shifted, vertices=vertices.detach(), joints=joints.detach(), pressure_mmhg=reading,
-        depth_mm=depth, contact=contact, mass_kg=mass, reason=reason, settle_steps=steps,
-        settle_ms=settle_ms, press_ms=press_ms, sink_m=sink.detach().numpy(),
+        params=shifted,
+        vertices=vertices.detach(),
+        joints=joints.detach(),
+        pressure_mmhg=reading,
+        depth_mm=depth,
+        contact=contact,
+        mass_kg=mass,
+        reason=reason,
+        settle_steps=steps,
+        settle_ms=settle_ms,
+        press_ms=press_ms,
+        sink_m=sink.detach().numpy(),
         head_angle_deg=np.full(params.batch_size, float(bed.head_angle_deg)),
     )
 

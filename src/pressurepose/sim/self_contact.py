@@ -63,9 +63,9 @@ class LinearSprings:
         return 0.5 * (k * pen**2).sum(1), grad, hess
 
 
-
-def closest_points(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
+def closest_points(
+    p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Closest points (..., 3) x 2 of segments [p1, q1] and [p2, q2] (clamped line
     parameters, Ericson's Real-Time Collision Detection 5.1.9); point-like segments work."""
     eps = 1e-12
@@ -75,9 +75,11 @@ def closest_points(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: tor
     safe_a = torch.where(a > eps, a, torch.ones_like(a))
     safe_e = torch.where(e > eps, e, torch.ones_like(e))
     denom = a * e - b * b
-    s = torch.where(denom > eps * (a * e + 1.0),
-                    ((b * f - c * e) / torch.where(denom > 0, denom, torch.ones_like(denom))).clamp(0, 1),
-                    torch.zeros_like(a))
+    s = torch.where(
+        denom > eps * (a * e + 1.0),
+        ((b * f - c * e) / torch.where(denom > 0, denom, torch.ones_like(denom))).clamp(0, 1),
+        torch.zeros_like(a),
+    )
     t = (b * s + f) / safe_e
     s = torch.where(t < 0, (-c / safe_a).clamp(0, 1), torch.where(t > 1, ((b - c) / safe_a).clamp(0, 1), s))
     t = t.clamp(0, 1)
@@ -92,8 +94,14 @@ def closest_points(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: tor
 class SelfContact:
     """The capsule pairs of B bodies that self-contact keeps apart (module doc)."""
 
-    def __init__(self, caps: Capsules, rot: torch.Tensor, joints: torch.Tensor, weight_n: torch.Tensor,
-                 sink_m: float = SELF_CONTACT_SINK_M):
+    def __init__(
+        self,
+        caps: Capsules,
+        rot: torch.Tensor,
+        joints: torch.Tensor,
+        weight_n: torch.Tensor,
+        sink_m: float = SELF_CONTACT_SINK_M,
+    ):
         """caps: the bodies' capsules; rot, joints: the starting pose's world rotations (B, 24, 3,
         3) and joint positions (B, 24, 3); weight_n (B,)."""
         self.caps = caps

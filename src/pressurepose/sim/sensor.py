@@ -20,8 +20,12 @@ from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
 
 
-def taxel_reading(pressure_pa: torch.Tensor, params: MattressParams | None = None,
-                  mat: MatSpec | None = None, generator: torch.Generator | None = None) -> torch.Tensor:
+def taxel_reading(
+    pressure_pa: torch.Tensor,
+    params: MattressParams | None = None,
+    mat: MatSpec | None = None,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
     """(B, R, C) pressure in Pa -> (B, R, C) readings in mmHg in [0, max_pressure_mmhg].
 
     Negative or non-finite pressures are a caller error (ValueError)."""
@@ -50,8 +54,9 @@ def sensing_area(covered: torch.Tensor, mat: MatSpec | None = None) -> torch.Ten
     return covered[..., rs, cs]
 
 
-def label_maps(vertices: torch.Tensor, faces: torch.Tensor, mat: MatSpec | None = None,
-               bed: BedShape | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def label_maps(
+    vertices: torch.Tensor, faces: torch.Tensor, mat: MatSpec | None = None, bed: BedShape | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Depth map Q (mm, (B, rows, cols)) and contact map C of meshes at rest (world frame).
     On a bent bed, heights are measured along the mattress normal in surface coordinates
     (the mat follows the mattress)."""

@@ -50,18 +50,27 @@ import time
 import numpy as np
 import torch
 
+from pressurepose.bed import BedShape
 from pressurepose.body.capsules import (
-    CAPSULE_JOINTS, CAPSULE_NAMES, CAPSULE_PARENTS, HINGE_JOINTS, CapsuleBody, build_capsule_body,
-    collision_pairs, segment_distance,
+    CAPSULE_JOINTS,
+    CAPSULE_NAMES,
+    CAPSULE_PARENTS,
+    HINGE_JOINTS,
+    CapsuleBody,
+    build_capsule_body,
+    collision_pairs,
+    segment_distance,
 )
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import R_SUPINE, BodyParams, root_matrix
 from pressurepose.body.rotations import (
-    axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_quaternion, quaternion_to_axis_angle,
+    axis_angle_to_matrix,
+    matrix_to_axis_angle,
+    matrix_to_quaternion,
+    quaternion_to_axis_angle,
 )
 from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
-from pressurepose.bed import BedShape
 from pressurepose.sim.fixed_order import atan2_each, matvec3, sq_norm3, sum_last
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
@@ -95,7 +104,7 @@ class SettleConfig:
     accel_tol_m_s2: float = 0.5
     drop_height_m: float = 0.02
     min_steps_after_touch: int = 8
-    grid_sub: int = 1   # foundation nodes per taxel side (sim #1's grid)
+    grid_sub: int = 1  # foundation nodes per taxel side (sim #1's grid)
     # Trunk roll held (0: off, the seed's passive body): a torque about the bed's long axis
     # on the trunk capsules pulls the pelvis's roll back to its initial value, stiffness
     # hold_roll_m x the body's weight (N m/rad), damping that stiffness x hold_time_s - the
@@ -122,14 +131,14 @@ class SettleResult:
     their last state there and carry a reason."""
 
     params: BodyParams
-    ok: np.ndarray            # (B,) bool
-    reason: list[str]         # (B,) "" when settled
-    steps: np.ndarray         # (B,) steps simulated
-    touch_step: np.ndarray    # (B,) step the pelvis touched (-1: never)
-    max_speed: np.ndarray     # (B,) at the end, m/s
-    max_accel: np.ndarray     # (B,) at the end, m/s^2
-    sink_m: np.ndarray        # (B,) deepest foundation compression at the end
-    wall_ms: np.ndarray       # (B,) time taken
+    ok: np.ndarray  # (B,) bool
+    reason: list[str]  # (B,) "" when settled
+    steps: np.ndarray  # (B,) steps simulated
+    touch_step: np.ndarray  # (B,) step the pelvis touched (-1: never)
+    max_speed: np.ndarray  # (B,) at the end, m/s
+    max_accel: np.ndarray  # (B,) at the end, m/s^2
+    sink_m: np.ndarray  # (B,) deepest foundation compression at the end
+    wall_ms: np.ndarray  # (B,) time taken
 
 
 # --- MJCF -----------------------------------------------------------------------------------
@@ -137,8 +146,9 @@ def _fmt(v) -> str:
     return " ".join(f"{x:.9g}" for x in np.ravel(v).tolist())
 
 
-def _walls(mat: MatSpec, bed: BedShape | None = None, top_m: float = -0.03, depth_m: float = 1.0,
-           thick_m: float = 0.2) -> str:
+def _walls(
+    mat: MatSpec, bed: BedShape | None = None, top_m: float = -0.03, depth_m: float = 1.0, thick_m: float = 0.2
+) -> str:
     """The mattress's sides as MuJoCo boxes (the top is the foundation law): a limb hanging
     over the edge rests against the side instead of swinging in under the mattress top. On a
     bent bed each section has its own side walls (and end wall), in the section's frame."""
@@ -150,8 +160,10 @@ def _walls(mat: MatSpec, bed: BedShape | None = None, top_m: float = -0.03, dept
     lines = []
     for k, (R, s0, s1) in enumerate(bed.sections(mat)):
         a, b = max(x0, s0), min(x1, s1)
-        boxes = [((a + b) / 2, y0 - thick_m / 2, (b - a) / 2, thick_m / 2),
-                 ((a + b) / 2, y1 + thick_m / 2, (b - a) / 2, thick_m / 2)]
+        boxes = [
+            ((a + b) / 2, y0 - thick_m / 2, (b - a) / 2, thick_m / 2),
+            ((a + b) / 2, y1 + thick_m / 2, (b - a) / 2, thick_m / 2),
+        ]
         if a == x0:
             boxes.append((x0 - thick_m / 2, (y0 + y1) / 2, thick_m / 2, (y1 - y0) / 2 + thick_m))
         if b == x1:
@@ -159,13 +171,21 @@ def _walls(mat: MatSpec, bed: BedShape | None = None, top_m: float = -0.03, dept
         quat = _quat(torch.from_numpy(R))
         for j, (cx, cy, hx, hy) in enumerate(boxes):
             pos = hinge + R @ (np.array([cx, cy, zc]) - hinge)
-            lines.append(f'    <geom name="side{k}_{j}" type="box" pos="{_fmt(pos)}" quat="{_fmt(quat)}" '
-                         f'size="{hx:.6g} {hy:.6g} {hz:.6g}" contype="1" conaffinity="0"/>')
+            lines.append(
+                f'    <geom name="side{k}_{j}" type="box" pos="{_fmt(pos)}" quat="{_fmt(quat)}" '
+                f'size="{hx:.6g} {hy:.6g} {hz:.6g}" contype="1" conaffinity="0"/>'
+            )
     return "\n".join(lines)
 
 
-def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tuple[int, int]] = (),
-               mat: MatSpec | None = None, bed: BedShape | None = None) -> str:
+def build_mjcf(
+    body: CapsuleBody,
+    i: int,
+    config: SettleConfig,
+    pairs: list[tuple[int, int]] = (),
+    mat: MatSpec | None = None,
+    bed: BedShape | None = None,
+) -> str:
     """MJCF of capsule body `i` of `body` in its T-pose (body axes), free root; with `mat`,
     the mattress sides as walls."""
     caps = body.capsules
@@ -206,16 +226,23 @@ def build_mjcf(body: CapsuleBody, i: int, config: SettleConfig, pairs: list[tupl
         if p < 0:
             lines.append(f'{indent}  <freejoint name="root"/>')
         elif j in HINGE_JOINTS:
-            lines.append(f'{indent}  <joint name="j{j}" type="hinge" axis="{_fmt(HINGE_JOINTS[j])}" '
-                         f'stiffness="{stiff[j - 1]:.9g}" damping="{damp[j - 1]:.9g}" springref="0"/>')
+            lines.append(
+                f'{indent}  <joint name="j{j}" type="hinge" axis="{_fmt(HINGE_JOINTS[j])}" '
+                f'stiffness="{stiff[j - 1]:.9g}" damping="{damp[j - 1]:.9g}" springref="0"/>'
+            )
         else:
-            lines.append(f'{indent}  <joint name="j{j}" type="ball" stiffness="{stiff[j - 1]:.9g}" '
-                         f'damping="{damp[j - 1]:.9g}"/>')
+            lines.append(
+                f'{indent}  <joint name="j{j}" type="ball" stiffness="{stiff[j - 1]:.9g}" damping="{damp[j - 1]:.9g}"/>'
+            )
         lines.append(f'{indent}  <inertial pos="{_fmt((a + b) / 2)}" mass="{mass[c]:.9g}" fullinertia="{_fmt(full)}"/>')
         if length[c] > 1e-9:
-            lines.append(f'{indent}  <geom name="{CAPSULE_NAMES[c]}" type="capsule" size="{radius[c]:.9g}" fromto="{_fmt(np.concatenate([a, b]))}"/>')
+            lines.append(
+                f'{indent}  <geom name="{CAPSULE_NAMES[c]}" type="capsule" size="{radius[c]:.9g}" fromto="{_fmt(np.concatenate([a, b]))}"/>'
+            )
         else:
-            lines.append(f'{indent}  <geom name="{CAPSULE_NAMES[c]}" type="sphere" size="{radius[c]:.9g}" pos="{_fmt(a)}"/>')
+            lines.append(
+                f'{indent}  <geom name="{CAPSULE_NAMES[c]}" type="sphere" size="{radius[c]:.9g}" pos="{_fmt(a)}"/>'
+            )
         for ch in children.get(c, []):
             lines.append(body_xml(ch, indent + "  "))
         lines.append(f"{indent}</body>")
@@ -370,8 +397,9 @@ class CapsuleFoundation:
             return None
         return total, np.concatenate(caps), np.concatenate(ws), np.concatenate(es)
 
-    def _forces_local(self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float,
-                      s_range=(-math.inf, math.inf), stick=None):
+    def _forces_local(
+        self, a, b, r, body_vel, com, xipos, mass, inertia, offset, dt: float, s_range=(-math.inf, math.inf), stick=None
+    ):
         """Mattress forces on C capsules in a frame where the (section's) top is z = 0.
 
         a, b: (C, 3) axis ends; r: (C,); body_vel: (C, 6) angular and linear velocity of
@@ -470,9 +498,14 @@ class CapsuleFoundation:
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (N, 3) arrays (np.cross is slow on small arrays)."""
-    return np.stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1],
-                     u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
-                     u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]], 1)
+    return np.stack(
+        [
+            u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1],
+            u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+            u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0],
+        ],
+        1,
+    )
 
 
 def _axis_angle_quats(v: np.ndarray) -> np.ndarray:
@@ -512,9 +545,17 @@ def initial_pairs(body: CapsuleBody, params: BodyParams) -> list[list[tuple[int,
 class _Episode:
     """One capsule body in MuJoCo: built, dropped, stepped until it rests or is rejected."""
 
-    def __init__(self, body: CapsuleBody, i: int, params: BodyParams, mattress: MattressParams,
-                 mat: MatSpec, config: SettleConfig, bed: BedShape | None = None,
-                 pairs: list[tuple[int, int]] = ()):
+    def __init__(
+        self,
+        body: CapsuleBody,
+        i: int,
+        params: BodyParams,
+        mattress: MattressParams,
+        mat: MatSpec,
+        config: SettleConfig,
+        bed: BedShape | None = None,
+        pairs: list[tuple[int, int]] = (),
+    ):
         import mujoco
 
         self.mj, self.config, self.mattress = mujoco, config, mattress
@@ -555,7 +596,7 @@ class _Episode:
             mujoco.mj_forward(m, d)
             a, b = self.ends()
             n = self.bed.to_surface(torch.from_numpy(np.concatenate([a, b])), mat)[:, 2].numpy()
-            lift = config.drop_height_m - float((np.minimum(n[: len(a)], n[len(a):]) - self.radius).min())
+            lift = config.drop_height_m - float((np.minimum(n[: len(a)], n[len(a) :]) - self.radius).min())
             d.qpos[2] += lift
             if abs(lift) < 1e-9:
                 break
@@ -601,12 +642,20 @@ class _Pool:
     (`mujoco.batch.Batch` steps the same way in C, but measured ~40% slower per body-step
     here: it loads and saves each simulation's state around every call.)"""
 
-    def __init__(self, make, n: int, mat: MatSpec, config: SettleConfig, mattress: MattressParams,
-                 bed: BedShape | None, size: int):
+    def __init__(
+        self,
+        make,
+        n: int,
+        mat: MatSpec,
+        config: SettleConfig,
+        mattress: MattressParams,
+        bed: BedShape | None,
+        size: int,
+    ):
         import mujoco
 
         self.mj, self.config = mujoco, config
-        self.make = make                          # episode index -> _Episode (built when started)
+        self.make = make  # episode index -> _Episode (built when started)
         self.eps: list[_Episode | None] = [None] * n
         self.P = size
         self.C = len(CAPSULE_NAMES)
@@ -614,8 +663,8 @@ class _Pool:
         self.n_nodes = self.found.nr * self.found.nc
         self.body_ids = None
         P, C = size, self.C
-        self.ep = np.full(P, -1)                  # episode in each slot (-1: free)
-        self.step = np.zeros(P, dtype=np.int64)   # steps this slot's body has taken
+        self.ep = np.full(P, -1)  # episode in each slot (-1: free)
+        self.step = np.zeros(P, dtype=np.int64)  # steps this slot's body has taken
         self.touched = np.full(P, -1)
         self.prev_v = np.zeros((P, C, 3))
         self.e_ref = np.full(P, np.nan)
@@ -640,8 +689,18 @@ class _Pool:
             self.loc_a[s], self.loc_b[s] = ep.loc_a, ep.loc_b
             self.weight[s] = ep.mass * GRAVITY_M_S2
             d = ep.data
-            self.slot[s] = (ep.model, d, d.cvel, d.xipos, d.subtree_com[0], d.xmat, d.xpos, d.energy,
-                            d.xfrc_applied, d.qvel)
+            self.slot[s] = (
+                ep.model,
+                d,
+                d.cvel,
+                d.xipos,
+                d.subtree_com[0],
+                d.xmat,
+                d.xpos,
+                d.energy,
+                d.xfrc_applied,
+                d.qvel,
+            )
             self.roll0[s] = d.xmat[ep.body_ids[PELVIS]].reshape(3, 3)
         self.step[slots] = 0
         self.touched[slots] = -1
@@ -652,8 +711,15 @@ class _Pool:
         self.stick[:, slots] = 0.0
 
 
-def _run_batch(make, n: int, mat: MatSpec, config: SettleConfig, mattress: MattressParams,
-               bed: BedShape | None = None, pool: int = 16) -> list[dict]:
+def _run_batch(
+    make,
+    n: int,
+    mat: MatSpec,
+    config: SettleConfig,
+    mattress: MattressParams,
+    bed: BedShape | None = None,
+    pool: int = 16,
+) -> list[dict]:
     """Settle episodes 0..n-1 (`make(k)` builds episode k) `pool` at a time (see `_Pool`);
     an episode is built when a slot takes it and released when it is done, so memory is
     bounded by the pool. Returns per episode its statistics and its resting parameters
@@ -661,8 +727,10 @@ def _run_batch(make, n: int, mat: MatSpec, config: SettleConfig, mattress: Mattr
     dt = config.timestep_s
     every = max(1, round(config.zero_velocity_every_s / dt))
     thickness = float(mattress.thickness_m)
-    out = [dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0, wall_ms=0.0,
-                rest=None) for _ in range(n)]
+    out = [
+        dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0, wall_ms=0.0, rest=None)
+        for _ in range(n)
+    ]
     t0 = time.perf_counter()
     if n:
         p = _Pool(make, n, mat, config, mattress, bed, min(pool, n))
@@ -730,9 +798,9 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
         slots = [p.slot[s] for s in ids]
         for sl in slots:
             mj.mj_step1(sl[0], sl[1])
-        cv = np.array([sl[2] for sl in slots])[:, ids_body]        # (n, C, 6)
-        xipos = np.array([sl[3] for sl in slots])[:, ids_body]     # (n, C, 3)
-        com = np.array([sl[4] for sl in slots])                    # (n, 3)
+        cv = np.array([sl[2] for sl in slots])[:, ids_body]  # (n, C, 6)
+        xipos = np.array([sl[3] for sl in slots])[:, ids_body]  # (n, C, 3)
+        com = np.array([sl[4] for sl in slots])  # (n, 3)
         finite = np.isfinite(cv).all((1, 2)) & np.isfinite(xipos).all((1, 2))
         if not finite.all():
             finish(ids[~finite], REASON_NONFINITE, keep_state=False)
@@ -740,9 +808,14 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
             slots = [sl for sl, f in zip(slots, finite) if f]
         rel = xipos - com[:, None]
         om = cv[..., :3]
-        v = cv[..., 3:] + np.stack([om[..., 1] * rel[..., 2] - om[..., 2] * rel[..., 1],
-                                    om[..., 2] * rel[..., 0] - om[..., 0] * rel[..., 2],
-                                    om[..., 0] * rel[..., 1] - om[..., 1] * rel[..., 0]], -1)
+        v = cv[..., 3:] + np.stack(
+            [
+                om[..., 1] * rel[..., 2] - om[..., 2] * rel[..., 1],
+                om[..., 2] * rel[..., 0] - om[..., 0] * rel[..., 2],
+                om[..., 0] * rel[..., 1] - om[..., 1] * rel[..., 0],
+            ],
+            -1,
+        )
         has_prev = p.step[ids] > 0
         speed = np.sqrt(sq_norm3(v)).max(1)
         accel = np.sqrt(sq_norm3(v - p.prev_v[ids])).max(1) / dt
@@ -750,8 +823,12 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
         p.accel[ids] = np.where(has_prev, accel, p.accel[ids])
         p.prev_v[ids] = v
         t = p.touched[ids]
-        rest = ((t >= 0) & (p.step[ids] - t >= config.min_steps_after_touch)
-                & (p.speed[ids] < config.speed_tol_m_s) & (p.accel[ids] < config.accel_tol_m_s2))
+        rest = (
+            (t >= 0)
+            & (p.step[ids] - t >= config.min_steps_after_touch)
+            & (p.speed[ids] < config.speed_tol_m_s)
+            & (p.accel[ids] < config.accel_tol_m_s2)
+        )
         if rest.any():
             finish(ids[rest], "")
             keep = ~rest
@@ -768,8 +845,19 @@ def _drive(p: _Pool, queue: list[int], out: list[dict], every: int, thickness: f
         b = (pos + matvec3(R, p.loc_b[ids])).reshape(-1, 3)
         offset = np.repeat(np.arange(n) * p.n_nodes, C)
         stick = p.stick[:, ids].reshape(-1, n * C, 2)
-        res = found.forces(a, b, p.radius[ids].ravel(), cv.reshape(-1, 6), np.repeat(com, C, axis=0),
-                           xipos.reshape(-1, 3), p.mass[ids].ravel(), p.inertia[ids].ravel(), offset, dt, stick)
+        res = found.forces(
+            a,
+            b,
+            p.radius[ids].ravel(),
+            cv.reshape(-1, 6),
+            np.repeat(com, C, axis=0),
+            xipos.reshape(-1, 3),
+            p.mass[ids].ravel(),
+            p.inertia[ids].ravel(),
+            offset,
+            dt,
+            stick,
+        )
         p.stick[:, ids] = stick.reshape(-1, n, C, 2)
         if res is None:
             ft = np.zeros((n * C, 6))
@@ -822,6 +910,7 @@ def _hold_roll(ft, R, R0, cv, mass, weight, config: SettleConfig):
     the bed's long axis (x) added on the trunk capsules, shared by mass (in place), and the
     hold's spring energy (n,), which the energy check counts as the mattress's. R: (n, 3, 3) the pelvis's
     orientation now, R0 at the drop; cv: (n, C, 6) capsule velocities (angular first)."""
+
     def E(i, j):  # (R R0^T)[i, j]: the rotation since the drop (world frame)
         return R[:, i, 0] * R0[:, j, 0] + R[:, i, 1] * R0[:, j, 1] + R[:, i, 2] * R0[:, j, 2]
 
@@ -849,9 +938,16 @@ def _quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     return axis_angle_to_matrix(quaternion_to_axis_angle(q))
 
 
-def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None = None,
-           mat: MatSpec | None = None, config: SettleConfig | None = None,
-           body: CapsuleBody | None = None, batch: int = 16, bed: BedShape | None = None) -> SettleResult:
+def settle(
+    model: BodyModel,
+    params: BodyParams,
+    mattress: MattressParams | None = None,
+    mat: MatSpec | None = None,
+    config: SettleConfig | None = None,
+    body: CapsuleBody | None = None,
+    batch: int = 16,
+    bed: BedShape | None = None,
+) -> SettleResult:
     """Settle B initial poses (BodyParams, mat frame) onto the mattress: one MuJoCo model per
     body, `batch` of them stepped together. A body's result depends on its own initial pose,
     shape (or capsule body) and bed only - not on `batch`, its slot or the other bodies - bit
@@ -881,8 +977,15 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
     stats = {k: np.zeros(B) for k in ("steps", "touch_step", "max_speed", "max_accel", "sink", "wall_ms")}
     reasons = []
     pairs = initial_pairs(body, params) if B else []
-    outs = _run_batch(lambda i: _Episode(body, i, params, mattress, mat, config, bed, pairs[i]), B, mat,
-                      config, mattress, bed, pool=batch)
+    outs = _run_batch(
+        lambda i: _Episode(body, i, params, mattress, mat, config, bed, pairs[i]),
+        B,
+        mat,
+        config,
+        mattress,
+        bed,
+        pool=batch,
+    )
     for i, o in enumerate(outs):
         reasons.append(o["reason"])
         for k in stats:
@@ -891,9 +994,14 @@ def settle(model: BodyModel, params: BodyParams, mattress: MattressParams | None
             root_rot[i], root_t[i], pose[i] = o["rest"]
     return SettleResult(
         params=params.replace(root_rotation=root_rot, root_translation=root_t, pose=pose),
-        ok=np.array([not r for r in reasons]), reason=reasons, steps=stats["steps"].astype(int),
-        touch_step=stats["touch_step"].astype(int), max_speed=stats["max_speed"],
-        max_accel=stats["max_accel"], sink_m=stats["sink"], wall_ms=stats["wall_ms"],
+        ok=np.array([not r for r in reasons]),
+        reason=reasons,
+        steps=stats["steps"].astype(int),
+        touch_step=stats["touch_step"].astype(int),
+        max_speed=stats["max_speed"],
+        max_accel=stats["max_accel"],
+        sink_m=stats["sink"],
+        wall_ms=stats["wall_ms"],
     )
 
 

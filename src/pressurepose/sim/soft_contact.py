@@ -10,7 +10,9 @@ from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import MattressParams
 
 
-def lowest_points(points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int, values: torch.Tensor | None = None):
+def lowest_points(
+    points: torch.Tensor, labels: torch.Tensor, mat: MatSpec, sub: int, values: torch.Tensor | None = None
+):
     """Lowest point height (B, C) and its part (B, C) per covered grid cell (flattened);
     cells with no point hold EMPTY_HEIGHT_M and part 0. With `values` (B, P), also the lowest
     point's value per cell (else None)."""

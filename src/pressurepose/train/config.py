@@ -132,8 +132,9 @@ class TrainConfig:
         if not self.lr > 0 or self.weight_decay < 0:
             raise UserError(f"lr must be > 0 and weight_decay >= 0, got {self.lr}, {self.weight_decay}")
         if not (0 <= self.shift_rows < 64 and 0 <= self.shift_cols < 27):
-            raise UserError(f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, "
-                             f"{self.shift_cols}")
+            raise UserError(
+                f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, {self.shift_cols}"
+            )
         for name in ("mirror", "repress", "bands"):
             if not 0 <= getattr(self, name) <= 1:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")

@@ -24,10 +24,31 @@ import torch
 
 from pressurepose.errors import UserError
 
-KEYS = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose", "joints",
-        "gender", "mass_kg", "height_m")
-SHAPES = {"pressure_mmhg": (64, 27), "depth_mm": (64, 27), "contact": (64, 27), "root_rotation": (3,),
-          "root_translation": (3,), "pose": (23, 3), "joints": (24, 3), "gender": (), "mass_kg": (), "height_m": ()}
+KEYS = (
+    "pressure_mmhg",
+    "depth_mm",
+    "contact",
+    "shape",
+    "root_rotation",
+    "root_translation",
+    "pose",
+    "joints",
+    "gender",
+    "mass_kg",
+    "height_m",
+)
+SHAPES = {
+    "pressure_mmhg": (64, 27),
+    "depth_mm": (64, 27),
+    "contact": (64, 27),
+    "root_rotation": (3,),
+    "root_translation": (3,),
+    "pose": (23, 3),
+    "joints": (24, 3),
+    "gender": (),
+    "mass_kg": (),
+    "height_m": (),
+}
 GENDER_VALUE = {"female": 1.0, "male": 0.0}
 
 
@@ -102,7 +123,9 @@ class NpzDataset(TensorDictDataset):
         super().__init__(arrays)
 
 
-def open_dataset(root: str | Path, split: str = "train", extra_columns: tuple[str, ...] = ()) -> torch.utils.data.Dataset:
+def open_dataset(
+    root: str | Path, split: str = "train", extra_columns: tuple[str, ...] = ()
+) -> torch.utils.data.Dataset:
     """The training samples under `root`: generated shards (manifest.json) or *.npz files.
     `extra_columns`: further shard columns to load (e.g. "partition"; .npz files have none)."""
     root = Path(root)
@@ -114,25 +137,43 @@ def open_dataset(root: str | Path, split: str = "train", extra_columns: tuple[st
         try:
             from pressurepose.data.dataset import PressurePoseDataset
         except ImportError:
-            raise UserError(f"{root} holds dataset shards, but this install cannot read them "
-                             "(pressurepose.data.dataset missing)") from None
-        columns = ("pressure_mmhg", "depth_mm", "contact", "shape", "root_rotation", "root_translation", "pose",
-                   "joints_m", "gender", "mass_kg", "height_m") + tuple(extra_columns)
+            raise UserError(
+                f"{root} holds dataset shards, but this install cannot read them (pressurepose.data.dataset missing)"
+            ) from None
+        columns = (
+            "pressure_mmhg",
+            "depth_mm",
+            "contact",
+            "shape",
+            "root_rotation",
+            "root_translation",
+            "pose",
+            "joints_m",
+            "gender",
+            "mass_kg",
+            "height_m",
+        ) + tuple(extra_columns)
         return PressurePoseDataset(root, split=split, columns=columns)
     sets = [NpzDataset(f) for f in sorted(root.glob("*.npz"))]
     if not sets:
         # A folder of dataset folders (e.g. links to a generated set and a partition made apart):
         # all of them, in name order.
-        sets = [open_dataset(d, split, extra_columns) for d in sorted(root.iterdir())
-                if d.is_dir() and (d / "manifest.json").is_file()]
+        sets = [
+            open_dataset(d, split, extra_columns)
+            for d in sorted(root.iterdir())
+            if d.is_dir() and (d / "manifest.json").is_file()
+        ]
     if not sets:
-        raise UserError(f"{root} holds neither a manifest.json (generated shards), .npz files, nor dataset "
-                         "folders with a manifest.json")
+        raise UserError(
+            f"{root} holds neither a manifest.json (generated shards), .npz files, nor dataset "
+            "folders with a manifest.json"
+        )
     return sets[0] if len(sets) == 1 else torch.utils.data.ConcatDataset(sets)
 
 
-def synthetic_arrays(n: int, seed: int = 0, partition: str = "supine", sim1: bool = False,
-                     body=None) -> dict[str, torch.Tensor]:
+def synthetic_arrays(
+    n: int, seed: int = 0, partition: str = "supine", sim1: bool = False, body=None
+) -> dict[str, torch.Tensor]:
     """n labelled samples made by the generator's pipeline, for tests and quick runs.
 
     Poses from `PoseSampler` (both genders, alternating); with `sim1` they settle in sim #1
@@ -160,7 +201,14 @@ def synthetic_arrays(n: int, seed: int = 0, partition: str = "supine", sim1: boo
 
             sim = simulate_poses(body, params, MattressParams(), seed=seed)
             ok = torch.tensor([not r for r in sim.reason])
-            rest, joints, q, c, p, mass = sim.params, sim.joints, sim.depth_mm, sim.contact, sim.pressure_mmhg, sim.mass_kg
+            rest, joints, q, c, p, mass = (
+                sim.params,
+                sim.joints,
+                sim.depth_mm,
+                sim.contact,
+                sim.pressure_mmhg,
+                sim.mass_kg,
+            )
         else:
             out = body(params)
             mass = body.measure(params.shape).mass_kg
@@ -175,15 +223,33 @@ def synthetic_arrays(n: int, seed: int = 0, partition: str = "supine", sim1: boo
 
             rest = params.replace(
                 root_rotation=matrix_to_axis_angle(R @ axis_angle_to_matrix(params.root_rotation)),
-                root_translation=(R @ params.root_translation[..., None])[..., 0] + t)
+                root_translation=(R @ params.root_translation[..., None])[..., 0] + t,
+            )
         height = body.measure(rest.shape).height_m
-        part = {"pressure_mmhg": p, "depth_mm": q, "contact": c, "shape": rest.shape,
-                "root_rotation": rest.root_rotation, "root_translation": rest.root_translation, "pose": rest.pose,
-                "joints": joints, "gender": torch.full((count,), GENDER_VALUE[gender]), "mass_kg": mass,
-                "height_m": height}
+        part = {
+            "pressure_mmhg": p,
+            "depth_mm": q,
+            "contact": c,
+            "shape": rest.shape,
+            "root_rotation": rest.root_rotation,
+            "root_translation": rest.root_translation,
+            "pose": rest.pose,
+            "joints": joints,
+            "gender": torch.full((count,), GENDER_VALUE[gender]),
+            "mass_kg": mass,
+            "height_m": height,
+        }
         parts.append({k: v.detach()[ok].to(torch.float32) for k, v in part.items()})
     return {k: torch.cat([p[k] for p in parts]) for k in KEYS}
 
 
-__all__ = ["KEYS", "NpzDataset", "TensorDictDataset", "collate", "open_dataset", "standardise",
-           "synthetic_arrays", "write_npz"]
+__all__ = [
+    "KEYS",
+    "NpzDataset",
+    "TensorDictDataset",
+    "collate",
+    "open_dataset",
+    "standardise",
+    "synthetic_arrays",
+    "write_npz",
+]

@@ -16,9 +16,7 @@ from pressurepose.files import save_figure
 from pressurepose.mat import MatSpec  # noqa: E402
 
 
-def plot_body_on_mat(
-    vertices: np.ndarray, joints: np.ndarray, mat: MatSpec, path: str | Path, title: str = ""
-) -> Path:
+def plot_body_on_mat(vertices: np.ndarray, joints: np.ndarray, mat: MatSpec, path: str | Path, title: str = "") -> Path:
     """Write a PNG: top view (image orientation: row 0 = head end at the top, column 0 on
     the left) and side view of one body. vertices (V, 3), joints (24, 3), mat frame, metres."""
     vertices = np.asarray(vertices)
@@ -27,8 +25,17 @@ def plot_body_on_mat(
     (x0, x1), (y0, y1) = mat.mattress_bounds_m
     # Top view: y (columns) to the right, x (rows) downwards, like the pressure image.
     top.add_patch(Rectangle((y0, x0), y1 - y0, x1 - x0, fc="0.93", ec="0.5", label="mattress"))
-    top.add_patch(Rectangle((0, 0), mat.sensing_width_m, mat.sensing_length_m, fc="none", ec="tab:blue", lw=1.2,
-                            label=f"sensing area {mat.rows} x {mat.cols}"))
+    top.add_patch(
+        Rectangle(
+            (0, 0),
+            mat.sensing_width_m,
+            mat.sensing_length_m,
+            fc="none",
+            ec="tab:blue",
+            lw=1.2,
+            label=f"sensing area {mat.rows} x {mat.cols}",
+        )
+    )
     for r in range(0, mat.rows + 1, 8):
         top.axhline(r * mat.pitch_row_m, color="tab:blue", lw=0.3, alpha=0.5)
     step = max(1, len(vertices) // 6000)

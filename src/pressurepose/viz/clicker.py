@@ -56,8 +56,10 @@ from pressurepose.viz.viewer import LocalHandler, LocalServer
 
 log = logging.getLogger(__name__)
 
-STATIC = {"/": ("clicker.html", "text/html; charset=utf-8"),
-          "/clicker.js": ("clicker.js", "text/javascript; charset=utf-8")}
+STATIC = {
+    "/": ("clicker.html", "text/html; charset=utf-8"),
+    "/clicker.js": ("clicker.js", "text/javascript; charset=utf-8"),
+}
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 MAX_BODY = 1 << 20  # a save request is a few hundred bytes per marker
 INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
@@ -217,7 +219,9 @@ class ClickSession:
         self.image = load_image(cfg.image, cfg.depth_unit)
         markers, intr = _read_existing(self.out) if self.out.exists() else ([], {})
         if cfg.intrinsics is not None:
-            intr.update(_intrinsics_from(read_json(cfg.intrinsics, "intrinsics file"), f"intrinsics file {cfg.intrinsics}"))
+            intr.update(
+                _intrinsics_from(read_json(cfg.intrinsics, "intrinsics file"), f"intrinsics file {cfg.intrinsics}")
+            )
         flags = {k: getattr(cfg, k) for k in INTRINSIC_KEYS if getattr(cfg, k) is not None}
         intr.update({k: _number(v, f"--{k}") for k, v in flags.items()})
         # None: the page asks for them (saving needs all four); partial or bad: an error now.
@@ -241,10 +245,17 @@ class ClickSession:
 
     def info(self) -> dict:
         w, h = self.image.size
-        info = {"image": str(self.cfg.image), "width": w, "height": h, "out": str(self.out),
-                "has_depth": self.image.depth_m is not None, "intrinsics": self.intrinsics,
-                "markers": self.markers, "command": self.command(),
-                "corners": {k: [round(float(x), 4) for x in v] for k, v in corner_markers().items()}}
+        info = {
+            "image": str(self.cfg.image),
+            "width": w,
+            "height": h,
+            "out": str(self.out),
+            "has_depth": self.image.depth_m is not None,
+            "intrinsics": self.intrinsics,
+            "markers": self.markers,
+            "command": self.command(),
+            "corners": {k: [round(float(x), 4) for x in v] for k, v in corner_markers().items()},
+        }
         if self.image.depth_m is not None:
             valid = self.image.depth_m[self.image.depth_m > 0]
             info["depth_range_m"] = [round(float(valid.min()), 4), round(float(valid.max()), 4)]
@@ -299,9 +310,11 @@ class ClickSession:
         try:  # feedback on the clicks: the pose they give and how well it reprojects them
             mk = parse_markers(doc)
             pose = solve_camera_pose(mk)
-            reply["pose"] = {"rms_px": round(pose.rms_px, 3), "camera_position_in_mat_m":
-                             [round(float(x), 4) for x in pose.position_m],
-                             "reprojected": project(mk.intrinsics.K, pose.R, pose.t, mk.mat_xyz_m).round(3).tolist()}
+            reply["pose"] = {
+                "rms_px": round(pose.rms_px, 3),
+                "camera_position_in_mat_m": [round(float(x), 4) for x in pose.position_m],
+                "reprojected": project(mk.intrinsics.K, pose.R, pose.t, mk.mat_xyz_m).round(3).tolist(),
+            }
         except ValueError as exc:
             reply["pose_error"] = str(exc)
         return reply
@@ -377,5 +390,12 @@ def make_click_server(cfg: ClickConfig) -> ClickServer:
     return ClickServer(ClickSession(cfg), cfg.port)
 
 
-__all__ = ["ClickConfig", "ClickImage", "ClickServer", "ClickSession", "check_intrinsics", "load_image",
-           "make_click_server"]
+__all__ = [
+    "ClickConfig",
+    "ClickImage",
+    "ClickServer",
+    "ClickSession",
+    "check_intrinsics",
+    "load_image",
+    "make_click_server",
+]

@@ -10,8 +10,9 @@ import numpy as np
 from pressurepose.files import save_figure
 
 
-def plot_contact_sheet(path: Path, images: np.ndarray, labels: list[str], max_pressure: float = 100.0,
-                       cols: int = 8) -> Path:
+def plot_contact_sheet(
+    path: Path, images: np.ndarray, labels: list[str], max_pressure: float = 100.0, cols: int = 8
+) -> Path:
     """Write a PNG of (N, 64, 27) pressure images (mmHg, row 0 = head end at the top), one
     label per image, on one colour scale."""
     import matplotlib

@@ -16,8 +16,7 @@ def plot_cases(path, cases: list[tuple], faces: np.ndarray, points: int = 4000) 
     import matplotlib.pyplot as plt
 
     n = max(len(cases), 1)
-    fig, axes = plt.subplots(n, 3, figsize=(11, 3.2 * n), squeeze=False,
-                             gridspec_kw={"width_ratios": [0.6, 1.6, 1.0]})
+    fig, axes = plt.subplots(n, 3, figsize=(11, 3.2 * n), squeeze=False, gridspec_kw={"width_ratios": [0.6, 1.6, 1.0]})
     rng = np.random.default_rng(0)
     for row, (title, image, true_v, est_v) in zip(axes, cases):
         keep = rng.permutation(len(true_v))[:points]

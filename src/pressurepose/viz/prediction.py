@@ -23,8 +23,9 @@ def _bones(ax, u: np.ndarray, v: np.ndarray, color: str = "crimson") -> None:
     ax.plot(u, v, "o", color=color, ms=2.5)
 
 
-def plot_prediction(path: str | Path, pressure_mmhg: np.ndarray, vertices: np.ndarray, joints: np.ndarray,
-                    mat: MatSpec, title: str = "") -> Path:
+def plot_prediction(
+    path: str | Path, pressure_mmhg: np.ndarray, vertices: np.ndarray, joints: np.ndarray, mat: MatSpec, title: str = ""
+) -> Path:
     """pressure (64, 27) mmHg, vertices (V, 3) and joints (24, 3) in the mat frame (m). PNG."""
     fig, (ax_p, ax_top, ax_side) = plt.subplots(1, 3, figsize=(11, 5), gridspec_kw={"width_ratios": [1, 1, 1.6]})
     im = ax_p.imshow(pressure_mmhg, cmap="magma", origin="upper", extent=(0, mat.cols, mat.rows, 0))

@@ -23,9 +23,15 @@ def plot_real(path, rows: list[dict], summary: dict) -> None:
         row[0].imshow(conf, cmap="Blues")
         for (i, j), v in np.ndenumerate(conf):
             row[0].text(j, i, str(v), ha="center", va="center")
-        row[0].set(xticks=range(len(POSTURES)), xticklabels=POSTURES, yticks=range(3),
-                   yticklabels=["supine", "left", "right"], xlabel="estimated", ylabel="true",
-                   title=f"{name}: posture {summary[name]['posture_accuracy'] * 100:.0f}%")
+        row[0].set(
+            xticks=range(len(POSTURES)),
+            xticklabels=POSTURES,
+            yticks=range(3),
+            yticklabels=["supine", "left", "right"],
+            xlabel="estimated",
+            ylabel="true",
+            title=f"{name}: posture {summary[name]['posture_accuracy'] * 100:.0f}%",
+        )
         for ax, key, unit in ((row[1], "height_m", "m"), (row[2], "mass_kg", "kg")):
             t = [r[key] for r in sel]
             e = [r[f"estimated_{key}"] for r in sel]

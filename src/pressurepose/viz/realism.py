@@ -22,7 +22,10 @@ def plot_realism(path: Path, real, sim, title: str) -> Path:
     img = shifted(shifted(sim.mean_image, sr, 0), sc, 1)  # as the profiles: zero-filled
     fig, ax = plt.subplots(1, 4, figsize=(14, 5.5), gridspec_kw={"width_ratios": [1, 1, 1.5, 1.5]})
     vmax = max(float(real.mean_image.max()), float(img.max()), 1e-9)
-    for a, im, t in ((ax[0], real.mean_image, f"real mean ({real.n})"), (ax[1], img, f"simulated mean ({sim.n}), aligned")):
+    for a, im, t in (
+        (ax[0], real.mean_image, f"real mean ({real.n})"),
+        (ax[1], img, f"simulated mean ({sim.n}), aligned"),
+    ):
         a.imshow(im, vmin=0, vmax=vmax, cmap="viridis", aspect="auto")
         a.set_title(t)
         a.set_xlabel("column")

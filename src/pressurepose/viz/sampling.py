@@ -19,10 +19,12 @@ from pressurepose.mat import MatSpec  # noqa: E402
 from pressurepose.sampling.partitions import ARM_CELLS, LEG_CELLS  # noqa: E402
 
 _J = J24_NAMES.index
-_LIMBS = (("left leg", "left_hip", "left_knee", "left_ankle", LEG_CELLS),
-          ("right leg", "right_hip", "right_knee", "right_ankle", LEG_CELLS),
-          ("left arm", "left_shoulder", "left_elbow", "left_wrist", ARM_CELLS),
-          ("right arm", "right_shoulder", "right_elbow", "right_wrist", ARM_CELLS))
+_LIMBS = (
+    ("left leg", "left_hip", "left_knee", "left_ankle", LEG_CELLS),
+    ("right leg", "right_hip", "right_knee", "right_ankle", LEG_CELLS),
+    ("left arm", "left_shoulder", "left_elbow", "left_wrist", ARM_CELLS),
+    ("right arm", "right_shoulder", "right_elbow", "right_wrist", ARM_CELLS),
+)
 
 
 def distal_offsets(joints: np.ndarray, root_draw: np.ndarray) -> dict[str, np.ndarray]:
@@ -35,14 +37,14 @@ def distal_offsets(joints: np.ndarray, root_draw: np.ndarray) -> dict[str, np.nd
         d = joints[:, _J(dist)] - joints[:, _J(prox)]
         # Undo the yaw (a rotation about z applied after the roll).
         d = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], -1)
-        length = (np.linalg.norm(joints[:, _J(mid)] - joints[:, _J(prox)], axis=-1)
-                  + np.linalg.norm(joints[:, _J(dist)] - joints[:, _J(mid)], axis=-1))
+        length = np.linalg.norm(joints[:, _J(mid)] - joints[:, _J(prox)], axis=-1) + np.linalg.norm(
+            joints[:, _J(dist)] - joints[:, _J(mid)], axis=-1
+        )
         out[name] = d / length[:, None]
     return out
 
 
-def plot_cells(joints: np.ndarray, root_draw: np.ndarray, cells: np.ndarray, path: str | Path,
-               title: str = "") -> Path:
+def plot_cells(joints: np.ndarray, root_draw: np.ndarray, cells: np.ndarray, path: str | Path, title: str = "") -> Path:
     """Top views of the ankles and wrists relative to their hips and shoulders (in limb
     lengths), coloured by cell, with the cell bounds and the count per cell."""
     offsets = distal_offsets(joints, root_draw)
@@ -73,8 +75,9 @@ def plot_cells(joints: np.ndarray, root_draw: np.ndarray, cells: np.ndarray, pat
     return _save(fig, path)
 
 
-def plot_bodies(vertices: np.ndarray, mat: MatSpec, path: str | Path, labels: list[str] | None = None,
-                columns: int = 6) -> Path:
+def plot_bodies(
+    vertices: np.ndarray, mat: MatSpec, path: str | Path, labels: list[str] | None = None, columns: int = 6
+) -> Path:
     """Top views of sampled bodies (N, V, 3) in the mat frame on the mattress, coloured by height."""
     n = len(vertices)
     rows = max(1, int(np.ceil(n / columns)))

@@ -9,8 +9,15 @@ import numpy as np
 from pressurepose.files import save_figure
 
 
-def plot_sample(path: Path, pressure_mmhg: np.ndarray, depth_mm: np.ndarray, vertices: np.ndarray,
-                title: str = "", max_pressure: float = 100.0, bed_profile: np.ndarray | None = None) -> Path:
+def plot_sample(
+    path: Path,
+    pressure_mmhg: np.ndarray,
+    depth_mm: np.ndarray,
+    vertices: np.ndarray,
+    title: str = "",
+    max_pressure: float = 100.0,
+    bed_profile: np.ndarray | None = None,
+) -> Path:
     """Write a PNG with the (64, 27) pressure image (mmHg), the depth map Q (mm) with the
     contact outline, and side and top views of the mesh at rest (mat frame, m); `bed_profile`
     (n, 2): the mattress top's (x, z) along the bed when it is not flat."""

@@ -33,8 +33,10 @@ PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
 LABEL_KEYS = ("split", "partition", "gender", "over_bed", "index")
 SCALAR_KEYS = ("mass_kg", "height_m", "head_angle_deg", "settle_steps", "sink_mm")
 IMAGES = ("metrics.png", "cases.png", "failures.png", "contact_sheet.png")  # shown when present
-HINT = ("give a dataset folder (manifest.json), a `pressurepose evaluate` report folder (report.json), "
-        "a training run folder (config.json) or a .npz of pressure images")
+HINT = (
+    "give a dataset folder (manifest.json), a `pressurepose evaluate` report folder (report.json), "
+    "a training run folder (config.json) or a .npz of pressure images"
+)
 
 
 class NpzImages(torch.utils.data.Dataset):
@@ -106,8 +108,15 @@ def _number(v):
 class Browser:
     """The samples and predictions behind one PATH (see the module docstring)."""
 
-    def __init__(self, path: Path, data: Path | None = None, backend: str | None = None,
-                 smpl_dir: Path | None = None, model: Path | None = None, cache: int = 8) -> None:
+    def __init__(
+        self,
+        path: Path,
+        data: Path | None = None,
+        backend: str | None = None,
+        smpl_dir: Path | None = None,
+        model: Path | None = None,
+        cache: int = 8,
+    ) -> None:
         path = Path(path)
         if not path.exists():
             raise UserError(f"{path} does not exist; {HINT}")
@@ -135,17 +144,22 @@ class Browser:
             self.kind, self.dataset = "dataset", _open_samples(path, None)
         elif (path / "report.json").is_file():
             self._open_report(path, data)
-        elif (path / "config.json").is_file() and ((path / "metrics.jsonl").is_file()
-                                                   or (path / "model.safetensors").is_file()):
+        elif (path / "config.json").is_file() and (
+            (path / "metrics.jsonl").is_file() or (path / "model.safetensors").is_file()
+        ):
             self._open_run(path, data)
         elif path.is_dir() and any(path.glob("*.npz")):
             self.kind, self.dataset = "dataset", _open_samples(path, None)
         elif path.is_dir() and (path / "real.json").is_file():
-            raise UserError(f"{path} is an `evaluate-real` report (no bodies to show); view the PmatData images with "
-                             "`pressurepose import-pmatdata --out pmat.npz` and `pressurepose view pmat.npz --model RUN`")
+            raise UserError(
+                f"{path} is an `evaluate-real` report (no bodies to show); view the PmatData images with "
+                "`pressurepose import-pmatdata --out pmat.npz` and `pressurepose view pmat.npz --model RUN`"
+            )
         elif path.is_dir() and (path / "generate.json").is_file():
-            raise UserError(f"{path} holds an unfinished dataset (no manifest.json); re-run the same "
-                             "`pressurepose generate` command to finish it")
+            raise UserError(
+                f"{path} holds an unfinished dataset (no manifest.json); re-run the same "
+                "`pressurepose generate` command to finish it"
+            )
         else:
             empty = path.is_dir() and not any(path.iterdir())
             raise UserError(f"{path} is {'an empty folder' if empty else 'none of what the viewer reads'}; {HINT}")
@@ -179,13 +193,16 @@ class Browser:
         self.summary = {k: v.get("mean") for k, v in record.get("overall", {}).items()}
         root = data or _resolve(record["config"].get("data"), path)
         if root is None:
-            raise UserError(f"the report's dataset {record['config'].get('data')!r} is not found; "
-                             "give it with --data DIR")
+            raise UserError(
+                f"the report's dataset {record['config'].get('data')!r} is not found; give it with --data DIR"
+            )
         self.dataset = _open_samples(Path(root), self.split)
         n = len(self.per_sample.get("vpe_m", []))
         if len(self.dataset) < n:
-            raise UserError(f"{root} has {len(self.dataset)} {self.split} samples but the report evaluated {n}: "
-                             "not the report's dataset; give the right one with --data DIR")
+            raise UserError(
+                f"{root} has {len(self.dataset)} {self.split} samples but the report evaluated {n}: "
+                "not the report's dataset; give the right one with --data DIR"
+            )
         if (path / PREDICTIONS).is_file():
             index, params = read_predictions(path / PREDICTIONS)
             if not np.array_equal(index, np.arange(len(index))) or len(index) != n:
@@ -253,12 +270,27 @@ class Browser:
 
         mat = MatSpec()
         images = [n for n in IMAGES if (self.path / n).is_file()] if self.path.is_dir() else []
-        return {"kind": self.kind, "path": str(self.path), "count": len(self), "backend": self.backend,
-                "has_truth": self.has_truth, "has_estimate": self.has_estimate, "note": self.note,
-                "joint_names": list(J24_NAMES), "images": images, "metrics": self.metrics_rows,
-                "summary": self.summary, "split": self.split,
-                "mat": {"rows": mat.rows, "cols": mat.cols, "pitch_row_m": mat.pitch_row_m,
-                        "pitch_col_m": mat.pitch_col_m, "max_pressure_mmhg": mat.max_pressure_mmhg}}
+        return {
+            "kind": self.kind,
+            "path": str(self.path),
+            "count": len(self),
+            "backend": self.backend,
+            "has_truth": self.has_truth,
+            "has_estimate": self.has_estimate,
+            "note": self.note,
+            "joint_names": list(J24_NAMES),
+            "images": images,
+            "metrics": self.metrics_rows,
+            "summary": self.summary,
+            "split": self.split,
+            "mat": {
+                "rows": mat.rows,
+                "cols": mat.cols,
+                "pitch_row_m": mat.pitch_row_m,
+                "pitch_col_m": mat.pitch_col_m,
+                "max_pressure_mmhg": mat.max_pressure_mmhg,
+            },
+        }
 
     def labels(self, lo: int, hi: int) -> list[dict]:
         """List entries of samples lo..hi-1 without reading them."""
@@ -302,8 +334,9 @@ class Browser:
             res = {"item": item, "true": None, "est": None}
             with torch.no_grad():
                 if self.has_truth:
-                    res["true"] = BodyParams(**{k: torch.as_tensor(np.asarray(item[k]), dtype=torch.float32)[None]
-                                                for k in PARAM_KEYS})
+                    res["true"] = BodyParams(
+                        **{k: torch.as_tensor(np.asarray(item[k]), dtype=torch.float32)[None] for k in PARAM_KEYS}
+                    )
                 if self.estimates is not None:
                     res["est"] = self.estimates.index([i])
                 elif self._net_run is not None:
@@ -333,11 +366,17 @@ class Browser:
                 self._body = self.net.body
 
         def scalar(key, default):
-            return torch.tensor([float(_gender(item[key]) if key == "gender" else item[key])
-                                 if key in item else default], dtype=torch.float32)
+            return torch.tensor(
+                [float(_gender(item[key]) if key == "gender" else item[key]) if key in item else default],
+                dtype=torch.float32,
+            )
 
-        inputs = NetInputs(pressure_mmhg=torch.as_tensor(np.asarray(item["pressure_mmhg"]), dtype=torch.float32)[None],
-                           gender=scalar("gender", 0.5), height_m=scalar("height_m", 1.7), mass_kg=scalar("mass_kg", 70.0))
+        inputs = NetInputs(
+            pressure_mmhg=torch.as_tensor(np.asarray(item["pressure_mmhg"]), dtype=torch.float32)[None],
+            gender=scalar("gender", 0.5),
+            height_m=scalar("height_m", 1.7),
+            mass_kg=scalar("mass_kg", 70.0),
+        )
         return self.net(inputs, mesh=False)[-1].params.to(torch.float32)
 
     def sample(self, i: int) -> dict:
@@ -358,23 +397,34 @@ class Browser:
         true_joints = None
         if res["true"] is not None:
             stored = item.get("joints_m", item.get("joints"))
-            true_joints = (np.asarray(stored, dtype=np.float64) if stored is not None else res["true_joints"])
+            true_joints = np.asarray(stored, dtype=np.float64) if stored is not None else res["true_joints"]
         est_joints = res.get("est_joints")
-        errors = (np.linalg.norm(est_joints - true_joints, axis=-1) if est_joints is not None and true_joints is not None
-                  else None)
+        errors = (
+            np.linalg.norm(est_joints - true_joints, axis=-1)
+            if est_joints is not None and true_joints is not None
+            else None
+        )
         if errors is not None and "mpjpe_m" not in meta:
             meta["mpjpe_m"] = round(float(errors.mean()), 4)
-        return {"i": i, "meta": meta, "rows": int(pressure.shape[0]), "cols": int(pressure.shape[1]),
-                "pressure": np.round(pressure.reshape(-1), 2).tolist(),
-                "joints_true": None if true_joints is None else np.round(true_joints, 4).tolist(),
-                "joints_est": None if est_joints is None else np.round(est_joints, 4).tolist(),
-                "joint_errors_m": None if errors is None else np.round(errors, 5).tolist()}
+        return {
+            "i": i,
+            "meta": meta,
+            "rows": int(pressure.shape[0]),
+            "cols": int(pressure.shape[1]),
+            "pressure": np.round(pressure.reshape(-1), 2).tolist(),
+            "joints_true": None if true_joints is None else np.round(true_joints, 4).tolist(),
+            "joints_est": None if est_joints is None else np.round(est_joints, 4).tolist(),
+            "joint_errors_m": None if errors is None else np.round(errors, 5).tolist(),
+        }
 
     def meshes(self, i: int) -> tuple[list[str], bytes]:
         """(layer names, float32 little-endian vertices of each layer one after the other)."""
         res = self._computed(i)
-        layers = [(name, res[f"{key}_vertices"]) for name, key in (("true", "true"), ("estimated", "est"))
-                  if f"{key}_vertices" in res]
+        layers = [
+            (name, res[f"{key}_vertices"])
+            for name, key in (("true", "true"), ("estimated", "est"))
+            if f"{key}_vertices" in res
+        ]
         return [n for n, _ in layers], b"".join(v.astype("<f4").tobytes() for _, v in layers)
 
     def faces(self) -> bytes:

@@ -37,8 +37,10 @@ from pressurepose.viz.view_data import IMAGES, Browser
 
 log = logging.getLogger(__name__)
 
-STATIC = {"/": ("viewer.html", "text/html; charset=utf-8"),
-          "/viewer.js": ("viewer.js", "text/javascript; charset=utf-8")}
+STATIC = {
+    "/": ("viewer.html", "text/html; charset=utf-8"),
+    "/viewer.js": ("viewer.js", "text/javascript; charset=utf-8"),
+}
 MAX_LIST = 500  # list entries per request: the page pages through big datasets
 
 
@@ -136,9 +138,12 @@ class _Handler(LocalHandler):
                 offset = int(query.get("offset", ["0"])[0])
                 limit = min(MAX_LIST, int(query.get("limit", ["100"])[0]))
                 order = query.get("order", ["index"])[0]
-                ids = b.order(order)[offset:offset + limit]
-                entries = {e["i"]: e for e in b.labels(min(ids, default=0), max(ids, default=-1) + 1)} \
-                    if order == "index" else {i: b.labels(i, i + 1)[0] for i in ids}
+                ids = b.order(order)[offset : offset + limit]
+                entries = (
+                    {e["i"]: e for e in b.labels(min(ids, default=0), max(ids, default=-1) + 1)}
+                    if order == "index"
+                    else {i: b.labels(i, i + 1)[0] for i in ids}
+                )
                 self._json({"total": len(b), "offset": offset, "items": [entries[i] for i in ids]})
             elif route.startswith("/api/sample/"):
                 self._json(b.sample(int(route.rsplit("/", 1)[1])))
@@ -175,8 +180,9 @@ class LocalServer(ThreadingHTTPServer):
         except OSError as exc:
             if exc.errno in (errno.EADDRINUSE, errno.EACCES):
                 why = "in use" if exc.errno == errno.EADDRINUSE else "not allowed"
-                raise UserError(f"port {port} on 127.0.0.1 is {why}; "
-                                 "choose another with --port N (--port 0 picks a free one)") from None
+                raise UserError(
+                    f"port {port} on 127.0.0.1 is {why}; choose another with --port N (--port 0 picks a free one)"
+                ) from None
             raise
 
     @property
@@ -219,5 +225,13 @@ def run_local(server: LocalServer, open_browser: bool, ready=None) -> None:
         server.server_close()
 
 
-__all__ = ["LocalHandler", "LocalServer", "ViewConfig", "ViewerServer", "make_server", "run_local", "serve",
-           "static_file"]
+__all__ = [
+    "LocalHandler",
+    "LocalServer",
+    "ViewConfig",
+    "ViewerServer",
+    "make_server",
+    "run_local",
+    "serve",
+    "static_file",
+]
