@@ -1,13 +1,12 @@
-"""3DVPE speed: the exact pruned nearest-neighbour search (eval.nearest) against the brute force.
+"""3DVPE speed: the exact k-d tree nearest-neighbour search (eval.nearest) against the brute force.
 
     .venv/bin/python benchmarks/evaluate.py                          # posed Anny bodies
     .venv/bin/python benchmarks/evaluate.py --data data/gen20k      # the packaged network's
                                                                      # estimates on a test split
 
 Prints per pair of meshes (camera-facing vertices, two-way) the milliseconds of the brute
-force and of the forest search (packing included), the largest difference between them (to
-the float32 brute force, itself only round-off exact, and to a float64 one), and the share of
-point pairs the forest compared; then 3DVPE per sample as `pressurepose evaluate` computes it
+force and of the k-d tree search (trees built included), the largest difference between them
+(to the float32 brute force, itself only round-off exact, and to a float64 one); then 3DVPE per sample as `pressurepose evaluate` computes it
 (three comparisons: the estimate, the mean body, another mesh), batched. Without --data the
 "estimates" are the true bodies with noisy poses and pelvis positions and the other mesh
 another random body; with --data the other mesh is a training sample's body. Float32, torch's
@@ -102,10 +101,10 @@ def main() -> None:
         f"{'test split of ' + str(args.data) if args.data else 'posed Anny bodies'}"
     )
     print(
-        "| meshes | facing vertices (mean) | brute force (ms) | forest (ms) | speed-up | max diff to brute force, "
-        "float32 / float64 (m) | pairs compared |"
+        "| meshes | facing vertices (mean) | brute force (ms) | k-d trees (ms) | speed-up | max diff to brute force, "
+        "float32 / float64 (m) |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- |")
     mask_t, _ = M.camera_facing(true, faces)
     for name, other in (
         ("estimate vs truth", est),
@@ -115,8 +114,8 @@ def main() -> None:
         mask_o, _ = M.camera_facing(other, faces)
         sets = [(other[k][mask_o[k]], true[k][mask_t[k]]) for k in range(args.n)]
         brute_ms, brute = timed(lambda: [(N.nearest_brute(a, b), N.nearest_brute(b, a)) for a, b in sets], 1)
-        forest_ms, fast = timed(
-            lambda: [N.nearest_pairs(N.build_forest([a]), N.build_forest([b]), [(0, 0)])[0] for a, b in sets],
+        tree_ms, fast = timed(
+            lambda: [N.nearest_pairs(N.PointSets([a]), N.PointSets([b]), [(0, 0)])[0] for a, b in sets],
             args.repeats,
         )
         diff = max(float((x - y).abs().max()) for p, q in zip(brute, fast) for x, y in zip(p, q))
@@ -128,21 +127,10 @@ def main() -> None:
             )
             for (a, b), (x, y) in zip(sets, fast)
         )
-        compared = 0
-        for a, b in sets:
-            fa, fb = N.build_forest([a]), N.build_forest([b])
-            counted = []
-            original = N._reduce_pairs
-            N._reduce_pairs = lambda *x: (counted.append(x[4].shape[0]), original(*x))[1]
-            try:
-                N.nearest_pairs(fa, fb, [(0, 0)])
-            finally:
-                N._reduce_pairs = original
-            compared += sum(counted) * N.LEAF**2 / (a.shape[0] * b.shape[0])
         facing = statistics.mean((a.shape[0] + b.shape[0]) / 2 for a, b in sets)
         print(
-            f"| {name} | {facing:.0f} | {brute_ms / args.n:.1f} | {forest_ms / args.n:.1f} | "
-            f"{brute_ms / forest_ms:.1f}x | {diff:.1e} / {diff64:.1e} | {100 * compared / args.n:.1f} % |"
+            f"| {name} | {facing:.0f} | {brute_ms / args.n:.1f} | {tree_ms / args.n:.1f} | "
+            f"{brute_ms / tree_ms:.1f}x | {diff:.1e} / {diff64:.1e} |"
         )
 
     def evaluate_like():

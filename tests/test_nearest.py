@@ -1,12 +1,12 @@
-"""Exact nearest-neighbour search (eval.nearest) against the brute force: random clouds of
-many shapes and sizes, body meshes, several pairs of sets at once, and bad input."""
+"""Exact nearest-neighbour search (eval.nearest, k-d trees) against the brute force: random
+clouds of many shapes and sizes, body meshes, several pairs of sets at once, and bad input."""
 
 import pytest
 import torch
 
 from pressurepose.body.params import BodyParams
 from pressurepose.eval.metrics import camera_facing
-from pressurepose.eval.nearest import LEAF, build_forest, nearest_brute, nearest_distance, nearest_pairs
+from pressurepose.eval.nearest import PointSets, nearest_brute, nearest_distance, nearest_pairs
 
 D = torch.float64
 
@@ -23,17 +23,17 @@ def clouds(seed: int):
     flat = torch.rand(700, 3, generator=g, dtype=D) * torch.tensor([1.7, 0.5, 0.0], dtype=D)  # no z extent
     line = torch.rand(90, 1, generator=g, dtype=D) * torch.tensor([[0.0, 1.0, 0.2]], dtype=D)  # no x extent
     dup = torch.rand(40, 3, generator=g, dtype=D).repeat(3, 1)  # every point three times
-    far = torch.rand(LEAF + 1, 3, generator=g, dtype=D) + 10.0
+    far = torch.rand(33, 3, generator=g, dtype=D) + 10.0
     one = torch.rand(1, 3, generator=g, dtype=D)
-    return [cube, flat, line, dup, far, one, cube[:LEAF], cube[: LEAF - 1]]
+    return [cube, flat, line, dup, far, one, cube[:32], cube[:31]]
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_every_pair_of_sets_matches_the_brute_force(seed):
     sets = clouds(seed)
-    forest = build_forest(sets)
+    packed = PointSets(sets)
     pairs = [(i, j) for i in range(len(sets)) for j in range(len(sets))]
-    for (i, j), (to_b, to_a) in zip(pairs, nearest_pairs(forest, forest, pairs)):
+    for (i, j), (to_b, to_a) in zip(pairs, nearest_pairs(packed, packed, pairs)):
         want_b, want_a = brute_two_way(sets[i], sets[j])
         assert to_b.shape == want_b.shape and to_a.shape == want_a.shape
         assert float((to_b - want_b).abs().max()) <= 1e-9, (i, j)
@@ -63,9 +63,9 @@ def test_body_meshes_match_the_brute_force(anny64):
     verts = anny64(params).vertices
     mask, _ = camera_facing(verts, anny64.faces)
     sets = [verts[k][mask[k]] for k in range(3)]
-    forest = build_forest(sets)
+    packed = PointSets(sets)
     pairs = [(0, 1), (0, 2), (2, 1)]
-    for (i, j), (to_b, to_a) in zip(pairs, nearest_pairs(forest, forest, pairs)):
+    for (i, j), (to_b, to_a) in zip(pairs, nearest_pairs(packed, packed, pairs)):
         want_b, want_a = brute_two_way(sets[i], sets[j])
         assert float((to_b - want_b).abs().max()) <= 1e-9 and float((to_a - want_a).abs().max()) <= 1e-9
     # float32 (what evaluate runs in): the brute force's |p|^2 - 2 q.p choice is itself only
@@ -77,34 +77,20 @@ def test_body_meshes_match_the_brute_force(anny64):
     )
 
 
-def test_forest_leaves_hold_every_point_in_a_tight_box():
-    sets = clouds(5)
-    forest = build_forest(sets, leaf=8)
-    slots = forest.leaves.transpose(1, 2)  # (L, S, 3)
-    assert torch.equal(slots.reshape(-1, 3), forest.points[forest.index])
-    assert torch.equal(forest.lo, slots.amin(1)) and torch.equal(forest.hi, slots.amax(1))
-    for k, s in enumerate(sets):
-        leaves = forest.index[int(forest.first[k]) * 8 : int(forest.first[k + 1]) * 8]
-        assert len(leaves) == -(-len(s) // 8) * 8  # whole leaves, fewer than 8 repeats
-        assert set(leaves.tolist()) == set(range(int(forest.offsets[k]), int(forest.offsets[k + 1])))
+def test_distances_come_back_in_the_sets_dtype():
+    pts = torch.rand(50, 3, dtype=D)
+    assert nearest_distance(pts.float(), pts.float()).dtype == torch.float32
+    assert nearest_distance(pts, pts).dtype == D
 
 
 def test_bad_inputs_are_refused():
     pts = torch.rand(10, 3, dtype=D)
-    with pytest.raises(ValueError, match="no point sets"):
-        build_forest([])
     with pytest.raises(ValueError, match=r"point set 1 must have shape \(N, 3\) with N >= 1"):
-        build_forest([pts, pts[:0]])
+        PointSets([pts, pts[:0]])
     with pytest.raises(ValueError, match="shape"):
-        build_forest([pts[:, :2]])
+        PointSets([pts[:, :2]])
     with pytest.raises(ValueError, match="NaN"):
-        build_forest([torch.full((3, 3), float("nan"))])
-    with pytest.raises(ValueError, match="differ in dtype"):
-        build_forest([pts, pts.float()])
-    with pytest.raises(ValueError, match="differ in dtype"):
-        nearest_pairs(build_forest([pts]), build_forest([pts.float()]), [(0, 0)])
-    with pytest.raises(ValueError, match="leaves of different sizes"):
-        nearest_pairs(build_forest([pts], leaf=4), build_forest([pts]), [(0, 0)])
-    with pytest.raises(ValueError, match=r"pair \(0, 1\) is out of range"):
-        nearest_pairs(build_forest([pts]), build_forest([pts]), [(0, 1)])
-    assert nearest_pairs(build_forest([pts]), build_forest([pts]), []) == []
+        PointSets([torch.full((3, 3), float("nan"))])
+    with pytest.raises(IndexError):
+        nearest_pairs(PointSets([pts]), PointSets([pts]), [(0, 1)])
+    assert nearest_pairs(PointSets([pts]), PointSets([pts]), []) == []

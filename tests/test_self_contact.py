@@ -6,6 +6,7 @@ import math
 import numpy as np
 import torch
 
+from pressurepose.body.capsule_geometry import segment_closest_points as closest_points
 from pressurepose.body.capsules import fit_capsules, home_pose
 from pressurepose.body.joints import joint_index
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
@@ -13,7 +14,7 @@ from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
 from pressurepose.sim.articulation import Dofs, apply_motion, dof_axes_pivots
-from pressurepose.sim.self_contact import LinearSprings, SelfContact, closest_points
+from pressurepose.sim.self_contact import LinearSprings, SelfContact
 
 
 def test_closest_points_match_a_dense_search():

@@ -16,10 +16,18 @@ def point_segment_distance(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) ->
 
 
 def segment_distance(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
-    """Shortest distance between segments [p1, q1] and [p2, q2], (..., 3) each, broadcast.
+    """Shortest distance between segments [p1, q1] and [p2, q2], (..., 3) each, broadcast."""
+    c1, c2 = segment_closest_points(p1, q1, p2, q2)
+    return (c1 - c2).norm(dim=-1)
 
-    Closest points by clamping the line parameters (Ericson, Real-Time Collision Detection
-    5.1.9), vectorised; degenerate (point-like) segments are handled.
+
+def segment_closest_points(
+    p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closest points (..., 3) x 2 of segments [p1, q1] and [p2, q2], (..., 3) each, broadcast.
+
+    Clamping the line parameters (Ericson, Real-Time Collision Detection 5.1.9), vectorised;
+    degenerate (point-like) segments are handled.
     """
     eps = 1e-12
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
@@ -39,9 +47,7 @@ def segment_distance(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: t
     s = torch.where(a <= eps, torch.zeros_like(s), s)
     t = torch.where(e <= eps, torch.zeros_like(t), torch.where(a <= eps, (f / safe(e)).clamp(0, 1), t))
     s = torch.where((e <= eps) & (a > eps), (-c / safe(a)).clamp(0, 1), s)
-    c1 = p1 + s[..., None] * d1
-    c2 = p2 + t[..., None] * d2
-    return (c1 - c2).norm(dim=-1)
+    return p1 + s[..., None] * d1, p2 + t[..., None] * d2
 
 
 def capsule_clearance(

@@ -21,7 +21,7 @@ import dataclasses
 import torch
 
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_angle
-from pressurepose.eval.nearest import Forest, build_forest, nearest_pairs
+from pressurepose.eval.nearest import PointSets, nearest_pairs
 from pressurepose.mat import MatSpec
 
 _MAT = MatSpec()
@@ -127,15 +127,15 @@ def camera_facing(vertices: torch.Tensor, faces: torch.Tensor, camera=CAMERA_M) 
 @dataclasses.dataclass(frozen=True)
 class FacingMeshes:
     """The camera-facing vertices of B meshes (or point clouds) with their weights (vertex
-    areas, m^2), packed for nearest-neighbour search (`facing_meshes`): set k of `forest` is
+    areas, m^2), packed for nearest-neighbour search (`facing_meshes`): set k of `sets` is
     mesh k's facing vertices in their original order, `weights[k]` (N_k,) their weights."""
 
-    forest: Forest
+    sets: PointSets
     weights: list[torch.Tensor]
 
     @property
     def size(self) -> int:
-        return self.forest.size
+        return self.sets.size
 
 
 def facing_meshes(vertices: torch.Tensor, faces: torch.Tensor, camera=CAMERA_M) -> FacingMeshes:
@@ -150,7 +150,7 @@ def facing_meshes(vertices: torch.Tensor, faces: torch.Tensor, camera=CAMERA_M) 
 def _facing_sets(points: list[torch.Tensor], weights: list[torch.Tensor]) -> FacingMeshes:
     if any(p.shape[0] == 0 for p in points):
         raise ValueError("3DVPE: a mesh or point cloud has no camera-facing points")
-    return FacingMeshes(build_forest(points), weights)
+    return FacingMeshes(PointSets(points), weights)
 
 
 def vpe_between(est: FacingMeshes, true: FacingMeshes) -> torch.Tensor:
@@ -161,7 +161,7 @@ def vpe_between(est: FacingMeshes, true: FacingMeshes) -> torch.Tensor:
         raise ValueError(f"estimated and true meshes differ in batch size: {est.size} vs {true.size}")
     pairs = [(k if est.size > 1 else 0, k) for k in range(true.size)]
     out = []
-    for (i, j), (to_true, to_est) in zip(pairs, nearest_pairs(est.forest, true.forest, pairs)):
+    for (i, j), (to_true, to_est) in zip(pairs, nearest_pairs(est.sets, true.sets, pairs)):
         out.append((_weighted_mean(to_true, est.weights[i]) + _weighted_mean(to_est, true.weights[j])) / 2)
     return torch.stack(out)
 

@@ -36,7 +36,7 @@ import dataclasses
 import torch
 
 from pressurepose.body.capsules import fit_capsules
-from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
+from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
@@ -51,7 +51,7 @@ from pressurepose.sim.articulation import (
     from_part_frames,
     joint_stiffness,
     part_mass_and_com,
-    tissue_depth,
+    tissue_modulus,
     to_part_frames,
 )
 from pressurepose.sim.friction import Friction
@@ -135,9 +135,6 @@ class ArticulatedRest:
 
 # A hinge pushed beyond its limit meets a spring this many times its own stiffness.
 _LIMIT_STIFFNESS_RATIO = 100.0
-# The tissue modulus MattressParams.tissue_pa_per_m is that of a layer this deep over the bone;
-# depths below 1 cm count as 1 cm.
-TISSUE_REFERENCE_DEPTH_M = 0.05
 
 
 def rest_articulated(
@@ -200,7 +197,9 @@ def rest_articulated(
     mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     rot, joints = pose_in_mat(rest, cur)
     local_pts = to_part_frames(pts - drop[:, None], labels, rot, joints)
-    point_tissue = _tissue_modulus(pts - drop[:, None], labels, joints, mp, cfg)
+    point_tissue = tissue_modulus(
+        pts - drop[:, None], labels, joints, mp.tissue_pa_per_m, cfg.tissue_by_part, cfg.tissue_depth
+    )
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     contact = None
     if cfg.self_contact:
@@ -305,21 +304,6 @@ def rest_articulated(
         failure=failure,
         sub=cfg.sub,
     )
-
-
-def _tissue_modulus(points, labels, joints, mp: MattressParams, cfg: ArticulatedConfig):
-    """(B, P) the tissue modulus (Pa/m) under each surface point: MattressParams.tissue_pa_per_m
-    x its part's factor x (TISSUE_REFERENCE_DEPTH_M / its depth over the bone) with
-    `cfg.tissue_depth`: stiff over bony prominences, soft over muscle and fat. None: no tissue."""
-    if not float(mp.tissue_pa_per_m) > 0:
-        return None
-    factor = torch.ones(NUM_JOINTS, dtype=points.dtype, device=points.device)
-    for name, value in cfg.tissue_by_part:
-        factor[J24_NAMES.index(name)] = value
-    modulus = float(mp.tissue_pa_per_m) * factor[labels].expand(points.shape[0], -1)
-    if cfg.tissue_depth:
-        modulus = modulus * (TISSUE_REFERENCE_DEPTH_M / tissue_depth(points, labels, joints).clamp(min=0.01))
-    return modulus
 
 
 __all__ = ["ArticulatedConfig", "ArticulatedRest", "rest_articulated"]

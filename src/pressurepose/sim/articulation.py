@@ -192,6 +192,27 @@ def tissue_depth(points: torch.Tensor, labels: torch.Tensor, joints: torch.Tenso
     return out
 
 
+# The tissue modulus MattressParams.tissue_pa_per_m is that of a layer this deep over the bone;
+# depths below 1 cm count as 1 cm.
+TISSUE_REFERENCE_DEPTH_M = 0.05
+
+
+def tissue_modulus(points, labels, joints, tissue_pa_per_m: float, by_part, use_depth: bool = True):
+    """(B, P) the tissue modulus (Pa/m) under each surface point: `tissue_pa_per_m` x its part's
+    factor (`by_part`: (J24 name, factor) pairs, else 1) x (TISSUE_REFERENCE_DEPTH_M / its depth
+    over the bone) with `use_depth`: stiff over bony prominences, soft over muscle and fat.
+    None when tissue_pa_per_m is not > 0 (no tissue)."""
+    if not float(tissue_pa_per_m) > 0:
+        return None
+    factor = torch.ones(NUM_JOINTS, dtype=points.dtype, device=points.device)
+    for name, value in by_part:
+        factor[J24_NAMES.index(name)] = value
+    modulus = float(tissue_pa_per_m) * factor[labels].expand(points.shape[0], -1)
+    if use_depth:
+        modulus = modulus * (TISSUE_REFERENCE_DEPTH_M / tissue_depth(points, labels, joints).clamp(min=0.01))
+    return modulus
+
+
 def dof_axes_pivots(dofs: Dofs, rot, joints, body_com) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, N, 3) x 2: each DoF's axis (zero for the vertical shift) and pivot in the mat frame;
     the root turns about the centre of mass."""
@@ -253,5 +274,6 @@ __all__ = [
     "joint_stiffness",
     "part_mass_and_com",
     "tissue_depth",
+    "tissue_modulus",
     "to_part_frames",
 ]

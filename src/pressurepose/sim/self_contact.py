@@ -21,6 +21,7 @@ import dataclasses
 
 import torch
 
+from pressurepose.body.capsule_geometry import segment_closest_points
 from pressurepose.body.capsules import CAPSULE_JOINTS, Capsules, collision_pairs
 
 # The whole body's weight on one capsule contact presses it this far in (a leg's ~17% of
@@ -63,34 +64,6 @@ class LinearSprings:
         return 0.5 * (k * pen**2).sum(1), grad, hess
 
 
-def closest_points(
-    p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor, q2: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Closest points (..., 3) x 2 of segments [p1, q1] and [p2, q2] (clamped line
-    parameters, Ericson's Real-Time Collision Detection 5.1.9); point-like segments work."""
-    eps = 1e-12
-    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
-    a, e = (d1 * d1).sum(-1), (d2 * d2).sum(-1)
-    b, c, f = (d1 * d2).sum(-1), (d1 * r).sum(-1), (d2 * r).sum(-1)
-    safe_a = torch.where(a > eps, a, torch.ones_like(a))
-    safe_e = torch.where(e > eps, e, torch.ones_like(e))
-    denom = a * e - b * b
-    s = torch.where(
-        denom > eps * (a * e + 1.0),
-        ((b * f - c * e) / torch.where(denom > 0, denom, torch.ones_like(denom))).clamp(0, 1),
-        torch.zeros_like(a),
-    )
-    t = (b * s + f) / safe_e
-    s = torch.where(t < 0, (-c / safe_a).clamp(0, 1), torch.where(t > 1, ((b - c) / safe_a).clamp(0, 1), s))
-    t = t.clamp(0, 1)
-    s = torch.where(a > eps, s, torch.zeros_like(s))
-    t = torch.where(e > eps, t, torch.zeros_like(t))
-    # A point-like first segment: t from the point; then s again from t.
-    t = torch.where((a <= eps) & (e > eps), (f / safe_e).clamp(0, 1), t)
-    s = torch.where((a > eps) & (e <= eps), (-c / safe_a).clamp(0, 1), s)
-    return p1 + s[..., None] * d1, p2 + t[..., None] * d2
-
-
 class SelfContact:
     """The capsule pairs of B bodies that self-contact keeps apart (module doc)."""
 
@@ -115,7 +88,7 @@ class SelfContact:
     def _gap(self, rot, joints):
         a, b = self.caps.place(rot, joints)
         i, j = self.pairs[:, 0], self.pairs[:, 1]
-        c1, c2 = closest_points(a[:, i], b[:, i], a[:, j], b[:, j])
+        c1, c2 = segment_closest_points(a[:, i], b[:, i], a[:, j], b[:, j])
         gap = (c1 - c2).norm(dim=-1) - self.caps.radius[:, i] - self.caps.radius[:, j]
         return gap, c1, c2
 
@@ -144,4 +117,4 @@ class SelfContact:
         return torch.relu(-gap * self.apart).amax(1)
 
 
-__all__ = ["SELF_CONTACT_SINK_M", "LinearSprings", "SelfContact", "closest_points"]
+__all__ = ["SELF_CONTACT_SINK_M", "LinearSprings", "SelfContact"]
