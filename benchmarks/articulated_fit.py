@@ -9,6 +9,7 @@ evaluation is 24 articulated rests (~10-20 s on one core). Every evaluation is a
 <out>/evals.jsonl; the best parameters go to <out>/<mattress>.json (MattressParams file).
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/articulated_fit.py --mattress sponge --out out/fit
+        [--bed-only] [--from-preset]
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ def main() -> None:
         action="store_true",
         help="fit the bed (k1, k3, tissue, spread) alone, the body's factors at ArticulatedConfig's defaults",
     )
+    ap.add_argument("--from-preset", action="store_true", help="start at the mattress's preset (sigma 0.25)")
     args = ap.parse_args()
     import cma
 
@@ -144,8 +146,13 @@ def main() -> None:
 
     space = SPACE[:4] if args.bed_only else SPACE
     x0 = [math.log(s) for _, s, _, _ in space]
+    sigma = 0.5
+    if args.from_preset:  # start at the mattress's preset, a narrower search around it
+        preset = MattressParams.preset(args.mattress)
+        x0 = [math.log(getattr(preset, name)) if hasattr(preset, name) else x for (name, *_), x in zip(space, x0)]
+        sigma = 0.25
     es = cma.CMAEvolutionStrategy(
-        x0, 0.5, {"popsize": args.popsize, "maxiter": args.max_iter, "seed": 1, "verbose": -9}
+        x0, sigma, {"popsize": args.popsize, "maxiter": args.max_iter, "seed": 1, "verbose": -9}
     )
     while not es.stop():
         xs = es.ask()
