@@ -28,7 +28,8 @@ from pressurepose.sim.foundation import simulate_pressure
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.run import settle_config_for
 from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
-from pressurepose.sim.settle import SIM_VOLUME_POINTS, settle
+from pressurepose.sim.settle import settle
+from pressurepose.sim.settle_config import SIM_VOLUME_POINTS
 
 SEED_PER_DAY = 35_000
 

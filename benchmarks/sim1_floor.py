@@ -25,7 +25,8 @@ from pressurepose.body.capsules import build_capsule_body
 from pressurepose.sampling.partitions import PARTITIONS, SamplingConfig
 from pressurepose.sampling.sampler import InitialPoses, PoseSampler
 from pressurepose.sim.run import settle_config_for
-from pressurepose.sim.settle import SIM_VOLUME_POINTS, settle
+from pressurepose.sim.settle import settle
+from pressurepose.sim.settle_config import SIM_VOLUME_POINTS
 
 
 def _seconds(stats: pstats.Stats, *names: str) -> float:

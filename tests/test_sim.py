@@ -221,8 +221,11 @@ def test_sim1_and_sim2_sink_alike(length, radius, mass):
 # --- sim #1 (MuJoCo) ------------------------------------------------------------------------
 from pressurepose.sampling.partitions import PARTITIONS, SamplingConfig  # noqa: E402
 from pressurepose.sampling.sampler import PoseSampler  # noqa: E402
+from pressurepose.sim.capsule_foundation import hold_roll_torque  # noqa: E402
+from pressurepose.sim.mjcf import build_mjcf  # noqa: E402
 from pressurepose.sim.run import settle_config_for  # noqa: E402
-from pressurepose.sim.settle import REASON_OFF_BED, TRUNK, SettleConfig, _hold_roll, build_mjcf, settle  # noqa: E402
+from pressurepose.sim.settle import settle  # noqa: E402
+from pressurepose.sim.settle_config import REASON_OFF_BED, TRUNK, SettleConfig  # noqa: E402
 
 
 def _initial(model, partition, gender="male", indices=(0, 1)):
@@ -272,13 +275,13 @@ def test_trunk_roll_hold_torque_and_energy():
         Rx = np.array([[[1, 0, 0], [0, c, -s], [0, s, c]]])
         cv = np.zeros((1, C, 6))
         cv[0, :, 0] = 0.4  # rolling at 0.4 rad/s
-        ft, e = _hold_roll(np.zeros((1, C, 6)), Rx, R0, cv, mass, weight, cfg)
+        ft, e = hold_roll_torque(np.zeros((1, C, 6)), Rx, R0, cv, mass, weight, cfg)
         tau = ft[0, TRUNK, 3]
         assert math.isclose(tau.sum(), -k * (theta + 0.1 * 0.4), rel_tol=1e-12)
         np.testing.assert_allclose(tau / tau.sum(), mass[0, TRUNK] / mass[0, TRUNK].sum())
         assert np.count_nonzero(ft) == len(TRUNK) and math.isclose(e[0], 0.5 * k * theta**2, rel_tol=1e-12)
     yaw = np.array([[[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]])
-    ft, e = _hold_roll(np.zeros((1, C, 6)), yaw, R0, np.zeros((1, C, 6)), mass, weight, cfg)
+    ft, e = hold_roll_torque(np.zeros((1, C, 6)), yaw, R0, np.zeros((1, C, 6)), mass, weight, cfg)
     assert np.abs(ft).max() < 1e-12 and e[0] < 1e-20
     with pytest.raises(ValueError, match="hold_roll_m"):
         SettleConfig(hold_roll_m=-1.0)
@@ -447,7 +450,7 @@ def _lowest_point_reference(a, b, r, x, y, n=4001):
 
 
 def test_sim1_underside_matches_a_brute_force_search():
-    from pressurepose.sim.settle import CapsuleFoundation
+    from pressurepose.sim.capsule_foundation import CapsuleFoundation
 
     found = CapsuleFoundation(MAT, MattressParams())
     rng = np.random.default_rng(3)

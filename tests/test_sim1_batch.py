@@ -15,9 +15,10 @@ import torch
 from pressurepose.bed import BedShape
 from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.mat import MatSpec
+from pressurepose.sim.capsule_foundation import CapsuleFoundation, hold_roll_torque
 from pressurepose.sim.fixed_order import atan2_each, matvec3, sq_norm3, sum_last
 from pressurepose.sim.mattress import MattressParams
-from pressurepose.sim.settle import TRUNK, CapsuleFoundation, SettleConfig, _hold_roll
+from pressurepose.sim.settle_config import TRUNK, SettleConfig
 
 MAT = MatSpec()
 C = 20
@@ -136,10 +137,10 @@ def test_roll_hold_of_a_body_does_not_depend_on_its_batch():
     weight = rng.uniform(400.0, 900.0, size=n)
     ft0 = rng.normal(size=(n, C, 6))
     cfg = SettleConfig(hold_roll_m=0.5)
-    ft_all, e_all = _hold_roll(ft0.copy(), R, R0, cv, mass, weight, cfg)
+    ft_all, e_all = hold_roll_torque(ft0.copy(), R, R0, cv, mass, weight, cfg)
     for k in range(n):
         for sl in (slice(k, k + 1), slice(0, k + 1), slice(k, n)):
-            ft, e = _hold_roll(ft0[sl].copy(), R[sl], R0[sl], cv[sl], mass[sl], weight[sl], cfg)
+            ft, e = hold_roll_torque(ft0[sl].copy(), R[sl], R0[sl], cv[sl], mass[sl], weight[sl], cfg)
             j = k - sl.start
             assert np.array_equal(ft[j], ft_all[k]) and e[j] == e_all[k]
     # And it is the roll: the torque on the trunk sums to -k (roll + t omega).
@@ -153,7 +154,7 @@ def test_roll_hold_of_a_body_does_not_depend_on_its_batch():
 
 def test_capsule_bodies_built_one_by_one_depend_on_their_own_shape_only(anny64):
     from pressurepose.body.capsules import build_capsule_body
-    from pressurepose.sim.settle import SIM_VOLUME_POINTS
+    from pressurepose.sim.settle_config import SIM_VOLUME_POINTS
 
     g = torch.Generator().manual_seed(0)
     shape = torch.rand(3, anny64.shape_dim, generator=g, dtype=torch.float64)

@@ -149,7 +149,7 @@ def simulate_subjects(
     from pressurepose.sim.foundation import mesh_centroid
     from pressurepose.sim.mattress import PRESETS, MattressParams
     from pressurepose.sim.run import simulate_poses
-    from pressurepose.sim.settle import SettleConfig
+    from pressurepose.sim.settle_config import SettleConfig
 
     fixed = mattress or (MattressParams.load(cfg.params) if cfg.params else None)
 

@@ -76,7 +76,7 @@ def settle_capsule(
     rest. Returns {"sink_m": deepest compression, "z_m": axis height, "steps", "settled"}."""
     import mujoco
 
-    from pressurepose.sim.settle import CapsuleFoundation
+    from pressurepose.sim.capsule_foundation import CapsuleFoundation
 
     params = params or MattressParams()
     mat = mat or MatSpec()

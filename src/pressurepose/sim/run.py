@@ -24,8 +24,9 @@ from pressurepose.sampling.partitions import get_partition
 from pressurepose.sim.foundation import simulate_pressure, taxel_pressure
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
-from pressurepose.sim.settle import SettleConfig, as_float64
+from pressurepose.sim.settle import as_float64
 from pressurepose.sim.settle import settle as settle_bodies
+from pressurepose.sim.settle_config import SettleConfig
 
 if TYPE_CHECKING:
     from pressurepose.sim.articulated import ArticulatedConfig
