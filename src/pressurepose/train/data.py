@@ -184,8 +184,7 @@ def synthetic_arrays(
     from pressurepose.body import load_body_model
     from pressurepose.sampling import PoseSampler, SamplingConfig
     from pressurepose.sim import MattressParams
-    from pressurepose.sim.foundation import simulate_pressure
-    from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
+    from pressurepose.sim.run import simulate_poses
 
     body = body or load_body_model("anny", dtype=torch.float64)
     parts = []
@@ -196,35 +195,18 @@ def synthetic_arrays(
         cfg = SamplingConfig(partition=partition, gender=gender, seed=seed)
         poses = PoseSampler(body, cfg).sample(range(count))
         params = poses.params.to(body.dtype)
-        if sim1:
-            from pressurepose.sim.run import simulate_poses
-
-            sim = simulate_poses(body, params, MattressParams(), seed=seed)
-            ok = torch.tensor([not r for r in sim.reason])
-            rest, joints, q, c, p, mass = (
-                sim.params,
-                sim.joints,
-                sim.depth_mm,
-                sim.contact,
-                sim.pressure_mmhg,
-                sim.mass_kg,
-            )
-        else:
-            out = body(params)
-            mass = body.measure(params.shape).mass_kg
-            with torch.no_grad():
-                pressed = simulate_pressure(out.vertices, out.faces, mass)
-            ok = pressed.ok
-            p = taxel_reading(sensing_area(pressed.pressure_pa))
-            q, c = label_maps(pressed.vertices, out.faces)
-            R, t = pressed.rotation, pressed.translation
-            joints = out.joints.detach() @ R.transpose(1, 2) + t[:, None]
-            from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-
-            rest = params.replace(
-                root_rotation=matrix_to_axis_angle(R @ axis_angle_to_matrix(params.root_rotation)),
-                root_translation=(R @ params.root_translation[..., None])[..., 0] + t,
-            )
+        # The generator's own path (sim.run.simulate_poses): with sim #1 as a dataset is made,
+        # without it the drawn pose rested directly by the rigid sim #2.
+        sim = simulate_poses(body, params, MattressParams(), seed=seed, settle="mujoco" if sim1 else "none")
+        ok = torch.tensor([not r for r in sim.reason])
+        rest, joints, q, c, p, mass = (
+            sim.params,
+            sim.joints,
+            sim.depth_mm,
+            sim.contact,
+            sim.pressure_mmhg,
+            sim.mass_kg,
+        )
         height = body.measure(rest.shape).height_m
         part = {
             "pressure_mmhg": p,
