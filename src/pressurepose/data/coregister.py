@@ -24,6 +24,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+import roma
+import torch
 
 from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
@@ -178,24 +180,21 @@ def project(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.nd
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        return np.eye(3)
-    k = w / th
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(th) * Kx + (1 - math.cos(th)) * Kx @ Kx
+    """Rotation vector (3,) -> rotation matrix (3, 3)."""
+    return roma.rotvec_to_rotmat(torch.from_numpy(np.asarray(w, dtype=np.float64))).numpy()
 
 
 def _nearest_rotation(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    """The rotation nearest to M (3, 3) in Frobenius norm (special Procrustes)."""
+    return roma.special_procrustes(torch.from_numpy(np.asarray(M, dtype=np.float64))).numpy()
 
 
 def _kabsch(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, t minimising |R A + t - B| for point sets (N, 3)."""
-    ca, cb = A.mean(0), B.mean(0)
-    R = _nearest_rotation((B - cb).T @ (A - ca))
-    return R, cb - R @ ca
+    """R, t minimising |R A + t - B| for point sets (N, 3) (Kabsch)."""
+    R, t = roma.rigid_points_registration(
+        torch.from_numpy(A.astype(np.float64)), torch.from_numpy(B.astype(np.float64))
+    )
+    return R.numpy(), t.numpy()
 
 
 def _initial_pose(mk: Markers) -> tuple[np.ndarray, np.ndarray]:

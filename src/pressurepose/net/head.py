@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import roma
 import torch
 
 from pressurepose.body.joints import NUM_POSE_JOINTS
@@ -55,13 +56,9 @@ class OutputLayout:
 
 
 def rotation_6d_to_matrix(d6: torch.Tensor) -> torch.Tensor:
-    """(..., 6) two 3-vectors -> (..., 3, 3) rotation whose first two columns they span."""
-    a, b = d6[..., :3], d6[..., 3:]
-    x = a / a.norm(dim=-1, keepdim=True).clamp(min=1e-8)
-    b = b - (x * b).sum(-1, keepdim=True) * x
-    y = b / b.norm(dim=-1, keepdim=True).clamp(min=1e-8)
-    z = torch.linalg.cross(x, y, dim=-1)
-    return torch.stack([x, y, z], -1)
+    """(..., 6) two 3-vectors -> (..., 3, 3) rotation whose first two columns they span
+    (Gram-Schmidt, `roma.special_gramschmidt`)."""
+    return roma.special_gramschmidt(torch.stack([d6[..., :3], d6[..., 3:]], -1), epsilon=1e-8)
 
 
 def matrix_to_rotation_6d(R: torch.Tensor) -> torch.Tensor:
