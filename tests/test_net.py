@@ -259,3 +259,33 @@ def test_smpl_backend_gives_the_released_output_size(smpl_dir):
         est = net(NetInputs(_images(2), gender=torch.tensor([0.0, 1.0])))[-1]
     assert est.joints.shape == (2, 24, 3) and est.vertices.shape[0] == 2
     assert (est.params.shape.abs() <= 3.0 + 1e-6).all()  # betas inside the sampling bounds
+
+
+def test_the_one_blur_is_anisotropic_per_image_and_differentiable_in_sigma():
+    """pressurepose.blur.gaussian_blur (sim #2's cover spread and the network's channels):
+    against a dense 2D convolution with the outer product of the two 1D kernels, per image;
+    gradcheck in sigma."""
+    import math
+
+    from pressurepose.blur import gaussian_blur as blur
+
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(3, 9, 7, generator=g, dtype=torch.float64)
+    sr = torch.tensor([0.7, 1.3, 0.0], dtype=torch.float64)
+    sc = torch.tensor([1.1, 0.4, 0.9], dtype=torch.float64)
+    out = blur(img, sr, sc)
+    for b in range(3):
+        radius = max(1, math.ceil(3 * float(max(sr.max(), sc.max()))))
+        x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+
+        def kernel(s):
+            if s <= 1e-6:
+                return (x == 0).to(torch.float64)
+            k = torch.exp(-0.5 * (x / s) ** 2)
+            return k / k.sum()
+
+        k2 = torch.outer(kernel(float(sr[b])), kernel(float(sc[b])))
+        want = torch.nn.functional.conv2d(img[b][None, None], k2[None, None], padding=radius)[0, 0]
+        torch.testing.assert_close(out[b], want, rtol=1e-12, atol=1e-12)
+    s = torch.tensor(0.8, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: blur(img[:1], t, 0.5 * t), (s,))

@@ -17,10 +17,10 @@ independent N(1, 0.2) factors after the sum normalisation (which would cancel th
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
+
+from pressurepose.blur import gaussian_blur
 
 ROWS, COLS = 64, 27
 MAX_MMHG = 100.0
@@ -37,25 +37,6 @@ def check_pressure(pressure_mmhg: torch.Tensor) -> None:
         raise ValueError("pressure_mmhg contains NaN or infinite values")
     if bool((pressure_mmhg < 0).any()):
         raise ValueError(f"pressure_mmhg must be >= 0 (min {float(pressure_mmhg.min()):.3g})")
-
-
-def gaussian_blur(images: torch.Tensor, sigma: torch.Tensor | float) -> torch.Tensor:
-    """(B, H, W) blurred per image with its own sigma (B,) or one float (taxels), zero padded.
-    sigma <= 0 leaves the image as it is."""
-    B = images.shape[0]
-    sigma = torch.as_tensor(sigma, dtype=images.dtype, device=images.device).expand(B)
-    radius = max(1, math.ceil(3 * float(sigma.max()))) if B else 1
-    x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
-    s = sigma.clamp(min=1e-3)[:, None]
-    k = torch.exp(-0.5 * (x / s) ** 2)
-    k = torch.where((sigma > 0)[:, None], k, (x == 0).to(k).expand_as(k))
-    k = k / k.sum(1, keepdim=True)  # (B, K)
-    # Separable, as sliding windows times each image's kernel: a grouped conv2d with one
-    # group per image takes a slow generic path on CPU (seconds per batch of 128).
-    cols = F.pad(images, (radius, radius)).unfold(-1, 2 * radius + 1, 1)  # (B, H, W, K)
-    out = torch.einsum("bhwk,bk->bhw", cols, k)
-    rows = F.pad(out, (0, 0, radius, radius)).unfold(-2, 2 * radius + 1, 1)  # (B, H, W, K)
-    return torch.einsum("bhwk,bk->bhw", rows, k)
 
 
 _SOBEL_X = ((-1.0, 0.0, 1.0), (-2.0, 0.0, 2.0), (-1.0, 0.0, 1.0))

@@ -29,12 +29,12 @@ as a tensor. Batched over B bodies; CPU or CUDA; float32 or float64.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import torch
 import torch.nn.functional as F
 
 from pressurepose.bed import BedShape
+from pressurepose.blur import gaussian_blur
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, heights_from_points, surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
@@ -95,31 +95,12 @@ def _centroid_and_points(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[t
     return centroid, surface_points(vertices, faces, corners=tri)
 
 
-def gaussian_spread(p: torch.Tensor, sigma_cells_r, sigma_cells_c) -> torch.Tensor:
-    """Separable normalised Gaussian blur of (B, R, C) with zero padding (force leaves the
-    grid only within 3 sigma of its edge). sigma may be a float or a 0-d tensor."""
-    out = p[:, None]
-    for dim, sigma in ((2, sigma_cells_r), (3, sigma_cells_c)):
-        s = float(sigma.detach()) if isinstance(sigma, torch.Tensor) else float(sigma)
-        if s <= 1e-6:
-            continue
-        radius = max(1, int(math.ceil(3.0 * s)))
-        t = torch.arange(-radius, radius + 1, dtype=p.dtype, device=p.device)
-        k = torch.exp(-0.5 * (t / sigma) ** 2)
-        k = k / k.sum()
-        if dim == 2:
-            out = F.conv2d(out, k.view(1, 1, -1, 1), padding=(radius, 0))
-        else:
-            out = F.conv2d(out, k.view(1, 1, 1, -1), padding=(0, radius))
-    return out[:, 0]
-
-
 def taxel_pressure(foundation_pa: torch.Tensor, params: MattressParams, mat: MatSpec, sub: int) -> torch.Tensor:
     """Foundation pressure on the covered grid's cells (B, rows*sub, cols*sub) -> per covered
     taxel (B, rows, cols) Pa: spread by the mat and cover (`spread_m`), averaged per taxel."""
     h_cell = mat.pitch_row_m / sub
     w_cell = mat.pitch_col_m / sub
-    spread = gaussian_spread(foundation_pa, params.spread_m / h_cell, params.spread_m / w_cell)
+    spread = gaussian_blur(foundation_pa, params.spread_m / h_cell, params.spread_m / w_cell)
     return F.avg_pool2d(spread[:, None], sub)[:, 0]
 
 
@@ -416,7 +397,6 @@ __all__ = [
     "FAIL_SLIDES",
     "FAIL_TILT",
     "PressureResult",
-    "gaussian_spread",
     "mesh_centroid",
     "simulate_pressure",
     "taxel_pressure",

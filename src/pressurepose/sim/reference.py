@@ -18,9 +18,10 @@ import dataclasses
 import torch
 import torch.nn.functional as F
 
+from pressurepose.blur import gaussian_blur
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, underside_height
 from pressurepose.mat import MatSpec
-from pressurepose.sim.foundation import gaussian_spread, mesh_centroid
+from pressurepose.sim.foundation import mesh_centroid
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 
@@ -108,7 +109,7 @@ def dynamic_reference(
                 at_rest = True
                 break
     spring = k1 * torch.relu(w) + k3 * torch.relu(w) ** 3
-    spread = gaussian_spread(
+    spread = gaussian_blur(
         spring[None], params.spread_m / (mat.pitch_row_m / sub), params.spread_m / (mat.pitch_col_m / sub)
     )
     pressure = F.avg_pool2d(spread[:, None], sub)[0, 0]
