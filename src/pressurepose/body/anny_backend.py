@@ -23,6 +23,7 @@ import logging
 
 import torch
 
+from pressurepose.body.anny_skeleton import Skeleton
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
@@ -156,8 +157,8 @@ class AnnyBody(BodyModel):
             while b >= 0 and b not in closure:
                 closure.add(b)
                 b = model.bone_parents[b] if b else -1
-        self.full = _Skeleton(list(range(len(labels))), model.bone_parents, labels)
-        self.light = _Skeleton(sorted(closure), model.bone_parents, labels)
+        self.full = Skeleton(list(range(len(labels))), model.bone_parents, labels)
+        self.light = Skeleton(sorted(closure), model.bone_parents, labels)
         self.register_buffer("reference_orientations", model.reference_bone_orientations.clone(), persistent=False)
         self.register_buffer("skin_matrix", _skin_matrix(model), persistent=False)
 
@@ -212,7 +213,7 @@ class AnnyBody(BodyModel):
         zeros = shape.new_zeros(shape.shape[0], 0)
         return self.anny._get_phenotype_blendshape_coefficients(shape, zeros, zeros)
 
-    def _rest_skeleton(self, coeffs: torch.Tensor, sk: _Skeleton) -> tuple[torch.Tensor, torch.Tensor]:
+    def _rest_skeleton(self, coeffs: torch.Tensor, sk: Skeleton) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest bone heads (B, n, 3) and orientations (B, n, 3, 3) of the bones `sk.bones`,
         computed without the rest mesh (Anny's 'cached' orientation: a special Procrustes of
         a cross-covariance that is linear in the blendshape coefficients)."""
@@ -236,7 +237,7 @@ class AnnyBody(BodyModel):
         offsets = (A[:, sk.parents] @ (heads - heads[:, sk.parents])[..., None])[..., 0]
         return A, offsets
 
-    def _t_pose_corrections(self, offsets: torch.Tensor, sk: _Skeleton) -> torch.Tensor:
+    def _t_pose_corrections(self, offsets: torch.Tensor, sk: Skeleton) -> torch.Tensor:
         """(B, n, 3, 3) G_b: Anny's reference pose -> T-pose, per bone (Anny axes)."""
         B, n = offsets.shape[:2]
         eye = torch.eye(3, dtype=offsets.dtype, device=offsets.device)
@@ -251,7 +252,7 @@ class AnnyBody(BodyModel):
             G[:, arm["fore"]] = G_fore[:, None]
         return G
 
-    def _local_rotations(self, pose: torch.Tensor, G: torch.Tensor, sk: _Skeleton) -> torch.Tensor:
+    def _local_rotations(self, pose: torch.Tensor, G: torch.Tensor, sk: Skeleton) -> torch.Tensor:
         """J24 pose (B, 23, 3) in SMPL axes -> Anny local-ref rotations (B, n, 3, 3)."""
         B, n = G.shape[:2]
         C = self.c_smpl_to_anny
@@ -347,66 +348,6 @@ class AnnyBody(BodyModel):
             elbow = R_smpl[:, arm["elbow"]] @ R_smpl[:, arm["twist"]]
             pose[:, arm["elbow_joint"] - 1] = matrix_to_axis_angle(elbow)
         return pose
-
-
-class _Skeleton(torch.nn.Module):
-    """A subset of Anny's bones closed under ancestors, with local parent indices and the
-    depth levels the forward kinematics walks through."""
-
-    def __init__(self, bones: list[int], all_parents: list[int], labels: list[str]) -> None:
-        super().__init__()
-        local = {b: i for i, b in enumerate(bones)}
-        parents = [0] + [local[all_parents[b]] for b in bones[1:]]
-        depth = [0] * len(bones)
-        for i in range(1, len(bones)):
-            depth[i] = depth[parents[i]] + 1
-        order = [0]
-        levels = []
-        for d in range(1, max(depth) + 1):
-            level = [i for i in range(len(bones)) if depth[i] == d]
-            levels.append(level)
-            order += level
-        position = {b: p for p, b in enumerate(order)}
-        self.register_buffer("bones", torch.tensor(bones), persistent=False)
-        self.register_buffer("parents", torch.tensor(parents), persistent=False)
-        self.register_buffer("inverse_order", torch.tensor([position[i] for i in range(len(bones))]), persistent=False)
-        for d, level in enumerate(levels):
-            self.register_buffer(f"level{d}", torch.tensor(level), persistent=False)
-            self.register_buffer(
-                f"level_parent{d}", torch.tensor([position[parents[i]] for i in level]), persistent=False
-            )
-        self.num_levels = len(levels)
-        j = {labels[b]: i for i, b in enumerate(bones)}  # bone name -> local index
-        self.arms = []
-        for s, sign in (("L", 1.0), ("R", -1.0)):
-            fore_root = labels.index(f"lowerarm01.{s}")
-            fore = [local[b] for b in bones if _descends(all_parents, b, fore_root)]
-            self.arms.append(
-                dict(
-                    sign=sign,
-                    elbow=j[f"lowerarm01.{s}"],
-                    twist=j[f"lowerarm02.{s}"],
-                    upper=[j[f"upperarm01.{s}"], j[f"upperarm02.{s}"]],
-                    fore=fore,
-                    upper_chain=[j[f"upperarm02.{s}"], j[f"lowerarm01.{s}"]],
-                    fore_chain=[j[f"lowerarm02.{s}"], j[f"wrist.{s}"]],
-                    elbow_joint=J24_NAMES.index("left_elbow" if s == "L" else "right_elbow"),
-                )
-            )
-
-    @property
-    def levels(self) -> list[torch.Tensor]:
-        return [getattr(self, f"level{d}") for d in range(self.num_levels)]
-
-    @property
-    def level_parents(self) -> list[torch.Tensor]:
-        return [getattr(self, f"level_parent{d}") for d in range(self.num_levels)]
-
-
-def _descends(parents: list[int], bone: int, ancestor: int) -> bool:
-    while bone > 0 and bone != ancestor:
-        bone = parents[bone]
-    return bone == ancestor
 
 
 def _skin_matrix(model) -> torch.Tensor:

@@ -1,0 +1,71 @@
+"""The part of Anny's skeleton a pass needs (`body.anny_backend`): its bones in a level order
+for batched forward kinematics, their parents and labels."""
+
+from __future__ import annotations
+
+import torch
+
+from pressurepose.body.joints import J24_NAMES
+
+
+class Skeleton(torch.nn.Module):
+    """A subset of Anny's bones closed under ancestors, with local parent indices and the
+    depth levels the forward kinematics walks through."""
+
+    def __init__(self, bones: list[int], all_parents: list[int], labels: list[str]) -> None:
+        super().__init__()
+        local = {b: i for i, b in enumerate(bones)}
+        parents = [0] + [local[all_parents[b]] for b in bones[1:]]
+        depth = [0] * len(bones)
+        for i in range(1, len(bones)):
+            depth[i] = depth[parents[i]] + 1
+        order = [0]
+        levels = []
+        for d in range(1, max(depth) + 1):
+            level = [i for i in range(len(bones)) if depth[i] == d]
+            levels.append(level)
+            order += level
+        position = {b: p for p, b in enumerate(order)}
+        self.register_buffer("bones", torch.tensor(bones), persistent=False)
+        self.register_buffer("parents", torch.tensor(parents), persistent=False)
+        self.register_buffer("inverse_order", torch.tensor([position[i] for i in range(len(bones))]), persistent=False)
+        for d, level in enumerate(levels):
+            self.register_buffer(f"level{d}", torch.tensor(level), persistent=False)
+            self.register_buffer(
+                f"level_parent{d}", torch.tensor([position[parents[i]] for i in level]), persistent=False
+            )
+        self.num_levels = len(levels)
+        j = {labels[b]: i for i, b in enumerate(bones)}  # bone name -> local index
+        self.arms = []
+        for s, sign in (("L", 1.0), ("R", -1.0)):
+            fore_root = labels.index(f"lowerarm01.{s}")
+            fore = [local[b] for b in bones if _descends(all_parents, b, fore_root)]
+            self.arms.append(
+                dict(
+                    sign=sign,
+                    elbow=j[f"lowerarm01.{s}"],
+                    twist=j[f"lowerarm02.{s}"],
+                    upper=[j[f"upperarm01.{s}"], j[f"upperarm02.{s}"]],
+                    fore=fore,
+                    upper_chain=[j[f"upperarm02.{s}"], j[f"lowerarm01.{s}"]],
+                    fore_chain=[j[f"lowerarm02.{s}"], j[f"wrist.{s}"]],
+                    elbow_joint=J24_NAMES.index("left_elbow" if s == "L" else "right_elbow"),
+                )
+            )
+
+    @property
+    def levels(self) -> list[torch.Tensor]:
+        return [getattr(self, f"level{d}") for d in range(self.num_levels)]
+
+    @property
+    def level_parents(self) -> list[torch.Tensor]:
+        return [getattr(self, f"level_parent{d}") for d in range(self.num_levels)]
+
+
+def _descends(parents: list[int], bone: int, ancestor: int) -> bool:
+    while bone > 0 and bone != ancestor:
+        bone = parents[bone]
+    return bone == ancestor
+
+
+__all__ = ["Skeleton"]
