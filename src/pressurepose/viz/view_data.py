@@ -15,9 +15,7 @@ or, for a training run, from its network run on the sample's pressure image on d
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import math
 import threading
 from collections import OrderedDict
 from pathlib import Path
@@ -28,81 +26,17 @@ import torch
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.params import BodyParams
 from pressurepose.errors import UserError
-
-PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
-LABEL_KEYS = ("split", "partition", "gender", "over_bed", "index")
-SCALAR_KEYS = ("mass_kg", "height_m", "head_angle_deg", "settle_steps", "sink_mm")
-IMAGES = ("metrics.png", "cases.png", "failures.png", "contact_sheet.png")  # shown when present
-HINT = (
-    "give a dataset folder (manifest.json), a `pressurepose evaluate` report folder (report.json), "
-    "a training run folder (config.json) or a .npz of pressure images"
+from pressurepose.viz.view_sources import (
+    HINT,
+    IMAGES,
+    LABEL_KEYS,
+    PARAM_KEYS,
+    SCALAR_KEYS,
+    NpzImages,
+    json_number,
+    open_samples,
+    resolve_recorded,
 )
-
-
-class NpzImages(torch.utils.data.Dataset):
-    """A .npz of pressure images (`import-pmatdata` output, or the training .npz format):
-    `pressure_mmhg` (N, 64, 27) mmHg plus any per-image arrays (N,) shown as labels, and the
-    body (shape, root_rotation, root_translation, pose) when all four are there. Loaded
-    whole without pickles: these files hold thousands of images, not 200K."""
-
-    def __init__(self, path: Path) -> None:
-        try:
-            with np.load(path, allow_pickle=False) as f:
-                arrays = {k: f[k] for k in f.files}
-        except (OSError, ValueError, EOFError) as exc:
-            raise UserError(f"{path} is not a readable .npz ({exc}); {HINT}") from None
-        p = arrays.get("pressure_mmhg")
-        if p is None or p.ndim != 3 or p.shape[1:] != (64, 27):
-            raise UserError(f"{path} holds no pressure_mmhg array of shape (N, 64, 27); {HINT}")
-        n = len(p)
-        self.arrays = {k: v for k, v in arrays.items() if v.ndim >= 1 and len(v) == n}
-        self.n = n
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __getitem__(self, i: int) -> dict:
-        return {k: (v[i] if v[i].ndim else v[i].item()) for k, v in self.arrays.items()}
-
-
-def _resolve(recorded: str | None, near: Path) -> Path | None:
-    """A path recorded in a report or run (as the user typed it, maybe relative to the folder
-    the command ran in): as given, else relative to the folder's parents."""
-    if not recorded:
-        return None
-    p = Path(recorded)
-    candidates = [p] if p.is_absolute() else [Path.cwd() / p, near / p, near.parent / p, near.parent.parent / p]
-    return next((c for c in candidates if c.exists()), None)
-
-
-def _open_samples(data: Path, split: str | None):
-    """The samples of a dataset folder (shards, verified lazily: a bad shard is reported
-    when read), a folder of training .npz files, or one .npz - in the order
-    `train.data.open_dataset` lists them, so report indices match."""
-    from pressurepose.data.dataset import PressurePoseDataset
-    from pressurepose.train.data import open_dataset
-
-    if (data / "manifest.json").is_file():
-        from pressurepose.data.manifest import load_manifest
-        from pressurepose.data.shards import verify_shard
-
-        # A missing or truncated shard is named now (a stat per shard); the sha256 of every byte
-        # is not checked here - that reads the whole dataset (`pressurepose info` does it).
-        for r in load_manifest(data, verify=False)["shards"]:
-            verify_shard(data, r, contents=False)
-        columns = ("pressure_mmhg", *PARAM_KEYS, "joints_m", *SCALAR_KEYS, *LABEL_KEYS)
-        return PressurePoseDataset(data, split=split, columns=columns, verify=False, cache_row_groups=4)
-    if data.is_file() and data.suffix == ".npz":
-        return NpzImages(data)
-    return open_dataset(data, split=split or "train")
-
-
-def _number(v):
-    """A JSON-ready scalar: 4 decimals, NaN and infinities as None."""
-    v = v.item() if isinstance(v, (torch.Tensor, np.ndarray, np.generic)) else v
-    if isinstance(v, float):
-        return round(v, 4) if math.isfinite(v) else None
-    return v
 
 
 class Browser:
@@ -141,7 +75,7 @@ class Browser:
                 raise UserError(f"{path} is a file but not a .npz; {HINT}")
             self.kind, self.dataset = "images", NpzImages(path)
         elif (path / "manifest.json").is_file():
-            self.kind, self.dataset = "dataset", _open_samples(path, None)
+            self.kind, self.dataset = "dataset", open_samples(path, None)
         elif (path / "report.json").is_file():
             self._open_report(path, data)
         elif (path / "config.json").is_file() and (
@@ -149,7 +83,7 @@ class Browser:
         ):
             self._open_run(path, data)
         elif path.is_dir() and any(path.glob("*.npz")):
-            self.kind, self.dataset = "dataset", _open_samples(path, None)
+            self.kind, self.dataset = "dataset", open_samples(path, None)
         elif path.is_dir() and (path / "real.json").is_file():
             raise UserError(
                 f"{path} is an `evaluate-real` report (no bodies to show); view the PmatData images with "
@@ -191,12 +125,12 @@ class Browser:
         self.split = record["config"].get("split", "test")
         self.per_sample = record["per_sample"]
         self.summary = {k: v.get("mean") for k, v in record.get("overall", {}).items()}
-        root = data or _resolve(record["config"].get("data"), path)
+        root = data or resolve_recorded(record["config"].get("data"), path)
         if root is None:
             raise UserError(
                 f"the report's dataset {record['config'].get('data')!r} is not found; give it with --data DIR"
             )
-        self.dataset = _open_samples(Path(root), self.split)
+        self.dataset = open_samples(Path(root), self.split)
         n = len(self.per_sample.get("vpe_m", []))
         if len(self.dataset) < n:
             raise UserError(
@@ -226,11 +160,11 @@ class Browser:
                     continue  # a line cut by a killed run: the rows before it still show
         train = record.get("train", {}) if isinstance(record, dict) else {}
         self.backend = self.backend or train.get("backend")
-        root = data or _resolve(train.get("data"), path)
+        root = data or resolve_recorded(train.get("data"), path)
         if root is None:
             self.note = f"the run's dataset {train.get('data')!r} is not found (give it with --data DIR): curves only"
             return
-        self.dataset = _open_samples(Path(root), None)
+        self.dataset = open_samples(Path(root), None)
         if (path / "model.safetensors").is_file():
             self._net_run = path
 
@@ -306,10 +240,10 @@ class Browser:
             elif isinstance(self.dataset, NpzImages):
                 for k in ("posture", "subject", "mattress", "partition", "gender"):
                     if k in self.dataset.arrays:
-                        e[k] = _number(self.dataset.arrays[k][i])
+                        e[k] = json_number(self.dataset.arrays[k][i])
             for k in ("partition", "gender", "vpe_m", "mpjpe_m"):
                 if k in self.per_sample:
-                    e[k] = _number(self.per_sample[k][i])
+                    e[k] = json_number(self.per_sample[k][i])
             out.append(e)
         return out
 
@@ -387,13 +321,13 @@ class Browser:
         meta = {"sample": i}
         for k in (*LABEL_KEYS, *SCALAR_KEYS):
             if k in item and not isinstance(item[k], (list, dict)):
-                meta[k] = _number(item[k])
+                meta[k] = json_number(item[k])
         if isinstance(self.dataset, NpzImages):
             for k, v in item.items():
                 if k not in meta and np.ndim(v) == 0:
-                    meta[k] = _number(v)
+                    meta[k] = json_number(v)
         for k, vals in self.per_sample.items():
-            meta.setdefault(k, _number(vals[i]))
+            meta.setdefault(k, json_number(vals[i]))
         true_joints = None
         if res["true"] is not None:
             stored = item.get("joints_m", item.get("joints"))
