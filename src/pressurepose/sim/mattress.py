@@ -124,12 +124,13 @@ class MattressParams:
         return cls(**doc["params"])
 
 
-# PmatData experiment II's two mattresses, fitted through the articulated sim #2 with
-# benchmarks/articulated_fit.py (docs/realism.md). The class defaults stay the rigid sim #2's
+# PmatData experiment II's two mattresses, fitted through the articulated sim #2 (with
+# self-contact and friction, 2026-11-25) with benchmarks/articulated_fit.py --bed-only
+# --from-preset (docs/realism.md). The class defaults stay the rigid sim #2's
 # fit (docs/calibration.md), which the generator's default uses.
 PRESETS: dict[str, dict[str, float]] = {
-    "sponge": {"k1_pa_per_m": 114500.0, "k3_pa_per_m3": 14090000.0, "tissue_pa_per_m": 197500.0, "spread_m": 0.003138},
-    "air": {"k1_pa_per_m": 77440.0, "k3_pa_per_m3": 40550000.0, "tissue_pa_per_m": 687200.0, "spread_m": 0.003631},
+    "sponge": {"k1_pa_per_m": 92340.0, "k3_pa_per_m3": 6800000.0, "tissue_pa_per_m": 98300.0, "spread_m": 0.002114},
+    "air": {"k1_pa_per_m": 68450.0, "k3_pa_per_m3": 25950000.0, "tissue_pa_per_m": 662100.0, "spread_m": 0.002804},
 }
 
 
