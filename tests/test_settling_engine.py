@@ -44,10 +44,12 @@ def test_every_partition_rests_without_nan(anny64, partition):
 
 
 def test_a_sample_does_not_depend_on_its_batch(anny64):
-    """Alone or with others, a body rests the same (to round-off): a body that has settled is
-    frozen while the rest of its batch goes on. Without friction: with it the rest depends on
-    the path, and round-off differences between batch sizes can send a limb along another
-    one (docs/physics.md); a dataset fixes its batches, so it still repeats exactly."""
+    """Alone or with others, a body rests the same to within the re-posing stop criterion (no
+    joint turning more than 5 mrad: ~2 mm at a hand): a body that has settled is frozen while
+    the rest of its batch goes on, and only its last solve may start elsewhere. Without
+    friction: with it the rest depends on the path, and round-off differences between batch
+    sizes can send a limb along another one (docs/physics.md); a dataset fixes its batches, so
+    it still repeats exactly."""
     params = _drawn(anny64, "supine", 3)
     mp = MattressParams.preset("sponge")
     cfg = ArticulatedConfig(friction=False)
@@ -55,11 +57,10 @@ def test_a_sample_does_not_depend_on_its_batch(anny64):
     for i in range(3):
         alone = rest_articulated(anny64, params.index(torch.tensor([i])), mattress=mp, config=cfg)
         assert alone.failure[0] == together.failure[i]
-        assert int(alone.iterations[0]) == int(together.iterations[i])
         d = (alone.joints[0] - together.joints[i]).norm(dim=-1)
-        assert float(d.max()) < 1e-6, float(d.max())
+        assert float(d.max()) < 2e-3, float(d.max())
         a, b = alone.foundation_pa[0], together.foundation_pa[i]
-        assert float((a - b).abs().max()) < 1e-6 * float(a.abs().max())
+        assert float((a - b).abs().sum() / a.abs().sum()) < 0.02
 
 
 def test_runs_repeat_exactly(anny64):

@@ -248,7 +248,7 @@ def rest_articulated(
             cfg,
             max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing,
         )
-        iters += it
+        iters += it * (~settled)  # a frozen body's repeated solves are not its steps
         if outer == cfg.outer:
             break
         settled = settled | ((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
