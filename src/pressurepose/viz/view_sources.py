@@ -89,4 +89,14 @@ def json_number(v):
     return v
 
 
-__all__ = ["HINT", "IMAGES", "LABEL_KEYS", "PARAM_KEYS", "SCALAR_KEYS", "NpzImages", "json_number", "open_samples", "resolve_recorded"]
+__all__ = [
+    "HINT",
+    "IMAGES",
+    "LABEL_KEYS",
+    "PARAM_KEYS",
+    "SCALAR_KEYS",
+    "NpzImages",
+    "json_number",
+    "open_samples",
+    "resolve_recorded",
+]
