@@ -186,6 +186,11 @@ def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainC
     scale = net.head.shape_scale()
     if cfg.module == 1:
         loss, parts = module_loss(est.joints, est.params.shape, targets, scale)
+        if est.localisation is not None:
+            from pressurepose.net.heatmap import localisation_loss
+
+            located, located_parts = localisation_loss(est.localisation, targets.joints, net.mat)
+            loss, parts = loss + located, {**parts, **located_parts}
     else:
         loss, parts = module_loss(est.joints, est.params.shape, targets, scale, est.depth_mm, est.contact)
         if cfg.synthesis_weight > 0:
