@@ -249,3 +249,22 @@ def test_heatmap_bad_inputs(anny32, tmp_path):
         net_config_from_record({"net": {"arch": "heatmap", "ik_steps": "3"}}, tmp_path / "model.safetensors")
     with pytest.raises(UserError, match="ik_steps"):
         net_config_from_record({"net": {"arch": "heatmap", "ik_steps": 500}}, tmp_path / "model.safetensors")
+
+
+def test_train_heatmap_arch_smoke(anny64, tmp_path):
+    """`train --arch heatmap` runs, logs the localisation losses, validates (with the IK) and
+    writes a network that `load_network` rebuilds from the run folder alone."""
+    from pressurepose.train.checkpoint import load_network
+    from pressurepose.train.config import TrainConfig
+    from pressurepose.train.data import TensorDictDataset, synthetic_arrays
+    from pressurepose.train.loop import train
+
+    arrays = synthetic_arrays(24, seed=5, body=anny64)
+    dataset = TensorDictDataset({k: torch.as_tensor(v) for k, v in arrays.items()})
+    cfg = TrainConfig.smoke(arch="heatmap", out=tmp_path / "run", batch_size=8, val_fraction=0.25,
+                            progress=False, gender_input=False, shift_rows=4, mirror=0.5)
+    run = train(cfg, dataset)
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == 2 and all({"localised", "heatmap", "joints", "val_mpjpe_mm"} <= set(r) for r in rows)
+    net, _ = load_network(run)
+    assert net.config.arch == "heatmap" and net.config.ik_steps == 3
