@@ -45,13 +45,15 @@ def main() -> None:
         params = net.head(raw, inputs.gender if net.config.gender_input else None)
         print(f"{len(val[:args.n])} validation samples: localised {err(loc.joints):.1f} mm, "
               f"head body {err(net.body.joints(params)):.1f} mm")
-        print("| steps | joint sigma (m) | prior sigma (rad) | damping | MPJPE (mm) | ms per 128 |")
-        print("| --- | --- | --- | --- | --- | --- |")
-        for steps, js, ps, d in itertools.product((1, 3, 5), (0.03,), (0.25, 0.5, 1.0, 2.0), (0.3, 1.0, 3.0)):
+        print("| steps | joint sigma (m) | prior sigma (rad) | damping | spread weights | MPJPE (mm) | ms per 128 |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        grid = itertools.product((1, 3, 5), (0.03, 0.1), (0.25, 0.5, 1.0, 2.0), (1.0,), (False, True))
+        for steps, js, ps, d, sw in grid:
+            ik = IKConfig(steps, js, ps, d, sw)
             t0 = time.perf_counter()
-            fitted = fit_to_joints(net.body, params, loc.joints, config=IKConfig(steps, js, ps, d))
+            fitted = fit_to_joints(net.body, params, loc.joints, ik.weights(loc.spread_m2), ik)
             seconds = (time.perf_counter() - t0) * 128 / len(true)
-            print(f"| {steps} | {js} | {ps} | {d} | {err(net.body.joints(fitted)):.1f} | {1000 * seconds:.0f} |",
+            print(f"| {steps} | {js} | {ps} | {d} | {sw} | {err(net.body.joints(fitted)):.1f} | {1000 * seconds:.0f} |",
                   flush=True)
 
 

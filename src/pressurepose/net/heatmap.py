@@ -19,8 +19,9 @@ cells (centres g_p in the mat frame, metres):
     z_j      = sum_p s_p  HEIGHT_SCALE_M * height_p + HEIGHT_BIAS_M
 
 The offsets let joints lie off the sensing area (hands over the bed's side) and between cells;
-the auxiliary loss on the offset-free soft-argmax (`grid_joints`) keeps the heatmap itself on
-the joint. `spread_m2` is the heatmap's variance about its mean: a confidence for the fit.
+an auxiliary cross-entropy against a Gaussian (sigma HEATMAP_SIGMA_M) at the true position,
+clamped onto the grid, keeps the heatmap itself on the joint and gives every cell a gradient
+(with the integral loss alone, 17 epochs on 860 images left the joints ~24 cm off). `spread_m2` is the heatmap's variance about its mean: a confidence for the fit.
 The parameter head is an MLP on the localised joints (detached: it reads them, it does not
 move them) and the pooled bottleneck features; its raw vector goes through the usual
 `ParamHead` (joint-limit squash, 6D root rotation).
@@ -41,7 +42,8 @@ from pressurepose.net.losses import JOINT_SCALE_M
 OFFSET_SCALE_M = 0.1
 HEIGHT_SCALE_M = 0.1
 HEIGHT_BIAS_M = 0.1
-GRID_LOSS_WEIGHT = 0.5
+HEATMAP_LOSS_WEIGHT = 0.5
+HEATMAP_SIGMA_M = 0.05
 MAPS_PER_JOINT = 4  # logit, offset x, offset y, height
 
 
@@ -52,6 +54,8 @@ class Localisation:
     joints: torch.Tensor       # (B, 24, 3) integral regression, offsets and height included
     grid_joints: torch.Tensor  # (B, 24, 2) soft-argmax of the heatmap alone (x, y)
     spread_m2: torch.Tensor    # (B, 24) variance of the heatmap about grid_joints
+    log_prob: torch.Tensor     # (B, 24, H, W) log-softmax of the heatmaps
+    centres: torch.Tensor      # (H, W, 2) the cells' (x, y)
 
 
 def soft_argmax(logits: torch.Tensor, centres: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -82,7 +86,9 @@ def integral_joints(maps: torch.Tensor, centres: torch.Tensor) -> Localisation:
     extra = (prob * maps[:, :, 1:].reshape(B, J, 3, H * W)).sum(-1)       # (B, J, 3)
     xy = grid + OFFSET_SCALE_M * extra[..., :2]
     z = HEIGHT_SCALE_M * extra[..., 2:] + HEIGHT_BIAS_M
-    return Localisation(joints=torch.cat([xy, z], -1), grid_joints=grid, spread_m2=spread)
+    return Localisation(joints=torch.cat([xy, z], -1), grid_joints=grid, spread_m2=spread,
+                        log_prob=torch.log_softmax(logits.reshape(B, J, H * W), -1).reshape(B, J, H, W),
+                        centres=centres)
 
 
 def cell_centres(mat: MatSpec, rows: int, cols: int) -> torch.Tensor:
@@ -145,19 +151,21 @@ class HeatmapNet(nn.Module):
 
 def localisation_loss(loc: Localisation, joints: torch.Tensor, mat: MatSpec | None = None
                       ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Mean Euclidean error of the localised joints / JOINT_SCALE_M, plus GRID_LOSS_WEIGHT x
-    that of the heatmap's own soft-argmax against the true (x, y) clamped into the grid's
-    reach (a joint off the mat is pulled to the nearest edge cell; its offset does the rest).
-    joints (B, 24, 3) true, mat frame."""
+    """Mean Euclidean error of the localised joints / JOINT_SCALE_M, plus HEATMAP_LOSS_WEIGHT x
+    the cross-entropy of the heatmaps against Gaussians (sigma HEATMAP_SIGMA_M) at the true
+    (x, y) clamped onto the sensing area (a joint off the mat is drawn to the nearest edge
+    cell; its offset does the rest). joints (B, 24, 3) true, mat frame."""
     mat = mat or MatSpec()
     true = joints.to(loc.joints)
     located = (loc.joints - true).norm(dim=-1).mean() / JOINT_SCALE_M
-    lo = loc.grid_joints.new_tensor([0.0, 0.0])
-    hi = loc.grid_joints.new_tensor([mat.sensing_length_m, mat.sensing_width_m])
-    target = torch.minimum(torch.maximum(true[..., :2], lo), hi)
-    grid = (loc.grid_joints - target).norm(dim=-1).mean() / JOINT_SCALE_M
-    total = located + GRID_LOSS_WEIGHT * grid
-    return total, {"localised": float(located.detach()), "heatmap": float(grid.detach())}
+    lo = true.new_tensor([0.0, 0.0])
+    hi = true.new_tensor([mat.sensing_length_m, mat.sensing_width_m])
+    target = torch.minimum(torch.maximum(true[..., :2], lo), hi)                    # (B, J, 2)
+    d2 = (loc.centres.to(true)[None, None] - target[:, :, None, None]).square().sum(-1)  # (B, J, H, W)
+    gauss = torch.softmax(-d2.flatten(2) / (2 * HEATMAP_SIGMA_M**2), -1)
+    heatmap = -(gauss * loc.log_prob.flatten(2)).sum(-1).mean()
+    total = located + HEATMAP_LOSS_WEIGHT * heatmap
+    return total, {"localised": float(located.detach()), "heatmap": float(heatmap.detach())}
 
 
 __all__ = ["HeatmapNet", "Localisation", "cell_centres", "integral_joints", "localisation_loss", "soft_argmax"]

@@ -49,6 +49,14 @@ class IKConfig:
     joint_sigma_m: float = 0.03     # sigma: how far a localised joint is trusted
     prior_sigma_rad: float = 0.5    # sigma_theta: how far the pose may leave the head's answer
     damping: float = 1.0            # Levenberg-Marquardt mu added to the normal matrix (unitless)
+    spread_weights: bool = True     # weight joint j by sigma^2 / (sigma^2 + its heatmap's variance)
+
+    def weights(self, spread_m2: torch.Tensor) -> torch.Tensor:
+        """(B, 24) per-joint weights from the heatmaps' variances (m^2): a diffuse heatmap (a
+        limb the image does not show) is trusted less, and the prior takes over."""
+        if not self.spread_weights:
+            return torch.ones_like(spread_m2)
+        return self.joint_sigma_m**2 / (self.joint_sigma_m**2 + spread_m2)
 
 
 def _strict_descendants() -> torch.Tensor:

@@ -189,7 +189,8 @@ class PressureNet(nn.Module):
         raw, loc = self.mod1(x)
         params = self.head(raw, gender)
         if not self.training and self.config.ik_steps > 0:
-            params = fit_to_joints(self.body, params, loc.joints, config=IKConfig(steps=self.config.ik_steps))
+            ik = IKConfig(steps=self.config.ik_steps)
+            params = fit_to_joints(self.body, params, loc.joints, ik.weights(loc.spread_m2), ik)
         return self.estimate(raw, gender, mesh, maps, params=params, localisation=loc)
 
     def forward(self, inputs: NetInputs, augment: bool = False, generator: torch.Generator | None = None,
