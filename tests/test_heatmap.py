@@ -268,3 +268,13 @@ def test_train_heatmap_arch_smoke(anny64, tmp_path):
     assert len(rows) == 2 and all({"localised", "heatmap", "joints", "val_mpjpe_mm"} <= set(r) for r in rows)
     net, _ = load_network(run)
     assert net.config.arch == "heatmap" and net.config.ik_steps == 3
+
+
+def test_train_cli_refuses_heatmap_mod2(tmp_path, capsys):
+    from pressurepose.cli import main
+
+    args = ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--arch", "heatmap", "--module", "2",
+            "--mod1", str(tmp_path)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "arch heatmap is one module" in err and len(err.strip().splitlines()) == 1

@@ -125,6 +125,8 @@ class TrainConfig:
     def _check(self) -> None:
         if self.module not in (1, 2):
             raise UserError(f"module must be 1 or 2, got {self.module}")
+        if self.module == 2 and self.arch == "heatmap":
+            raise UserError("arch heatmap is one module (it fits the body to its localised joints): use --module 1")
         if self.module == 2 and self.mod1 is None:
             raise UserError("module 2 trains on a trained Mod1: give --mod1 RUN (a `--module 1` run folder)")
         for name in ("epochs", "batch_size", "save_every"):
