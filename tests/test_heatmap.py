@@ -278,3 +278,12 @@ def test_train_cli_refuses_heatmap_mod2(tmp_path, capsys):
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "arch heatmap is one module" in err and len(err.strip().splitlines()) == 1
+
+
+def test_synthesis_refine_refuses_the_heatmap_arch(anny32):
+    from pressurepose.errors import UserError
+    from pressurepose.net.synthesis import refine
+
+    net = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=anny32)
+    with pytest.raises(UserError, match="refines its estimate by IK"):
+        refine(net, NetInputs(torch.rand(1, 64, 27) * 40), steps=1)
