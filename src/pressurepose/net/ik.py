@@ -47,7 +47,7 @@ class IKConfig:
 
     steps: int = 3
     joint_sigma_m: float = 0.03     # sigma: how far a localised joint is trusted
-    prior_sigma_rad: float = 0.5    # sigma_theta: how far the pose may leave the head's answer
+    prior_sigma_rad: float = 2.0    # sigma_theta: how far the pose may leave the head's answer
     damping: float = 1.0            # Levenberg-Marquardt mu added to the normal matrix (unitless)
     spread_weights: bool = True     # weight joint j by sigma^2 / (sigma^2 + its heatmap's variance)
 
