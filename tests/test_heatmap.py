@@ -8,17 +8,31 @@ import pytest
 import torch
 
 from pressurepose.body.joints import NUM_JOINTS
-from pressurepose.body.kinematics import pose_in_mat, rest_joints
+from pressurepose.body.kinematics import pose_in_mat
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.params import BodyParams
 from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.mat import MatSpec
 from pressurepose.net import NetConfig, NetInputs, PressureNet
 from pressurepose.net.heatmap import (
-    HEIGHT_BIAS_M, HEIGHT_SCALE_M, OFFSET_SCALE_M, HeatmapNet, cell_centres, integral_joints, localisation_loss,
+    HEIGHT_BIAS_M,
+    HEIGHT_SCALE_M,
+    OFFSET_SCALE_M,
+    HeatmapNet,
+    cell_centres,
+    integral_joints,
+    localisation_loss,
     soft_argmax,
 )
-from pressurepose.net.ik import IKConfig, IKState, fit_to_joints, free_pose, ik_step, joint_jacobian, left_jacobian
+from pressurepose.net.ik import (
+    IKConfig,
+    IKState,
+    fit_to_joints,
+    free_pose,
+    ik_step,
+    joint_jacobian,
+    left_jacobian,
+)
 
 f64 = torch.float64
 
