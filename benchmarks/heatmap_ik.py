@@ -35,7 +35,7 @@ def main() -> None:
     cfg = TrainConfig.from_json(record["train"]).resolved()
     dataset = open_dataset(args.data)
     _, val = _split(len(dataset), cfg)
-    batch = collate([dataset[i] for i in val[:args.n]])
+    batch = collate([dataset[i] for i in val[: args.n]])
     inputs = NetInputs(batch["pressure_mmhg"], gender=batch["gender"])
     true = batch["joints"]
     err = lambda j: 1000 * float((j - true).norm(dim=-1).mean())  # noqa: E731
@@ -43,8 +43,10 @@ def main() -> None:
         x = net.channels(inputs)
         raw, loc = net.mod1(x)
         params = net.head(raw, inputs.gender if net.config.gender_input else None)
-        print(f"{len(val[:args.n])} validation samples: localised {err(loc.joints):.1f} mm, "
-              f"head body {err(net.body.joints(params)):.1f} mm")
+        print(
+            f"{len(val[: args.n])} validation samples: localised {err(loc.joints):.1f} mm, "
+            f"head body {err(net.body.joints(params)):.1f} mm"
+        )
         print("| steps | joint sigma (m) | prior sigma (rad) | damping | spread weights | MPJPE (mm) | ms per 128 |")
         print("| --- | --- | --- | --- | --- | --- | --- |")
         grid = itertools.product((1, 3, 5), (0.03, 0.1), (0.25, 0.5, 1.0, 2.0), (1.0,), (False, True))
@@ -53,8 +55,10 @@ def main() -> None:
             t0 = time.perf_counter()
             fitted = fit_to_joints(net.body, params, loc.joints, ik.weights(loc.spread_m2), ik)
             seconds = (time.perf_counter() - t0) * 128 / len(true)
-            print(f"| {steps} | {js} | {ps} | {d} | {sw} | {err(net.body.joints(fitted)):.1f} | {1000 * seconds:.0f} |",
-                  flush=True)
+            print(
+                f"| {steps} | {js} | {ps} | {d} | {sw} | {err(net.body.joints(fitted)):.1f} | {1000 * seconds:.0f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

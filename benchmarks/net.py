@@ -103,16 +103,21 @@ def main() -> None:
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {device}, batch {args.batch}")
     # Wall time suffers from other jobs on a shared machine; CPU time (process time, all
     # threads) says what the work costs: with 1 thread, CPU-time rates are one dedicated core's.
-    print("| arch | module | training img/s (wall / per CPU-s) | predict batch 1 ms (wall / CPU) "
-          "| predict batch 128 img/s (wall / per CPU-s) |")
+    print(
+        "| arch | module | training img/s (wall / per CPU-s) | predict batch 1 ms (wall / CPU) "
+        "| predict batch 128 img/s (wall / per CPU-s) |"
+    )
     print("| --- | --- | --- | --- | --- |")
     for arch in args.archs:
         for module in (1,) if arch == "heatmap" else (1, 2):  # heatmap: one module
             ips_w, ips_c = train_speed(body, arch, module, args.batch, args.steps, device)
             lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device)
             thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device)
-            print(f"| {arch} | {module} | {ips_w:.1f} / {ips_c:.1f} | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
-                  f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |", flush=True)
+            print(
+                f"| {arch} | {module} | {ips_w:.1f} / {ips_c:.1f} | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
+                f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -45,8 +45,9 @@ def _naive_soft_argmax(logits, centres):
         for j in range(J):
             z = sum(torch.exp(logits[b, j, r, c]) for r in range(H) for c in range(W))
             m = sum(torch.exp(logits[b, j, r, c]) / z * centres[r, c] for r in range(H) for c in range(W))
-            v = sum(torch.exp(logits[b, j, r, c]) / z * ((centres[r, c] - m) ** 2).sum()
-                    for r in range(H) for c in range(W))
+            v = sum(
+                torch.exp(logits[b, j, r, c]) / z * ((centres[r, c] - m) ** 2).sum() for r in range(H) for c in range(W)
+            )
             mean[b, j], var[b, j] = m, v
     return mean, var
 
@@ -60,8 +61,8 @@ def test_soft_argmax_against_a_naive_loop_values_and_gradients():
     torch.testing.assert_close(mean, ref_mean, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(var, ref_var, rtol=1e-10, atol=1e-12)
     w = torch.randn(2, 3, 2, generator=g, dtype=f64)
-    grad, = torch.autograd.grad((mean * w).sum() + var.sum(), logits)
-    ref, = torch.autograd.grad((ref_mean * w).sum() + ref_var.sum(), logits)
+    (grad,) = torch.autograd.grad((mean * w).sum() + var.sum(), logits)
+    (ref,) = torch.autograd.grad((ref_mean * w).sum() + ref_var.sum(), logits)
     torch.testing.assert_close(grad, ref, rtol=1e-10, atol=1e-12)
     # A one-hot heatmap lands on its cell, with no spread.
     sharp = torch.full((1, 1, 5, 4), -1e3, dtype=f64)
@@ -79,8 +80,9 @@ def test_integral_joints_against_a_naive_loop():
     for b in range(2):
         for j in range(3):
             p = torch.softmax(maps[b, j, 0].flatten(), 0).reshape(6, 5)
-            xy = sum(p[r, c] * (centres[r, c] + OFFSET_SCALE_M * maps[b, j, 1:3, r, c])
-                     for r in range(6) for c in range(5))
+            xy = sum(
+                p[r, c] * (centres[r, c] + OFFSET_SCALE_M * maps[b, j, 1:3, r, c]) for r in range(6) for c in range(5)
+            )
             z = sum(p[r, c] * HEIGHT_SCALE_M * maps[b, j, 3, r, c] for r in range(6) for c in range(5)) + HEIGHT_BIAS_M
             torch.testing.assert_close(loc.joints[b, j], torch.cat([xy, z.reshape(1)]), rtol=1e-12, atol=1e-12)
 
@@ -97,9 +99,12 @@ def _random_body(B, seed, scale=0.4):
     g = torch.Generator().manual_seed(seed)
     rest = 0.3 * torch.randn(B, NUM_JOINTS, 3, generator=g, dtype=f64)
     rest[:, 0] = 0
-    params = BodyParams(shape=torch.zeros(B, 6, dtype=f64), root_rotation=torch.randn(B, 3, generator=g, dtype=f64),
-                        root_translation=torch.randn(B, 3, generator=g, dtype=f64),
-                        pose=scale * torch.randn(B, 23, 3, generator=g, dtype=f64))
+    params = BodyParams(
+        shape=torch.zeros(B, 6, dtype=f64),
+        root_rotation=torch.randn(B, 3, generator=g, dtype=f64),
+        root_translation=torch.randn(B, 3, generator=g, dtype=f64),
+        pose=scale * torch.randn(B, 23, 3, generator=g, dtype=f64),
+    )
     return rest, params
 
 
@@ -141,8 +146,10 @@ def test_ik_step_gradcheck_float64(limited):
         out = ik_step(rest, p.shape, IKState(t, r, u), q, w, prior, cfg, limits)
         return out.free_pose, out.root_rotation, out.root_translation
 
-    inputs = tuple(v.clone().requires_grad_() for v in
-                   (p.pose, p.root_rotation, p.root_translation, target, weights, 0.5 * p.pose.detach(), rest))
+    inputs = tuple(
+        v.clone().requires_grad_()
+        for v in (p.pose, p.root_rotation, p.root_translation, target, weights, 0.5 * p.pose.detach(), rest)
+    )
     assert torch.autograd.gradcheck(step, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
@@ -155,20 +162,27 @@ def test_ik_converges_to_reachable_targets_within_limits(anny64):
     u = torch.rand(B, 23, 3, generator=g, dtype=f64)
     true_pose = limits.lower + (0.2 + 0.6 * u) * (limits.upper - limits.lower)
     shape = torch.full((B, 6), 0.5, dtype=f64)
-    truth = BodyParams(shape=shape, root_rotation=0.2 * torch.randn(B, 3, generator=g, dtype=f64),
-                       root_translation=torch.tensor([[0.9, 0.4, 0.1]], dtype=f64).expand(B, 3), pose=true_pose)
+    truth = BodyParams(
+        shape=shape,
+        root_rotation=0.2 * torch.randn(B, 3, generator=g, dtype=f64),
+        root_translation=torch.tensor([[0.9, 0.4, 0.1]], dtype=f64).expand(B, 3),
+        pose=true_pose,
+    )
     target = anny64.joints(truth)
-    start = truth.replace(pose=limits.lower + (0.2 + 0.6 * torch.rand(B, 23, 3, generator=g, dtype=f64))
-                          * (limits.upper - limits.lower),
-                          root_translation=truth.root_translation + 0.05,
-                          root_rotation=truth.root_rotation + 0.1)
+    start = truth.replace(
+        pose=limits.lower + (0.2 + 0.6 * torch.rand(B, 23, 3, generator=g, dtype=f64)) * (limits.upper - limits.lower),
+        root_translation=truth.root_translation + 0.05,
+        root_rotation=truth.root_rotation + 0.1,
+    )
     err = lambda p: float((anny64.joints(p) - target).norm(dim=-1).mean())  # noqa: E731
     cfg = IKConfig(steps=10, prior_sigma_rad=10.0, damping=1.0)
     fitted = fit_to_joints(anny64, start, target, config=cfg)
     three = fit_to_joints(anny64, start, target, config=dataclasses.replace(cfg, steps=3))
     assert err(fitted) < 0.003 < err(three) < 0.5 * err(start), (err(start), err(three), err(fitted))
-    inflated = JointLimits(lower=limits.lower - 0.1 * (limits.upper - limits.lower),
-                           upper=limits.upper + 0.1 * (limits.upper - limits.lower))
+    inflated = JointLimits(
+        lower=limits.lower - 0.1 * (limits.upper - limits.lower),
+        upper=limits.upper + 0.1 * (limits.upper - limits.lower),
+    )
     assert bool(inflated.contains(fitted.pose).all())
     # Zero steps change nothing; a free round trip through the squash is exact.
     same = fit_to_joints(anny64, start, target, config=IKConfig(steps=0))
@@ -178,7 +192,7 @@ def test_ik_converges_to_reachable_targets_within_limits(anny64):
 
 def _blob_images(joints, mat):
     """Pressure images with a bump under every joint: something a network can localise."""
-    rc = mat.to_taxel(joints[..., :2])                          # (B, 24, 2)
+    rc = mat.to_taxel(joints[..., :2])  # (B, 24, 2)
     r = torch.arange(64.0)[:, None] + 0.5
     c = torch.arange(27.0)[None] + 0.5
     d2 = (r - rc[..., 0, None, None]) ** 2 + (c - rc[..., 1, None, None]) ** 2  # (B, 24, 64, 27)
@@ -189,8 +203,14 @@ def test_heatmap_net_overfits_a_handful_of_samples():
     """The localisation part learns 4 images by heart: mean joint error < 2 cm from ~20 cm."""
     mat = MatSpec()
     g = torch.Generator().manual_seed(8)
-    joints = torch.stack([0.2 + 1.4 * torch.rand(4, 24, generator=g), 0.1 + 0.55 * torch.rand(4, 24, generator=g),
-                          0.05 + 0.1 * torch.rand(4, 24, generator=g)], -1)
+    joints = torch.stack(
+        [
+            0.2 + 1.4 * torch.rand(4, 24, generator=g),
+            0.1 + 0.55 * torch.rand(4, 24, generator=g),
+            0.05 + 0.1 * torch.rand(4, 24, generator=g),
+        ],
+        -1,
+    )
     from pressurepose.net.preprocess import pressure_channels
 
     x = pressure_channels(_blob_images(joints, mat))
@@ -275,8 +295,16 @@ def test_train_heatmap_arch_smoke(anny64, tmp_path):
 
     arrays = synthetic_arrays(24, seed=5, body=anny64)
     dataset = TensorDictDataset({k: torch.as_tensor(v) for k, v in arrays.items()})
-    cfg = TrainConfig.smoke(arch="heatmap", out=tmp_path / "run", batch_size=8, val_fraction=0.25,
-                            progress=False, gender_input=False, shift_rows=4, mirror=0.5)
+    cfg = TrainConfig.smoke(
+        arch="heatmap",
+        out=tmp_path / "run",
+        batch_size=8,
+        val_fraction=0.25,
+        progress=False,
+        gender_input=False,
+        shift_rows=4,
+        mirror=0.5,
+    )
     run = train(cfg, dataset)
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 2 and all({"localised", "heatmap", "joints", "val_mpjpe_mm"} <= set(r) for r in rows)
@@ -287,8 +315,19 @@ def test_train_heatmap_arch_smoke(anny64, tmp_path):
 def test_train_cli_refuses_heatmap_mod2(tmp_path, capsys):
     from pressurepose.cli import main
 
-    args = ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--arch", "heatmap", "--module", "2",
-            "--mod1", str(tmp_path)]
+    args = [
+        "train",
+        "--data",
+        str(tmp_path),
+        "--out",
+        str(tmp_path / "run"),
+        "--arch",
+        "heatmap",
+        "--module",
+        "2",
+        "--mod1",
+        str(tmp_path),
+    ]
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "arch heatmap is one module" in err and len(err.strip().splitlines()) == 1

@@ -51,11 +51,11 @@ MAPS_PER_JOINT = 4  # logit, offset x, offset y, height
 class Localisation:
     """Where the heatmaps put the J24 joints (mat frame, metres)."""
 
-    joints: torch.Tensor       # (B, 24, 3) integral regression, offsets and height included
+    joints: torch.Tensor  # (B, 24, 3) integral regression, offsets and height included
     grid_joints: torch.Tensor  # (B, 24, 2) soft-argmax of the heatmap alone (x, y)
-    spread_m2: torch.Tensor    # (B, 24) variance of the heatmap about grid_joints
-    log_prob: torch.Tensor     # (B, 24, H, W) log-softmax of the heatmaps
-    centres: torch.Tensor      # (H, W, 2) the cells' (x, y)
+    spread_m2: torch.Tensor  # (B, 24) variance of the heatmap about grid_joints
+    log_prob: torch.Tensor  # (B, 24, H, W) log-softmax of the heatmaps
+    centres: torch.Tensor  # (H, W, 2) the cells' (x, y)
 
 
 def soft_argmax(logits: torch.Tensor, centres: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -65,12 +65,14 @@ def soft_argmax(logits: torch.Tensor, centres: torch.Tensor) -> tuple[torch.Tens
     (B, J, 2) under softmax(logits) over the H x W cells, and the variance about it (B, J)
     (summed over both coordinates)."""
     if logits.ndim != 4 or centres.shape != (*logits.shape[2:], 2):
-        raise ValueError(f"logits (B, J, H, W) and centres (H, W, 2) must agree, got {tuple(logits.shape)} "
-                         f"and {tuple(centres.shape)}")
+        raise ValueError(
+            f"logits (B, J, H, W) and centres (H, W, 2) must agree, got {tuple(logits.shape)} "
+            f"and {tuple(centres.shape)}"
+        )
     B, J, H, W = logits.shape
-    prob = torch.softmax(logits.reshape(B, J, H * W), -1)                 # (B, J, HW)
+    prob = torch.softmax(logits.reshape(B, J, H * W), -1)  # (B, J, HW)
     c = centres.reshape(H * W, 2).to(prob)
-    mean = prob @ c                                                       # (B, J, 2)
+    mean = prob @ c  # (B, J, 2)
     second = prob @ c.square()
     return mean, (second - mean.square()).sum(-1).clamp(min=0.0)
 
@@ -82,13 +84,17 @@ def integral_joints(maps: torch.Tensor, centres: torch.Tensor) -> Localisation:
     B, J, _, H, W = maps.shape
     logits = maps[:, :, 0]
     grid, spread = soft_argmax(logits, centres)
-    prob = torch.softmax(logits.reshape(B, J, H * W), -1)[:, :, None]    # (B, J, 1, HW)
-    extra = (prob * maps[:, :, 1:].reshape(B, J, 3, H * W)).sum(-1)       # (B, J, 3)
+    prob = torch.softmax(logits.reshape(B, J, H * W), -1)[:, :, None]  # (B, J, 1, HW)
+    extra = (prob * maps[:, :, 1:].reshape(B, J, 3, H * W)).sum(-1)  # (B, J, 3)
     xy = grid + OFFSET_SCALE_M * extra[..., :2]
     z = HEIGHT_SCALE_M * extra[..., 2:] + HEIGHT_BIAS_M
-    return Localisation(joints=torch.cat([xy, z], -1), grid_joints=grid, spread_m2=spread,
-                        log_prob=torch.log_softmax(logits.reshape(B, J, H * W), -1).reshape(B, J, H, W),
-                        centres=centres)
+    return Localisation(
+        joints=torch.cat([xy, z], -1),
+        grid_joints=grid,
+        spread_m2=spread,
+        log_prob=torch.log_softmax(logits.reshape(B, J, H * W), -1).reshape(B, J, H, W),
+        centres=centres,
+    )
 
 
 def cell_centres(mat: MatSpec, rows: int, cols: int) -> torch.Tensor:
@@ -100,8 +106,9 @@ def cell_centres(mat: MatSpec, rows: int, cols: int) -> torch.Tensor:
 
 
 def _conv(cin: int, cout: int, stride: int = 1, kernel: int = 3) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=False),
-                         nn.BatchNorm2d(cout), nn.SiLU())
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=False), nn.BatchNorm2d(cout), nn.SiLU()
+    )
 
 
 class HeatmapNet(nn.Module):
@@ -109,8 +116,9 @@ class HeatmapNet(nn.Module):
 
     INPUT_SCALE = 0.02  # the released channel values (sums of 20,000, contact 100) -> O(1)
 
-    def __init__(self, in_channels: int, out_features: int, mat: MatSpec | None = None,
-                 dropout: float = 0.1, width: int = 1) -> None:
+    def __init__(
+        self, in_channels: int, out_features: int, mat: MatSpec | None = None, dropout: float = 0.1, width: int = 1
+    ) -> None:
         super().__init__()
         mat = mat or MatSpec()
         c = [32 * width, 48 * width, 64 * width, 96 * width, 24 * width]
@@ -127,30 +135,32 @@ class HeatmapNet(nn.Module):
         rows, cols = (mat.rows + 1) // 2, (mat.cols + 1) // 2
         self.register_buffer("centres", cell_centres(mat, rows, cols).float(), persistent=False)
         self.register_buffer("joint_origin", torch.tensor([*mat.centre_m, 0.1]).float(), persistent=False)
-        self.fc = nn.Sequential(nn.Linear(NUM_JOINTS * 3 + 2 * c[3], 256), nn.SiLU(), nn.Dropout(dropout),
-                                nn.Linear(256, out_features))
+        self.fc = nn.Sequential(
+            nn.Linear(NUM_JOINTS * 3 + 2 * c[3], 256), nn.SiLU(), nn.Dropout(dropout), nn.Linear(256, out_features)
+        )
         with torch.no_grad():  # the reference body at the start (as make_cnn does)
             self.fc[-1].weight.mul_(0.1)
             self.fc[-1].bias.zero_()
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, Localisation]:
         B = x.shape[0]
-        e1 = self.enc1(x * self.INPUT_SCALE)                                   # (B, 48, 32, 14)
-        e2 = self.enc2(e1)                                                     # (B, 64, 16, 7)
-        e3 = self.enc3(e2)                                                     # (B, 96, 8, 4)
+        e1 = self.enc1(x * self.INPUT_SCALE)  # (B, 48, 32, 14)
+        e2 = self.enc2(e1)  # (B, 64, 16, 7)
+        e3 = self.enc3(e2)  # (B, 96, 8, 4)
         up = lambda a, like: F.interpolate(a, size=like.shape[-2:], mode="nearest")  # noqa: E731
-        d2 = self.dec2(torch.cat([up(e3, e2), e2], 1))                         # (B, 64, 16, 7)
-        d1 = self.dec1(torch.cat([up(self.squeeze(d2), e1), e1], 1))           # (B, 32, 32, 14)
+        d2 = self.dec2(torch.cat([up(e3, e2), e2], 1))  # (B, 64, 16, 7)
+        d1 = self.dec1(torch.cat([up(self.squeeze(d2), e1), e1], 1))  # (B, 32, 32, 14)
         maps = self.maps(d1).reshape(B, NUM_JOINTS, MAPS_PER_JOINT, *d1.shape[-2:])
         loc = integral_joints(maps, self.centres)
-        pooled = torch.cat([e3.mean((-2, -1)), e3.amax((-2, -1))], 1)         # (B, 192)
-        rel = (loc.joints.detach() - self.joint_origin) / JOINT_SCALE_M         # (B, 24, 3)
+        pooled = torch.cat([e3.mean((-2, -1)), e3.amax((-2, -1))], 1)  # (B, 192)
+        rel = (loc.joints.detach() - self.joint_origin) / JOINT_SCALE_M  # (B, 24, 3)
         raw = self.fc(torch.cat([rel.flatten(1), pooled], 1))
         return raw, loc
 
 
-def localisation_loss(loc: Localisation, joints: torch.Tensor, mat: MatSpec | None = None
-                      ) -> tuple[torch.Tensor, dict[str, float]]:
+def localisation_loss(
+    loc: Localisation, joints: torch.Tensor, mat: MatSpec | None = None
+) -> tuple[torch.Tensor, dict[str, float]]:
     """Mean Euclidean error of the localised joints / JOINT_SCALE_M, plus HEATMAP_LOSS_WEIGHT x
     the cross-entropy of the heatmaps against Gaussians (sigma HEATMAP_SIGMA_M) at the true
     (x, y) clamped onto the sensing area (a joint off the mat is drawn to the nearest edge
@@ -160,7 +170,7 @@ def localisation_loss(loc: Localisation, joints: torch.Tensor, mat: MatSpec | No
     located = (loc.joints - true).norm(dim=-1).mean() / JOINT_SCALE_M
     lo = true.new_tensor([0.0, 0.0])
     hi = true.new_tensor([mat.sensing_length_m, mat.sensing_width_m])
-    target = torch.minimum(torch.maximum(true[..., :2], lo), hi)                    # (B, J, 2)
+    target = torch.minimum(torch.maximum(true[..., :2], lo), hi)  # (B, J, 2)
     d2 = (loc.centres.to(true)[None, None] - target[:, :, None, None]).square().sum(-1)  # (B, J, H, W)
     gauss = torch.softmax(-d2.flatten(2) / (2 * HEATMAP_SIGMA_M**2), -1)
     heatmap = -(gauss * loc.log_prob.flatten(2)).sum(-1).mean()

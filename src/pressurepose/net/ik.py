@@ -46,10 +46,10 @@ class IKConfig:
     """How the localised joints are fitted (defaults measured on validation data, docs/network.md)."""
 
     steps: int = 3
-    joint_sigma_m: float = 0.03     # sigma: how far a localised joint is trusted
-    prior_sigma_rad: float = 2.0    # sigma_theta: how far the pose may leave the head's answer
-    damping: float = 1.0            # Levenberg-Marquardt mu added to the normal matrix (unitless)
-    spread_weights: bool = True     # weight joint j by sigma^2 / (sigma^2 + its heatmap's variance)
+    joint_sigma_m: float = 0.03  # sigma: how far a localised joint is trusted
+    prior_sigma_rad: float = 2.0  # sigma_theta: how far the pose may leave the head's answer
+    damping: float = 1.0  # Levenberg-Marquardt mu added to the normal matrix (unitless)
+    spread_weights: bool = True  # weight joint j by sigma^2 / (sigma^2 + its heatmap's variance)
 
     def weights(self, spread_m2: torch.Tensor) -> torch.Tensor:
         """(B, 24) per-joint weights from the heatmaps' variances (m^2): a diffuse heatmap (a
@@ -91,14 +91,18 @@ def joint_jacobian(rot: torch.Tensor, pos: torch.Tensor, params: BodyParams) -> 
     """(B, 72, 75) d(joint positions, flattened (k, xyz)) / d(t, r, theta) at the posed body
     with world rotations rot (B, 24, 3, 3) and positions pos (B, 24, 3) (`pose_in_mat`)."""
     B = pos.shape[0]
-    angles = torch.cat([params.root_rotation[:, None], params.pose], 1)           # (B, 24, 3)
-    parent_rot = torch.cat([torch.eye(3, dtype=rot.dtype, device=rot.device).expand(B, 1, 3, 3),
-                            rot[:, list(J24_PARENTS[1:])]], 1)                     # (B, 24, 3, 3)
-    axes = (parent_rot @ left_jacobian(angles)).transpose(-1, -2)                  # (B, j, i, xyz)
-    arm = pos[:, None, :, :] - pos[:, :, None, :]                                  # (B, j, k, xyz)
-    cols = torch.linalg.cross(axes[:, :, :, None, :].expand(B, NUM_JOINTS, 3, NUM_JOINTS, 3),
-                              arm[:, :, None].expand(B, NUM_JOINTS, 3, NUM_JOINTS, 3), dim=-1)
-    cols = cols * DESCENDANTS.to(cols.device)[None, :, None, :, None]              # (B, j, i, k, xyz)
+    angles = torch.cat([params.root_rotation[:, None], params.pose], 1)  # (B, 24, 3)
+    parent_rot = torch.cat(
+        [torch.eye(3, dtype=rot.dtype, device=rot.device).expand(B, 1, 3, 3), rot[:, list(J24_PARENTS[1:])]], 1
+    )  # (B, 24, 3, 3)
+    axes = (parent_rot @ left_jacobian(angles)).transpose(-1, -2)  # (B, j, i, xyz)
+    arm = pos[:, None, :, :] - pos[:, :, None, :]  # (B, j, k, xyz)
+    cols = torch.linalg.cross(
+        axes[:, :, :, None, :].expand(B, NUM_JOINTS, 3, NUM_JOINTS, 3),
+        arm[:, :, None].expand(B, NUM_JOINTS, 3, NUM_JOINTS, 3),
+        dim=-1,
+    )
+    cols = cols * DESCENDANTS.to(cols.device)[None, :, None, :, None]  # (B, j, i, k, xyz)
     J_rot = cols.permute(0, 3, 4, 1, 2).reshape(B, 3 * NUM_JOINTS, 3 * NUM_JOINTS)
     J_t = torch.eye(3, dtype=pos.dtype, device=pos.device).repeat(NUM_JOINTS, 1).expand(B, -1, -1)
     return torch.cat([J_t, J_rot], -1)
@@ -115,8 +119,9 @@ class IKState:
 
     def params(self, shape: torch.Tensor, limits: JointLimits | None) -> BodyParams:
         pose = self.free_pose if limits is None else limits.squash(self.free_pose, ALPHA)
-        return BodyParams(shape=shape, root_rotation=self.root_rotation, root_translation=self.root_translation,
-                          pose=pose)
+        return BodyParams(
+            shape=shape, root_rotation=self.root_rotation, root_translation=self.root_translation, pose=pose
+        )
 
 
 def free_pose(pose: torch.Tensor, limits: JointLimits | None) -> torch.Tensor:
@@ -130,9 +135,16 @@ def free_pose(pose: torch.Tensor, limits: JointLimits | None) -> torch.Tensor:
     return torch.atanh(x) * half + mid
 
 
-def ik_step(rest: torch.Tensor, shape: torch.Tensor, state: IKState, target: torch.Tensor, weights: torch.Tensor,
-            prior_free_pose: torch.Tensor, config: IKConfig = IKConfig(),
-            limits: JointLimits | None = None) -> IKState:
+def ik_step(
+    rest: torch.Tensor,
+    shape: torch.Tensor,
+    state: IKState,
+    target: torch.Tensor,
+    weights: torch.Tensor,
+    prior_free_pose: torch.Tensor,
+    config: IKConfig = IKConfig(),
+    limits: JointLimits | None = None,
+) -> IKState:
     """One damped Gauss-Newton step of the fit (module doc).
 
     rest (B, 24, 3): T-pose joints of `shape` (B, S) (pelvis at the origin, body axes);
@@ -140,37 +152,47 @@ def ik_step(rest: torch.Tensor, shape: torch.Tensor, state: IKState, target: tor
     prior's centre u_0 in free coordinates (`free_pose`). limits None: unconstrained angles.
     Differentiable in every tensor input."""
     B = rest.shape[0]
-    for name, value, tail in (("rest", rest, (NUM_JOINTS, 3)), ("target", target, (NUM_JOINTS, 3)),
-                              ("weights", weights, (NUM_JOINTS,)),
-                              ("prior_free_pose", prior_free_pose, (NUM_POSE_JOINTS, 3)),
-                              ("state.free_pose", state.free_pose, (NUM_POSE_JOINTS, 3))):
+    for name, value, tail in (
+        ("rest", rest, (NUM_JOINTS, 3)),
+        ("target", target, (NUM_JOINTS, 3)),
+        ("weights", weights, (NUM_JOINTS,)),
+        ("prior_free_pose", prior_free_pose, (NUM_POSE_JOINTS, 3)),
+        ("state.free_pose", state.free_pose, (NUM_POSE_JOINTS, 3)),
+    ):
         if tuple(value.shape) != (B, *tail):
             raise ValueError(f"{name} must have shape {(B, *tail)}, got {tuple(value.shape)}")
     params = state.params(shape, limits)
     rot, pos = pose_in_mat(rest, params)
-    J = joint_jacobian(rot, pos, params)                                            # (B, 72, 75)
+    J = joint_jacobian(rot, pos, params)  # (B, 72, 75)
     if limits is not None:  # d theta / d u of theta = squash(u) = mid + half tanh((u - mid) / half)
         mid = (limits.lower + limits.upper).to(pos) / 2
         half = ALPHA * (limits.upper - limits.lower).to(pos) / 2
         slope = 1 - torch.tanh((state.free_pose - mid) / half).square()
         J = torch.cat([J[..., :6], J[..., 6:] * slope.reshape(B, 1, -1)], -1)
-    w = (weights / config.joint_sigma_m**2).repeat_interleave(3, 1)                 # (B, 72)
+    w = (weights / config.joint_sigma_m**2).repeat_interleave(3, 1)  # (B, 72)
     residual = (pos - target).reshape(B, -1)
     prior = torch.zeros(NUM_UNKNOWNS, dtype=pos.dtype, device=pos.device)
     prior[6:] = 1.0 / config.prior_sigma_rad**2
     eye = torch.eye(NUM_UNKNOWNS, dtype=pos.dtype, device=pos.device)
-    Jw = J.transpose(1, 2) * w[:, None, :]                                          # (B, 75, 72)
+    Jw = J.transpose(1, 2) * w[:, None, :]  # (B, 75, 72)
     H = Jw @ J + torch.diag(prior) + config.damping * eye
     g = (Jw @ residual[..., None])[..., 0]
     g = torch.cat([g[:, :6], g[:, 6:] + prior[6:] * (state.free_pose - prior_free_pose).reshape(B, -1)], 1)
-    delta = -torch.linalg.solve(H, g[..., None])[..., 0]                            # (B, 75)
-    return IKState(root_translation=state.root_translation + delta[:, :3],
-                   root_rotation=state.root_rotation + delta[:, 3:6],
-                   free_pose=state.free_pose + delta[:, 6:].reshape(B, NUM_POSE_JOINTS, 3))
+    delta = -torch.linalg.solve(H, g[..., None])[..., 0]  # (B, 75)
+    return IKState(
+        root_translation=state.root_translation + delta[:, :3],
+        root_rotation=state.root_rotation + delta[:, 3:6],
+        free_pose=state.free_pose + delta[:, 6:].reshape(B, NUM_POSE_JOINTS, 3),
+    )
 
 
-def fit_to_joints(body: BodyModel, params: BodyParams, target: torch.Tensor, weights: torch.Tensor | None = None,
-                  config: IKConfig = IKConfig()) -> BodyParams:
+def fit_to_joints(
+    body: BodyModel,
+    params: BodyParams,
+    target: torch.Tensor,
+    weights: torch.Tensor | None = None,
+    config: IKConfig = IKConfig(),
+) -> BodyParams:
     """`config.steps` IK steps from `params` towards the targets (B, 24, 3), the pose prior
     centred on params.pose, within the default joint limits (inflated by ALPHA, as the
     output head's). weights (B, 24), default 1."""
@@ -188,5 +210,13 @@ def fit_to_joints(body: BodyModel, params: BodyParams, target: torch.Tensor, wei
     return state.params(params.shape, limits)
 
 
-__all__ = ["DESCENDANTS", "IKConfig", "IKState", "fit_to_joints", "free_pose", "ik_step", "joint_jacobian",
-           "left_jacobian"]
+__all__ = [
+    "DESCENDANTS",
+    "IKConfig",
+    "IKState",
+    "fit_to_joints",
+    "free_pose",
+    "ik_step",
+    "joint_jacobian",
+    "left_jacobian",
+]

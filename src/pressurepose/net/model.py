@@ -26,7 +26,11 @@ from pressurepose.net.heatmap import HeatmapNet, Localisation
 from pressurepose.net.ik import IKConfig, fit_to_joints
 from pressurepose.net.pmr import reconstruct_maps
 from pressurepose.net.preprocess import (
-    check_pressure, constant_planes, pressure_channels, reconstruction_channels, upsample2,
+    check_pressure,
+    constant_planes,
+    pressure_channels,
+    reconstruction_channels,
+    upsample2,
 )
 
 GENDER_UNKNOWN = 0.5  # Anny's gender phenotype: 0 male, 1 female
@@ -39,12 +43,12 @@ class NetConfig:
     arch: Literal["paper", "fast", "heatmap"] = "fast"
     backend: Literal["anny", "smpl"] = "anny"
     modules: Literal[1, 2] = 1
-    gender_input: bool = True    # gender given as an input (plane + Anny's gender entry)
+    gender_input: bool = True  # gender given as an input (plane + Anny's gender entry)
     height_weight: bool = False  # height (m) and mass (/100 kg) given as constant planes
     smpl_dir: str | None = None  # SMPL model folder, backend smpl only
-    dropout: float = 0.1         # the seed's dropout after every tanh (paper) / in the FC head (fast)
-    width: int = 1               # channel multiplier of the fast CNN (1: 1.3 M parameters)
-    ik_steps: int = 3            # heatmap arch: IK steps fitting the body to the localised joints (eval only)
+    dropout: float = 0.1  # the seed's dropout after every tanh (paper) / in the FC head (fast)
+    width: int = 1  # channel multiplier of the fast CNN (1: 1.3 M parameters)
+    ik_steps: int = 3  # heatmap arch: IK steps fitting the body to the localised joints (eval only)
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast", "heatmap"):
@@ -71,10 +75,10 @@ class NetConfig:
 class NetInputs:
     """A batch of network inputs. gender (B,) in [0, 1] (1 female, 0.5 unknown)."""
 
-    pressure_mmhg: torch.Tensor          # (B, 64, 27)
-    gender: torch.Tensor | None = None   # (B,)
+    pressure_mmhg: torch.Tensor  # (B, 64, 27)
+    gender: torch.Tensor | None = None  # (B,)
     height_m: torch.Tensor | None = None  # (B,)
-    mass_kg: torch.Tensor | None = None   # (B,)
+    mass_kg: torch.Tensor | None = None  # (B,)
 
     @property
     def batch_size(self) -> int:
@@ -85,12 +89,12 @@ class NetInputs:
 class Estimate:
     """One module's estimate. Mesh and maps only when asked for (Mod1 training needs joints)."""
 
-    raw: torch.Tensor                     # (B, D) before unpacking
+    raw: torch.Tensor  # (B, D) before unpacking
     params: BodyParams
-    joints: torch.Tensor                  # (B, 24, 3) mat frame, m
+    joints: torch.Tensor  # (B, 24, 3) mat frame, m
     vertices: torch.Tensor | None = None  # (B, V, 3)
     depth_mm: torch.Tensor | None = None  # (B, 64, 27) Q-hat
-    contact: torch.Tensor | None = None   # (B, 64, 27) C-hat
+    contact: torch.Tensor | None = None  # (B, 64, 27) C-hat
     localisation: Localisation | None = None  # arch heatmap: the localised joints
 
 
@@ -104,11 +108,16 @@ class PressureNet(nn.Module):
             raise ValueError(f"body model is {self.body.name!r} but NetConfig.backend is {config.backend!r}")
         self.head = ParamHead(config.backend, self.body.shape_names, self.mat)
         D = self.head.size
-        self.mod1 = (HeatmapNet(config.in_channels, D, self.mat, config.dropout, config.width)
-                     if config.arch == "heatmap" else
-                     make_cnn(config.arch, config.in_channels, D, config.dropout, config.width))
-        self.mod2 = (make_cnn(config.arch, config.in_channels + 2, D, config.dropout, config.width)
-                     if config.modules == 2 else None)
+        self.mod1 = (
+            HeatmapNet(config.in_channels, D, self.mat, config.dropout, config.width)
+            if config.arch == "heatmap"
+            else make_cnn(config.arch, config.in_channels, D, config.dropout, config.width)
+        )
+        self.mod2 = (
+            make_cnn(config.arch, config.in_channels + 2, D, config.dropout, config.width)
+            if config.modules == 2
+            else None
+        )
         if self.mod2 is not None:  # Mod2 starts as "no correction"
             last = self.mod2.fc if isinstance(self.mod2.fc, nn.Linear) else self.mod2.fc[-1]
             with torch.no_grad():
@@ -124,7 +133,7 @@ class PressureNet(nn.Module):
         self.mod1_frozen = True
         self.mod1.requires_grad_(False)
 
-    def train(self, mode: bool = True) -> "PressureNet":
+    def train(self, mode: bool = True) -> PressureNet:
         super().train(mode)
         if self.mod1_frozen:
             self.mod1.eval()  # no dropout / batch-statistics updates in the frozen module
@@ -138,12 +147,14 @@ class PressureNet(nn.Module):
         missing, unexpected = self.load_state_dict(state, strict=False)
         missing = [k for k in missing if not k.startswith("body.")]
         if missing or unexpected:
-            raise ValueError(f"checkpoint does not match the network: missing {missing[:5]}, "
-                             f"unexpected {unexpected[:5]}")
+            raise ValueError(
+                f"checkpoint does not match the network: missing {missing[:5]}, unexpected {unexpected[:5]}"
+            )
 
     # --- inputs -------------------------------------------------------------------------
-    def channels(self, inputs: NetInputs, augment: bool = False,
-                 generator: torch.Generator | None = None) -> torch.Tensor:
+    def channels(
+        self, inputs: NetInputs, augment: bool = False, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
         """(B, C, 64, 27) Mod1 input channels (before any upsampling)."""
         check_pressure(inputs.pressure_mmhg)
         x = pressure_channels(inputs.pressure_mmhg, augment, generator)
@@ -168,8 +179,15 @@ class PressureNet(nn.Module):
         return cnn(upsample2(x) if self.config.arch == "paper" else x)
 
     # --- forward ------------------------------------------------------------------------
-    def estimate(self, raw: torch.Tensor, gender: torch.Tensor | None, mesh: bool, maps: bool = True,
-                 params: BodyParams | None = None, localisation: Localisation | None = None) -> Estimate:
+    def estimate(
+        self,
+        raw: torch.Tensor,
+        gender: torch.Tensor | None,
+        mesh: bool,
+        maps: bool = True,
+        params: BodyParams | None = None,
+        localisation: Localisation | None = None,
+    ) -> Estimate:
         """Unpack a raw vector (B, D) (unless `params` are given) and pose the body: joints
         only unless `mesh`; with the mesh, the PMR maps unless `maps` is False."""
         params = self.head(raw, gender) if params is None else params
@@ -177,11 +195,17 @@ class PressureNet(nn.Module):
             return Estimate(raw=raw, params=params, joints=self.body.joints(params), localisation=localisation)
         out = self.body(params)
         if not maps:
-            return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices,
-                            localisation=localisation)
+            return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices, localisation=localisation)
         maps = reconstruct_maps(out.vertices, out.faces, self.mat)
-        return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices,
-                        depth_mm=maps.depth_mm, contact=maps.contact, localisation=localisation)
+        return Estimate(
+            raw=raw,
+            params=params,
+            joints=out.joints,
+            vertices=out.vertices,
+            depth_mm=maps.depth_mm,
+            contact=maps.contact,
+            localisation=localisation,
+        )
 
     def _localise_and_fit(self, x: torch.Tensor, gender: torch.Tensor | None, mesh: bool, maps: bool) -> Estimate:
         """arch heatmap: localise the joints, regress the body, and (in eval mode) fit its
@@ -193,8 +217,14 @@ class PressureNet(nn.Module):
             params = fit_to_joints(self.body, params, loc.joints, ik.weights(loc.spread_m2), ik)
         return self.estimate(raw, gender, mesh, maps, params=params, localisation=loc)
 
-    def forward(self, inputs: NetInputs, augment: bool = False, generator: torch.Generator | None = None,
-                mesh: bool = True, maps: bool = True) -> list[Estimate]:
+    def forward(
+        self,
+        inputs: NetInputs,
+        augment: bool = False,
+        generator: torch.Generator | None = None,
+        mesh: bool = True,
+        maps: bool = True,
+    ) -> list[Estimate]:
         """[Mod1's estimate] or [Mod1's, Mod2's]. `mesh`: pose the final mesh; `maps`: and
         reconstruct its PMR maps (Mod1's mesh and maps are always made when Mod2 follows,
         since Mod2 reads them)."""

@@ -27,8 +27,9 @@ def _per_taxel_mean_one(p: torch.Tensor) -> torch.Tensor:
     return p * (TAXELS / p.sum((-2, -1), keepdim=True).clamp(min=1e-6))
 
 
-def synthesised_pressure(net: PressureNet, est: Estimate, mattress: MattressParams | None = None
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
+def synthesised_pressure(
+    net: PressureNet, est: Estimate, mattress: MattressParams | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 64, 27) sensor reading (mmHg) sim #2 gives for the estimate's mesh, and (B,) bool
     whether sim #2 found a rest."""
     if est.vertices is None:
@@ -40,8 +41,9 @@ def synthesised_pressure(net: PressureNet, est: Estimate, mattress: MattressPara
     return reading, rest.ok
 
 
-def synthesis_loss(net: PressureNet, est: Estimate, pressure_mmhg: torch.Tensor,
-                   mattress: MattressParams | None = None) -> torch.Tensor:
+def synthesis_loss(
+    net: PressureNet, est: Estimate, pressure_mmhg: torch.Tensor, mattress: MattressParams | None = None
+) -> torch.Tensor:
     """Scalar: mean |normalised input - normalised synthesised image| over the samples sim #2
     rests (0 with no gradient when none does)."""
     reading, ok = synthesised_pressure(net, est, mattress)
@@ -52,8 +54,14 @@ def synthesis_loss(net: PressureNet, est: Estimate, pressure_mmhg: torch.Tensor,
     return diff[ok].mean()
 
 
-def refine(net: PressureNet, inputs: NetInputs, steps: int = 5, lr: float = 0.02, prior_weight: float = 1.0,
-           mattress: MattressParams | None = None) -> tuple[Estimate, list[float]]:
+def refine(
+    net: PressureNet,
+    inputs: NetInputs,
+    steps: int = 5,
+    lr: float = 0.02,
+    prior_weight: float = 1.0,
+    mattress: MattressParams | None = None,
+) -> tuple[Estimate, list[float]]:
     """Test-time refinement: the final estimate after `steps` Adam steps on its raw vector
     lowering synthesis_loss + prior_weight x mean squared change of the raw vector.
     Returns the refined estimate (with mesh) and the loss before each step and at the end."""
@@ -62,8 +70,10 @@ def refine(net: PressureNet, inputs: NetInputs, steps: int = 5, lr: float = 0.02
     if net.config.arch == "heatmap":  # its raw vector is the head's answer before the IK
         from pressurepose.errors import UserError
 
-        raise UserError("arch heatmap refines its estimate by IK on the localised joints; "
-                        "--refine-steps is for the fast and paper archs")
+        raise UserError(
+            "arch heatmap refines its estimate by IK on the localised joints; "
+            "--refine-steps is for the fast and paper archs"
+        )
     net.eval()
     with torch.no_grad():
         start = net(inputs, mesh=True, maps=False)[-1]

@@ -49,8 +49,9 @@ def save_model(run: Path, net: PressureNet, config_record: dict) -> Path:
     return _save(Path(run) / MODEL_FILE, tensors, {"format": FORMAT, "config": json.dumps(config_record)})
 
 
-def save_checkpoint(run: Path, net: PressureNet, optimizer: torch.optim.Optimizer, epoch: int,
-                    config_record: dict) -> Path:
+def save_checkpoint(
+    run: Path, net: PressureNet, optimizer: torch.optim.Optimizer, epoch: int, config_record: dict
+) -> Path:
     tensors = {f"model/{k}": v for k, v in net.trainable_state().items()}
     for i, state in optimizer.state_dict()["state"].items():
         for name, value in state.items():
@@ -75,8 +76,12 @@ def load_checkpoint(run: Path, net: PressureNet, optimizer: torch.optim.Optimize
     for key, value in tensors.items():
         if key.startswith("optim/"):
             parts = key.split("/", 2)
-            if len(parts) != 3 or not parts[1].isdigit() or int(parts[1]) >= len(params) \
-                    or parts[2] not in ("step", "exp_avg", "exp_avg_sq"):
+            if (
+                len(parts) != 3
+                or not parts[1].isdigit()
+                or int(parts[1]) >= len(params)
+                or parts[2] not in ("step", "exp_avg", "exp_avg_sq")
+            ):
                 raise UserError(f"{path}: tensor {key!r} is not Adam state of this network's parameters")
             i, name = int(parts[1]), parts[2]
             want = () if name == "step" else tuple(params[i].shape)
@@ -90,7 +95,7 @@ def load_checkpoint(run: Path, net: PressureNet, optimizer: torch.optim.Optimize
 
 
 def _strip(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
-    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+    return {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
 
 
 def _config_record(meta: dict[str, str], path: Path) -> dict:
@@ -116,8 +121,16 @@ def read_model(run: Path) -> tuple[dict[str, torch.Tensor], dict]:
 
 
 # NetConfig fields as a network file records them, with their kinds (validate.KINDS).
-NET_FIELDS = {"arch": "str", "backend": "str", "modules": "int", "gender_input": "bool", "height_weight": "bool",
-              "dropout": "number", "width": "int", "ik_steps": "int"}
+NET_FIELDS = {
+    "arch": "str",
+    "backend": "str",
+    "modules": "int",
+    "gender_input": "bool",
+    "height_weight": "bool",
+    "dropout": "number",
+    "width": "int",
+    "ik_steps": "int",
+}
 MAX_WIDTH = 16
 
 
@@ -156,5 +169,12 @@ def load_network(run: Path, device: str | torch.device = "cpu", body=None) -> tu
     return net.to(device).eval(), record
 
 
-__all__ = ["CHECKPOINT_FILE", "MODEL_FILE", "load_checkpoint", "load_network", "read_model", "save_checkpoint",
-           "save_model"]
+__all__ = [
+    "CHECKPOINT_FILE",
+    "MODEL_FILE",
+    "load_checkpoint",
+    "load_network",
+    "read_model",
+    "save_checkpoint",
+    "save_model",
+]

@@ -102,18 +102,18 @@ class TrainConfig:
     save_every: int = 1
 
     @classmethod
-    def paper(cls, **changes) -> "TrainConfig":
+    def paper(cls, **changes) -> TrainConfig:
         return cls(preset="paper", **changes).resolved()
 
     @classmethod
-    def fast(cls, **changes) -> "TrainConfig":
+    def fast(cls, **changes) -> TrainConfig:
         return cls(preset="fast", **changes).resolved()
 
     @classmethod
-    def smoke(cls, **changes) -> "TrainConfig":
+    def smoke(cls, **changes) -> TrainConfig:
         return cls(preset="smoke", **changes).resolved()
 
-    def resolved(self) -> "TrainConfig":
+    def resolved(self) -> TrainConfig:
         """The config with every None filled from the preset, checked."""
         if self.preset not in PRESETS:
             raise UserError(f"unknown preset {self.preset!r}; expected one of {', '.join(PRESETS)}")
@@ -135,8 +135,9 @@ class TrainConfig:
         if not self.lr > 0 or self.weight_decay < 0:
             raise UserError(f"lr must be > 0 and weight_decay >= 0, got {self.lr}, {self.weight_decay}")
         if not (0 <= self.shift_rows < 64 and 0 <= self.shift_cols < 27):
-            raise UserError(f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, "
-                             f"{self.shift_cols}")
+            raise UserError(
+                f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, {self.shift_cols}"
+            )
         for name in ("mirror", "repress", "bands"):
             if not 0 <= getattr(self, name) <= 1:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
@@ -153,7 +154,7 @@ class TrainConfig:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
 
     @classmethod
-    def from_json(cls, record: dict) -> "TrainConfig":
+    def from_json(cls, record: dict) -> TrainConfig:
         fields = {f.name for f in dataclasses.fields(cls)}
         kw = {k: v for k, v in record.items() if k in fields}
         for k in ("data", "out", "mod1", "init"):

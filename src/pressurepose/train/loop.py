@@ -26,7 +26,13 @@ from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
 from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
 from pressurepose.train.checkpoint import (
-    CHECKPOINT_FILE, MODEL_FILE, load_checkpoint, net_config_from_record, read_model, save_checkpoint, save_model,
+    CHECKPOINT_FILE,
+    MODEL_FILE,
+    load_checkpoint,
+    net_config_from_record,
+    read_model,
+    save_checkpoint,
+    save_model,
 )
 from pressurepose.train.config import RESUMABLE_CHANGES, TrainConfig
 from pressurepose.train.data import collate, open_dataset
@@ -46,13 +52,15 @@ def pick_device(name: str) -> torch.device:
 
 def batch_inputs(batch: dict[str, torch.Tensor], device: torch.device) -> tuple[NetInputs, Targets]:
     b = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
-    inputs = NetInputs(pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"],
-                       mass_kg=b["mass_kg"])
+    inputs = NetInputs(
+        pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"], mass_kg=b["mass_kg"]
+    )
     return inputs, Targets(joints=b["joints"], shape=b["shape"], depth_mm=b["depth_mm"], contact=b["contact"])
 
 
-def shift_batch(inputs: NetInputs, targets: Targets, rows: int, cols: int,
-                generator: torch.Generator | None) -> tuple[NetInputs, Targets]:
+def shift_batch(
+    inputs: NetInputs, targets: Targets, rows: int, cols: int, generator: torch.Generator | None
+) -> tuple[NetInputs, Targets]:
     """Move every image of the batch by a random whole number of taxels (|dr| <= rows, |dc| <=
     cols) and its labels with it: the same body lying elsewhere on a uniform flat bed gives the
     same image moved (taxels leaving the grid are lost, those entering read 0 - as for a body
@@ -69,21 +77,29 @@ def shift_batch(inputs: NetInputs, targets: Targets, rows: int, cols: int,
     def move(x: torch.Tensor, fill: float) -> torch.Tensor:
         out = torch.full_like(x, fill)
         for b, (r, c) in enumerate(zip(dr, dc)):
-            out[b, max(r, 0):R + min(r, 0), max(c, 0):C + min(c, 0)] = \
-                x[b, max(-r, 0):R + min(-r, 0), max(-c, 0):C + min(-c, 0)]
+            out[b, max(r, 0) : R + min(r, 0), max(c, 0) : C + min(c, 0)] = x[
+                b, max(-r, 0) : R + min(-r, 0), max(-c, 0) : C + min(-c, 0)
+            ]
         return out
 
     mat = MatSpec()
-    step = torch.tensor([[mat.pitch_row_m * r, mat.pitch_col_m * c, 0.0] for r, c in zip(dr, dc)],
-                        dtype=targets.joints.dtype, device=targets.joints.device)
-    moved = Targets(joints=targets.joints + step[:, None], shape=targets.shape,
-                    depth_mm=None if targets.depth_mm is None else move(targets.depth_mm, 1000 * EMPTY_HEIGHT_M),
-                    contact=None if targets.contact is None else move(targets.contact, 0.0))
+    step = torch.tensor(
+        [[mat.pitch_row_m * r, mat.pitch_col_m * c, 0.0] for r, c in zip(dr, dc)],
+        dtype=targets.joints.dtype,
+        device=targets.joints.device,
+    )
+    moved = Targets(
+        joints=targets.joints + step[:, None],
+        shape=targets.shape,
+        depth_mm=None if targets.depth_mm is None else move(targets.depth_mm, 1000 * EMPTY_HEIGHT_M),
+        contact=None if targets.contact is None else move(targets.contact, 0.0),
+    )
     return dataclasses.replace(inputs, pressure_mmhg=move(p, 0.0)), moved
 
 
-def mirror_batch(inputs: NetInputs, targets: Targets, share: float,
-                 generator: torch.Generator | None) -> tuple[NetInputs, Targets]:
+def mirror_batch(
+    inputs: NetInputs, targets: Targets, share: float, generator: torch.Generator | None
+) -> tuple[NetInputs, Targets]:
     """Mirror a random `share` of the images left-right (columns c -> 26 - c) with their labels:
     the joints reflected across the mat's centre line (y -> W - y, W the sensing width) with left
     and right swapped (J24_MIRROR); depth and contact maps flipped; the shape kept (the body
@@ -102,19 +118,22 @@ def mirror_batch(inputs: NetInputs, targets: Targets, share: float,
     mirrored = j[:, list(J24_MIRROR)].clone()
     mirrored[..., 1] = MatSpec().sensing_width_m - mirrored[..., 1]
     joints = torch.where(on[:, None, None], mirrored, j)
-    return (dataclasses.replace(inputs, pressure_mmhg=flip(p)),
-            Targets(joints=joints, shape=targets.shape, depth_mm=flip(targets.depth_mm), contact=flip(targets.contact)))
+    return (
+        dataclasses.replace(inputs, pressure_mmhg=flip(p)),
+        Targets(joints=joints, shape=targets.shape, depth_mm=flip(targets.depth_mm), contact=flip(targets.contact)),
+    )
 
 
 # Re-press augmentation: ranges of the mattress law drawn per image (docs/model-card.md).
-REPRESS_EXTRA_SINK_MM = (0.0, 40.0)   # delta: how much deeper a softer mattress lets the body in
-REPRESS_EXPONENT = (0.5, 1.5)         # gamma: pressure ~ compression^gamma
-REPRESS_SPREAD_TAXELS = (0.3, 1.0)    # sigma: the mat and cover's spread
-REPRESS_THRESHOLD_MMHG = 1.0          # the sensor reads 0 below ~1 mmHg (MattressParams.c0_mmhg)
+REPRESS_EXTRA_SINK_MM = (0.0, 40.0)  # delta: how much deeper a softer mattress lets the body in
+REPRESS_EXPONENT = (0.5, 1.5)  # gamma: pressure ~ compression^gamma
+REPRESS_SPREAD_TAXELS = (0.3, 1.0)  # sigma: the mat and cover's spread
+REPRESS_THRESHOLD_MMHG = 1.0  # the sensor reads 0 below ~1 mmHg (MattressParams.c0_mmhg)
 
 
-def repress_batch(inputs: NetInputs, depth_mm: torch.Tensor, share: float,
-                  generator: torch.Generator | None) -> NetInputs:
+def repress_batch(
+    inputs: NetInputs, depth_mm: torch.Tensor, share: float, generator: torch.Generator | None
+) -> NetInputs:
     """Replace a random `share` of the pressure images by the body pressed into another
     mattress: from the depth label Q (mm, < 0 where the body is sunk in), compression c =
     max(0, delta - Q) (delta ~ U(REPRESS_EXTRA_SINK_MM): a softer mattress lets the body in
@@ -147,8 +166,8 @@ def _read_again(inputs: NetInputs, q: torch.Tensor, on: torch.Tensor) -> NetInpu
     return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q, p))
 
 
-BANDS_PERIOD_ROWS = (2.0, 4.0)   # T: taxel rows per air cell
-BANDS_DEPTH = (0.3, 1.0)         # a: how much the gain varies between a cell's crest and gap
+BANDS_PERIOD_ROWS = (2.0, 4.0)  # T: taxel rows per air cell
+BANDS_DEPTH = (0.3, 1.0)  # a: how much the gain varies between a cell's crest and gap
 
 
 def bands_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
@@ -168,8 +187,14 @@ def bands_batch(inputs: NetInputs, share: float, generator: torch.Generator | No
     return _read_again(inputs, p * gain[:, :, None], u[0] < share)
 
 
-def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainConfig, augment: bool,
-              generator: torch.Generator | None) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
+def step_loss(
+    net: PressureNet,
+    inputs: NetInputs,
+    targets: Targets,
+    cfg: TrainConfig,
+    augment: bool,
+    generator: torch.Generator | None,
+) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
     """Loss of the module being trained, its parts, and the (B,) joint error of its estimate."""
     if augment and (cfg.shift_rows or cfg.shift_cols):
         inputs, targets = shift_batch(inputs, targets, cfg.shift_rows, cfg.shift_cols, generator)
@@ -203,23 +228,33 @@ def step_loss(net: PressureNet, inputs: NetInputs, targets: Targets, cfg: TrainC
 
 
 def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
-    netcfg = NetConfig(arch=cfg.arch, backend=cfg.backend, modules=cfg.module, gender_input=cfg.gender_input,
-                       height_weight=cfg.height_weight, smpl_dir=cfg.smpl_dir,
-                       dropout=cfg.dropout, width=cfg.width)
+    netcfg = NetConfig(
+        arch=cfg.arch,
+        backend=cfg.backend,
+        modules=cfg.module,
+        gender_input=cfg.gender_input,
+        height_weight=cfg.height_weight,
+        smpl_dir=cfg.smpl_dir,
+        dropout=cfg.dropout,
+        width=cfg.width,
+    )
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
         m1 = net_config_from_record(record, Path(cfg.mod1) / MODEL_FILE)
         if m1.modules != 1:
             raise UserError(f"{cfg.mod1} is not a Mod1 run (it holds {m1.modules} modules)")
-        mismatch = [f for f in ("arch", "backend", "gender_input", "height_weight", "width")
-                    if getattr(m1, f) != getattr(netcfg, f)]
+        mismatch = [
+            f
+            for f in ("arch", "backend", "gender_input", "height_weight", "width")
+            if getattr(m1, f) != getattr(netcfg, f)
+        ]
         if mismatch:
             raise UserError(f"Mod1 run {cfg.mod1} differs in {mismatch}; train Mod2 with the same settings")
     body = netcfg.load_body(device=device)
     torch.manual_seed(cfg.seed)  # the initial weights
     net = PressureNet(netcfg, body=body)
     if cfg.module == 2:
-        mod1 = {k[len("mod1."):]: v for k, v in weights.items() if k.startswith("mod1.")}
+        mod1 = {k[len("mod1.") :]: v for k, v in weights.items() if k.startswith("mod1.")}
         check_tensor_shapes(mod1, {k: v.shape for k, v in net.mod1.state_dict().items()}, Path(cfg.mod1) / MODEL_FILE)
         net.mod1.load_state_dict(mod1)
         net.freeze_mod1()
@@ -236,8 +271,10 @@ def _load_init(net: PressureNet, init: Path) -> None:
     fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight")
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
     if mismatch:
-        raise UserError(f"--init {init} is a different network ({', '.join(mismatch)} differ); "
-                         "train with the same settings or drop --init")
+        raise UserError(
+            f"--init {init} is a different network ({', '.join(mismatch)} differ); "
+            "train with the same settings or drop --init"
+        )
     check_tensor_shapes(weights, {k: v.shape for k, v in net.trainable_state().items()}, Path(init) / MODEL_FILE)
     net.load_trainable_state(weights)
 
@@ -259,8 +296,10 @@ def _check_resume(run: Path, cfg: TrainConfig) -> None:
     defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
     differ = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k, defaults.get(k)) != now[k]]
     if differ:
-        raise UserError(f"{run} holds a run with different settings ({', '.join(differ)}); "
-                         "resume with the same settings or train into a new --out folder")
+        raise UserError(
+            f"{run} holds a run with different settings ({', '.join(differ)}); "
+            "resume with the same settings or train into a new --out folder"
+        )
 
 
 def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> Path:
@@ -298,9 +337,15 @@ def train(cfg: TrainConfig, dataset: torch.utils.data.Dataset | None = None) -> 
             save_checkpoint(run, net, opt, epoch, record)
             save_model(run, net, record)
             _write_metrics(run, history)
-        log.info("epoch %d/%d: loss %.4f, train MPJPE %.1f mm%s, %.0f img/s", epoch, cfg.epochs, row["loss"],
-                 row["train_mpjpe_mm"], f", val MPJPE {row['val_mpjpe_mm']:.1f} mm" if "val_mpjpe_mm" in row else "",
-                 row["images_per_s"])
+        log.info(
+            "epoch %d/%d: loss %.4f, train MPJPE %.1f mm%s, %.0f img/s",
+            epoch,
+            cfg.epochs,
+            row["loss"],
+            row["train_mpjpe_mm"],
+            f", val MPJPE {row['val_mpjpe_mm']:.1f} mm" if "val_mpjpe_mm" in row else "",
+            row["images_per_s"],
+        )
     if start >= cfg.epochs:
         save_model(run, net, record)
     return run
@@ -310,8 +355,9 @@ def _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device) -> dict:
     torch.manual_seed(cfg.seed * 100003 + epoch)  # dropout of this epoch
     gen = torch.Generator().manual_seed(cfg.seed * 100003 + epoch)
     order = [train_idx[i] for i in torch.randperm(len(train_idx), generator=gen).tolist()]
-    loader = torch.utils.data.DataLoader(dataset, batch_size=cfg.batch_size, sampler=order, collate_fn=collate,
-                                         num_workers=cfg.num_workers)
+    loader = torch.utils.data.DataLoader(
+        dataset, batch_size=cfg.batch_size, sampler=order, collate_fn=collate, num_workers=cfg.num_workers
+    )
     net.train()
     totals: dict[str, float] = {}
     n_seen, err_sum, t0 = 0, 0.0, time.perf_counter()
@@ -329,8 +375,14 @@ def _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device) -> dict:
                 totals[k] = totals.get(k, 0.0) + v * B
             advance(f"loss {float(loss.detach()):.3f}")
     seconds = time.perf_counter() - t0
-    row = {"epoch": epoch, **{k: v / n_seen for k, v in totals.items()}, "train_mpjpe_mm": 1000 * err_sum / n_seen,
-           "images_per_s": n_seen / seconds, "seconds": seconds, "lr": opt.param_groups[0]["lr"]}
+    row = {
+        "epoch": epoch,
+        **{k: v / n_seen for k, v in totals.items()},
+        "train_mpjpe_mm": 1000 * err_sum / n_seen,
+        "images_per_s": n_seen / seconds,
+        "seconds": seconds,
+        "lr": opt.param_groups[0]["lr"],
+    }
     if val_idx:
         row.update(evaluate(net, torch.utils.data.Subset(dataset, val_idx), cfg, device))
     return row
@@ -362,8 +414,14 @@ class _progress:
             return lambda note="": None
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-        self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TimeRemainingColumn(), TextColumn("{task.fields[note]}"), transient=True)
+        self.bar = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+            TextColumn("{task.fields[note]}"),
+            transient=True,
+        )
         self.bar.__enter__()
         task = self.bar.add_task(self.what, total=self.total, note="")
         return lambda note="": self.bar.update(task, advance=1, note=note)
