@@ -1,4 +1,4 @@
-"""PressureNet speed: training images/s (Mod1, Mod2; paper and fast archs), inference latency
+"""PressureNet speed: training images/s (Mod1, Mod2; paper, fast and heatmap archs), inference latency
 at batch 1 and throughput at batch 128 (CNN + body model + mesh, what `predict` runs).
 
     .venv/bin/python benchmarks/net.py [--archs fast paper] [--batch 128] [--steps 3] [--device cpu]
@@ -109,7 +109,7 @@ def main() -> None:
     )
     print("| --- | --- | --- | --- | --- |")
     for arch in args.archs:
-        for module in (1, 2):
+        for module in (1,) if arch == "heatmap" else (1, 2):  # heatmap: one module
             ips_w, ips_c = train_speed(body, arch, module, args.batch, args.steps, device)
             lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device)
             thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device)

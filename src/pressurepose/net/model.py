@@ -22,6 +22,8 @@ from pressurepose.body.model import BodyModel
 from pressurepose.mat import MatSpec
 from pressurepose.net.cnn import make_cnn
 from pressurepose.net.head import ParamHead
+from pressurepose.net.heatmap import HeatmapNet, Localisation
+from pressurepose.net.ik import IKConfig, fit_to_joints
 from pressurepose.net.pmr import reconstruct_maps
 from pressurepose.net.preprocess import (
     check_pressure,
@@ -38,7 +40,7 @@ GENDER_UNKNOWN = 0.5  # Anny's gender phenotype: 0 male, 1 female
 class NetConfig:
     """What the network is; saved with every checkpoint (config.json)."""
 
-    arch: Literal["paper", "fast"] = "fast"
+    arch: Literal["paper", "fast", "heatmap"] = "fast"
     backend: Literal["anny", "smpl"] = "anny"
     modules: Literal[1, 2] = 1
     gender_input: bool = True  # gender given as an input (plane + Anny's gender entry)
@@ -46,10 +48,15 @@ class NetConfig:
     smpl_dir: str | None = None  # SMPL model folder, backend smpl only
     dropout: float = 0.1  # the seed's dropout after every tanh (paper) / in the FC head (fast)
     width: int = 1  # channel multiplier of the fast CNN (1: 1.3 M parameters)
+    ik_steps: int = 3  # heatmap arch: IK steps fitting the body to the localised joints (eval only)
 
     def __post_init__(self) -> None:
-        if self.arch not in ("paper", "fast"):
-            raise ValueError(f"NetConfig.arch must be 'paper' or 'fast', got {self.arch!r}")
+        if self.arch not in ("paper", "fast", "heatmap"):
+            raise ValueError(f"NetConfig.arch must be 'paper', 'fast' or 'heatmap', got {self.arch!r}")
+        if self.arch == "heatmap" and self.modules != 1:
+            raise ValueError("NetConfig.arch 'heatmap' is one module (modules=1)")
+        if not 0 <= self.ik_steps <= 50:
+            raise ValueError(f"NetConfig.ik_steps must lie in [0, 50], got {self.ik_steps}")
         if self.modules not in (1, 2):
             raise ValueError(f"NetConfig.modules must be 1 or 2, got {self.modules!r}")
         if not 0 <= self.dropout < 1:
@@ -88,6 +95,7 @@ class Estimate:
     vertices: torch.Tensor | None = None  # (B, V, 3)
     depth_mm: torch.Tensor | None = None  # (B, 64, 27) Q-hat
     contact: torch.Tensor | None = None  # (B, 64, 27) C-hat
+    localisation: Localisation | None = None  # arch heatmap: the localised joints
 
 
 class PressureNet(nn.Module):
@@ -100,7 +108,11 @@ class PressureNet(nn.Module):
             raise ValueError(f"body model is {self.body.name!r} but NetConfig.backend is {config.backend!r}")
         self.head = ParamHead(config.backend, self.body.shape_names, self.mat)
         D = self.head.size
-        self.mod1 = make_cnn(config.arch, config.in_channels, D, config.dropout, config.width)
+        self.mod1 = (
+            HeatmapNet(config.in_channels, D, self.mat, config.dropout, config.width)
+            if config.arch == "heatmap"
+            else make_cnn(config.arch, config.in_channels, D, config.dropout, config.width)
+        )
         self.mod2 = (
             make_cnn(config.arch, config.in_channels + 2, D, config.dropout, config.width)
             if config.modules == 2
@@ -167,15 +179,23 @@ class PressureNet(nn.Module):
         return cnn(upsample2(x) if self.config.arch == "paper" else x)
 
     # --- forward ------------------------------------------------------------------------
-    def estimate(self, raw: torch.Tensor, gender: torch.Tensor | None, mesh: bool, maps: bool = True) -> Estimate:
-        """Unpack a raw vector (B, D) and pose the body: joints only unless `mesh`; with the
-        mesh, the PMR maps unless `maps` is False."""
-        params = self.head(raw, gender)
+    def estimate(
+        self,
+        raw: torch.Tensor,
+        gender: torch.Tensor | None,
+        mesh: bool,
+        maps: bool = True,
+        params: BodyParams | None = None,
+        localisation: Localisation | None = None,
+    ) -> Estimate:
+        """Unpack a raw vector (B, D) (unless `params` are given) and pose the body: joints
+        only unless `mesh`; with the mesh, the PMR maps unless `maps` is False."""
+        params = self.head(raw, gender) if params is None else params
         if not mesh:
-            return Estimate(raw=raw, params=params, joints=self.body.joints(params))
+            return Estimate(raw=raw, params=params, joints=self.body.joints(params), localisation=localisation)
         out = self.body(params)
         if not maps:
-            return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices)
+            return Estimate(raw=raw, params=params, joints=out.joints, vertices=out.vertices, localisation=localisation)
         maps = reconstruct_maps(out.vertices, out.faces, self.mat)
         return Estimate(
             raw=raw,
@@ -184,7 +204,18 @@ class PressureNet(nn.Module):
             vertices=out.vertices,
             depth_mm=maps.depth_mm,
             contact=maps.contact,
+            localisation=localisation,
         )
+
+    def _localise_and_fit(self, x: torch.Tensor, gender: torch.Tensor | None, mesh: bool, maps: bool) -> Estimate:
+        """arch heatmap: localise the joints, regress the body, and (in eval mode) fit its
+        joints to the localised ones by `ik_steps` IK steps (net/ik.py)."""
+        raw, loc = self.mod1(x)
+        params = self.head(raw, gender)
+        if not self.training and self.config.ik_steps > 0:
+            ik = IKConfig(steps=self.config.ik_steps)
+            params = fit_to_joints(self.body, params, loc.joints, ik.weights(loc.spread_m2), ik)
+        return self.estimate(raw, gender, mesh, maps, params=params, localisation=loc)
 
     def forward(
         self,
@@ -200,6 +231,8 @@ class PressureNet(nn.Module):
         gender = inputs.gender if self.config.gender_input else None
         x = self.channels(inputs, augment, generator)
         with torch.set_grad_enabled(torch.is_grad_enabled() and not self.mod1_frozen):
+            if self.config.arch == "heatmap":
+                return [self._localise_and_fit(x, gender, mesh, maps)]
             if self.mod2 is None:
                 return [self.estimate(self._cnn(self.mod1, x), gender, mesh, maps)]
             est1 = self.estimate(self._cnn(self.mod1, x), gender, mesh=True)

@@ -67,6 +67,13 @@ def refine(
     Returns the refined estimate (with mesh) and the loss before each step and at the end."""
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
+    if net.config.arch == "heatmap":  # its raw vector is the head's answer before the IK
+        from pressurepose.errors import UserError
+
+        raise UserError(
+            "arch heatmap refines its estimate by IK on the localised joints; "
+            "--refine-steps is for the fast and paper archs"
+        )
     net.eval()
     with torch.no_grad():
         start = net(inputs, mesh=True, maps=False)[-1]

@@ -129,6 +129,7 @@ NET_FIELDS = {
     "height_weight": "bool",
     "dropout": "number",
     "width": "int",
+    "ik_steps": "int",
 }
 MAX_WIDTH = 16
 
@@ -146,7 +147,7 @@ def net_config_from_record(record: dict, path: str | Path = "the run's metadata"
         raise UserError(f"{path}: field 'config.net.width' must lie in [1, {MAX_WIDTH}], got {net['width']}")
     if net.get("smpl_dir") is not None:
         field(net, "smpl_dir", "str", path, "config.net.")
-    for key, allowed in (("arch", ("paper", "fast")), ("backend", ("anny", "smpl")), ("modules", (1, 2))):
+    for key, allowed in (("arch", ("paper", "fast", "heatmap")), ("backend", ("anny", "smpl")), ("modules", (1, 2))):
         if key in net and net[key] not in allowed:
             raise UserError(f"{path}: field 'config.net.{key}' must be one of {allowed}, got {net[key]!r}")
     try:

@@ -33,7 +33,8 @@ class TrainConfig:
         module: 1 trains Mod1; 2 trains Mod2 on the frozen Mod1 of the run given by `mod1`.
         mod1: the Mod1 run folder (module 2 only).
         preset: fills the fields left unset: paper (seed B.3), fast (CPU network), smoke.
-        arch: paper (the released CNN, 128 x 54 input) or fast (ours, 64 x 27).
+        arch: paper (the released CNN, 128 x 54 input), fast (ours, 64 x 27) or heatmap (per-joint
+            heatmaps, integral regression, a parameter head on the localised joints, IK; docs/network.md).
         backend: body model: anny (embedded) or smpl (needs smpl_dir).
         smpl_dir: folder of the SMPL model file (backend smpl).
         epochs: total epochs (a resumed run continues up to this).
@@ -73,7 +74,7 @@ class TrainConfig:
     module: Literal[1, 2] = 1
     mod1: Path | None = None
     preset: Literal["paper", "fast", "smoke"] = "paper"
-    arch: Literal["paper", "fast"] | None = None
+    arch: Literal["paper", "fast", "heatmap"] | None = None
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: str | None = None
     epochs: int | None = None
@@ -124,6 +125,8 @@ class TrainConfig:
     def _check(self) -> None:
         if self.module not in (1, 2):
             raise UserError(f"module must be 1 or 2, got {self.module}")
+        if self.module == 2 and self.arch == "heatmap":
+            raise UserError("arch heatmap is one module (it fits the body to its localised joints): use --module 1")
         if self.module == 2 and self.mod1 is None:
             raise UserError("module 2 trains on a trained Mod1: give --mod1 RUN (a `--module 1` run folder)")
         for name in ("epochs", "batch_size", "save_every"):

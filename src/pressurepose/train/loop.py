@@ -24,6 +24,7 @@ import torch
 
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
+from pressurepose.net.heatmap import localisation_loss
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
 from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
@@ -213,6 +214,9 @@ def step_loss(
     scale = net.head.shape_scale()
     if cfg.module == 1:
         loss, parts = module_loss(est.joints, est.params.shape, targets, scale)
+        if est.localisation is not None:
+            located, located_parts = localisation_loss(est.localisation, targets.joints, net.mat)
+            loss, parts = loss + located, {**parts, **located_parts}
     else:
         loss, parts = module_loss(est.joints, est.params.shape, targets, scale, est.depth_mm, est.contact)
         if cfg.synthesis_weight > 0:

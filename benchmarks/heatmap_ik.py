@@ -1,0 +1,65 @@
+"""arch=heatmap: how the IK settings move the joint error, on a run's own validation split.
+
+    PYTHONPATH=src .venv/bin/python benchmarks/heatmap_ik.py --model RUN --data DIR [--n 512]
+
+Prints MPJPE (mm) of the localised joints, of the regression head's body (no IK) and of the
+body after IK for a grid of (steps, joint sigma, prior sigma, damping), and the time per batch
+of 128 for the IK. The validation split is the one `train` held out (same seed and fraction),
+so choosing the defaults here does not look at the test split.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+
+import torch
+
+from pressurepose.net.ik import IKConfig, fit_to_joints
+from pressurepose.net.model import NetInputs
+from pressurepose.train.checkpoint import load_network
+from pressurepose.train.config import TrainConfig
+from pressurepose.train.data import collate, open_dataset
+from pressurepose.train.loop import _split
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--n", type=int, default=512)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    net, record = load_network(args.model)
+    cfg = TrainConfig.from_json(record["train"]).resolved()
+    dataset = open_dataset(args.data)
+    _, val = _split(len(dataset), cfg)
+    batch = collate([dataset[i] for i in val[: args.n]])
+    inputs = NetInputs(batch["pressure_mmhg"], gender=batch["gender"])
+    true = batch["joints"]
+    err = lambda j: 1000 * float((j - true).norm(dim=-1).mean())  # noqa: E731
+    with torch.no_grad():
+        x = net.channels(inputs)
+        raw, loc = net.mod1(x)
+        params = net.head(raw, inputs.gender if net.config.gender_input else None)
+        print(
+            f"{len(val[: args.n])} validation samples: localised {err(loc.joints):.1f} mm, "
+            f"head body {err(net.body.joints(params)):.1f} mm"
+        )
+        print("| steps | joint sigma (m) | prior sigma (rad) | damping | spread weights | MPJPE (mm) | ms per 128 |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        grid = itertools.product((1, 3, 5), (0.03, 0.1), (0.25, 0.5, 1.0, 2.0), (1.0,), (False, True))
+        for steps, js, ps, d, sw in grid:
+            ik = IKConfig(steps, js, ps, d, sw)
+            t0 = time.perf_counter()
+            fitted = fit_to_joints(net.body, params, loc.joints, ik.weights(loc.spread_m2), ik)
+            seconds = (time.perf_counter() - t0) * 128 / len(true)
+            print(
+                f"| {steps} | {js} | {ps} | {d} | {sw} | {err(net.body.joints(fitted)):.1f} | {1000 * seconds:.0f} |",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()
