@@ -156,7 +156,7 @@ def test_shift_moves_images_and_labels_as_the_physics_does(anny64):
     from pressurepose.net.losses import Targets
     from pressurepose.sim.foundation import simulate_pressure
     from pressurepose.sim.sensor import sensing_area, taxel_reading
-    from pressurepose.train.loop import shift_batch
+    from pressurepose.train.augment import shift_batch
 
     a = synthetic_arrays(1, seed=5, body=anny64)
     inputs = NetInputs(pressure_mmhg=a["pressure_mmhg"])
@@ -399,8 +399,8 @@ def _blur_reference(image, sigma, radius):
 def test_repress_augmentation_against_a_naive_reference(data32, monkeypatch):
     """Re-pressing from the depth label: a per-image loop with a naive 2-D blur gives the same
     images; the force is kept; a deeper sink covers more taxels; the off images are untouched."""
-    from pressurepose.train import loop
-    from pressurepose.train.loop import REPRESS_THRESHOLD_MMHG, repress_batch
+    from pressurepose.train import augment
+    from pressurepose.train.augment import REPRESS_THRESHOLD_MMHG, repress_batch
 
     arrays = NpzDataset(data32 / "train.npz").arrays
     p, Q = arrays["pressure_mmhg"][:6].double(), arrays["depth_mm"][:6].double()
@@ -424,11 +424,11 @@ def test_repress_augmentation_against_a_naive_reference(data32, monkeypatch):
         # the load is kept, less what the threshold and the 100 mmHg ceiling take
         assert abs(float(out[i].sum()) / float(p[i].sum()) - 1) < 0.1
     # a softer bed (deeper sink) loads more taxels, with everything else the same
-    monkeypatch.setattr(loop, "REPRESS_EXPONENT", (1.0, 1.0))
-    monkeypatch.setattr(loop, "REPRESS_SPREAD_TAXELS", (0.5, 0.5))
+    monkeypatch.setattr(augment, "REPRESS_EXPONENT", (1.0, 1.0))
+    monkeypatch.setattr(augment, "REPRESS_SPREAD_TAXELS", (0.5, 0.5))
     area = []
     for d in (0.0, 20.0, 40.0):
-        monkeypatch.setattr(loop, "REPRESS_EXTRA_SINK_MM", (d, d))
+        monkeypatch.setattr(augment, "REPRESS_EXTRA_SINK_MM", (d, d))
         area.append((repress_batch(inputs, Q, 1.0, None).pressure_mmhg > 0).sum((1, 2)))
     assert bool((area[0] <= area[1]).all() and (area[1] <= area[2]).all() and (area[2] > area[0]).all())
     with pytest.raises(ValueError, match="repress"):
@@ -442,7 +442,7 @@ def test_mirror_flips_images_and_labels_as_the_physics_does(anny64):
     from pressurepose.net.losses import Targets
     from pressurepose.sim.foundation import simulate_pressure
     from pressurepose.sim.sensor import sensing_area, taxel_reading
-    from pressurepose.train.loop import mirror_batch
+    from pressurepose.train.augment import mirror_batch
 
     a = synthetic_arrays(3, seed=6, body=anny64)
     B = len(a["pressure_mmhg"])
@@ -496,7 +496,7 @@ def test_mirror_flips_images_and_labels_as_the_physics_does(anny64):
 def test_bands_against_a_naive_reference(data32):
     """Air-cell bands: a per-row loop gives the same images, the force is kept, rows of the same
     phase get the same gain, and the off images are untouched."""
-    from pressurepose.train.loop import REPRESS_THRESHOLD_MMHG, bands_batch
+    from pressurepose.train.augment import REPRESS_THRESHOLD_MMHG, bands_batch
 
     p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:6].double()
     inputs = NetInputs(pressure_mmhg=p)

@@ -49,13 +49,13 @@ class TrainConfig:
         shift_rows: augmentation: move training images (and labels) by up to this many rows along the bed.
         shift_cols: augmentation: the same across the bed, in columns.
         mirror: augmentation: share of training images mirrored left-right with their labels
-            (left and right joints swapped; `train.loop.mirror_batch`; 0 = off).
+            (left and right joints swapped; `train.augment.mirror_batch`; 0 = off).
         bands: augmentation: share of training images read through an air-cell mattress's
-            transverse bands (rows alternately brighter and darker; `train.loop.bands_batch`; 0 = off).
+            transverse bands (rows alternately brighter and darker; `train.augment.bands_batch`; 0 = off).
         repress: augmentation: share of training images re-pressed into a random other mattress
             from their depth labels (deeper sinking, another pressure law and spread; the force
             kept): real mats read far more uniform pressure than the calibrated simulation, most
-            of all under side-lying people (0 = off; `train.loop.repress_batch`).
+            of all under side-lying people (0 = off; `train.augment.repress_batch`).
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.

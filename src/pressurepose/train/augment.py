@@ -1,0 +1,149 @@
+"""Training augmentations (`pressurepose train` flags): images moved along and across the bed,
+mirrored left-right, re-pressed into other mattresses from their depth labels, and read through
+an air-cell mattress's transverse bands (docs/network.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+
+import torch
+
+from pressurepose.net.losses import Targets
+from pressurepose.net.model import NetInputs
+from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
+
+log = logging.getLogger(__name__)
+
+
+def shift_batch(
+    inputs: NetInputs, targets: Targets, rows: int, cols: int, generator: torch.Generator | None
+) -> tuple[NetInputs, Targets]:
+    """Move every image of the batch by a random whole number of taxels (|dr| <= rows, |dc| <=
+    cols) and its labels with it: the same body lying elsewhere on a uniform flat bed gives the
+    same image moved (taxels leaving the grid are lost, those entering read 0 - as for a body
+    partly off the mat). Real users lie wherever they lie; the generator's bodies do not cover
+    every placement (PmatData's heads reach row 0)."""
+    from pressurepose.maps import EMPTY_HEIGHT_M
+    from pressurepose.mat import MatSpec
+
+    p = inputs.pressure_mmhg
+    B, R, C = p.shape
+    draw = lambda n: torch.randint(-n, n + 1, (B,), generator=generator).tolist()  # noqa: E731
+    dr, dc = draw(rows), draw(cols)
+
+    def move(x: torch.Tensor, fill: float) -> torch.Tensor:
+        out = torch.full_like(x, fill)
+        for b, (r, c) in enumerate(zip(dr, dc)):
+            out[b, max(r, 0) : R + min(r, 0), max(c, 0) : C + min(c, 0)] = x[
+                b, max(-r, 0) : R + min(-r, 0), max(-c, 0) : C + min(-c, 0)
+            ]
+        return out
+
+    mat = MatSpec()
+    step = torch.tensor(
+        [[mat.pitch_row_m * r, mat.pitch_col_m * c, 0.0] for r, c in zip(dr, dc)],
+        dtype=targets.joints.dtype,
+        device=targets.joints.device,
+    )
+    moved = Targets(
+        joints=targets.joints + step[:, None],
+        shape=targets.shape,
+        depth_mm=None if targets.depth_mm is None else move(targets.depth_mm, 1000 * EMPTY_HEIGHT_M),
+        contact=None if targets.contact is None else move(targets.contact, 0.0),
+    )
+    return dataclasses.replace(inputs, pressure_mmhg=move(p, 0.0)), moved
+
+
+def mirror_batch(
+    inputs: NetInputs, targets: Targets, share: float, generator: torch.Generator | None
+) -> tuple[NetInputs, Targets]:
+    """Mirror a random `share` of the images left-right (columns c -> 26 - c) with their labels:
+    the joints reflected across the mat's centre line (y -> W - y, W the sensing width) with left
+    and right swapped (J24_MIRROR); depth and contact maps flipped; the shape kept (the body
+    model is symmetric to ~1 mm, tests/test_body.py). The bed and the simulation are mirror
+    symmetric (a mirrored body gives the mirrored image, tests/test_sim.py), so the mirrored
+    sample is a sample of the same generator - the one of the mirrored person."""
+    from pressurepose.body.joints import J24_MIRROR
+    from pressurepose.mat import MatSpec
+
+    p = inputs.pressure_mmhg
+    on = torch.rand(p.shape[0], generator=generator).to(p.device) < share
+    if not bool(on.any()):
+        return inputs, targets
+    flip = lambda x: None if x is None else torch.where(on[:, None, None], x.flip(-1), x)  # noqa: E731
+    j = targets.joints
+    mirrored = j[:, list(J24_MIRROR)].clone()
+    mirrored[..., 1] = MatSpec().sensing_width_m - mirrored[..., 1]
+    joints = torch.where(on[:, None, None], mirrored, j)
+    return (
+        dataclasses.replace(inputs, pressure_mmhg=flip(p)),
+        Targets(joints=joints, shape=targets.shape, depth_mm=flip(targets.depth_mm), contact=flip(targets.contact)),
+    )
+
+
+# Re-press augmentation: ranges of the mattress law drawn per image (docs/model-card.md).
+REPRESS_EXTRA_SINK_MM = (0.0, 40.0)  # delta: how much deeper a softer mattress lets the body in
+REPRESS_EXPONENT = (0.5, 1.5)  # gamma: pressure ~ compression^gamma
+REPRESS_SPREAD_TAXELS = (0.3, 1.0)  # sigma: the mat and cover's spread
+REPRESS_THRESHOLD_MMHG = 1.0  # the sensor reads 0 below ~1 mmHg (MattressParams.c0_mmhg)
+
+
+def repress_batch(
+    inputs: NetInputs, depth_mm: torch.Tensor, share: float, generator: torch.Generator | None
+) -> NetInputs:
+    """Replace a random `share` of the pressure images by the body pressed into another
+    mattress: from the depth label Q (mm, < 0 where the body is sunk in), compression c =
+    max(0, delta - Q) (delta ~ U(REPRESS_EXTRA_SINK_MM): a softer mattress lets the body in
+    deeper), pressure ~ c^gamma (gamma ~ U(REPRESS_EXPONENT): from a softening to a stiffening
+    law), spread by a Gaussian of sigma ~ U(REPRESS_SPREAD_TAXELS) taxels, scaled so the image
+    keeps its total, then the sensor's threshold and 100 mmHg ceiling. The pose does not move
+    (a first-order view of a softer bed). Why: real side-lying frames (PmatData C, D) carry
+    nearly uniform pressure over the whole silhouette (0.36-0.42 m^2), simulated ones a few
+    stiff blobs (0.25 m^2) - the calibrated foundation's cubic term and threshold - and the
+    network read the blobs as the cue for lying on a side. Images not drawn are unchanged."""
+    p = inputs.pressure_mmhg
+    u = torch.rand(4, p.shape[0], generator=generator).to(p)
+    delta, gamma = _uniform(REPRESS_EXTRA_SINK_MM, u[1]), _uniform(REPRESS_EXPONENT, u[2])
+    c = (delta[:, None, None] - depth_mm.to(p)).clamp(min=0.0)
+    q = gaussian_blur(c.pow(gamma[:, None, None]) * (c > 0), _uniform(REPRESS_SPREAD_TAXELS, u[3]))
+    return _read_again(inputs, q, u[0] < share)
+
+
+def _uniform(bounds: tuple[float, float], u: torch.Tensor) -> torch.Tensor:
+    """U(bounds) from U(0, 1) draws u."""
+    return bounds[0] + (bounds[1] - bounds[0]) * u
+
+
+def _read_again(inputs: NetInputs, q: torch.Tensor, on: torch.Tensor) -> NetInputs:
+    """The images `on` (B,) replaced by q (B, 64, 27) scaled to their total, then read as the
+    sensor does (below REPRESS_THRESHOLD_MMHG: 0; ceiling MAX_MMHG); the others unchanged."""
+    p = inputs.pressure_mmhg
+    q = q * (p.sum((1, 2), keepdim=True) / q.sum((1, 2), keepdim=True).clamp(min=1e-9))
+    q = torch.where(q >= REPRESS_THRESHOLD_MMHG, q, torch.zeros_like(q)).clamp(max=MAX_MMHG)
+    return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q, p))
+
+
+BANDS_PERIOD_ROWS = (2.0, 4.0)  # T: taxel rows per air cell
+BANDS_DEPTH = (0.3, 1.0)  # a: how much the gain varies between a cell's crest and gap
+
+
+def bands_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
+    """Multiply a random `share` of the images by the pattern of an air-cell mattress: cells
+    running across the bed, so the reading varies along it, gain(r) = max(0, 1 + a cos(2 pi (r -
+    phi) / T)) per row r (T ~ U(BANDS_PERIOD_ROWS), a ~ U(BANDS_DEPTH), phi ~ U(0, T)); the total
+    kept, then the sensor's threshold and ceiling. Alternating-pressure air mattresses, the
+    usual hospital bed against pressure injuries, read in such bands (PmatData's air mattress:
+    rows alternate bright and dark under the whole body); the foundation model of a uniform
+    mattress cannot make them. Images not drawn are unchanged."""
+    p = inputs.pressure_mmhg
+    u = torch.rand(4, p.shape[0], generator=generator).to(p)
+    T, a = _uniform(BANDS_PERIOD_ROWS, u[1]), _uniform(BANDS_DEPTH, u[2])
+    phi = T * u[3]
+    r = torch.arange(p.shape[1], dtype=p.dtype, device=p.device)
+    gain = (1 + a[:, None] * torch.cos(2 * math.pi * (r[None] - phi[:, None]) / T[:, None])).clamp(min=0.0)
+    return _read_again(inputs, p * gain[:, :, None], u[0] < share)
+
+
+__all__ = ["bands_batch", "mirror_batch", "repress_batch", "shift_batch"]
