@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/anny_joints_breakdown.py
 
-Times each stage of `AnnyBody._body_frame(..., with_vertices=False)` alone (median of 10).
+Times each stage of `AnnyBody.body_frame(..., with_vertices=False)` alone (median of 10).
 """
 
 from __future__ import annotations

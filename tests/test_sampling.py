@@ -189,7 +189,7 @@ def test_records_partition_rejections_and_rests_on_the_mat(anny):
     }
     assert (poses.rejections["sit_up_rejections"] == 0).all()  # a flat partition never sits up
     assert sum(int(v.sum()) for v in poses.rejections.values()) > 0
-    anny._check(poses.params.to(anny.dtype))  # valid BodyParams for the model
+    anny.check_params(poses.params.to(anny.dtype))  # valid BodyParams for the model
     # shapes from the female box
     low, high = shape_bounds("anny", "female", anny.shape_names)
     s = poses.params.shape.numpy()

@@ -300,7 +300,7 @@ class AnnyBody(BodyModel):
         joints = torch.einsum("jk,bkx->bjx", self.joint_regressor[:, sk.bones], heads) @ C
         return coeffs, rest_heads, A, rot, heads, joints
 
-    def _body_frame(self, shape, pose, with_vertices):
+    def body_frame(self, shape, pose, with_vertices):
         sk = self.full if with_vertices else self.light
         coeffs, rest_heads, A, rot, heads, joints = self._skeleton_pass(shape, pose, sk)
         if not with_vertices:
@@ -316,7 +316,7 @@ class AnnyBody(BodyModel):
             template=self.anny.template_vertices, blendshapes=self.anny.blendshapes, skinning=self.skin_matrix
         )
 
-    def _zero_pose_skinning(self, shape: torch.Tensor) -> ZeroPoseSkinning:
+    def zero_pose_skinning(self, shape: torch.Tensor) -> ZeroPoseSkinning:
         sk = self.full
         pose = shape.new_zeros(shape.shape[0], NUM_JOINTS - 1, 3)
         coeffs, rest_heads, A, rot, heads, joints = self._skeleton_pass(shape, pose, sk)

@@ -164,15 +164,15 @@ def fit_capsules(model: BodyModel, shape: torch.Tensor) -> Capsules:
     every body at once (5.7 -> 1.5 ms per body at B = 64, one thread; the same result to
     float round-off)."""
     params = BodyParams.zeros(shape.shape[0], shape)
-    model._check(params)
+    model.check_params(params)
     plan = _fit_plan(model)
     B = shape.shape[0]
     linear = bool(plan) and isinstance(plan[0], _CapsuleVertices)
     if linear:
-        skin = model._zero_pose_skinning(params.shape)
+        skin = model.zero_pose_skinning(params.shape)
         joints = skin.joints
     else:
-        all_vertices, joints = model._body_frame(params.shape, params.pose, with_vertices=True)
+        all_vertices, joints = model.body_frame(params.shape, params.pose, with_vertices=True)
     rest = joints - joints[:, :1]
     start = rest.new_empty(B, NUM_CAPSULES, 3)
     end = rest.new_empty(B, NUM_CAPSULES, 3)

@@ -30,8 +30,8 @@ def rest_joints(model: BodyModel, shape: torch.Tensor) -> torch.Tensor:
     """(B, 24, 3) T-pose joints of (B, S) shapes in body axes (x left, y head, z front),
     pelvis at the origin."""
     params = BodyParams.zeros(shape.shape[0], shape)
-    model._check(params)
-    _, joints = model._body_frame(params.shape, params.pose, with_vertices=False)
+    model.check_params(params)
+    _, joints = model.body_frame(params.shape, params.pose, with_vertices=False)
     return joints - joints[:, :1]
 
 

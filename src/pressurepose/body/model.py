@@ -1,6 +1,6 @@
 """The body-model interface: every backend turns BodyParams into a BodyOutput the same way.
 
-A backend implements only `_body_frame` (joints, and optionally vertices, in SMPL's body axes
+A backend implements only `body_frame` (joints, and optionally vertices, in SMPL's body axes
 with the shape's own pelvis position) and its shape checks; placing the body in the mat frame,
 the joints-only path, measurements and validation live here once.
 """
@@ -79,7 +79,7 @@ class BodyModel(torch.nn.Module, abc.ABC):
 
     # --- to implement -------------------------------------------------------------------
     @abc.abstractmethod
-    def _body_frame(
+    def body_frame(
         self, shape: torch.Tensor, pose: torch.Tensor, with_vertices: bool
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
         """(vertices (B, V, 3) or None, joints (B, 24, 3)) in body axes, zero root rotation."""
@@ -94,15 +94,17 @@ class BodyModel(torch.nn.Module, abc.ABC):
     # --- optional fast path for per-shape fits on the T-pose mesh (capsules) --------------
     def linear_mesh(self) -> LinearMesh | None:
         """The rest mesh's linear structure, or None when the backend does not expose it
-        (then `_zero_pose_skinning` is not used and fits skin the whole mesh)."""
+        (then `zero_pose_skinning` is not used and fits skin the whole mesh)."""
         return None
 
-    def _zero_pose_skinning(self, shape: torch.Tensor) -> ZeroPoseSkinning:
+    def zero_pose_skinning(self, shape: torch.Tensor) -> ZeroPoseSkinning:
         """Per-shape coefficients and bone transforms of the T-pose (only with `linear_mesh`)."""
         raise NotImplementedError
 
     # --- shared ---------------------------------------------------------------------------
-    def _check(self, params: BodyParams) -> None:
+    def check_params(self, params: BodyParams) -> None:
+        """ValueError unless `params` are BodyParams of this model's shape size, dtype, device
+        and shape ranges."""
         if not isinstance(params, BodyParams):
             raise ValueError(f"expected BodyParams, got {type(params).__name__}")
         params.validate(self.shape_dim, self.dtype, self.device)
@@ -110,8 +112,8 @@ class BodyModel(torch.nn.Module, abc.ABC):
 
     def forward(self, params: BodyParams) -> BodyOutput:
         """Posed mesh and J24 joints in the mat frame (metres)."""
-        self._check(params)
-        vertices, joints = self._body_frame(params.shape, params.pose, with_vertices=True)
+        self.check_params(params)
+        vertices, joints = self.body_frame(params.shape, params.pose, with_vertices=True)
         pelvis = joints[:, 0]
         return BodyOutput(
             vertices=place_in_mat(vertices, pelvis, params),
@@ -123,15 +125,15 @@ class BodyModel(torch.nn.Module, abc.ABC):
 
     def joints(self, params: BodyParams) -> torch.Tensor:
         """J24 joints (B, 24, 3) in the mat frame, without skinning the mesh (fast path)."""
-        self._check(params)
-        _, joints = self._body_frame(params.shape, params.pose, with_vertices=False)
+        self.check_params(params)
+        _, joints = self.body_frame(params.shape, params.pose, with_vertices=False)
         return place_in_mat(joints, joints[:, 0], params)
 
     def rest_vertices(self, shape: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) zero-pose (T-pose) mesh in body axes, pelvis at the origin."""
         params = BodyParams.zeros(shape.shape[0], shape)
-        self._check(params)
-        vertices, joints = self._body_frame(params.shape, params.pose, with_vertices=True)
+        self.check_params(params)
+        vertices, joints = self.body_frame(params.shape, params.pose, with_vertices=True)
         return vertices - joints[:, :1]
 
     def measure(self, shape: torch.Tensor) -> BodyMeasurements:

@@ -252,7 +252,7 @@ class SmplBody(BodyModel):
         eye = torch.eye(3, dtype=pose.dtype, device=pose.device).expand(B, 1, 3, 3)
         return torch.cat([eye, axis_angle_to_matrix(pose)], 1)  # (B, 24, 3, 3), root = I
 
-    def _body_frame(self, shape, pose, with_vertices):
+    def body_frame(self, shape, pose, with_vertices):
         rot = self._rotations(pose)
         if not with_vertices:
             J = self.J_template + torch.einsum("jxb,nb->njx", self.J_shapedirs, shape)
