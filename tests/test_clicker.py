@@ -20,7 +20,8 @@ from webdriver import WebDriver, needs_chromium
 from pressurepose.body.rotations import rotation_angle
 from pressurepose.cli import main
 from pressurepose.data.coregister import FORMAT, corner_markers, project, read_markers, solve_camera_pose
-from pressurepose.viz.clicker import ClickConfig, load_image, make_click_server
+from pressurepose.viz.click_image import load_image
+from pressurepose.viz.clicker import ClickConfig, make_click_server
 
 INTR = {"fx": 365.0, "fy": 365.0, "cx": 256.0, "cy": 212.0}  # a Kinect v2 depth camera
 K = np.array([[INTR["fx"], 0, INTR["cx"]], [0, INTR["fy"], INTR["cy"]], [0, 0, 1.0]])

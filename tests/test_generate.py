@@ -406,6 +406,21 @@ def test_rigid_dataset_settings_leave_out_the_tissue(reference):
     assert "tissue_pa_per_m" not in json.loads((out / "manifest.json").read_text())["mattress"]
 
 
+def _assert_params_reproduce_joints(data):
+    """The stored body parameters, through the body model, give the stored joints."""
+    from pressurepose.body import load_body_model
+    from pressurepose.body.params import BodyParams
+
+    model = load_body_model("anny", dtype=torch.float64)
+    params = BodyParams(
+        shape=torch.from_numpy(data["shape"]),
+        root_rotation=torch.from_numpy(data["root_rotation"]),
+        root_translation=torch.from_numpy(data["root_translation"]),
+        pose=torch.from_numpy(data["pose"]),
+    )
+    np.testing.assert_allclose(model.joints(params).numpy(), data["joints_m"], atol=1e-4)
+
+
 def test_articulated_sim2_dataset(tmp_path):
     """`generate --sim2 articulated`: the manifest records it, images carry the weight, the
     stored parameters reproduce the stored joints; the rigid default's identity is unchanged."""
@@ -422,17 +437,7 @@ def test_articulated_sim2_dataset(tmp_path):
     data = read_all(out)
     assert len(data["index"]) == 2
     assert (data["pressure_mmhg"].reshape(2, -1).max(1) > 5).all()
-    from pressurepose.body import load_body_model
-    from pressurepose.body.params import BodyParams
-
-    model = load_body_model("anny", dtype=torch.float64)
-    params = BodyParams(
-        shape=torch.from_numpy(data["shape"]),
-        root_rotation=torch.from_numpy(data["root_rotation"]),
-        root_translation=torch.from_numpy(data["root_translation"]),
-        pose=torch.from_numpy(data["pose"]),
-    )
-    np.testing.assert_allclose(model.joints(params).numpy(), data["joints_m"], atol=1e-4)
+    _assert_params_reproduce_joints(data)
 
 
 def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
@@ -458,17 +463,7 @@ def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
     data = read_all(out)
     assert len(data["index"]) == 3
     assert (data["pressure_mmhg"].reshape(3, -1).max(1) > 5).all()
-    from pressurepose.body import load_body_model
-    from pressurepose.body.params import BodyParams
-
-    model = load_body_model("anny", dtype=torch.float64)
-    params = BodyParams(
-        shape=torch.from_numpy(data["shape"]),
-        root_rotation=torch.from_numpy(data["root_rotation"]),
-        root_translation=torch.from_numpy(data["root_translation"]),
-        pose=torch.from_numpy(data["pose"]),
-    )
-    np.testing.assert_allclose(model.joints(params).numpy(), data["joints_m"], atol=1e-4)
+    _assert_params_reproduce_joints(data)
     from pressurepose.errors import UserError
 
     with pytest.raises(UserError, match="--settle articulated"):

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 
-from pressurepose.body.params import BodyParams
 from pressurepose.sampling.partitions import PARTITIONS, SamplingConfig
 from pressurepose.sampling.sampler import PoseSampler
 from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
@@ -70,10 +69,3 @@ def test_runs_repeat_exactly(anny64):
     assert a.failure == b.failure
     assert torch.equal(a.joints, b.joints) and torch.equal(a.foundation_pa, b.foundation_pa)
     np.testing.assert_array_equal(a.iterations.numpy(), b.iterations.numpy())
-
-
-def test_batch_of_mixed_partitions_matches_its_parts_shape(anny64):
-    """BodyParams of different partitions concatenate and rest together (one batch)."""
-    params = BodyParams.cat([_drawn(anny64, "supine", 1), _drawn(anny64, "general", 1)])
-    r = rest_articulated(anny64, params)
-    assert r.joints.shape == (2, 24, 3) and len(r.failure) == 2

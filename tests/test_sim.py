@@ -11,9 +11,9 @@ import torch
 
 from pressurepose.body.capsules import home_pose
 from pressurepose.body.params import BodyParams
-from pressurepose.maps import EMPTY_HEIGHT_M, depth_map
+from pressurepose.maps import EMPTY_HEIGHT_M, depth_map, mesh_centroid
 from pressurepose.mat import MatSpec
-from pressurepose.sim.foundation import FAIL_NO_SUPPORT, mesh_centroid, simulate_pressure
+from pressurepose.sim.foundation import FAIL_NO_SUPPORT, simulate_pressure
 from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA, MattressParams
 from pressurepose.sim.objects import capsule_mesh, settle_capsule
 from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading

@@ -148,14 +148,38 @@ def contact_map(depth_mm: torch.Tensor) -> torch.Tensor:
     return (depth_mm < 0).to(depth_mm.dtype)
 
 
+def mesh_centroid(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(B, 3) centre of the enclosed volume (uniform density) of closed meshes, by signed
+    tetrahedra; orientation-independent (a mirrored mesh gives the mirrored centroid)."""
+    return centroid_and_points(vertices, faces)[0]
+
+
+def centroid_and_points(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The volume centroid (B, 3) and the surface points of maps.surface_points (vertices and
+    triangle centroids), from one gather of the triangle corners."""
+    tri = vertices.index_select(1, faces.reshape(-1)).view(vertices.shape[0], -1, 3, 3)
+    v0, v1, v2 = tri.unbind(2)
+    tri_sum = v0 + v1 + v2
+    # 6 x signed volume (B, F): v0 . (v1 x v2), written out (faster than linalg.cross here)
+    vol = (
+        v0[..., 0] * (v1[..., 1] * v2[..., 2] - v1[..., 2] * v2[..., 1])
+        + v0[..., 1] * (v1[..., 2] * v2[..., 0] - v1[..., 0] * v2[..., 2])
+        + v0[..., 2] * (v1[..., 0] * v2[..., 1] - v1[..., 1] * v2[..., 0])
+    )
+    centroid = (vol[..., None] * tri_sum).sum(1) / (4.0 * vol.sum(1)[:, None])
+    return centroid, surface_points(vertices, faces, corners=tri)
+
+
 __all__ = [
     "EMPTY_HEIGHT_M",
     "cell_centres",
+    "centroid_and_points",
     "contact_map",
     "depth_map",
     "grid_origin",
     "grid_shape",
     "heights_from_points",
+    "mesh_centroid",
     "patch_holes",
     "surface_points",
     "underside_height",

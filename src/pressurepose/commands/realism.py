@@ -143,10 +143,10 @@ def simulate_subjects(
     from pressurepose.body.fit_shape import shape_for_height_mass
     from pressurepose.body.params import BodyParams
     from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+    from pressurepose.maps import mesh_centroid
     from pressurepose.mat import MatSpec
     from pressurepose.sampling.partitions import HOLD_ROLL_M
     from pressurepose.sim.articulated import ArticulatedConfig
-    from pressurepose.sim.foundation import mesh_centroid
     from pressurepose.sim.mattress import PRESETS, MattressParams
     from pressurepose.sim.run import simulate_poses
     from pressurepose.sim.settle_config import SettleConfig

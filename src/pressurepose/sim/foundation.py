@@ -35,7 +35,7 @@ import torch.nn.functional as F
 
 from pressurepose.bed import BedShape
 from pressurepose.blur import gaussian_blur
-from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, heights_from_points, surface_points
+from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, centroid_and_points, heights_from_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
@@ -71,28 +71,6 @@ class PressureResult:
     @property
     def ok(self) -> torch.Tensor:
         return torch.tensor([not f for f in self.failure], device=self.shift_m.device)
-
-
-def mesh_centroid(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(B, 3) centre of the enclosed volume (uniform density) of closed meshes, by signed
-    tetrahedra; orientation-independent (a mirrored mesh gives the mirrored centroid)."""
-    return _centroid_and_points(vertices, faces)[0]
-
-
-def _centroid_and_points(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The volume centroid (B, 3) and the surface points of maps.surface_points (vertices and
-    triangle centroids), from one gather of the triangle corners."""
-    tri = vertices.index_select(1, faces.reshape(-1)).view(vertices.shape[0], -1, 3, 3)
-    v0, v1, v2 = tri.unbind(2)
-    tri_sum = v0 + v1 + v2
-    # 6 x signed volume (B, F): v0 . (v1 x v2), written out (faster than linalg.cross here)
-    vol = (
-        v0[..., 0] * (v1[..., 1] * v2[..., 2] - v1[..., 2] * v2[..., 1])
-        + v0[..., 1] * (v1[..., 2] * v2[..., 0] - v1[..., 0] * v2[..., 2])
-        + v0[..., 2] * (v1[..., 0] * v2[..., 1] - v1[..., 1] * v2[..., 0])
-    )
-    centroid = (vol[..., None] * tri_sum).sum(1) / (4.0 * vol.sum(1)[:, None])
-    return centroid, surface_points(vertices, faces, corners=tri)
 
 
 def taxel_pressure(foundation_pa: torch.Tensor, params: MattressParams, mat: MatSpec, sub: int) -> torch.Tensor:
@@ -303,7 +281,7 @@ def simulate_pressure(
     iters = torch.zeros(B, dtype=torch.long, device=vertices.device)
     verts = vertices
     # Centroid and surface points once; later passes move them with the mesh (rigid motion).
-    com, world_points = _centroid_and_points(verts, faces)
+    com, world_points = centroid_and_points(verts, faces)
     for p in range(passes):
         points = bed.to_surface(world_points, mat) if bed is not None and not bed.flat else world_points
         h = heights_from_points(points, mat, sub=sub, covered=True)
@@ -397,7 +375,6 @@ __all__ = [
     "FAIL_SLIDES",
     "FAIL_TILT",
     "PressureResult",
-    "mesh_centroid",
     "simulate_pressure",
     "taxel_pressure",
 ]

@@ -19,9 +19,8 @@ import torch
 import torch.nn.functional as F
 
 from pressurepose.blur import gaussian_blur
-from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, underside_height
+from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, mesh_centroid, underside_height
 from pressurepose.mat import MatSpec
-from pressurepose.sim.foundation import mesh_centroid
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 
 

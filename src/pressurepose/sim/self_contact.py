@@ -109,7 +109,7 @@ class SelfContact:
         u = axes[:, None]
         jac = (u * r1).sum(-1) * m1 - (u * r2).sum(-1) * m2  # (B, P, N)
         mask = (self.apart & (gap < _REACH_M)).to(gap.dtype)
-        return LinearSprings(gap=gap, jac=jac * mask[..., None], stiffness=self.stiffness, mask=mask)
+        return LinearSprings(gap=gap, jac=jac, stiffness=self.stiffness, mask=mask)
 
     def penetration(self, rot, joints) -> torch.Tensor:
         """(B,) deepest overlap (m, >= 0) of the pairs that started apart."""
