@@ -140,19 +140,8 @@ def open_dataset(
             raise UserError(
                 f"{root} holds dataset shards, but this install cannot read them (pressurepose.data.dataset missing)"
             ) from None
-        columns = (
-            "pressure_mmhg",
-            "depth_mm",
-            "contact",
-            "shape",
-            "root_rotation",
-            "root_translation",
-            "pose",
-            "joints_m",
-            "gender",
-            "mass_kg",
-            "height_m",
-        ) + tuple(extra_columns)
+        # The dataset's names for KEYS (its joints column is joints_m).
+        columns = tuple("joints_m" if k == "joints" else k for k in KEYS) + tuple(extra_columns)
         return PressurePoseDataset(root, split=split, columns=columns)
     sets = [NpzDataset(f) for f in sorted(root.glob("*.npz"))]
     if not sets:
