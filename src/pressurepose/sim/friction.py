@@ -35,7 +35,8 @@ class CoulombSprings:
     sliding_force: torch.Tensor
 
     def _s(self, q):
-        return self.offset + (self.jac @ q[:, None, :, None])[..., 0]
+        B, P = self.offset.shape[:2]
+        return self.offset + (self.jac.reshape(B, 2 * P, -1) @ q[..., None]).view(B, P, 2)
 
     def energy(self, q: torch.Tensor) -> torch.Tensor:
         s = self._s(q)
@@ -57,12 +58,16 @@ class CoulombSprings:
         e = (torch.where(n <= reach, 0.5 * k * n**2, f * n - 0.5 * f * reach) * on).sum(1)
         scale = torch.where(n <= reach, k, f / n.clamp(min=1e-15)) * on  # force = scale * s
         force = scale[..., None] * s  # (B, 24, 2)
-        grad = (force[..., None] * self.jac).sum((1, 2))
+        B, P = s.shape[:2]
+        jac = self.jac.reshape(B, 2 * P, -1)
+        grad = (force.reshape(B, 1, 2 * P) @ jac)[:, 0]
+        # Tangent stiffness per part: scale (I - slip u u^T), slip = 1 beyond the sliding force;
+        # the Hessian sum_p J_p^T T_p J_p as one (N x 2P)(2P x N) product.
         unit = s / n.clamp(min=1e-15)[..., None]
-        eye = torch.eye(2, dtype=q.dtype, device=q.device)
-        across = eye - (1 - stick)[..., None, None] * unit[..., :, None] * unit[..., None, :]
-        tangent = scale[..., None, None] * across  # (B, 24, 2, 2)
-        hess = torch.einsum("bpin,bpij,bpjm->bnm", self.jac, tangent, self.jac)
+        slip = (scale * (1 - stick))[..., None, None] * unit[..., :, None] * unit[..., None, :]
+        tangent = scale[..., None, None] * torch.eye(2, dtype=q.dtype, device=q.device) - slip  # (B, P, 2, 2)
+        tj = tangent[..., 0:1] * self.jac[..., 0:1, :] + tangent[..., 1:2] * self.jac[..., 1:2, :]  # T_p J_p
+        hess = jac.transpose(1, 2) @ tj.reshape(B, 2 * P, -1)
         return e, grad, hess
 
 

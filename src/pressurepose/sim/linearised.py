@@ -14,12 +14,15 @@ import torch
 from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.sim.articulation import Dofs
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
-from pressurepose.sim.soft_contact import series_law
+from pressurepose.sim.soft_contact import SeriesLaw
 
 # Cells whose lowest point lies higher than this above the mattress top cannot touch within
 # one re-posing's trust region (5 cm of shift, 0.25 rad on a limb); they join when they come
 # closer. Gravity acts on the parts' masses whatever cells are kept.
 _REACH_M = 0.12
+# The 3 x 3 stiffness moment sum c (1, x, y)(1, x, y)^T rebuilt from its six distinct entries
+# (1, x, y, xx, xy, yy).
+_SYMMETRIC = torch.tensor([0, 1, 2, 1, 3, 4, 2, 4, 5])
 
 
 class Linearised:
@@ -45,7 +48,17 @@ class Linearised:
         self.tissue = tissue.gather(1, self.index) if isinstance(tissue, torch.Tensor) else tissue
         self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
         self.dof_parts = dofs.desc[dofs.joint]  # (N, 24): parts each DoF moves
+        self._parts_of_dofs = self.dof_parts.T.contiguous()  # (24, N)
         self.cell_basis = self.basis * self.mask[..., None]
+        # Constant within the linearisation: each cell's x, y and index into the per-part
+        # coefficients (B, 24 * 3), and its moments (1, x, y) and the six distinct entries of
+        # (1, x, y)(1, x, y)^T (masked), summed per part with the force or the stiffness.
+        self._x, self._y = self.basis[..., 1], self.basis[..., 2]
+        self._coef = self.part * 3
+        b = self.cell_basis
+        x, y = b[..., 1:2], b[..., 2:3]
+        self._moments = torch.cat([b, b, x * self._x[..., None], y * self._x[..., None], y * self._y[..., None]], -1)
+        self._scatter_index = self.part[..., None].expand(-1, -1, 9)
         # Gravity: d(sum m g z)/d(theta_n) over the parts in the subtree, constant.
         gb = torch.cat([torch.ones_like(com[..., :1]), com[..., :2]], -1) * (mass * GRAVITY_M_S2)[..., None]
         sub_g = torch.einsum("js,bst->bjt", dofs.desc, gb)  # (B, 24, 3)
@@ -54,16 +67,23 @@ class Linearised:
         self.deeper_ok = dofs.deeper >= 0
         self.deeper = dofs.deeper.clamp(min=0)
 
+    def _law(self, mp: MattressParams) -> SeriesLaw:
+        """The series law of these cells' tissue on this mattress (its constants computed once)."""
+        key = (mp.k1_pa_per_m, mp.k3_pa_per_m3)
+        if getattr(self, "_law_key", None) != key:
+            self._law_key, self._law_cached = key, SeriesLaw(mp, self.tissue)
+        return self._law_cached
+
     def compression(self, q):
         # The height change of a cell is affine in its (x, y) with per-part coefficients
         # A_s = sum over the DoFs that move part s of q_n a_n: no (cells x DoFs) matrix.
-        A = torch.einsum("ns,bn,bnt->bst", self.dof_parts, q, self.dof_a)  # (B, 24, 3)
-        dz = (A.gather(1, self.part[..., None].expand(-1, -1, 3)) * self.cell_basis).sum(-1)
+        A = torch.matmul(self._parts_of_dofs, q[..., None] * self.dof_a).reshape(q.shape[0], -1)  # (B, 24 * 3)
+        dz = A.gather(1, self._coef) + A.gather(1, self._coef + 1) * self._x + A.gather(1, self._coef + 2) * self._y
         return torch.relu(-(self.h + dz)) * self.mask
 
     def energy(self, q, mp: MattressParams):
         w = self.compression(q)
-        _, _, phi = series_law(w, mp, self.tissue)
+        _, _, phi = self._law(mp)(w)
         out = (
             (self.g_grav * q).sum(1)
             + 0.5 * (self.k * (self.e + q) ** 2).sum(1)
@@ -88,26 +108,24 @@ class Linearised:
         """Gradient (B, N), Hessian (B, N, N), cell forces (B, K) N, compressions (B, K) m and
         the energy (B,) at q."""
         w = self.compression(q)
-        p, dp, phi = series_law(w, mp, self.tissue)
+        p, dp, phi = self._law(mp)(w)
         f = p * self.area
         c = dp * self.area * (w > 0)
         B = q.shape[0]
-        f_part = q.new_zeros(B, NUM_JOINTS, 3).scatter_add_(
-            1, self.part[..., None].expand(-1, -1, 3), f[..., None] * self.cell_basis
-        )
+        # One pass over the cells: per part the force moments sum f (1, x, y) and the stiffness
+        # moments sum c (1, x, y)(1, x, y)^T (its six distinct entries).
+        weighted = torch.empty_like(self._moments)
+        torch.mul(self._moments[..., :3], f[..., None], out=weighted[..., :3])
+        torch.mul(self._moments[..., 3:], c[..., None], out=weighted[..., 3:])
+        sums = q.new_zeros(B, NUM_JOINTS, 9).scatter_add_(1, self._scatter_index, weighted)
+        f_part = sums[..., :3]
         e_lim, g_lim, c_lim = self._limit(q)
         energy = (self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area + e_lim
-        grad = (
-            self.g_grav
-            + self.k * (self.e + q)
-            + g_lim
-            - torch.einsum("bnt,ns,bst->bn", self.dof_a, self.dof_parts, f_part)
-        )
+        grad = self.g_grav + self.k * (self.e + q) + g_lim - (self.dof_a * torch.matmul(self.dof_parts, f_part)).sum(-1)
         # Hessian from the parts' stiffness moments sum c (1, x, y)(1, x, y)^T, summed over
         # subtrees: H_nl = a_n^T M[overlap(n, l)] a_l.
-        outer = (c[..., None, None] * self.basis[..., :, None] * self.basis[..., None, :]).reshape(B, -1, 9)
-        m_part = q.new_zeros(B, NUM_JOINTS, 9).scatter_add_(1, self.part[..., None].expand(-1, -1, 9), outer)
-        m_sub = torch.einsum("js,bsx->bjx", self.dofs.desc, m_part).view(B, NUM_JOINTS, 3, 3)
+        m_part = sums[..., 3:].index_select(-1, _SYMMETRIC)  # (B, 24, 9) from the six distinct entries
+        m_sub = torch.matmul(self.dofs.desc, m_part).view(B, NUM_JOINTS, 3, 3)
         # a_n^T M_j for every subtree j, then the j = overlap(n, l) one dotted with a_l.
         aM = torch.einsum("bns,bjst->bnjt", self.dof_a, m_sub)  # (B, N, 24, 3)
         n = self.deeper.shape[0]
@@ -123,7 +141,7 @@ class Linearised:
         """At q: each cell's part (B, K), contact point (B, K, 3), force (B, K) N and vertical
         stiffness (B, K) N/m (zero off contact), for `sim.friction`."""
         w = self.compression(q)
-        p, dp, _ = series_law(w, mp, self.tissue)
+        p, dp, _ = self._law(mp)(w)
         on = (w > 0).to(w.dtype) * self.mask
         xyz = torch.cat([self.basis[..., 1:3], -w[..., None]], -1)
         return self.part, xyz, p * self.area * on, dp * self.area * on

@@ -42,6 +42,9 @@ class LinearSprings:
     stiffness: torch.Tensor
     mask: torch.Tensor
     one_sided: bool = True
+    rows: torch.Tensor | None = None
+    """(B, M) which of the source's rows these are (self-contact: the pairs within reach, packed
+    first), or None (all, in order)."""
 
     def _stretch(self, q):
         g = self.gap + (self.jac @ q[..., None])[..., 0]
@@ -108,8 +111,17 @@ class SelfContact:
         r2 = torch.linalg.cross(c2[:, :, None] - pivots[:, None], normal[:, :, None].expand(-1, -1, axes.shape[1], -1))
         u = axes[:, None]
         jac = (u * r1).sum(-1) * m1 - (u * r2).sum(-1) * m2  # (B, P, N)
-        mask = (self.apart & (gap < _REACH_M)).to(gap.dtype)
-        return LinearSprings(gap=gap, jac=jac, stiffness=self.stiffness, mask=mask)
+        near = self.apart & (gap < _REACH_M)
+        # Only the pairs within reach count: packed first per body (M of them at most).
+        m = max(int(near.sum(1).max()), 1)
+        rows = torch.argsort((~near).to(torch.int8), dim=1, stable=True)[:, :m]
+        return LinearSprings(
+            gap=gap.gather(1, rows),
+            jac=jac.gather(1, rows[..., None].expand(-1, -1, jac.shape[-1])),
+            stiffness=self.stiffness,
+            mask=near.gather(1, rows).to(gap.dtype),
+            rows=rows,
+        )
 
     def penetration(self, rot, joints) -> torch.Tensor:
         """(B,) deepest overlap (m, >= 0) of the pairs that started apart."""

@@ -36,28 +36,47 @@ def lowest_points(
     return h[:, :-1], part[:, :-1], value[:, :-1]
 
 
-def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
+class SeriesLaw:
     """Soft tissue (linear, modulus k_t in Pa/m) in series with the foam (p = k1 u + k3 u^3):
-    for a total compression w (m) returns the pressure p (Pa), dp/dw (Pa/m) and the stored
-    energy per unit area (J/m^2). The split w = u + p / k_t has u as the root of a cubic (the
-    function u + p(u)/k_t is increasing: one root, in closed form below). tissue: a number or
-    a tensor broadcasting with w; None: the foam alone."""
-    k1, k3 = mp.k1_pa_per_m, mp.k3_pa_per_m3
-    if tissue_pa_per_m is None:
-        return k1 * w + k3 * w**3, k1 + 3 * k3 * w**2, 0.5 * k1 * w**2 + 0.25 * k3 * w**4
-    kt = tissue_pa_per_m
-    # The foam's share u solves a u^3 + b u = w with a = k3 / k_t, b = 1 + k1 / k_t > 0: one real
-    # root, u = 2 s sinh(asinh(w / (2 a s^3)) / 3) with s^2 = b / (3 a) (exact, stable at w = 0).
-    a = k3 / kt
-    b = 1 + k1 / kt
-    if k3 > 0:
-        s = (b / (3 * a)) ** 0.5
-        u = 2 * s * torch.sinh(torch.asinh(w / (2 * a * s**3)) / 3)
-    else:
-        u = w / b
-    p = k1 * u + k3 * u**3
-    kf = k1 + 3 * k3 * u**2
-    return p, kf * kt / (kf + kt), 0.5 * k1 * u**2 + 0.25 * k3 * u**4 + p**2 / (2 * kt)
+    for a total compression w (m), the pressure p (Pa), dp/dw (Pa/m) and the stored energy per
+    unit area (J/m^2). The split w = u + p / k_t has u as the root of a cubic (the function
+    u + p(u)/k_t is increasing: one root, in closed form below). tissue: a number or a tensor
+    broadcasting with w (its per-cell constants are computed once here); None: the foam alone."""
+
+    def __init__(self, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
+        self.k1, self.k3, self.kt = mp.k1_pa_per_m, mp.k3_pa_per_m3, tissue_pa_per_m
+        if tissue_pa_per_m is None:
+            return
+        # The foam's share u solves a u^3 + b u = w with a = k3 / k_t, b = 1 + k1 / k_t > 0: one
+        # real root, u = 2 s sinh(asinh(w / (2 a s^3)) / 3) with s^2 = b / (3 a) (exact, stable
+        # at w = 0).
+        kt = tissue_pa_per_m
+        self.inv_b = kt / (kt + self.k1)  # 1 / b
+        self.half_inv_kt = 0.5 / kt
+        if self.k3 > 0:
+            a = self.k3 / kt
+            s = (1 + self.k1 / kt) / (3 * a)
+            s = s**0.5 if isinstance(s, float) else s.sqrt()
+            self.two_s = 2 * s
+            self.scale = 1 / (2 * a * s**3)
+
+    def __call__(self, w: torch.Tensor):
+        k1, k3 = self.k1, self.k3
+        if self.kt is None:
+            w2 = w * w
+            return w * (k1 + k3 * w2), k1 + 3 * k3 * w2, w2 * (0.5 * k1 + 0.25 * k3 * w2)
+        u = self.two_s * torch.sinh(torch.asinh(w * self.scale) / 3) if k3 > 0 else w * self.inv_b
+        u2 = u * u
+        p = u * (k1 + k3 * u2)
+        kf = k1 + 3 * k3 * u2
+        # dp/dw = kf kt / (kf + kt); stored energy: the foam's and the tissue's p^2 / (2 kt).
+        return p, kf / (1 + kf * 2 * self.half_inv_kt), u2 * (0.5 * k1 + 0.25 * k3 * u2) + p * p * self.half_inv_kt
 
 
-__all__ = ["lowest_points", "series_law"]
+def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
+    """`SeriesLaw(mp, tissue_pa_per_m)(w)`: pressure (Pa), dp/dw (Pa/m) and stored energy per
+    unit area (J/m^2) of the tissue in series with the foam at total compression w (m)."""
+    return SeriesLaw(mp, tissue_pa_per_m)(w)
+
+
+__all__ = ["SeriesLaw", "lowest_points", "series_law"]
