@@ -12,7 +12,7 @@ from pressurepose.body.joints import joint_index
 from pressurepose.body.params import BodyParams
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import FAIL_TILT, ArticulatedConfig, rest_articulated
-from pressurepose.sim.articulation import Dofs, part_mass_and_com
+from pressurepose.sim.articulation import Dofs, from_part_frames, part_mass_and_com, to_part_frames
 from pressurepose.sim.linearised import Linearised
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.soft_contact import series_law
@@ -271,3 +271,24 @@ def test_tissue_depth_by_hand():
     labels = torch.tensor([0, 0, head, head])
     d = tissue_depth(points, labels, joints)
     np.testing.assert_allclose(d[0].numpy(), [0.04, 0.05, 0.03, 0.03], atol=1e-12)
+
+
+def test_part_frames_round_trip_and_rigid_motion():
+    """to_part_frames / from_part_frames against the per-point formula R^T (r - p), R l + p; a
+    part's points follow its joint rigidly; unsorted labels are refused."""
+    g = torch.Generator().manual_seed(3)
+    B, P = 2, 60
+    labels = torch.sort(torch.randint(0, 24, (P,), generator=g)).values
+    pts = torch.randn(B, P, 3, generator=g, dtype=torch.float64)
+    q, _ = torch.linalg.qr(torch.randn(B, 24, 3, 3, generator=g, dtype=torch.float64))
+    joints = torch.randn(B, 24, 3, generator=g, dtype=torch.float64)
+    local = to_part_frames(pts, labels, q, joints)
+    naive = torch.einsum("bpji,bpj->bpi", q[:, labels], pts - joints[:, labels])
+    assert torch.allclose(local, naive, atol=1e-12)
+    assert torch.allclose(from_part_frames(local, labels, q, joints), pts, atol=1e-12)
+    q2, _ = torch.linalg.qr(torch.randn(B, 24, 3, 3, generator=g, dtype=torch.float64))
+    moved = from_part_frames(local, labels, q2, joints + 1.0)
+    expected = torch.einsum("bpij,bpj->bpi", q2[:, labels], naive) + joints[:, labels] + 1.0
+    assert torch.allclose(moved, expected, atol=1e-12)
+    with pytest.raises(ValueError, match="sorted"):
+        to_part_frames(pts, labels.flip(0), q, joints)
