@@ -141,6 +141,21 @@ def test_simulate_writes_image_labels_and_figure(tmp_path):
         assert ((q < 0) == (c == 1)).all()
     assert (out / "simulate.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert 0.1 < record["contact_area_m2"] < 0.6
+    # The default engine is the generator's: the articulated rest on the sponge bed, no MuJoCo.
+    from pressurepose.sim.mattress import MattressParams
+
+    assert record["settle_steps"] == 0 and record["mattress"] == MattressParams.preset("sponge").to_dict()
+
+
+def test_simulate_with_mujoco_runs_sim1_on_the_rigid_rests_bed(tmp_path):
+    out = tmp_path / "sim"
+    args = ["simulate", "--out", str(out), "--partition", "supine", "--gender", "male", "--index", "1"]
+    assert main([*args, "--settle", "mujoco"]) == 0
+    record = json.loads((out / "simulate.json").read_text())
+    from pressurepose.sim.mattress import MattressParams
+
+    assert record["status"] == "ok" and record["settle_steps"] > 0
+    assert record["mattress"]["k1_pa_per_m"] == MattressParams().k1_pa_per_m
 
 
 def test_simulate_bad_parameter_file_exits_2(tmp_path):

@@ -299,6 +299,12 @@ def test_resume_remakes_damaged_and_half_written_shards(reference, tmp_path, cap
     assert files_of(out) == files_of(ref)
     with pytest.raises(ValueError, match="other settings .*seed"):
         run_generate(GenerateConfig(out=out, **dict(SMALL, seed=4)), progress=False)
+    # A dataset made before the articulated default (no `settle` in its settings) names the fix.
+    settings = json.loads((out / "generate.json").read_text())
+    settings["config"].pop("settle", None)
+    (out / "generate.json").write_text(json.dumps(settings))
+    with pytest.raises(ValueError, match="add --settle mujoco"):
+        run_generate(GenerateConfig(out=out, **dict(SMALL, settle="articulated")), progress=False)
 
 
 def _children(pid: int) -> list[int]:
@@ -397,13 +403,31 @@ def test_a_second_run_on_the_same_folder_is_refused(tmp_path):
     assert not (out / "manifest.json").exists() and not list((out / "shards").iterdir())
 
 
-def test_rigid_dataset_settings_leave_out_the_tissue(reference):
-    """The rigid rest ignores soft tissue: its settings stay those of datasets made before the
-    field existed (they resume)."""
+def test_rigid_dataset_settings_leave_out_the_tissue(tmp_path, monkeypatch, anny64):
+    """The rigid rest (MuJoCo + rigid sim #2) ignores soft tissue and uses the class-default bed:
+    its settings stay those of datasets made before these fields existed (they resume); the
+    default engine's carry the tissue."""
     import json
 
-    out, _ = reference
-    assert "tissue_pa_per_m" not in json.loads((out / "manifest.json").read_text())["mattress"]
+    from pressurepose.sim.mattress import MattressParams
+
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco"):
+        return (
+            fake_batch(np.array(indices, dtype=np.int64), np.random.default_rng(seed), split),
+            [""] * len(indices),
+            {},
+        )
+
+    monkeypatch.setattr(worker, "simulate_indices", fake)
+    monkeypatch.setitem(worker._MODELS, ("anny", None), anny64)
+    for name, settle in (("rigid", "mujoco"), ("default", "articulated")):
+        run_generate(GenerateConfig(out=tmp_path / name, partition="supine", n=2, settle=settle), progress=False)
+    rigid = json.loads((tmp_path / "rigid" / "manifest.json").read_text())
+    default = json.loads((tmp_path / "default" / "manifest.json").read_text())
+    expected = MattressParams().to_dict()
+    expected.pop("tissue_pa_per_m")
+    assert rigid["mattress"] == expected and "settle" not in rigid["config"]
+    assert default["mattress"] == MattressParams.preset("sponge").to_dict()
 
 
 def _assert_params_reproduce_joints(data):
@@ -426,14 +450,15 @@ def test_articulated_sim2_dataset(tmp_path):
     stored parameters reproduce the stored joints; the rigid default's identity is unchanged."""
     out = tmp_path / "art"
     run_generate(
-        GenerateConfig(out=out, partition="supine", n=2, shard_size=2, batch=2, sim2="articulated"), progress=False
+        GenerateConfig(out=out, partition="supine", n=2, shard_size=2, batch=2, settle="mujoco", sim2="articulated"),
+        progress=False,
     )
     import json
 
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["config"]["sim2"] == "articulated"
     assert manifest["mattress"]["tissue_pa_per_m"] > 0
-    assert "sim2" not in GenerateConfig(partition="supine", n=2).identity()
+    assert "sim2" not in GenerateConfig(partition="supine", n=2, settle="mujoco").identity()
     data = read_all(out)
     assert len(data["index"]) == 2
     assert (data["pressure_mmhg"].reshape(2, -1).max(1) > 5).all()
@@ -453,8 +478,9 @@ def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
 
     monkeypatch.setattr(sim_run, "settle_bodies", no_mujoco)
     out = tmp_path / "one"
-    cfg = GenerateConfig(out=out, partition="general", n=3, shard_size=3, batch=3, settle="articulated")
-    assert cfg.sim2_engine == "articulated" and cfg.identity()["settle"] == "articulated"
+    cfg = GenerateConfig(out=out, partition="general", n=3, shard_size=3, batch=3)  # the default engine
+    assert cfg.settle == "articulated" and cfg.sim2_engine == "articulated"
+    assert cfg.identity()["settle"] == "articulated"
     run_generate(cfg, progress=False)
     manifest = json.loads((out / "manifest.json").read_text())
     from pressurepose.sim.mattress import MattressParams
@@ -466,5 +492,5 @@ def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
     _assert_params_reproduce_joints(data)
     from pressurepose.errors import UserError
 
-    with pytest.raises(UserError, match="--settle articulated"):
+    with pytest.raises(UserError, match="--sim2 rigid needs --settle mujoco"):
         GenerateConfig(out=out, settle="articulated", sim2="rigid")

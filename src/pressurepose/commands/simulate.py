@@ -21,8 +21,9 @@ from pressurepose.files import atomic_write, write_text
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import SamplingConfig
 from pressurepose.sampling.sampler import PoseSampler
+from pressurepose.sim.articulated import ArticulatedConfig
 from pressurepose.sim.mattress import MattressParams
-from pressurepose.sim.run import settle_config_for, simulate_poses
+from pressurepose.sim.run import default_mattress, settle_config_for, simulate_poses
 from pressurepose.viz.simulation import plot_sample
 
 
@@ -41,6 +42,9 @@ class SimulateConfig:
     head_angle_deg: float | None = None
     """Raise the head of the bed (0-70 degrees, hinge at sensing row 48 from the foot).
     Default: the bed the sample was drawn for (flat, or the half_sitting partition's angle)."""
+    settle: Literal["articulated", "mujoco"] = "articulated"
+    """How the pose comes to rest, as `generate --settle`: the articulated engine (default; the
+    sponge bed) or MuJoCo then the rigid sim #2 (the class-default bed)."""
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: Path | None = None
 
@@ -48,7 +52,7 @@ class SimulateConfig:
 def run_simulate(cfg: SimulateConfig) -> Written:
     if cfg.index < 0:
         raise UserError(f"index must be >= 0, got {cfg.index}")
-    mattress = MattressParams.load(cfg.params) if cfg.params is not None else MattressParams()
+    mattress = MattressParams.load(cfg.params) if cfg.params is not None else default_mattress(cfg.settle)
     options = {"model_dir": cfg.smpl_dir} if cfg.backend == "smpl" else {}
     model = load_body_model(cfg.backend, dtype=torch.float64, **options)
     sampling = cfg.sampling
@@ -70,6 +74,8 @@ def run_simulate(cfg: SimulateConfig) -> Written:
         seed=sampling.seed * 1_000_003 + cfg.index,
         bed=bed,
         settle_config=settle_config_for(sampling.partition),
+        settle=cfg.settle,
+        articulated=ArticulatedConfig(hold_roll_m=settle_config_for(sampling.partition).hold_roll_m),
     )
     t2 = time.perf_counter()
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -135,14 +141,19 @@ def run_simulate(cfg: SimulateConfig) -> Written:
 
 
 def simulate(cfg: SimulateConfig) -> None:
-    """Simulate one sample: initial pose, settling (sim #1), pressure (sim #2), sensor and
-    label maps; writes sample.npz, simulate.json and simulate.png."""
+    """Simulate one sample: initial pose, its rest on the bed (the articulated engine, or sim #1
+    and sim #2 with --settle mujoco), sensor and label maps; writes sample.npz, simulate.json and
+    simulate.png."""
     record = run_simulate(cfg).record
     print(
         f"{record['mass_kg']} kg: contact {record['contact_area_m2']} m^2, mean "
         f"{record['mean_contact_pressure_mmhg']} mmHg, peak {record['peak_pressure_mmhg']} mmHg, "
-        f"sim #1 {record['timing_ms']['sim1']} ms ({record['settle_steps']} steps), "
-        f"sim #2 {record['timing_ms']['sim2']} ms -> {cfg.out}"
+        + (
+            f"sim #1 {record['timing_ms']['sim1']} ms ({record['settle_steps']} steps), "
+            if record["settle_steps"]
+            else "articulated rest, "
+        )
+        + f"sim #2 {record['timing_ms']['sim2']} ms -> {cfg.out}"
     )
 
 

@@ -112,16 +112,17 @@ class GenerateConfig:
     """Samples simulated together inside a shard (part of the dataset's definition)."""
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: Path | None = None
-    settle: Literal["mujoco", "articulated"] = "mujoco"
-    """How a drawn pose comes to rest: MuJoCo (sim #1, capsule body) then sim #2, or
-    `articulated`: one batched quasi-static engine settles the mesh part by part on the soft
-    bed (joint springs, self-contact, soft tissue; no MuJoCo) and gives the image (docs/physics.md;
-    raised beds fall back to MuJoCo)."""
+    settle: Literal["articulated", "mujoco"] = "articulated"
+    """How a drawn pose comes to rest: `articulated` (default): one batched quasi-static engine
+    settles the mesh part by part on the soft bed (joint springs, self-contact, friction, soft
+    tissue; no MuJoCo) and gives the image (docs/physics.md; raised beds fall back to MuJoCo);
+    `mujoco`: the seed's procedure, sim #1 (MuJoCo, capsule body) then sim #2 - the generator's
+    default before 2026-11-25, so older datasets resume with it."""
     sim2: Literal["rigid", "articulated"] | None = None
-    """Sim #2 after MuJoCo: the whole mesh at rigid rest, or every body part on its own contact
-    with compliant joints and soft tissue (images closer to real mats, docs/realism.md; raised
-    beds keep the rigid rest). Default: rigid after MuJoCo, articulated with `--settle articulated`
-    (which allows nothing else)."""
+    """Sim #2 after MuJoCo (`--settle mujoco`): the whole mesh at rigid rest, or every body part on
+    its own contact with compliant joints and soft tissue (raised beds keep the rigid rest).
+    Default: rigid after MuJoCo; the articulated engine makes the image itself (and allows nothing
+    else)."""
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -136,7 +137,9 @@ class GenerateConfig:
         if self.seed < 0:
             raise UserError(f"seed must be >= 0, got {self.seed}")
         if self.settle == "articulated" and self.sim2 == "rigid":
-            raise UserError("--settle articulated makes the image itself; drop --sim2 rigid (or use --settle mujoco)")
+            raise UserError(
+                "--sim2 rigid needs --settle mujoco (the articulated engine, the default, makes the image itself)"
+            )
 
     @property
     def sim2_engine(self) -> str:

@@ -77,8 +77,11 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
                 if settings["config"].get(k) != (old or {}).get("config", {}).get(k)
             )
             what = ", ".join(diff) if diff else "mattress parameters or package version"
+            hint = ""
+            if "settle" in diff and "settle" not in (old or {}).get("config", {}):
+                hint = " (it was made with MuJoCo, the default before the articulated engine: add --settle mujoco)"
             raise UserError(
-                f"{out} holds a dataset made with other settings ({what} differ, see {path}); "
+                f"{out} holds a dataset made with other settings ({what} differ, see {path}){hint}; "
                 "re-run with the same settings to resume, or choose another --out"
             )
         return
@@ -110,11 +113,12 @@ def _finished(out: Path, spec: ShardSpec) -> dict | None:
 def run_generate(cfg: GenerateConfig, progress: bool = True) -> dict:
     """Generate (or finish) the dataset in cfg.out; returns the manifest's summary."""
     from pressurepose.sim.mattress import MattressParams
+    from pressurepose.sim.run import default_mattress
 
     if cfg.params is not None:
         mattress = MattressParams.load(cfg.params).to_dict()
-    else:  # the articulated engine's own bed: the sponge preset (fitted to PmatData with it)
-        mattress = (MattressParams.preset("sponge") if cfg.settle == "articulated" else MattressParams()).to_dict()
+    else:
+        mattress = default_mattress(cfg.settle, cfg.sim2_engine).to_dict()
     if cfg.sim2_engine == "rigid":
         # The rigid rest has no soft tissue; leaving the field out keeps the settings of datasets
         # made before it existed, so they resume.

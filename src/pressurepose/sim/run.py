@@ -51,6 +51,19 @@ class SimulatedSamples:
     head_angle_deg: np.ndarray  # (B,) the bed each sample rests on (0: flat)
 
 
+SETTLE_ENGINES = ("articulated", "mujoco")
+"""The generator's settling engines; the first is the default (docs/physics.md)."""
+
+
+def default_mattress(settle: str, sim2: str | None = None) -> MattressParams:
+    """The bed a settling engine uses unless told otherwise: the articulated rest's is the sponge
+    preset (fitted to PmatData with it, docs/realism.md); the rigid rest's (MuJoCo followed by
+    the rigid sim #2) the class defaults (its own calibration, docs/calibration.md)."""
+    if settle == "articulated" or sim2 == "articulated":
+        return MattressParams.preset("sponge")
+    return MattressParams()
+
+
 def settle_config_for(partition: str) -> SettleConfig:
     """Sim #1's settings for a sampling partition (its trunk roll hold; else the defaults)."""
 
@@ -216,4 +229,4 @@ def _apply_rest_to_root(params: BodyParams, pressed) -> BodyParams:
     return params.replace(root_rotation=root, root_translation=pelvis)
 
 
-__all__ = ["SimulatedSamples", "settle_config_for", "simulate_poses"]
+__all__ = ["SETTLE_ENGINES", "SimulatedSamples", "default_mattress", "settle_config_for", "simulate_poses"]
