@@ -73,9 +73,9 @@ def _argument_error(event) -> None:
     if argument is not None:  # the text given for this flag is not of the field's type
         raise UserError(f"{_flag_of(argument)}: {message}")
     cause = _construction_error(sys.exc_info()[1])
-    if cause is None or isinstance(cause, UserError):
-        raise cause or UserError(message)
-    raise cause
+    if cause is None:  # tyro's own complaint (e.g. missing arguments)
+        raise UserError(message)
+    raise cause  # a UserError: one line (`main`); anything else: a bug, with its traceback
 
 
 def _flag_of(argument) -> str:
