@@ -228,3 +228,55 @@ def test_cuda_matches_cpu(backend, smpl_dir):
     a, b = cpu(p), gpu(p.to("cuda"))
     assert (a.vertices - b.vertices.cpu()).abs().max() < 1e-9
     assert (cpu.joints(p) - gpu.joints(p.to("cuda")).cpu()).abs().max() < 1e-9
+
+
+def test_each_backend_says_what_its_shape_means(model):
+    # The members capsules, fit_shape and the sampler use instead of branching on the name.
+    S = model.shape_dim
+    female = torch.tensor([1.0, 0.0, 0.5], dtype=model.dtype)
+    average = model.average_shape(female)
+    assert average.shape == (3, S) and average.dtype == model.dtype
+    model.validate_shape(average)
+    if "gender" in model.shape_names:  # Anny: the gender is a shape entry
+        assert model.fixed_gender is None
+        assert torch.equal(model.female_fraction(average), female)
+        others = [i for i, n in enumerate(model.shape_names) if n != "gender"]
+        assert torch.equal(average[:, others], model.default_shape(3)[:, others])
+    else:  # SMPL: the file's gender (the test file is the neutral one)
+        assert model.fixed_gender is None and model.gender == "neutral"
+        assert torch.equal(average, model.default_shape(3))
+        assert torch.equal(model.female_fraction(average), torch.full((3,), 0.5, dtype=model.dtype))
+    for gender in ("female", "male"):
+        low, high = type(model).shape_bounds(gender, model.shape_names)
+        assert low.shape == high.shape == (S,) and (low <= high).all()
+    # with_size: only the size entries move, within bounds, and z = 0 is the middle.
+    z = torch.tensor([[0.0] * model.size_dim, [4.0] * model.size_dim, [-4.0] * model.size_dim], dtype=model.dtype)
+    sized = model.with_size(average, z)
+    moved = (sized != average).any(0)
+    assert 1 <= int(moved.sum()) == model.size_dim
+    model.validate_shape(sized)
+    lo, hi = sized[2, moved], sized[1, moved]
+    assert torch.allclose(sized[0, moved], (lo + hi) / 2, atol=1e-12) and (lo < hi).all()
+
+
+def test_anny_size_entries_make_taller_heavier_bodies(anny64):
+    base = anny64.average_shape(torch.tensor([0.0, 0.0], dtype=torch.float64))
+    sized = anny64.with_size(base, torch.tensor([[-1.0] * 3, [1.0] * 3], dtype=torch.float64))
+    m = anny64.measure(sized)
+    assert m.height_m[1] > m.height_m[0] + 0.1 and m.mass_kg[1] > m.mass_kg[0] + 10
+
+
+def test_a_gendered_smpl_file_refuses_the_other_gender(smpl_dir, tmp_path):
+    import shutil
+
+    from pressurepose.errors import UserError
+    from pressurepose.sampling.partitions import SamplingConfig
+    from pressurepose.sampling.sampler import PoseSampler
+
+    shutil.copy(smpl_dir / "SMPL_NEUTRAL.npz", tmp_path / "SMPL_FEMALE.npz")
+    female = load_body_model("smpl", model_dir=tmp_path, gender="female", dtype=torch.float64)
+    assert female.fixed_gender == "female"
+    assert torch.equal(female.female_fraction(female.default_shape(2)), torch.ones(2, dtype=torch.float64))
+    with pytest.raises(UserError, match="smpl body model is female but the sampling asks for male"):
+        PoseSampler(female, SamplingConfig(partition="supine", gender="male"))
+    PoseSampler(female, SamplingConfig(partition="supine", gender="female"))  # accepted

@@ -186,3 +186,73 @@ def test_simulate_half_sitting_uses_the_samples_bed_and_refuses_another(tmp_path
         str(other),
     )
     assert r.returncode == 2 and "Traceback" not in r.stderr and "leave out --head-angle-deg" in r.stderr
+
+
+def one_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pressurepose: error: "), lines
+    assert "Traceback" not in err and "╭" not in err  # neither a traceback nor tyro's box
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        # a config's __post_init__ (SamplingConfig, GenerateConfig), run while tyro builds it
+        (["sample", "--seed", "-1"], "seed must be >= 0, got -1"),
+        (["simulate", "--max-shapes", "0"], "max_shapes must be >= 1, got 0"),
+        (["generate", "--workers", "0"], "workers must be >= 1, got 0"),
+        (["generate", "--settle", "articulated", "--sim2", "rigid"], "drop --sim2 rigid"),
+        # a flag's text that is not of its type: the flag and the type are named
+        (["sample", "--n", "abc"], "--n (expects INT): invalid literal for int()"),
+        (["train", "--lr-gamma", "fast"], "--lr-gamma (expects FLOAT)"),
+        # checked when the command runs (TrainConfig, NetConfig's range)
+        (["train", "--dropout", "1.5", "--data", "tests/data"], "dropout must lie in [0, 1), got 1.5"),
+    ],
+)
+def test_bad_config_values_are_one_line_exit_2(args, message, tmp_path, capsys):
+    assert main([*args, "--out", str(tmp_path / "out")]) == 2
+    assert message in one_line(capsys.readouterr().err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_config_value_in_a_real_process(tmp_path):
+    r = subprocess.run(
+        [sys.executable, "-m", "pressurepose", "generate", "--out", str(tmp_path / "g"), "--workers", "0"],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and r.stdout == ""
+    assert one_line(r.stderr) == "pressurepose: error: workers must be >= 1, got 0"
+
+
+@pytest.mark.parametrize("kind", [ValueError, TypeError])
+def test_a_bug_while_building_a_config_keeps_its_traceback(kind, monkeypatch):
+    # tyro catches ValueErrors raised while it builds the configs; one that is not a UserError
+    # is a bug and must come out as itself, not as a one-line message.
+    from pressurepose.sampling.partitions import SamplingConfig
+
+    def broken(self):
+        raise kind("an internal bug in SamplingConfig")
+
+    monkeypatch.setattr(SamplingConfig, "__post_init__", broken)
+    with pytest.raises(kind, match="an internal bug in SamplingConfig") as caught:
+        main(["sample", "--out", "unused", "--seed", "3"])
+    assert type(caught.value) is kind
+
+
+def test_a_bug_prints_its_traceback_in_a_real_process(tmp_path):
+    script = (  # patched after the import, which builds the default configs
+        "import sys\n"
+        "from pressurepose.cli import main\n"
+        "from pressurepose.sampling.partitions import SamplingConfig\n"
+        "def broken(self):\n"
+        "    raise ValueError('an internal bug in SamplingConfig')\n"
+        "SamplingConfig.__post_init__ = broken\n"
+        f"sys.exit(main(['sample', '--out', {str(tmp_path / 's')!r}, '--seed', '3']))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert r.returncode == 1
+    assert "Traceback (most recent call last)" in r.stderr and "in broken" in r.stderr
+    assert r.stderr.strip().splitlines()[-1] == "ValueError: an internal bug in SamplingConfig"
+    assert "pressurepose: error" not in r.stderr

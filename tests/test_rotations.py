@@ -7,10 +7,13 @@ from torch.autograd import gradcheck
 from pressurepose.body.rotations import (
     axis_angle_to_matrix,
     matrix_to_axis_angle,
+    matrix_to_quaternion,
+    quaternion_to_axis_angle,
     rotation_angle,
     rotation_between,
     swing_twist,
 )
+from pressurepose.sampling.poses import root_axis_angle
 
 
 def naive_rodrigues(r):
@@ -93,3 +96,43 @@ def test_rotation_angle_is_accurate_at_every_angle(dtype, theta):
 def test_rotation_angle_rejects_bad_shapes():
     with pytest.raises(ValueError, match="3, 3"):
         rotation_angle(torch.eye(3), torch.eye(4))
+
+
+@pytest.mark.parametrize("theta", [0.0, 1e-7, 1e-6, 2e-6, 1e-5, 1e-4, 1e-3, 0.1, 3.0])
+def test_float32_gradients_match_float64_at_every_angle(theta):
+    # The network trains in float32 through axis_angle_to_matrix, from a rest pose of zeros: its
+    # gradients must be float32-accurate at small angles too (roma.rotvec_to_rotmat's branch
+    # switch at 1e-6 rad is off by 2e-6 there and by 3e-5 at 1e-3; the quaternion path is not).
+    axis = torch.tensor([[0.3, -0.5, 0.8]], dtype=torch.float64)
+    r64 = (axis / axis.norm() * theta).requires_grad_()
+    r32 = r64.detach().float().requires_grad_()
+    weights = torch.randn(1, 3, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    (axis_angle_to_matrix(r64) * weights).sum().backward()
+    (axis_angle_to_matrix(r32) * weights.float()).sum().backward()
+    assert (r32.grad.double() - r64.grad).abs().max() <= 1e-6
+
+
+def test_quaternions_are_w_first_and_keep_their_angle():
+    torch.manual_seed(4)
+    r = torch.randn(50, 3, dtype=torch.float64)
+    r = r / r.norm(dim=-1, keepdim=True) * torch.rand(50, 1, dtype=torch.float64) * 3.0
+    q = matrix_to_quaternion(axis_angle_to_matrix(r))
+    half = r.norm(dim=-1) / 2
+    assert (q[:, 0] >= 0).all()
+    assert torch.allclose(q[:, 0], torch.cos(half), atol=1e-12)
+    assert torch.allclose(q[:, 1:], r / r.norm(dim=-1, keepdim=True) * torch.sin(half)[:, None], atol=1e-12)
+    assert torch.allclose(quaternion_to_axis_angle(q), r, atol=1e-12)
+    # -q is the same rotation; its angle is 2 pi - theta about the opposite axis, as MuJoCo's
+    # joint quaternions say (no shortest-arc flip: a rest's pose stays continuous).
+    flipped = quaternion_to_axis_angle(-q)
+    assert torch.allclose(flipped.norm(dim=-1), 2 * math.pi - r.norm(dim=-1), atol=1e-12)
+    assert torch.allclose(axis_angle_to_matrix(flipped), axis_angle_to_matrix(r), atol=1e-12)
+
+
+@pytest.mark.parametrize("roll, yaw", [(0.0, 0.0), (1e-9, 0.0), (0.4, -1.2), (math.pi / 2, 2.0), (-2.9, 3.1)])
+def test_root_axis_angle_is_yaw_after_roll(roll, yaw):
+    aa = torch.from_numpy(root_axis_angle(roll, yaw))
+    Rz = axis_angle_to_matrix(torch.tensor([0.0, 0.0, yaw], dtype=torch.float64))
+    Rx = axis_angle_to_matrix(torch.tensor([roll, 0.0, 0.0], dtype=torch.float64))
+    assert aa.dtype == torch.float64 and aa.shape == (3,) and aa.norm() <= math.pi
+    assert torch.allclose(axis_angle_to_matrix(aa), Rz @ Rx, atol=1e-14)

@@ -1,9 +1,10 @@
 """`pressurepose` command line: one subcommand per pipeline stage, each a function of
 `pressurepose.commands` (its config, its run, its files and its one-line summary).
 
-User errors (`pressurepose.errors.UserError`: bad input, bad files; OSError: missing,
+User errors (`pressurepose.errors.UserError`: bad input, bad files, a config value its
+dataclass's `__post_init__` refuses, a flag's text that is not of its type; OSError: missing,
 unreadable or unwritable files) print one line and exit with status 2; anything else is a bug
-and keeps its traceback.
+and keeps its traceback, also when tyro meets it while building the configs (`_argument_error`).
 """
 
 from __future__ import annotations
@@ -56,10 +57,42 @@ COMMANDS = {
 
 
 def _argument_error(event) -> None:
-    """tyro's parse-error hook: a config's own check (a UserError from __post_init__) is one
-    line, like any other user error, not a box naming tyro's internal field names."""
-    if type(event).__name__ == "InstantiationFailure":
-        raise UserError(str(event.message).strip())
+    """tyro's parse-error hook, for a value that tyro parsed but could not build a config from.
+
+    tyro turns every ValueError raised while building the configs (a field's type conversion,
+    a config's `__post_init__`) into its own message box, which would hide a bug's traceback
+    and show a user's mistake under tyro's internal field names. Here: a text that does not
+    convert to the field's type, or a config's own check (a `UserError`), becomes a
+    `UserError` - one line, exit 2; any other exception (a ValueError from inside library
+    code is a bug) is raised again as it was, traceback and all. Other parse errors (unknown
+    flags, bad choices) keep tyro's usage message, also exit 2."""
+    if type(event).__name__ != "InstantiationFailure":
+        return
+    message = " ".join(str(event.message).split())
+    argument = getattr(event, "argument", None)
+    if argument is not None:  # the text given for this flag is not of the field's type
+        raise UserError(f"{_flag_of(argument)}: {message}")
+    cause = _construction_error(sys.exc_info()[1])
+    if cause is None:  # tyro's own complaint (e.g. missing arguments)
+        raise UserError(message)
+    raise cause  # a UserError: one line (`main`); anything else: a bug, with its traceback
+
+
+def _flag_of(argument) -> str:
+    """'--n (expects INT)' for tyro's argument definition, as far as it says."""
+    lowered = getattr(argument, "lowered", None)
+    flags = "/".join(getattr(lowered, "name_or_flags", None) or ()) or "an argument"
+    metavar = getattr(lowered, "metavar", None)
+    return f"{flags} (expects {metavar})" if metavar else flags
+
+
+def _construction_error(exc: BaseException | None) -> BaseException | None:
+    """The exception a config's construction raised, under tyro's InstantiationError wrappers
+    (tyro raises them while handling it, so it is their context); None when tyro raised one of
+    its own (missing arguments) or the hook runs outside tyro's handler."""
+    while exc is not None and type(exc).__name__ == "InstantiationError":
+        exc = exc.__cause__ or exc.__context__
+    return exc
 
 
 def _parse_and_run(argv: list[str] | None) -> None:

@@ -20,14 +20,20 @@ def load_body_model(
 ) -> BodyModel:
     """A body model by backend name: "anny" (default, embedded) or "smpl" (user's files;
     options `model_dir`, `gender`)."""
+    return backend_class(backend)(dtype=dtype, device=device, **options)
+
+
+def backend_class(backend: str) -> type[BodyModel]:
+    """The BodyModel class of a backend name (its class-level facts, e.g. `shape_bounds`,
+    without loading the model): the one place a backend's name selects code."""
     if backend == "anny":
         from pressurepose.body.anny_backend import AnnyBody
 
-        return AnnyBody(dtype=dtype, device=device, **options)
+        return AnnyBody
     if backend == "smpl":
         from pressurepose.body.smpl_backend import SmplBody
 
-        return SmplBody(dtype=dtype, device=device, **options)
+        return SmplBody
     raise UserError(f"unknown body backend {backend!r}; expected one of {', '.join(BACKENDS)}")
 
 
@@ -41,5 +47,6 @@ __all__ = [
     "J24_PARENTS",
     "NUM_JOINTS",
     "NUM_POSE_JOINTS",
+    "backend_class",
     "load_body_model",
 ]

@@ -21,12 +21,15 @@ import importlib.metadata
 import io
 import logging
 
+import numpy as np
 import torch
 
 from pressurepose.body.anny_skeleton import Skeleton
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
+from pressurepose.body.shape_ranges import anny_bounds
+from pressurepose.body.skinning import skin_matrix, sparse_linear_blend_skinning
 from pressurepose.cache import cache_dir, file_lock
 
 log = logging.getLogger(__name__)
@@ -160,7 +163,11 @@ class AnnyBody(BodyModel):
         self.full = Skeleton(list(range(len(labels))), model.bone_parents, labels)
         self.light = Skeleton(sorted(closure), model.bone_parents, labels)
         self.register_buffer("reference_orientations", model.reference_bone_orientations.clone(), persistent=False)
-        self.register_buffer("skin_matrix", _skin_matrix(model), persistent=False)
+        self.register_buffer(
+            "skin_matrix",
+            skin_matrix(model.vertex_bone_weights, model.vertex_bone_indices, len(model.bone_labels)),
+            persistent=False,
+        )
 
         # Body part of each bone: the J24 joint of its nearest mapped ancestor (or itself).
         part_of_bone = torch.zeros(len(labels), dtype=torch.long)
@@ -182,6 +189,25 @@ class AnnyBody(BodyModel):
     # --- shape ----------------------------------------------------------------------------
     def default_shape(self, batch_size: int = 1) -> torch.Tensor:
         return torch.tensor(ANNY_DEFAULT_SHAPE, dtype=self.dtype, device=self.device).expand(batch_size, -1).clone()
+
+    @classmethod
+    def shape_bounds(cls, gender: str, shape_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        return anny_bounds(gender, shape_names)
+
+    def female_fraction(self, shape: torch.Tensor) -> torch.Tensor:
+        return shape[:, ANNY_SHAPE_NAMES.index("gender")]  # Anny's gender phenotype: 1 female
+
+    def average_shape(self, female: torch.Tensor) -> torch.Tensor:
+        shape = self.default_shape(female.shape[0])
+        shape[:, ANNY_SHAPE_NAMES.index("gender")] = female
+        return shape
+
+    size_dim = 3  # height, weight, muscle, each a sigmoid into [0, 1]
+
+    def with_size(self, shape: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        sized = shape.clone()
+        sized[:, [ANNY_SHAPE_NAMES.index(n) for n in ("height", "weight", "muscle")]] = torch.sigmoid(z)
+        return sized
 
     def shape_from_dict(self, values: dict[str, float], batch_size: int = 1) -> torch.Tensor:
         """(B, 6) shape from phenotype names; the others take the default adult's value."""
@@ -348,35 +374,3 @@ class AnnyBody(BodyModel):
             elbow = R_smpl[:, arm["elbow"]] @ R_smpl[:, arm["twist"]]
             pose[:, arm["elbow_joint"] - 1] = matrix_to_axis_angle(elbow)
         return pose
-
-
-def _skin_matrix(model) -> torch.Tensor:
-    """Sparse (V, num_bones) skinning weights (most vertices have 1-3 bones of Anny's 9 slots)."""
-    w, i = model.vertex_bone_weights, model.vertex_bone_indices.long()
-    V = w.shape[0]
-    rows = torch.arange(V).repeat_interleave(w.shape[1])
-    keep = w.flatten() > 0
-    index = torch.stack([rows[keep], i.flatten()[keep]])
-    return torch.sparse_coo_tensor(
-        index, w.flatten()[keep], (V, len(model.bone_labels)), check_invariants=True
-    ).coalesce()
-
-
-def sparse_linear_blend_skinning(
-    rest_vertices: torch.Tensor, weights: torch.Tensor, T: torch.Tensor, t: torch.Tensor
-) -> torch.Tensor:
-    """Linear blend skinning: rest vertices (B, V, 3), sparse weights (V, K), per-bone rigid
-    transforms T (B, K, 3, 3), t (B, K, 3) -> posed vertices (B, V, 3).
-
-    Blends the 12 transform entries with one sparse matrix product (cost ~ non-zero weights,
-    not V x K), then applies each vertex's blended transform.
-    """
-    B, K = T.shape[:2]
-    affine = torch.cat([T, t[..., None]], -1).permute(1, 0, 2, 3).reshape(K, B * 12)
-    blended = torch.sparse.mm(weights, affine).view(-1, B, 3, 4)  # (V, B, 3, 4)
-    v = rest_vertices.transpose(0, 1)  # (V, B, 3)
-    # Written out per column: much faster on CPU than a batched 3x3 matmul of this shape.
-    posed = (
-        blended[..., 3] + blended[..., 0] * v[..., :1] + blended[..., 1] * v[..., 1:2] + blended[..., 2] * v[..., 2:]
-    )
-    return posed.transpose(0, 1)

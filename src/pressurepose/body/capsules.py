@@ -88,16 +88,6 @@ def capsule_inertia(mass: torch.Tensor, radius: torch.Tensor, length: torch.Tens
     return torch.stack([axial, perp, perp], -1)
 
 
-def female_fraction(model: BodyModel, shape: torch.Tensor) -> torch.Tensor:
-    """(B,) 1 for female, 0 for male bodies (Anny's gender phenotype; SMPL's model gender,
-    0.5 for the neutral model)."""
-    if model.name == "anny":
-        return shape[:, 0]
-    gender = getattr(model, "gender", "neutral")
-    value = {"female": 1.0, "male": 0.0}.get(gender, 0.5)
-    return torch.full((shape.shape[0],), value, dtype=shape.dtype, device=shape.device)
-
-
 def _segment_table(female: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-capsule segment fraction X_R,g (B, 20) (blended by gender) and segment ids (20,)."""
     segments = sorted({c.segment for c in CAPSULES})
@@ -141,11 +131,9 @@ def _build(
     capsule volumes by shape, each computed alone."""
     caps = fit_capsules(model, shape)
     volume = capsule_volumes(caps, method=volume_method, points=volume_points)
-    female = female_fraction(model, shape)
+    female = model.female_fraction(shape)
     # The average person of the same gender (seed: beta = 0): the backend's default shape.
-    average_shape = model.default_shape(shape.shape[0])
-    if model.name == "anny":
-        average_shape[:, 0] = shape[:, 0]
+    average_shape = model.average_shape(female)
     # One average body per distinct gender (datasets use exactly 0 and 1), not one per body.
     unique, inverse = torch.unique(average_shape, dim=0, return_inverse=True)
     if avg_cache is None:
@@ -230,7 +218,6 @@ __all__ = [
     "capsule_inertia",
     "capsule_volumes",
     "collision_pairs",
-    "female_fraction",
     "fit_capsules",
     "home_pose",
     "overlap_pairs",

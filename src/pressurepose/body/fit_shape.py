@@ -25,24 +25,12 @@ def shape_for_height_mass(
     if not (torch.isfinite(height).all() and torch.isfinite(mass).all()) or (height <= 0).any() or (mass <= 0).any():
         raise UserError("height_m and mass_kg must be finite and > 0")
     B = height.shape[0]
-    base = model.default_shape(B).detach().clone()
-    if model.name == "anny":
-        base[:, 0] = float(female)
-        free = [model.shape_names.index(n) for n in ("height", "weight", "muscle")]
-        z = torch.zeros(B, 3, dtype=model.dtype, requires_grad=True)
+    # The average adult of that gender, its size entries (`BodyModel.with_size`) fitted.
+    base = model.average_shape(torch.full((B,), float(female), dtype=model.dtype, device=model.device)).detach()
+    z = torch.zeros(B, model.size_dim, dtype=model.dtype, requires_grad=True)
 
-        def make(z):
-            s = base.clone()
-            s[:, free] = torch.sigmoid(z)
-            return s
-    else:
-        free = [0, 1]
-        z = torch.zeros(B, 2, dtype=model.dtype, requires_grad=True)
-
-        def make(z):
-            s = base.clone()
-            s[:, free] = 3.0 * torch.tanh(z / 3.0)
-            return s
+    def make(z):
+        return model.with_size(base, z)
 
     opt = torch.optim.LBFGS([z], lr=0.5, max_iter=iterations, line_search_fn="strong_wolfe")
 

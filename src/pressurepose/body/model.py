@@ -10,6 +10,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 
+import numpy as np
 import torch
 
 from pressurepose.body.joints import NUM_JOINTS
@@ -90,6 +91,37 @@ class BodyModel(torch.nn.Module, abc.ABC):
 
     def validate_shape(self, shape: torch.Tensor) -> None:
         """Backend-specific range checks on (B, S) shape parameters (ValueError)."""
+
+    # --- what the shape means: the population, gender and size (sampler, capsules, fits) --
+    # Code outside the backends asks these instead of branching on `name`.
+    @classmethod
+    @abc.abstractmethod
+    def shape_bounds(cls, gender: str, shape_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) arrays (S,) of the box the pose sampler draws adults of `gender`
+        ("female" or "male") from, for the shape entries `shape_names` (`body.shape_ranges`)."""
+
+    @property
+    def fixed_gender(self) -> str | None:
+        """The gender the model itself fixes ("female" or "male": SMPL's gendered files), or
+        None when the shape sets it or the model is neutral."""
+        return None
+
+    @abc.abstractmethod
+    def female_fraction(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B,) 1 for female, 0 for male bodies of (B, S) shapes (in between: a blend)."""
+
+    @abc.abstractmethod
+    def average_shape(self, female: torch.Tensor) -> torch.Tensor:
+        """(B, S) the average adult (`default_shape`) of each (B,) female fraction; a backend
+        whose gender is not a shape entry ignores `female`."""
+
+    size_dim: int  # how many numbers `with_size` takes
+
+    @abc.abstractmethod
+    def with_size(self, shape: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """(B, S) `shape` with the entries that set height and mass replaced by a smooth,
+        bounded function of the unconstrained z (B, size_dim): what `shape_for_height_mass`
+        optimises (z = 0: the middle of their range)."""
 
     # --- optional fast path for per-shape fits on the T-pose mesh (capsules) --------------
     def linear_mesh(self) -> LinearMesh | None:

@@ -1,42 +1,40 @@
 """Differentiable rotation helpers (batched torch, any float dtype, any device).
 
 Rotation vectors (axis-angle) are (..., 3), matrices (..., 3, 3); matrices act on column
-vectors (`R @ v`). Every function is smooth where the rotation it describes is defined:
-gradients are exact at the zero rotation (Taylor branches), which matters because the rest
-pose is all zeros.
+vectors (`R @ v`); quaternions here are (w, x, y, z) (MuJoCo's order; roma's is x, y, z, w).
+
+The conversions are roma's (`roma.rotvec_to_unitquat`, `unitquat_to_rotmat`,
+`rotmat_to_unitquat`, `unitquat_to_rotvec`); these names stay as thin wrappers because half the
+package calls them. Rotation vector -> matrix goes through the unit quaternion rather than
+`roma.rotvec_to_rotmat`: that one switches to the first-order I + K below 1e-6 rad (off by
+theta^2 / 2, 5e-13 at the switch) and divides by the angle above it, which makes float32
+gradients of small rotations wrong by up to 3e-5; through the quaternion (roma's sinc has a
+Taylor branch chosen for its derivative) the matrix is within 1e-15 of Rodrigues' formula in
+float64 and float32 gradients within 3e-7 at every angle, 0 included (the rest pose is all
+zeros). What roma does not have stays here: `rotation_angle` (see its docstring),
+`rotation_between`, `swing_twist` and `skew`.
 """
 
 from __future__ import annotations
 
+import roma
 import torch
-
-_SMALL = 1e-4  # below this angle (rad) the Taylor branches are exact to float64 round-off
 
 
 def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula: (..., 3) rotation vectors -> (..., 3, 3) rotation matrices."""
+    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (through roma's unit
+    quaternion; exact gradients at the zero rotation)."""
     if rotvec.shape[-1:] != (3,):
         raise ValueError(f"rotvec must have shape (..., 3), got {tuple(rotvec.shape)}")
-    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)
-    small = theta2 < _SMALL**2
-    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
-    safe = safe2.sqrt()
-    # sin(t)/t and (1 - cos(t))/t^2, Taylor-expanded near zero so the gradient stays exact.
-    a = torch.where(small, 1 - theta2 / 6 + theta2**2 / 120, torch.sin(safe) / safe)
-    b = torch.where(small, 0.5 - theta2 / 24 + theta2**2 / 720, (1 - torch.cos(safe)) / safe2)
-    K = skew(rotvec)
-    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(K)
-    return eye + a[..., None] * K + b[..., None] * (K @ K)
+    return roma.unitquat_to_rotmat(roma.rotvec_to_unitquat(rotvec))
 
 
 def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors with angle in [0, pi].
-
-    Goes through the quaternion, which is stable everywhere except exactly at pi.
-    """
+    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors with angle in [0, pi]
+    (`roma.rotmat_to_rotvec`: Markley's quaternion, stable everywhere except exactly at pi)."""
     if R.shape[-2:] != (3, 3):
         raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
-    return quaternion_to_axis_angle(matrix_to_quaternion(R))
+    return roma.rotmat_to_rotvec(R)
 
 
 def rotation_angle(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
@@ -44,11 +42,13 @@ def rotation_angle(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     angle of R = R1^T R2, as atan2(2 sin, 2 cos) with 2 cos = trace(R) - 1 and 2 sin = the
     norm of R's antisymmetric part (R32 - R23, R13 - R31, R21 - R12).
 
-    Accurate to a few units of the dtype's round-off at every angle, 0 and pi included, where
-    acos((trace - 1) / 2) loses sqrt(eps) (~0.03 deg in float32 at 0) and asin of the chord
-    loses it near pi. Each entry of R is summed in the same order from elementwise products,
-    so R is exactly symmetric, and the angle exactly 0, when R1 == R2 (no matmul whose
-    rounding could differ between R_ij and R_ji)."""
+    Kept instead of roma for exactness: accurate to a few units of the dtype's round-off at
+    every angle, 0 and pi included, where `roma.rotmat_geodesic_distance` (an asin of the
+    chord |R2 - R1|) loses sqrt(eps) near pi and `rotmat_geodesic_distance_naive` (an acos of
+    (trace - 1) / 2) loses it near 0 (~0.03 deg in float32); the metrics and the tests of
+    rests and fits measure angles near both ends. Each entry of R is summed in the same order
+    from elementwise products, so R is exactly symmetric, and the angle exactly 0, when
+    R1 == R2 (no matmul whose rounding could differ between R_ij and R_ji)."""
     if R1.shape[-2:] != (3, 3) or R2.shape[-2:] != (3, 3):
         raise ValueError(f"R1 and R2 must have shape (..., 3, 3), got {tuple(R1.shape)} and {tuple(R2.shape)}")
     P = R1[..., :, :, None] * R2[..., :, None, :]  # P[..., k, i, j] = R1[k, i] R2[k, j]
@@ -61,65 +61,17 @@ def rotation_angle(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) -> unit quaternions (..., 4) as (w, x, y, z) with w >= 0."""
-    m = R
-    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    # Four candidate (unnormalised) quaternions, each well conditioned in its own region;
-    # pick per element the one with the largest denominator (Shepperd's method).
-    cands = torch.stack(
-        [
-            torch.stack(
-                [1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1
-            ),
-            torch.stack(
-                [
-                    m[..., 2, 1] - m[..., 1, 2],
-                    1 + 2 * m[..., 0, 0] - trace,
-                    m[..., 0, 1] + m[..., 1, 0],
-                    m[..., 0, 2] + m[..., 2, 0],
-                ],
-                -1,
-            ),
-            torch.stack(
-                [
-                    m[..., 0, 2] - m[..., 2, 0],
-                    m[..., 0, 1] + m[..., 1, 0],
-                    1 + 2 * m[..., 1, 1] - trace,
-                    m[..., 1, 2] + m[..., 2, 1],
-                ],
-                -1,
-            ),
-            torch.stack(
-                [
-                    m[..., 1, 0] - m[..., 0, 1],
-                    m[..., 0, 2] + m[..., 2, 0],
-                    m[..., 1, 2] + m[..., 2, 1],
-                    1 + 2 * m[..., 2, 2] - trace,
-                ],
-                -1,
-            ),
-        ],
-        -2,
-    )  # (..., 4, 4): row k is candidate k
-    diag = torch.stack(
-        [1 + trace, 1 + 2 * m[..., 0, 0] - trace, 1 + 2 * m[..., 1, 1] - trace, 1 + 2 * m[..., 2, 2] - trace], -1
-    )
-    best = diag.argmax(-1, keepdim=True)
-    q = torch.gather(cands, -2, best[..., None].expand(*best.shape, 4)).squeeze(-2)
-    q = q / q.norm(dim=-1, keepdim=True)
+    """(..., 3, 3) -> unit quaternions (..., 4) as (w, x, y, z) with w >= 0
+    (`roma.rotmat_to_unitquat`, Markley's variant of Shepperd's method)."""
+    q = roma.quat_xyzw_to_wxyz(roma.rotmat_to_unitquat(R))
     return torch.where(q[..., :1] < 0, -q, q)
 
 
 def quaternion_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
-    """Unit quaternions (..., 4) as (w, x, y, z) -> rotation vectors (..., 3)."""
-    w, v = q[..., :1], q[..., 1:]
-    s2 = (v * v).sum(-1, keepdim=True)
-    small = s2 < _SMALL**2
-    s = torch.where(small, torch.ones_like(s2), s2).sqrt()
-    angle = 2 * torch.atan2(s, w)
-    # angle / sin(angle / 2) -> 2 / w near zero (first order is exact enough there).
-    factor = torch.where(small, 2 / w * (1 + s2 / (6 * w * w)), angle / s)
-    return v * factor
+    """Unit quaternions (..., 4) as (w, x, y, z) -> rotation vectors (..., 3) of angle
+    2 atan2(|(x, y, z)|, w): in (pi, 2 pi) when w < 0, as the quaternion says (roma's
+    `unitquat_to_rotvec` without `shortest_arc`)."""
+    return roma.unitquat_to_rotvec(roma.quat_wxyz_to_xyzw(q), shortest_arc=False)
 
 
 def skew(v: torch.Tensor) -> torch.Tensor:
@@ -151,17 +103,12 @@ def swing_twist(rotvec: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor,
     """Split rotations R(rotvec) = swing @ twist, twist about the unit `axis` (3,) or (..., 3).
 
     Returns (swing, twist) as (..., 3, 3) matrices. The twist angle is
-    2 atan2(v . axis, w) of the quaternion (w, v) of R, which is smooth except for a swing
-    of exactly pi.
+    2 atan2(v . axis, w) of the quaternion (v, w) of R (`roma.rotvec_to_unitquat`), which is
+    smooth except for a swing of exactly pi.
     """
-    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)
-    small = theta2 < _SMALL**2
-    theta = torch.where(small, torch.ones_like(theta2), theta2).sqrt()
-    half_sinc = torch.where(small, 0.5 - theta2 / 48, torch.sin(theta / 2) / theta)
-    w = torch.where(small, 1 - theta2 / 8, torch.cos(theta / 2))
-    v = rotvec * half_sinc
+    q = roma.rotvec_to_unitquat(rotvec)  # (..., 4) as (x, y, z, w)
     axis = axis.to(rotvec).expand_as(rotvec)
-    twist_angle = 2 * torch.atan2((v * axis).sum(-1, keepdim=True), w)
+    twist_angle = 2 * torch.atan2((q[..., :3] * axis).sum(-1, keepdim=True), q[..., 3:])
     twist = axis_angle_to_matrix(twist_angle * axis)
-    swing = axis_angle_to_matrix(rotvec) @ twist.transpose(-1, -2)
+    swing = roma.unitquat_to_rotmat(q) @ twist.transpose(-1, -2)
     return swing, twist

@@ -20,6 +20,7 @@ import torch
 from pressurepose.body.joints import J24_PARENTS, NUM_JOINTS
 from pressurepose.body.model import BodyModel
 from pressurepose.body.rotations import axis_angle_to_matrix
+from pressurepose.body.shape_ranges import SMPL_BETA_RANGE, beta_bounds
 from pressurepose.cache import cache_dir
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
@@ -246,6 +247,28 @@ class SmplBody(BodyModel):
     def validate_shape(self, shape: torch.Tensor) -> None:
         if not torch.isfinite(shape).all():
             raise ValueError("shape (SMPL betas) contains NaN or infinite values")
+
+    @classmethod
+    def shape_bounds(cls, gender: str, shape_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        return beta_bounds(len(shape_names))  # either gender: the model file sets it
+
+    @property
+    def fixed_gender(self) -> str | None:
+        return None if self.gender == "neutral" else self.gender
+
+    def female_fraction(self, shape: torch.Tensor) -> torch.Tensor:
+        value = {"female": 1.0, "male": 0.0}.get(self.gender, 0.5)  # the neutral model: 0.5
+        return torch.full((shape.shape[0],), value, dtype=shape.dtype, device=shape.device)
+
+    def average_shape(self, female: torch.Tensor) -> torch.Tensor:
+        return self.default_shape(female.shape[0])  # the gender is the model file's
+
+    size_dim = 2  # the first two betas, each 3 tanh(z / 3) in (-3, 3)
+
+    def with_size(self, shape: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        sized = shape.clone()
+        sized[:, :2] = SMPL_BETA_RANGE[1] * torch.tanh(z / SMPL_BETA_RANGE[1])
+        return sized
 
     def _rotations(self, pose: torch.Tensor) -> torch.Tensor:
         B = pose.shape[0]

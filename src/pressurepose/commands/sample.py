@@ -30,7 +30,6 @@ from pressurepose.files import atomic_write
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import SamplingConfig
 from pressurepose.sampling.sampler import InitialPoses, PoseSampler
-from pressurepose.sampling.shapes import shape_bounds
 from pressurepose.viz.sampling import plot_bodies, plot_cells, posed_vertices
 
 log = logging.getLogger(__name__)
@@ -120,7 +119,7 @@ def run_sample(cfg: SampleConfig) -> Written:
             cfg.out / "bodies.png", lambda tmp: plot_bodies(vertices, MatSpec(), tmp, labels)
         )
 
-    low, high = shape_bounds(model.name, sampling.gender, model.shape_names)
+    low, high = model.shape_bounds(sampling.gender, model.shape_names)
     record = {
         "command": "sample",
         "pressurepose_version": __version__,

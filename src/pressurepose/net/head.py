@@ -5,7 +5,7 @@ Layout of the raw vector (B, D), D = S + 78 (Anny S = 6: 84; SMPL S = 10: 88):
     [ shape (S) | root translation (3) | root rotation, 6D (6) | joint angles (23 x 3) ]
 
 Each block is scaled by the range of its parameters, as the seed normalises the output:
-- shape: mid + half-width x tanh(raw), inside the sampling bounds (`sampling.shapes.
+- shape: mid + half-width x tanh(raw), inside the sampling bounds (`BodyModel.
   shape_bounds`, both genders' union for Anny); a known gender replaces Anny's gender entry;
 - root translation: an initial guess (pelvis over the middle of the mat, 0.1 m up) plus raw
   x the bed's half-size (m);
@@ -26,12 +26,12 @@ import numpy as np
 import roma
 import torch
 
+from pressurepose.body import backend_class
 from pressurepose.body.joints import NUM_POSE_JOINTS
 from pressurepose.body.limits import ALPHA, JointLimits
 from pressurepose.body.params import BodyParams
 from pressurepose.body.rotations import matrix_to_axis_angle
 from pressurepose.mat import MatSpec
-from pressurepose.sampling.shapes import shape_bounds
 
 ROOT_Z_GUESS_M = 0.10  # pelvis height of a supine adult resting on the mattress
 ROT6D_IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)  # first two columns of I
@@ -68,7 +68,8 @@ def matrix_to_rotation_6d(R: torch.Tensor) -> torch.Tensor:
 
 def union_shape_bounds(backend: str, shape_names: tuple[str, ...]) -> tuple[torch.Tensor, torch.Tensor]:
     """(S,) low and high of the shape sampling bounds over both genders (float64)."""
-    (lo_f, hi_f), (lo_m, hi_m) = (shape_bounds(backend, g, shape_names) for g in ("female", "male"))
+    bounds = backend_class(backend).shape_bounds
+    (lo_f, hi_f), (lo_m, hi_m) = (bounds(g, shape_names) for g in ("female", "male"))
     return torch.as_tensor(np.minimum(lo_f, lo_m)).double(), torch.as_tensor(np.maximum(hi_f, hi_m)).double()
 
 

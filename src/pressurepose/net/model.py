@@ -19,6 +19,7 @@ from torch import nn
 
 from pressurepose.body import BodyParams, load_body_model
 from pressurepose.body.model import BodyModel
+from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.net.cnn import make_cnn
 from pressurepose.net.head import ParamHead
@@ -52,15 +53,15 @@ class NetConfig:
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast", "heatmap"):
-            raise ValueError(f"NetConfig.arch must be 'paper', 'fast' or 'heatmap', got {self.arch!r}")
+            raise UserError(f"NetConfig.arch must be 'paper', 'fast' or 'heatmap', got {self.arch!r}")
         if self.arch == "heatmap" and self.modules != 1:
-            raise ValueError("NetConfig.arch 'heatmap' is one module (modules=1)")
+            raise UserError("NetConfig.arch 'heatmap' is one module (modules=1)")
         if not 0 <= self.ik_steps <= 50:
-            raise ValueError(f"NetConfig.ik_steps must lie in [0, 50], got {self.ik_steps}")
+            raise UserError(f"NetConfig.ik_steps must lie in [0, 50], got {self.ik_steps}")
         if self.modules not in (1, 2):
-            raise ValueError(f"NetConfig.modules must be 1 or 2, got {self.modules!r}")
+            raise UserError(f"NetConfig.modules must be 1 or 2, got {self.modules!r}")
         if not 0 <= self.dropout < 1:
-            raise ValueError(f"NetConfig.dropout must lie in [0, 1), got {self.dropout}")
+            raise UserError(f"NetConfig.dropout must lie in [0, 1), got {self.dropout}")
 
     @property
     def in_channels(self) -> int:

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from pressurepose.body.capsules import CAPSULES, capsule_clearance
+from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.sampling.attempt import ALONG, MAT_X, MAT_Y, UP, Attempt, SampleState
 from pressurepose.sampling.limbs import (
     LIMBS,
@@ -20,7 +21,6 @@ from pressurepose.sampling.limbs import (
     leg_cell,
     rodrigues,
     rotate,
-    rotation_matrix,
     split_xyz,
     vadd,
     vdot,
@@ -289,13 +289,13 @@ class LimbDraws:
             hinge = torch.stack([one, zero, zero, zero, c, -s, zero, s, c], -1).view(-1, 3, 3)
         else:  # elbow about y
             hinge = torch.stack([c, zero, s, zero, one, zero, -s, zero, c], -1).view(-1, 3, 3)
-        R = rotation_matrix(angles[:, :3])
+        R = axis_angle_to_matrix(angles[:, :3])
         lower = R @ hinge
         # World rotation of each chain joint (and the capsule riding it).
         if leg:  # hip, knee, ankle, foot
             rots = torch.stack([R, lower, lower, lower], 1)
         else:  # collar (1/3 of the rotation), shoulder, elbow, wrist, hand
-            rots = torch.stack([rotation_matrix(angles[:, :3] / 3), R, lower, lower, lower], 1)
+            rots = torch.stack([axis_angle_to_matrix(angles[:, :3] / 3), R, lower, lower, lower], 1)
         steps = (rots[:, :-1] @ ctx["offsets"][rows, ..., None])[..., 0]
         pos = torch.cat([ctx["root"][rows, None], steps], 1).cumsum(1)  # (N, n, 3)
         # Cell and height in the bed's axes after the roll only: 'along' is the body's long

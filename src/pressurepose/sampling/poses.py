@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 import zlib
 
 import numpy as np
+import roma
 import torch
 
 from pressurepose.bed import BedShape
@@ -82,14 +82,7 @@ def sample_key(config: SamplingConfig, index: int) -> list[int]:
 
 def root_axis_angle(roll: float, yaw: float) -> np.ndarray:
     """Axis-angle (3,) of Rz(yaw) Rx(roll) (roll about the bed's long axis, then yaw in the bed
-    plane), from the quaternion product in scalar float64 arithmetic (bit-identical whatever
-    else is computed alongside)."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    w, v = cy * cr, np.array([cy * sr, sy * sr, sy * cr])
-    if w < 0:
-        w, v = -w, -v
-    n = math.sqrt(float(v @ v))
-    if n < 1e-12:
-        return 2.0 * v / w
-    return v * (2.0 * math.atan2(n, w) / n)
+    plane): roma's quaternion product, angle in [0, pi]. One sample at a time in float64, so
+    its bits never depend on what else is computed alongside."""
+    yaw_q, roll_q = roma.rotvec_to_unitquat(torch.tensor([[0.0, 0.0, yaw], [roll, 0.0, 0.0]], dtype=torch.float64))
+    return roma.unitquat_to_rotvec(roma.quat_product(yaw_q, roll_q)).numpy()

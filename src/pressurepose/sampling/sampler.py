@@ -77,7 +77,7 @@ from pressurepose.sampling.poses import (
     root_axis_angle,
     sample_key,
 )
-from pressurepose.sampling.shapes import draw_shape, shape_bounds
+from pressurepose.sampling.shapes import draw_shape
 from pressurepose.sampling.sitting import HIP_JOINTS, fold_params, pitch_matrix, sit_up, trunk_pitch
 
 # Sitting up on a raised bed: the trunk must rest on the bed, not be propped up by a hand or a
@@ -107,13 +107,12 @@ class PoseSampler(LimbDraws):
         self.config = config
         self.part = partition or config.spec
         self.mat = mat or MatSpec()
-        gender = getattr(model, "gender", None)
-        if model.name == "smpl" and gender not in (None, "neutral", config.gender):
+        if model.fixed_gender not in (None, config.gender):
             raise UserError(
-                f"the SMPL model is {gender} but the sampling asks for {config.gender}; "
-                f"load the {config.gender} SMPL model or the neutral one"
+                f"the {model.name} body model is {model.fixed_gender} but the sampling asks for "
+                f"{config.gender}; load the {config.gender} model or the neutral one"
             )
-        self.shape_low, self.shape_high = shape_bounds(model.name, config.gender, model.shape_names)
+        self.shape_low, self.shape_high = model.shape_bounds(config.gender, model.shape_names)
         self.leg_cells, self.arm_cells = limb_cells(self.part, config.over_bed)
         self.limits = JointLimits.default(torch.float64)
         self.limbs = limb_table(self.limits)

@@ -1,55 +1,18 @@
-"""Body shapes of adults of both genders over a wide range of heights and weights.
-
-Anny (default): gender is exact (1 female, 0 male); age uniform over adults (Anny age 0.77 to
-0.852, i.e. 18 to ~70 years on Anny's anchors); muscle and proportions uniform on [0, 1];
-height and weight uniform on per-gender intervals chosen so the population spans
-- male:   ~1.48-2.02 m, ~37-140 kg, BMI ~16-40,
-- female: ~1.43-1.95 m, ~35-113 kg, BMI ~16-32.5
-(measured over 1,000 draws each: `python benchmarks/sampling.py --shapes`; docs/sampling.md).
-The full [0, 1] height range of Anny would reach 2.45 m and weights under BMI 12, outside
-any adult population; these intervals keep the seed's "wide, even" spirit (its SMPL betas
-were uniform on [-3, 3]) inside plausible adults.
-
-SMPL (optional backend): 10 betas uniform on [-3, 3] as the original; the gender is that of
-the SMPL model file.
-"""
+"""Body shapes for the pose sampler: the box of each backend (`BodyModel.shape_bounds`; the
+population, its tables and its measured heights and weights are in `body.shape_ranges`) and a
+uniform draw in it."""
 
 from __future__ import annotations
 
 import numpy as np
 
-ANNY_RANGES = {  # phenotype -> (low, high) per gender
-    "female": {
-        "gender": (1.0, 1.0),
-        "age": (0.77, 0.852),
-        "muscle": (0.0, 1.0),
-        "weight": (0.25, 1.0),
-        "height": (0.20, 0.63),
-        "proportions": (0.0, 1.0),
-    },
-    "male": {
-        "gender": (0.0, 0.0),
-        "age": (0.77, 0.852),
-        "muscle": (0.0, 1.0),
-        "weight": (0.10, 1.0),
-        "height": (0.12, 0.60),
-        "proportions": (0.0, 1.0),
-    },
-}
-SMPL_BETA_RANGE = (-3.0, 3.0)
+from pressurepose.body import backend_class
 
 
 def shape_bounds(backend: str, gender: str, shape_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """(low, high) arrays (S,) of the uniform shape distribution for a backend and gender."""
-    if backend == "anny":
-        ranges = ANNY_RANGES[gender]
-        low = np.array([ranges[n][0] for n in shape_names])
-        high = np.array([ranges[n][1] for n in shape_names])
-        return low, high
-    if backend == "smpl":
-        S = len(shape_names)
-        return np.full(S, SMPL_BETA_RANGE[0]), np.full(S, SMPL_BETA_RANGE[1])
-    raise ValueError(f"no shape distribution for body backend {backend!r}")
+    """(low, high) arrays (S,) of the uniform shape distribution for a backend (by name) and
+    gender: `BodyModel.shape_bounds` of its class, for callers without a loaded model."""
+    return backend_class(backend).shape_bounds(gender, shape_names)
 
 
 def draw_shape(rng: np.random.Generator, low: np.ndarray, high: np.ndarray) -> np.ndarray:

@@ -141,6 +141,8 @@ class TrainConfig:
         for name in ("mirror", "repress", "bands"):
             if not 0 <= getattr(self, name) <= 1:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
+        if not 0 <= self.dropout < 1:
+            raise UserError(f"dropout must lie in [0, 1), got {self.dropout}")
         if not 0 < self.lr_gamma <= 1:
             raise UserError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:
