@@ -29,8 +29,10 @@ from pressurepose.files import write_text
 POSTURES = ("supine", "left", "right")
 ROLL_RAD = {"supine": 0.0, "left": -math.pi / 2, "right": math.pi / 2}
 SIDE_MARGIN_M = 0.20
-# The side-lying resting pose (rad): shoulders forward, elbows, hips and knees bent.
-SIDE_POSE = {"shoulder": 1.2, "elbow": 0.9, "hip": 0.6, "knee": 0.9}
+# The side-lying resting pose (rad): the arms forward at about a right angle to the trunk with
+# the elbows bent about a right angle (the common side-sleeping posture; the along-bed figure's
+# sensitivity to this choice is in docs/realism.md), hips and knees bent.
+SIDE_POSE = {"shoulder": 1.6, "elbow": 1.5, "hip": 0.6, "knee": 0.9}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,8 +99,8 @@ def load_real(
 
 def resting_pose(posture: str, batch: int) -> torch.Tensor:
     """(B, 23, 3) the report's pose: supine in the home pose (arms at the sides, legs
-    straight); on a side with the hips bent 35 deg, the knees 50 deg, the arms forward and the
-    elbows bent, as people lie on their side (PmatData groups C, D)."""
+    straight); on a side with the hips bent 35 deg, the knees 50 deg, the arms forward ~90 deg and
+    the elbows bent ~85 deg, as people lie on their side (PmatData groups C, D)."""
     from pressurepose.body.capsules import home_pose
     from pressurepose.body.joints import joint_index
     from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
