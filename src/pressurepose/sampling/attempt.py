@@ -43,6 +43,7 @@ class SampleState:
     leg_frame: torch.Tensor | None = None  # (4, 3) `frame` for the legs (turned back by the pitch)
     leg_shift: torch.Tensor | None = None  # (3,) `shift` for the legs (the pelvis once turned)
     sat: BodyParams | None = None  # the sat-up pose on a raised bed (batch of 1)
+    support: dict = dataclasses.field(default_factory=dict)  # (limb, cell) -> reachable boxes (this shape)
 
 
 class Attempt:

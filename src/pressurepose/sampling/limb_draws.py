@@ -41,6 +41,10 @@ _SCREEN_ELEMENTS = 1 << 16
 # Draws tested at once (pending samples x rounds of a window): ~4 ms of work, so that the fixed
 # cost of a window (~3 ms of small tensor operations) stays a small share.
 _WINDOW_DRAWS = 1 << 16
+# Over the bed, rounds drawn uniformly in the whole angle box before the rest of the budget
+# comes from the reachable boxes (sampling.support): limbs that find a draw early never pay
+# for the boxes.
+PLAIN_ROUNDS = 3
 
 
 class LimbDraws:
@@ -71,27 +75,22 @@ class LimbDraws:
         as drawing round by round. Each draw is first screened by a cheap float32 test that
         is looser than the real conditions by PREFILTER_MARGIN_M (so it never drops a draw
         they accept); survivors are tested exactly (float64), then for self-collisions."""
-        pending, done = rows, []
+        done = []
         reachable = torch.zeros(len(batch.states), dtype=torch.bool)
         ctx = self._limb_context(batch, limb)
         ends = self._round_ends
-        start, j = 0, 0
-        while pending.numel() and j < len(ends):
-            # A window: the rounds from `start` on that keep pending x draws within
-            # _WINDOW_DRAWS (at least one round), so few pending samples take few windows.
-            P = pending.numel()
-            while j + 1 < len(ends) and P * (ends[j + 1] - start) <= _WINDOW_DRAWS:
-                j += 1
-            stop = int(ends[j])
-            W = stop - start
-            step = max(1, _WINDOW_DRAWS // W)
-            won = [
-                self._window(batch, ctx, pending[lo : lo + step], limb, start, W, reachable, done)
-                for lo in range(0, P, step)
-            ]
-            pending = pending[~torch.cat(won)]
-            start, j = stop, j + 1
-        for r in pending.tolist():  # budget exhausted: this attempt fails
+        grid = self._grids.get(limb.name)
+        # Over the bed: the first PLAIN_ROUNDS rounds as above; the rest of the budget, for the
+        # samples still without a draw, from the boxes that may reach the cell (same law).
+        plain = ends if grid is None else ends[:PLAIN_ROUNDS]
+        ctx["budget"] = torch.full((len(batch.states),), int(plain[-1]), dtype=torch.long)
+        ctx["children"] = {}
+        pending = self._phase(batch, ctx, rows, limb, plain, reachable, done)
+        if pending.numel() and len(plain) < len(ends):
+            self._proposals(batch, ctx, pending, limb, grid, int(ends[-1] - plain[-1]))
+            self._phase(batch, ctx, pending, limb, ends, reachable, done)
+        won = torch.cat(done) if done else rows[:0]
+        for r in rows[~torch.isin(rows, won)].tolist():  # budget exhausted: this attempt fails
             st = batch.states[r]
             st.counts["limb_failures"] += 1
             st.failed_limb = limb.name
@@ -99,24 +98,80 @@ class LimbDraws:
             # the condition depends on them, as crossing does), only a new shape and root.
             if not reachable[r] and not (self.part.crossed_legs and limb.name == "right_leg"):
                 st.unreachable = limb.name
-        return torch.cat(done).sort().values if done else rows[:0]
+        return won.sort().values
 
-    def _window(self, batch, ctx, pending, limb, start, W, reachable, done) -> torch.Tensor:
-        """Draws start .. start + W (whole rounds) of each pending row; returns which rows
-        found a winner."""
+    def _phase(self, batch, ctx, pending, limb, ends, reachable, done) -> torch.Tensor:
+        """Rounds ending at `ends` (each row up to its budget, ctx["budget"]) in windows;
+        returns the rows left without a winner."""
+        budget = ctx["budget"]
+        start, j = 0, 0
+        while j < len(ends):
+            pending = pending[budget[pending] > start]
+            if not pending.numel():
+                break
+            # A window: the rounds from `start` on that keep pending x draws within
+            # _WINDOW_DRAWS (at least one round), so few pending samples take few windows.
+            P = pending.numel()
+            cap = int(budget[pending].max())
+            while j + 1 < len(ends) and P * (ends[j + 1] - start) <= _WINDOW_DRAWS and ends[j] < cap:
+                j += 1
+            stop = int(ends[j])
+            W = stop - start
+            step = max(1, _WINDOW_DRAWS // W)
+            won = [
+                self._window(batch, ctx, pending[lo : lo + step], limb, ends, start, W, reachable, done)
+                for lo in range(0, P, step)
+            ]
+            pending = pending[~torch.cat(won)]
+            start, j = stop, j + 1
+        return pending
+
+    def _proposals(self, batch: Attempt, ctx: dict, rows: torch.Tensor, limb: Limb, grid, left: int) -> None:
+        """The rest of each row's budget for this limb attempt (`left` uniform draws) as
+        N ~ Binomial(left, |S| / |box|) draws uniform in the boxes S that may reach the cell
+        (`sampling.support`: the same law), from a generator seeded from the sample's stream."""
+        bed = (self.x_lo, self.x_hi, self.y_lo, self.y_hi)
+        for r in rows.tolist():
+            st = batch.states[r]
+            key = (limb.name, int(ctx["cell"][r]))
+            if key not in st.support:
+                st.support[key] = grid.support(
+                    ctx["offsets"][r].numpy(),
+                    ctx["root"][r].numpy(),
+                    ctx["frame"][r].numpy(),
+                    ctx["shift"][r].numpy(),
+                    (float(ctx["lo"][r]), float(ctx["hi"][r])),
+                    bed,
+                    ctx["over_bed"],
+                    below_shoulder=self.part.hands_behind_head and not grid.leg,
+                    left_of_midline=self.part.crossed_legs and limb.name == "left_leg",
+                )
+            boxes = st.support[key]
+            ctx["budget"][r] = int(st.rng.binomial(left, boxes.size / grid.boxes))
+            ctx["children"][r] = (np.random.Generator(np.random.PCG64(int(st.rng.integers(2**63)))), boxes)
+
+    def _window(self, batch, ctx, pending, limb, ends, start, W, reachable, done) -> torch.Tensor:
+        """Draws start .. start + W (whole rounds ending at `ends`) of each pending row;
+        returns which rows found a winner."""
         P = pending.numel()
-        ends = self._round_ends
         states = [batch.states[r] for r in pending.tolist()]
         one_round = int(np.searchsorted(ends, start, side="right")) == int(
             np.searchsorted(ends, start + W - 1, side="right")
         )
-        saved = None if one_round else [st.rng.bit_generator.state for st in states]
+        children = [ctx["children"].get(r) for r in pending.tolist()]
+        saved = [None if (one_round or ch) else st.rng.bit_generator.state for st, ch in zip(states, children)]
         u = np.empty((P, W, limb.low.shape[0]))
-        for p, st in enumerate(states):
-            st.rng.random(out=u[p])
+        for p, (st, ch) in enumerate(zip(states, children)):
+            if ch is None:
+                st.rng.random(out=u[p])
+            else:  # uniform in the reachable boxes (sampling.support)
+                u[p] = self._grids[limb.name].propose(ch[1], ch[0].random((W, 5)))
         u = torch.from_numpy(u)
+        avail = (ctx["budget"][pending] - start).clamp(0, W)  # draws of the budget in this window
         # 1. Screen every draw (float32, conservative).
         p_idx, k_idx = self._screen(ctx, pending, limb, u)
+        inside = k_idx < avail[p_idx]
+        p_idx, k_idx = p_idx[inside], k_idx[inside]
         # 2. The survivors exactly: cell, height, partition conditions, bed outline. Their
         # angles low + span * random = rng.uniform(low, high), bit for bit.
         angles = torch.from_numpy(limb.low) + torch.from_numpy(limb.high - limb.low) * u[p_idx, k_idx]
@@ -129,13 +184,13 @@ class LimbDraws:
         # 3. Self-collision, in draw order: each sample's first 4 geometric draws, then (for
         # the samples without a free one yet) the next 32, 256, ... until one is free.
         reachable[rows_s] = True
-        first = torch.full((P,), W, dtype=torch.long)
+        first = avail.clone()
         if p_idx.numel():
             count = torch.bincount(p_idx, minlength=P)
             rank = torch.arange(p_idx.numel()) - (count.cumsum(0) - count)[p_idx]  # within its sample
             lo, width, top = 0, 4, int(rank.max())
             while lo <= top:
-                sel = ((rank >= lo) & (rank < lo + width) & (first[p_idx] == W)).nonzero()[:, 0]
+                sel = ((rank >= lo) & (rank < lo + width) & (first[p_idx] == avail[p_idx])).nonzero()[:, 0]
                 if sel.numel():
                     free = self._collision_free(batch, rows_s[sel], limb, (caps_ab[0][sel], caps_ab[1][sel]))
                     first.scatter_reduce_(0, p_idx[sel][free], k_idx[sel][free], "amin")
@@ -146,7 +201,7 @@ class LimbDraws:
         for st, rej, col in zip(states, rejected.tolist(), collided.tolist()):
             st.counts["limb_draws_rejected"] += rej
             st.counts["collisions"] += col
-        won = first < W
+        won = first < avail
         if won.any():
             win = (k_idx == first[p_idx]).nonzero()[:, 0]  # one survivor per winning sample
             r = rows_s[win]
@@ -160,7 +215,7 @@ class LimbDraws:
                 st.angles[limb.name] = ang
                 # Wind the generator back to the end of the winner's round.
                 used = int(ends[np.searchsorted(ends, start + kk, side="right")]) - start
-                if used < W:  # (never in a one-round window)
+                if used < W and saved[pp] is not None:  # (never in a one-round window)
                     st.rng.bit_generator.state = saved[pp]
                     st.rng.random(used * limb.low.shape[0])
             done.append(r)
@@ -212,6 +267,8 @@ class LimbDraws:
             cell=batch.cells[:, slot],
             length=batch.lengths[:, 0 if leg else 1],
             left_ankle=batch.left_ankle_x,
+            lo=lo,
+            hi=hi,
             local=torch.cat([batch.start0[:, caps] - rj, batch.end0[:, caps] - rj], 1),  # (R, 2c, 3)
             cap_joints=[ci[CAPSULES[k].joint] for k in caps] * 2,
             over_bed=[ci[j] for j in limb.over_bed],

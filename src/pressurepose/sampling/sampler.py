@@ -34,7 +34,9 @@ SEAT_TOLERANCE_M); a failure counts as a failed attempt (`sit_up_rejections`).
 
 Modules: `sampler` (PoseSampler: states, shapes and roots, sitting up, the result), `limb_draws`
 (the limb rounds: screen, exact tests, collisions), `limbs` (angle ranges, limb table, limb
-geometry), `attempt` (per-sample state, one attempt's tensors), `poses` (InitialPoses, seeds).
+geometry), `attempt` (per-sample state, one attempt's tensors), `poses` (InitialPoses, seeds),
+`support` (over the bed: the angle boxes that may reach a limb's cell, drawn from after the
+first rounds - the same law, far fewer draws).
 """
 
 from __future__ import annotations
@@ -79,6 +81,7 @@ from pressurepose.sampling.poses import (
 )
 from pressurepose.sampling.shapes import draw_shape
 from pressurepose.sampling.sitting import HIP_JOINTS, fold_params, pitch_matrix, sit_up, trunk_pitch
+from pressurepose.sampling.support import LimbGrid
 
 # Sitting up on a raised bed: the trunk must rest on the bed, not be propped up by a hand or a
 # heel by more than a lying body may be (its distal joints lie up to HEIGHT_TOLERANCE_M below
@@ -135,6 +138,8 @@ class PoseSampler(LimbDraws):
         (self.x_lo, self.x_hi), (self.y_lo, self.y_hi) = self.mat.mattress_bounds_m
         self.centre = np.array([(self.x_lo + self.x_hi) / 2, (self.y_lo + self.y_hi) / 2])
         self._round_ends = draw_schedule(config.max_limb_draws)
+        # Over the bed, limbs draw from the boxes that may reach their cell (sampling.support).
+        self._grids = {n: LimbGrid(self.limbs[n], self.part.straight_limbs) for n in LIMBS} if config.over_bed else {}
 
     # --- public -------------------------------------------------------------------------
     def sample(self, indices) -> InitialPoses:
@@ -221,6 +226,7 @@ class PoseSampler(LimbDraws):
             roll = -roll
         st.root = np.array([roll, st.rng.uniform(*p.yaw), st.rng.uniform(*p.shift_x), st.rng.uniform(*p.shift_y)])
         st.rest = None
+        st.support = {}
 
     def _prepare(self, states: list[SampleState]) -> None:
         """Rest joints, capsules and root transforms for samples with a new shape."""
