@@ -228,3 +228,46 @@ def test_cuda_matches_cpu(backend, smpl_dir):
     a, b = cpu(p), gpu(p.to("cuda"))
     assert (a.vertices - b.vertices.cpu()).abs().max() < 1e-9
     assert (cpu.joints(p) - gpu.joints(p.to("cuda")).cpu()).abs().max() < 1e-9
+
+
+def test_anny_inference_path_matches_the_differentiable_one(anny64):
+    """Without autograd Anny poses the mesh by blocked skinning (axes, root rotation and
+    translation folded into the bone transforms) and reuses the last shapes' skeleton pass:
+    the same vertices and joints as the differentiable path, for new shapes too."""
+    from pressurepose.body.anny_skinning import BlockedSkinning
+
+    for seed in (0, 1):
+        p = random_params(anny64, B=3, seed=seed)
+        wanting = BodyParams(
+            shape=p.shape.clone().requires_grad_(True),
+            root_rotation=p.root_rotation,
+            root_translation=p.root_translation,
+            pose=p.pose,
+        )
+        ref = anny64(wanting)
+        assert ref.vertices.requires_grad  # the differentiable path
+        with torch.inference_mode():
+            out = anny64(p)
+            joints = anny64.joints(p)
+            rest = anny64.rest_vertices(p.shape)
+        torch.testing.assert_close(out.vertices, ref.vertices.detach(), atol=1e-10, rtol=0)
+        torch.testing.assert_close(out.joints, ref.joints.detach(), atol=1e-12, rtol=0)
+        torch.testing.assert_close(joints, ref.joints.detach(), atol=1e-12, rtol=0)
+        torch.testing.assert_close(rest, anny64.rest_vertices(wanting.shape).detach(), atol=1e-12, rtol=0)
+    # blocks of any size give the same mesh as one block
+    skin = BlockedSkinning(anny64.anny.template_vertices, anny64.anny.blendshapes, anny64.skin_matrix)
+    coeffs = anny64._coefficients(p.shape)
+    T = torch.linalg.qr(torch.randn(3, skin.num_bones, 3, 3, dtype=torch.float64))[0]
+    t = torch.randn(3, skin.num_bones, 3, dtype=torch.float64)
+    whole = skin.pose(coeffs, T, t)
+    import pressurepose.body.anny_skinning as mod
+
+    old, mod.BLOCK_FLOATS = mod.BLOCK_FLOATS, 1000
+    try:
+        blocked = BlockedSkinning(anny64.anny.template_vertices, anny64.anny.blendshapes, anny64.skin_matrix)
+        assert len(blocked._rows(3)) > 10
+        torch.testing.assert_close(blocked.pose(coeffs, T, t), whole, atol=1e-12, rtol=0)
+    finally:
+        mod.BLOCK_FLOATS = old
+    with pytest.raises(ValueError, match="expected T"):
+        skin.pose(coeffs, T[:, :5], t)

@@ -333,10 +333,17 @@ def test_train_cli_refuses_heatmap_mod2(tmp_path, capsys):
     assert "arch heatmap is one module" in err and len(err.strip().splitlines()) == 1
 
 
-def test_synthesis_refine_refuses_the_heatmap_arch(anny32):
-    from pressurepose.errors import UserError
-    from pressurepose.net.synthesis import refine
-
-    net = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=anny32)
-    with pytest.raises(UserError, match="refines its estimate by IK"):
-        refine(net, NetInputs(torch.rand(1, 64, 27) * 40), steps=1)
+def test_more_ik_steps_bring_the_body_closer_to_the_localised_joints(anny32):
+    """The IK is the heatmap arch's test-time refinement (`predict --ik-steps N`): more steps
+    fit the body's joints closer to where the heatmaps put them."""
+    torch.manual_seed(0)
+    net = PressureNet(NetConfig(arch="heatmap", gender_input=False, ik_steps=0), body=anny32).eval()
+    p = torch.rand(3, 64, 27) * 40
+    gaps = []
+    for steps in (0, 2, 8):
+        net.config = dataclasses.replace(net.config, ik_steps=steps)
+        with torch.inference_mode():
+            est = net(NetInputs(p), mesh=False)[-1]
+        w = IKConfig().weights(est.localisation.spread_m2)
+        gaps.append(float((w * (est.joints - est.localisation.joints).square().sum(-1)).sum()))
+    assert gaps[0] > gaps[1] > gaps[2]

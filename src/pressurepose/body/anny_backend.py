@@ -24,8 +24,11 @@ import logging
 import torch
 
 from pressurepose.body.anny_skeleton import Skeleton
+from pressurepose.body.anny_skinning import BlockedSkinning, skin_matrix, sparse_linear_blend_skinning
+from pressurepose.body.anny_skinning import wants_grad as _wants_grad
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
-from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
+from pressurepose.body.model import BodyModel, BodyOutput, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
+from pressurepose.body.params import BodyParams, place_in_mat, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
 from pressurepose.cache import cache_dir, file_lock
 
@@ -160,7 +163,7 @@ class AnnyBody(BodyModel):
         self.full = Skeleton(list(range(len(labels))), model.bone_parents, labels)
         self.light = Skeleton(sorted(closure), model.bone_parents, labels)
         self.register_buffer("reference_orientations", model.reference_bone_orientations.clone(), persistent=False)
-        self.register_buffer("skin_matrix", _skin_matrix(model), persistent=False)
+        self.register_buffer("skin_matrix", skin_matrix(model), persistent=False)
 
         # Body part of each bone: the J24 joint of its nearest mapped ancestor (or itself).
         part_of_bone = torch.zeros(len(labels), dtype=torch.long)
@@ -288,13 +291,37 @@ class AnnyBody(BodyModel):
         order = sk.inverse_order
         return torch.cat(rot, 1)[:, order], torch.cat(heads, 1)[:, order]
 
+    def _shape_pass(self, shape, sk):
+        """The pose-independent part of a pass: blendshape coefficients, rest bone heads,
+        rest -> reference rotations A, reference offsets and T-pose corrections G of `sk`.
+
+        Without autograd the full skeleton's is computed once per batch of shapes and kept
+        (the last one; IK and then the mesh of the same bodies reuse it), and a smaller
+        skeleton's is read from it (its bones keep their parents: the same numbers)."""
+        if _wants_grad(shape):
+            coeffs = self._coefficients(shape)
+            rest_heads, rest_R = self._rest_skeleton(coeffs, sk)
+            A, offsets = self._reference_offsets(rest_heads, rest_R, sk)
+            return coeffs, rest_heads, A, offsets, self._t_pose_corrections(offsets, sk)
+        memo = self.__dict__.get("_shape_memo")
+        same = memo is not None and memo[0].dtype == shape.dtype and memo[0].device == shape.device
+        if not (same and memo[0].shape == shape.shape and torch.equal(memo[0], shape)):
+            with torch.no_grad():
+                full = self.full
+                coeffs = self._coefficients(shape)
+                rest_heads, rest_R = self._rest_skeleton(coeffs, full)
+                A, offsets = self._reference_offsets(rest_heads, rest_R, full)
+                memo = (shape.clone(), (coeffs, rest_heads, A, offsets, self._t_pose_corrections(offsets, full)))
+            self.__dict__["_shape_memo"] = memo
+        if sk is self.full:
+            return memo[1]
+        coeffs, rest_heads, A, offsets, G = memo[1]
+        return coeffs, rest_heads[:, sk.bones], A[:, sk.bones], offsets[:, sk.bones], G[:, sk.bones]
+
     def _skeleton_pass(self, shape, pose, sk):
         """Blendshape coefficients, rest bone heads, rest -> reference rotations A, posed
         accumulated rotations and heads (Anny axes) and the J24 joints (SMPL body axes)."""
-        coeffs = self._coefficients(shape)
-        rest_heads, rest_R = self._rest_skeleton(coeffs, sk)
-        A, offsets = self._reference_offsets(rest_heads, rest_R, sk)
-        G = self._t_pose_corrections(offsets, sk)
+        coeffs, rest_heads, A, offsets, G = self._shape_pass(shape, sk)
         rot, heads = self._forward_kinematics(offsets, self._local_rotations(pose, G, sk), sk)
         C = self.c_smpl_to_anny
         joints = torch.einsum("jk,bkx->bjx", self.joint_regressor[:, sk.bones], heads) @ C
@@ -310,6 +337,34 @@ class AnnyBody(BodyModel):
         t = heads - (T @ rest_heads[..., None])[..., 0]
         rest_vertices = self.anny.get_rest_vertices(coeffs)
         return sparse_linear_blend_skinning(rest_vertices, self.skin_matrix, T, t) @ self.c_smpl_to_anny, joints
+
+    def forward(self, params: BodyParams) -> BodyOutput:
+        """As BodyModel.forward; without autograd through the blocked skinning, with the
+        change of axes, root rotation and translation folded into the bone transforms."""
+        self.check_params(params)
+        if _wants_grad(params.shape, params.pose, params.root_rotation, params.root_translation):
+            return super().forward(params)
+        with torch.no_grad():
+            coeffs, rest_heads, A, rot, heads, joints = self._skeleton_pass(params.shape, params.pose, self.full)
+            M = root_matrix(params.root_rotation) @ self.c_smpl_to_anny.T  # Anny axes -> mat frame
+            shift = params.root_translation - (M @ self.c_smpl_to_anny @ joints[:, 0, :, None])[..., 0]
+            T = M[:, None] @ rot @ A
+            t = (M[:, None] @ heads[..., None])[..., 0] - (T @ rest_heads[..., None])[..., 0] + shift[:, None]
+            vertices = self._blocked_skinning().pose(coeffs, T, t)
+        return BodyOutput(
+            vertices=vertices,
+            joints=place_in_mat(joints, joints[:, 0], params),
+            faces=self.faces,
+            part_labels=self.part_labels,
+            skinning_weights=self.skinning_weights,
+        )
+
+    def _blocked_skinning(self) -> BlockedSkinning:
+        """The inference skinning, built on first use for the model's dtype and device."""
+        key, cached = (self.dtype, self.device), self.__dict__.get("_blocked")
+        if cached is None or cached[0] != key:
+            cached = self.__dict__["_blocked"] = (key, BlockedSkinning.of_anny(self.anny, self.skin_matrix))
+        return cached[1]
 
     def linear_mesh(self) -> LinearMesh:
         return LinearMesh(
@@ -348,35 +403,3 @@ class AnnyBody(BodyModel):
             elbow = R_smpl[:, arm["elbow"]] @ R_smpl[:, arm["twist"]]
             pose[:, arm["elbow_joint"] - 1] = matrix_to_axis_angle(elbow)
         return pose
-
-
-def _skin_matrix(model) -> torch.Tensor:
-    """Sparse (V, num_bones) skinning weights (most vertices have 1-3 bones of Anny's 9 slots)."""
-    w, i = model.vertex_bone_weights, model.vertex_bone_indices.long()
-    V = w.shape[0]
-    rows = torch.arange(V).repeat_interleave(w.shape[1])
-    keep = w.flatten() > 0
-    index = torch.stack([rows[keep], i.flatten()[keep]])
-    return torch.sparse_coo_tensor(
-        index, w.flatten()[keep], (V, len(model.bone_labels)), check_invariants=True
-    ).coalesce()
-
-
-def sparse_linear_blend_skinning(
-    rest_vertices: torch.Tensor, weights: torch.Tensor, T: torch.Tensor, t: torch.Tensor
-) -> torch.Tensor:
-    """Linear blend skinning: rest vertices (B, V, 3), sparse weights (V, K), per-bone rigid
-    transforms T (B, K, 3, 3), t (B, K, 3) -> posed vertices (B, V, 3).
-
-    Blends the 12 transform entries with one sparse matrix product (cost ~ non-zero weights,
-    not V x K), then applies each vertex's blended transform.
-    """
-    B, K = T.shape[:2]
-    affine = torch.cat([T, t[..., None]], -1).permute(1, 0, 2, 3).reshape(K, B * 12)
-    blended = torch.sparse.mm(weights, affine).view(-1, B, 3, 4)  # (V, B, 3, 4)
-    v = rest_vertices.transpose(0, 1)  # (V, B, 3)
-    # Written out per column: much faster on CPU than a batched 3x3 matmul of this shape.
-    posed = (
-        blended[..., 3] + blended[..., 0] * v[..., :1] + blended[..., 1] * v[..., 1:2] + blended[..., 2] * v[..., 2:]
-    )
-    return posed.transpose(0, 1)
