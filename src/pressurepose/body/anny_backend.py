@@ -339,18 +339,12 @@ class AnnyBody(BodyModel):
         return sparse_linear_blend_skinning(rest_vertices, self.skin_matrix, T, t) @ self.c_smpl_to_anny, joints
 
     def forward(self, params: BodyParams) -> BodyOutput:
-        """As BodyModel.forward; without autograd through the blocked skinning, with the
-        change of axes, root rotation and translation folded into the bone transforms."""
+        """As BodyModel.forward; without autograd by `_blocked_mesh`."""
         self.check_params(params)
         if _wants_grad(params.shape, params.pose, params.root_rotation, params.root_translation):
             return super().forward(params)
-        with torch.no_grad():
-            coeffs, rest_heads, A, rot, heads, joints = self._skeleton_pass(params.shape, params.pose, self.full)
-            M = root_matrix(params.root_rotation) @ self.c_smpl_to_anny.T  # Anny axes -> mat frame
-            shift = params.root_translation - (M @ self.c_smpl_to_anny @ joints[:, 0, :, None])[..., 0]
-            T = M[:, None] @ rot @ A
-            t = (M[:, None] @ heads[..., None])[..., 0] - (T @ rest_heads[..., None])[..., 0] + shift[:, None]
-            vertices = self._blocked_skinning().pose(coeffs, T, t)
+        frame = root_matrix(params.root_rotation) @ self.c_smpl_to_anny.T  # Anny axes -> mat frame
+        vertices, joints = self._blocked_mesh(params.shape, params.pose, frame, params.root_translation)
         return BodyOutput(
             vertices=vertices,
             joints=place_in_mat(joints, joints[:, 0], params),
@@ -359,12 +353,27 @@ class AnnyBody(BodyModel):
             skinning_weights=self.skinning_weights,
         )
 
-    def _blocked_skinning(self) -> BlockedSkinning:
-        """The inference skinning, built on first use for the model's dtype and device."""
+    def rest_vertices(self, shape: torch.Tensor) -> torch.Tensor:
+        if _wants_grad(shape):
+            return super().rest_vertices(shape)
+        self.check_params(BodyParams.zeros(shape.shape[0], shape))
+        frame = self.c_smpl_to_anny.T.expand(shape.shape[0], 3, 3)  # Anny axes -> SMPL body axes
+        return self._blocked_mesh(shape, shape.new_zeros(shape.shape[0], NUM_JOINTS - 1, 3), frame, None)[0]
+
+    @torch.no_grad()
+    def _blocked_mesh(self, shape, pose, frame, pelvis_to):
+        """Posed mesh (B, V, 3) by `BlockedSkinning`, rotated by frame (B, 3, 3) from Anny's
+        axes and moved so the pelvis lands at pelvis_to (B, 3) (None: the origin), both
+        folded into the bone transforms; and the J24 joints in SMPL body axes."""
+        coeffs, rest_heads, A, rot, heads, joints = self._skeleton_pass(shape, pose, self.full)
+        shift = -(frame @ self.c_smpl_to_anny @ joints[:, 0, :, None])[..., 0]
+        shift = shift if pelvis_to is None else shift + pelvis_to
+        T = frame[:, None] @ rot @ A  # skinning x -> T x + t: rest to posed, then into the frame
+        t = (frame[:, None] @ heads[..., None])[..., 0] - (T @ rest_heads[..., None])[..., 0] + shift[:, None]
         key, cached = (self.dtype, self.device), self.__dict__.get("_blocked")
-        if cached is None or cached[0] != key:
+        if cached is None or cached[0] != key:  # built on first use for the model's dtype and device
             cached = self.__dict__["_blocked"] = (key, BlockedSkinning.of_anny(self.anny, self.skin_matrix))
-        return cached[1]
+        return cached[1].pose(coeffs, T, t), joints
 
     def linear_mesh(self) -> LinearMesh:
         return LinearMesh(

