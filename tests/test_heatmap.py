@@ -347,3 +347,17 @@ def test_more_ik_steps_bring_the_body_closer_to_the_localised_joints(anny32):
         w = IKConfig().weights(est.localisation.spread_m2)
         gaps.append(float((w * (est.joints - est.localisation.joints).square().sum(-1)).sum()))
     assert gaps[0] > gaps[1] > gaps[2]
+
+
+def test_heatmap_net_eval_in_chunks_equals_one_pass():
+    """Eval batches larger than EVAL_CHUNK run in pieces (speed): the same numbers as one pass."""
+    torch.manual_seed(0)
+    net = HeatmapNet(3, 84).eval()
+    x = torch.rand(5, 3, 64, 27) * 50
+    with torch.no_grad():
+        raw, loc = net(x)
+        net.EVAL_CHUNK = 2
+        raw2, loc2 = net(x)
+    torch.testing.assert_close(raw2, raw)
+    for name in ("joints", "grid_joints", "spread_m2", "log_prob"):
+        torch.testing.assert_close(getattr(loc2, name), getattr(loc, name))

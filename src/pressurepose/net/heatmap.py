@@ -115,6 +115,7 @@ class HeatmapNet(nn.Module):
     """(B, C, 64, 27) channels -> (raw (B, D), Localisation). See the module doc."""
 
     INPUT_SCALE = 0.02  # the released channel values (sums of 20,000, contact 100) -> O(1)
+    EVAL_CHUNK = 64  # eval batches run in pieces this size: activations stay in cache (~15% at 128)
 
     def __init__(
         self, in_channels: int, out_features: int, mat: MatSpec | None = None, dropout: float = 0.1, width: int = 1
@@ -143,6 +144,11 @@ class HeatmapNet(nn.Module):
             self.fc[-1].bias.zero_()
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, Localisation]:
+        if not self.training and x.shape[0] > self.EVAL_CHUNK:  # exact: batch norm uses running stats
+            parts = [self.forward(c) for c in x.split(self.EVAL_CHUNK)]
+            cat = lambda name: torch.cat([getattr(loc, name) for _, loc in parts])  # noqa: E731
+            loc = Localisation(cat("joints"), cat("grid_joints"), cat("spread_m2"), cat("log_prob"), self.centres)
+            return torch.cat([raw for raw, _ in parts]), loc
         B = x.shape[0]
         if not self.training:  # mkldnn's convolutions: ~20% faster at batch 128 (docs/benchmarks.md)
             x = x.contiguous(memory_format=torch.channels_last)
