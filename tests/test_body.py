@@ -271,3 +271,19 @@ def test_anny_inference_path_matches_the_differentiable_one(anny64):
         mod.BLOCK_FLOATS = old
     with pytest.raises(ValueError, match="expected T"):
         skin.pose(coeffs, T[:, :5], t)
+
+
+def test_anny_rest_joints_without_kinematics_match_the_posing(anny64):
+    """Anny's closed-form T-pose joints (chains of T-pose corrections) equal the joints of
+    the zero pose posed level by level, with and without autograd."""
+    from pressurepose.body.model import BodyModel
+
+    shape = torch.rand(3, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    reference = BodyModel.rest_joints(anny64, shape)
+    torch.testing.assert_close(anny64.rest_joints(shape), reference, atol=1e-12, rtol=0)
+    with torch.inference_mode():
+        torch.testing.assert_close(anny64.rest_joints(shape), reference, atol=1e-12, rtol=0)
+    wanting = shape.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(anny64.rest_joints(wanting)[:, 20].sum(), wanting)
+    (g_ref,) = torch.autograd.grad(BodyModel.rest_joints(anny64, wanting)[:, 20].sum(), wanting)
+    torch.testing.assert_close(g, g_ref)

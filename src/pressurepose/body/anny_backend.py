@@ -338,6 +338,25 @@ class AnnyBody(BodyModel):
         rest_vertices = self.anny.get_rest_vertices(coeffs)
         return sparse_linear_blend_skinning(rest_vertices, self.skin_matrix, T, t) @ self.c_smpl_to_anny, joints
 
+    def rest_joints(self, shape: torch.Tensor) -> torch.Tensor:
+        """As BodyModel.rest_joints, without the forward kinematics: at the zero pose a bone's
+        accumulated rotation is its T-pose correction G_b, so its head is the sum of
+        G_parent(a) offset_a over the bones a on its chain (one product with a 0/1 matrix)."""
+        self.check_params(BodyParams.zeros(shape.shape[0], shape))
+        sk = self.light
+        _, _, _, offsets, G = self._shape_pass(shape, sk)
+        if "_chains" not in self.__dict__:  # [b, a] = 1 when a is b or an ancestor of b below the root
+            parents, n = sk.parents.tolist(), len(sk.parents)
+            chains = torch.zeros(n, n)
+            for b in range(1, n):
+                a = b
+                while a > 0:
+                    chains[b, a], a = 1.0, parents[a]
+            self.__dict__["_chains"] = chains
+        heads = self.__dict__["_chains"].to(offsets) @ (G[:, sk.parents] @ offsets[..., None])[..., 0]
+        joints = torch.einsum("jk,bkx->bjx", self.joint_regressor[:, sk.bones], heads) @ self.c_smpl_to_anny
+        return joints - joints[:, :1]
+
     def forward(self, params: BodyParams) -> BodyOutput:
         """As BodyModel.forward; without autograd by `_blocked_mesh`."""
         self.check_params(params)

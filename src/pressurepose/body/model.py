@@ -129,6 +129,13 @@ class BodyModel(torch.nn.Module, abc.ABC):
         _, joints = self.body_frame(params.shape, params.pose, with_vertices=False)
         return place_in_mat(joints, joints[:, 0], params)
 
+    def rest_joints(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B, 24, 3) T-pose joints of (B, S) shapes in body axes, pelvis at the origin."""
+        params = BodyParams.zeros(shape.shape[0], shape)
+        self.check_params(params)
+        _, joints = self.body_frame(params.shape, params.pose, with_vertices=False)
+        return joints - joints[:, :1]
+
     def rest_vertices(self, shape: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) zero-pose (T-pose) mesh in body axes, pelvis at the origin."""
         params = BodyParams.zeros(shape.shape[0], shape)

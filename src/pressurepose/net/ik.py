@@ -71,6 +71,8 @@ def _strict_descendants() -> torch.Tensor:
 
 
 DESCENDANTS = _strict_descendants()
+_DESCENDANTS_F = DESCENDANTS.float()  # the mask as a factor (float32 models: no conversion per step)
+_PARENTS_OF_POSED = torch.tensor(J24_PARENTS[1:])
 
 
 def left_jacobian(phi: torch.Tensor) -> torch.Tensor:
@@ -93,11 +95,12 @@ def joint_jacobian(rot: torch.Tensor, pos: torch.Tensor, params: BodyParams) -> 
     B = pos.shape[0]
     angles = torch.cat([params.root_rotation[:, None], params.pose], 1)  # (B, 24, 3)
     parent_rot = torch.cat(
-        [torch.eye(3, dtype=rot.dtype, device=rot.device).expand(B, 1, 3, 3), rot[:, list(J24_PARENTS[1:])]], 1
+        [torch.eye(3, dtype=rot.dtype, device=rot.device).expand(B, 1, 3, 3), rot[:, _PARENTS_OF_POSED.to(rot.device)]],
+        1,
     )  # (B, 24, 3, 3)
     a = (parent_rot @ left_jacobian(angles)).transpose(-1, -2)[:, :, :, None, :]  # (B, j, i, 1, xyz)
     arm = pos[:, None, :, :] - pos[:, :, None, :]  # (B, j, k, xyz)
-    d = (arm * DESCENDANTS.to(arm)[None, :, :, None])[:, :, None]  # (B, j, 1, k, xyz), 0 off the subtree
+    d = (arm * _DESCENDANTS_F.to(arm)[None, :, :, None])[:, :, None]  # (B, j, 1, k, xyz), 0 off the subtree
     # a x d written out on broadcast views (linalg.cross materialises both (B, j, i, k, 3) operands)
     cols = torch.stack(
         [
