@@ -287,3 +287,15 @@ def test_anny_rest_joints_without_kinematics_match_the_posing(anny64):
     (g,) = torch.autograd.grad(anny64.rest_joints(wanting)[:, 20].sum(), wanting)
     (g_ref,) = torch.autograd.grad(BodyModel.rest_joints(anny64, wanting)[:, 20].sum(), wanting)
     torch.testing.assert_close(g, g_ref)
+
+
+def test_anny_kept_shape_pass_never_meets_autograd(anny64):
+    """The skeleton pass Anny keeps from an inference call is not reused when grad mode is on:
+    a pose that wants gradients, on the same shapes, still differentiates."""
+    p = random_params(anny64, B=2, seed=4)
+    with torch.inference_mode():
+        anny64(p)  # keeps these shapes' skeleton pass (inference tensors)
+    pose = p.pose.clone().requires_grad_(True)
+    wanting = BodyParams(shape=p.shape, root_rotation=p.root_rotation, root_translation=p.root_translation, pose=pose)
+    (g,) = torch.autograd.grad(anny64.joints(wanting).sum() + anny64(wanting).vertices.sum(), pose)
+    assert torch.isfinite(g).all() and g.abs().sum() > 0

@@ -25,7 +25,7 @@ import torch
 
 from pressurepose.body.anny_inference import AnnyInference
 from pressurepose.body.anny_skeleton import Skeleton
-from pressurepose.body.anny_skinning import skin_matrix, sparse_linear_blend_skinning, wants_grad
+from pressurepose.body.anny_skinning import skin_matrix, sparse_linear_blend_skinning
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
@@ -294,10 +294,12 @@ class AnnyBody(AnnyInference, BodyModel):
         """The pose-independent part of a pass: blendshape coefficients, rest bone heads,
         rest -> reference rotations A, reference offsets and T-pose corrections G of `sk`.
 
-        Without autograd the full skeleton's is computed once per batch of shapes and kept
+        With grad mode off the full skeleton's is computed once per batch of shapes and kept
         (the last one; IK and then the mesh of the same bodies reuse it), and a smaller
-        skeleton's is read from it (its bones keep their parents: the same numbers)."""
-        if wants_grad(shape):
+        skeleton's is read from it (its bones keep their parents: the same numbers). With grad
+        mode on it is always computed afresh (a kept inference tensor could not be saved for
+        the backward of a pose that wants gradients)."""
+        if torch.is_grad_enabled():
             coeffs = self._coefficients(shape)
             rest_heads, rest_R = self._rest_skeleton(coeffs, sk)
             A, offsets = self._reference_offsets(rest_heads, rest_R, sk)
