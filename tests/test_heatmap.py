@@ -277,6 +277,8 @@ def test_heatmap_bad_inputs(anny32, tmp_path):
         NetConfig(arch="heatmap", modules=2)
     with pytest.raises(ValueError, match="ik_steps"):
         NetConfig(arch="heatmap", ik_steps=-1)
+    with pytest.raises(ValueError, match="IKConfig.damping must be > 0"):
+        IKConfig(damping=0.0)
     with pytest.raises(UserError, match="config.net.arch"):
         net_config_from_record({"net": {"arch": "heatmaps"}}, tmp_path / "model.safetensors")
     with pytest.raises(UserError, match="config.net.ik_steps"):

@@ -51,6 +51,13 @@ class IKConfig:
     damping: float = 1.0  # Levenberg-Marquardt mu added to the normal matrix (unitless)
     spread_weights: bool = True  # weight joint j by sigma^2 / (sigma^2 + its heatmap's variance)
 
+    def __post_init__(self) -> None:
+        if self.steps < 0:
+            raise ValueError(f"IKConfig.steps must be >= 0, got {self.steps}")
+        for name in ("joint_sigma_m", "prior_sigma_rad", "damping"):  # damping > 0: Cholesky needs it
+            if not getattr(self, name) > 0:
+                raise ValueError(f"IKConfig.{name} must be > 0, got {getattr(self, name)}")
+
     def weights(self, spread_m2: torch.Tensor) -> torch.Tensor:
         """(B, 24) per-joint weights from the heatmaps' variances (m^2): a diffuse heatmap (a
         limb the image does not show) is trusted less, and the prior takes over."""
