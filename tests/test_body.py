@@ -299,3 +299,19 @@ def test_anny_kept_shape_pass_never_meets_autograd(anny64):
     wanting = BodyParams(shape=p.shape, root_rotation=p.root_rotation, root_translation=p.root_translation, pose=pose)
     (g,) = torch.autograd.grad(anny64.joints(wanting).sum() + anny64(wanting).vertices.sum(), pose)
     assert torch.isfinite(g).all() and g.abs().sum() > 0
+
+
+def test_anny_copies_and_pickles_after_inference(anny32):
+    """The inference caches (kept skeleton pass, skinning blocks) are left out of copies and
+    pickles: a copy made after inference calls poses the same mesh."""
+    import copy
+    import pickle
+
+    p = random_params(anny32, B=2, seed=5)
+    with torch.inference_mode():
+        before = anny32(p).vertices
+        anny32.rest_joints(p.shape)
+    for twin in (copy.deepcopy(anny32), pickle.loads(pickle.dumps(anny32))):
+        assert "_blocked" not in twin.__dict__ and "_shape_memo" not in twin.__dict__
+        with torch.inference_mode():
+            torch.testing.assert_close(twin(p).vertices, before)

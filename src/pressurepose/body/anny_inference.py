@@ -17,9 +17,15 @@ from pressurepose.body.anny_skinning import BlockedSkinning, wants_grad
 from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.params import BodyOutput, BodyParams, place_in_mat, root_matrix
 
+_CACHES = ("_shape_memo", "_blocked", "_chains")  # rebuilt on demand; not copied or pickled
+
 
 class AnnyInference:
     """Mixin of AnnyBody (uses its skeletons, shape pass and buffers)."""
+
+    def __getstate__(self):
+        state = super().__getstate__()
+        return {k: v for k, v in state.items() if k not in _CACHES}
 
     def rest_joints(self, shape: torch.Tensor) -> torch.Tensor:
         """As BodyModel.rest_joints, without the forward kinematics: at the zero pose a bone's
