@@ -280,3 +280,90 @@ def test_a_gendered_smpl_file_refuses_the_other_gender(smpl_dir, tmp_path):
     with pytest.raises(UserError, match="smpl body model is female but the sampling asks for male"):
         PoseSampler(female, SamplingConfig(partition="supine", gender="male"))
     PoseSampler(female, SamplingConfig(partition="supine", gender="female"))  # accepted
+
+
+def test_anny_inference_path_matches_the_differentiable_one(anny64):
+    """Without autograd Anny poses the mesh by blocked skinning (axes, root rotation and
+    translation folded into the bone transforms) and reuses the last shapes' skeleton pass:
+    the same vertices and joints as the differentiable path, for new shapes too."""
+    from pressurepose.body.anny_skinning import BlockedSkinning
+
+    for seed in (0, 1):
+        p = random_params(anny64, B=3, seed=seed)
+        wanting = BodyParams(
+            shape=p.shape.clone().requires_grad_(True),
+            root_rotation=p.root_rotation,
+            root_translation=p.root_translation,
+            pose=p.pose,
+        )
+        ref = anny64(wanting)
+        assert ref.vertices.requires_grad  # the differentiable path
+        with torch.inference_mode():
+            out = anny64(p)
+            joints = anny64.joints(p)
+            rest = anny64.rest_vertices(p.shape)
+        torch.testing.assert_close(out.vertices, ref.vertices.detach(), atol=1e-10, rtol=0)
+        torch.testing.assert_close(out.joints, ref.joints.detach(), atol=1e-12, rtol=0)
+        torch.testing.assert_close(joints, ref.joints.detach(), atol=1e-12, rtol=0)
+        torch.testing.assert_close(rest, anny64.rest_vertices(wanting.shape).detach(), atol=1e-12, rtol=0)
+    # blocks of any size give the same mesh as one block
+    skin = BlockedSkinning(anny64.anny.template_vertices, anny64.anny.blendshapes, anny64.skin_matrix)
+    coeffs = anny64._coefficients(p.shape)
+    T = torch.linalg.qr(torch.randn(3, skin.num_bones, 3, 3, dtype=torch.float64))[0]
+    t = torch.randn(3, skin.num_bones, 3, dtype=torch.float64)
+    whole = skin.pose(coeffs, T, t)
+    import pressurepose.body.anny_skinning as mod
+
+    old, mod.BLOCK_FLOATS = mod.BLOCK_FLOATS, 1000
+    try:
+        blocked = BlockedSkinning(anny64.anny.template_vertices, anny64.anny.blendshapes, anny64.skin_matrix)
+        assert len(blocked._rows(3)) > 10
+        torch.testing.assert_close(blocked.pose(coeffs, T, t), whole, atol=1e-12, rtol=0)
+    finally:
+        mod.BLOCK_FLOATS = old
+    with pytest.raises(ValueError, match="expected T"):
+        skin.pose(coeffs, T[:, :5], t)
+
+
+def test_anny_rest_joints_without_kinematics_match_the_posing(anny64):
+    """Anny's closed-form T-pose joints (chains of T-pose corrections) equal the joints of
+    the zero pose posed level by level, with and without autograd."""
+    from pressurepose.body.model import BodyModel
+
+    shape = torch.rand(3, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    reference = BodyModel.rest_joints(anny64, shape)
+    torch.testing.assert_close(anny64.rest_joints(shape), reference, atol=1e-12, rtol=0)
+    with torch.inference_mode():
+        torch.testing.assert_close(anny64.rest_joints(shape), reference, atol=1e-12, rtol=0)
+    wanting = shape.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(anny64.rest_joints(wanting)[:, 20].sum(), wanting)
+    (g_ref,) = torch.autograd.grad(BodyModel.rest_joints(anny64, wanting)[:, 20].sum(), wanting)
+    torch.testing.assert_close(g, g_ref)
+
+
+def test_anny_kept_shape_pass_never_meets_autograd(anny64):
+    """The skeleton pass Anny keeps from an inference call is not reused when grad mode is on:
+    a pose that wants gradients, on the same shapes, still differentiates."""
+    p = random_params(anny64, B=2, seed=4)
+    with torch.inference_mode():
+        anny64(p)  # keeps these shapes' skeleton pass (inference tensors)
+    pose = p.pose.clone().requires_grad_(True)
+    wanting = BodyParams(shape=p.shape, root_rotation=p.root_rotation, root_translation=p.root_translation, pose=pose)
+    (g,) = torch.autograd.grad(anny64.joints(wanting).sum() + anny64(wanting).vertices.sum(), pose)
+    assert torch.isfinite(g).all() and g.abs().sum() > 0
+
+
+def test_anny_copies_and_pickles_after_inference(anny32):
+    """The inference caches (kept skeleton pass, skinning blocks) are left out of copies and
+    pickles: a copy made after inference calls poses the same mesh."""
+    import copy
+    import pickle
+
+    p = random_params(anny32, B=2, seed=5)
+    with torch.inference_mode():
+        before = anny32(p).vertices
+        anny32.rest_joints(p.shape)
+    for twin in (copy.deepcopy(anny32), pickle.loads(pickle.dumps(anny32))):
+        assert "_blocked" not in twin.__dict__ and "_shape_memo" not in twin.__dict__
+        with torch.inference_mode():
+            torch.testing.assert_close(twin(p).vertices, before)

@@ -202,7 +202,7 @@ def one_line(err: str) -> str:
         (["sample", "--seed", "-1"], "seed must be >= 0, got -1"),
         (["simulate", "--max-shapes", "0"], "max_shapes must be >= 1, got 0"),
         (["generate", "--workers", "0"], "workers must be >= 1, got 0"),
-        (["generate", "--settle", "articulated", "--sim2", "rigid"], "drop --sim2 rigid"),
+        (["generate", "--sim2", "rigid"], "--sim2 rigid needs --settle mujoco"),
         # a flag's text that is not of its type: the flag and the type are named
         (["sample", "--n", "abc"], "--n (expects INT): invalid literal for int()"),
         (["train", "--lr-gamma", "fast"], "--lr-gamma (expects FLOAT)"),

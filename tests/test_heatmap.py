@@ -277,6 +277,8 @@ def test_heatmap_bad_inputs(anny32, tmp_path):
         NetConfig(arch="heatmap", modules=2)
     with pytest.raises(ValueError, match="ik_steps"):
         NetConfig(arch="heatmap", ik_steps=-1)
+    with pytest.raises(ValueError, match="IKConfig.damping must be > 0"):
+        IKConfig(damping=0.0)
     with pytest.raises(UserError, match="config.net.arch"):
         net_config_from_record({"net": {"arch": "heatmaps"}}, tmp_path / "model.safetensors")
     with pytest.raises(UserError, match="config.net.ik_steps"):
@@ -333,10 +335,31 @@ def test_train_cli_refuses_heatmap_mod2(tmp_path, capsys):
     assert "arch heatmap is one module" in err and len(err.strip().splitlines()) == 1
 
 
-def test_synthesis_refine_refuses_the_heatmap_arch(anny32):
-    from pressurepose.errors import UserError
-    from pressurepose.net.synthesis import refine
+def test_more_ik_steps_bring_the_body_closer_to_the_localised_joints(anny32):
+    """The IK is the heatmap arch's test-time refinement (`predict --ik-steps N`): more steps
+    fit the body's joints closer to where the heatmaps put them."""
+    torch.manual_seed(0)
+    net = PressureNet(NetConfig(arch="heatmap", gender_input=False, ik_steps=0), body=anny32).eval()
+    p = torch.rand(3, 64, 27) * 40
+    gaps = []
+    for steps in (0, 2, 8):
+        net.config = dataclasses.replace(net.config, ik_steps=steps)
+        with torch.inference_mode():
+            est = net(NetInputs(p), mesh=False)[-1]
+        w = IKConfig().weights(est.localisation.spread_m2)
+        gaps.append(float((w * (est.joints - est.localisation.joints).square().sum(-1)).sum()))
+    assert gaps[0] > gaps[1] > gaps[2]
 
-    net = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=anny32)
-    with pytest.raises(UserError, match="refines its estimate by IK"):
-        refine(net, NetInputs(torch.rand(1, 64, 27) * 40), steps=1)
+
+def test_heatmap_net_eval_in_chunks_equals_one_pass():
+    """Eval batches larger than EVAL_CHUNK run in pieces (speed): the same numbers as one pass."""
+    torch.manual_seed(0)
+    net = HeatmapNet(3, 84).eval()
+    x = torch.rand(5, 3, 64, 27) * 50
+    with torch.no_grad():
+        raw, loc = net(x)
+        net.EVAL_CHUNK = 2
+        raw2, loc2 = net(x)
+    torch.testing.assert_close(raw2, raw)
+    for name in ("joints", "grid_joints", "spread_m2", "log_prob"):
+        torch.testing.assert_close(getattr(loc2, name), getattr(loc, name))

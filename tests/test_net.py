@@ -237,21 +237,6 @@ def test_synthesis_loss_prefers_the_true_body(anny64, samples):
     assert losses[0] < 0.2 < losses[1]
 
 
-def test_refine_starts_from_the_network_and_moves(anny32, samples):
-    from pressurepose.net.synthesis import refine
-
-    torch.manual_seed(0)
-    net = PressureNet(NetConfig(), body=anny32)
-    inputs = NetInputs(samples["pressure_mmhg"][:1], gender=samples["gender"][:1])
-    with torch.no_grad():
-        plain = net.eval()(inputs, mesh=True)[-1]
-    same, hist0 = refine(net, inputs, steps=0)
-    assert torch.equal(same.raw, plain.raw) and len(hist0) == 1
-    moved, hist = refine(net, inputs, steps=2, lr=0.05)
-    assert len(hist) == 3 and all(math.isfinite(h) for h in hist) and hist[0] == pytest.approx(hist0[0])
-    assert not torch.equal(moved.raw, plain.raw) and torch.isfinite(moved.vertices).all()
-
-
 def test_smpl_backend_gives_the_released_output_size(smpl_dir):
     net = PressureNet(NetConfig(backend="smpl", smpl_dir=str(smpl_dir))).eval()
     assert net.head.size == 88  # 10 betas + 3 + 6 + 69, as released

@@ -520,3 +520,12 @@ def test_bands_against_a_naive_reference(data32):
         assert abs(float(out[i].sum()) / float(p[i].sum()) - 1) < 0.1
     with pytest.raises(ValueError, match="bands"):
         TrainConfig.smoke(bands=-0.1)
+
+
+def test_predict_ik_steps_only_for_the_heatmap_arch(trained_run, tmp_path, capsys):
+    path = tmp_path / "one.npy"
+    np.save(path, np.full((64, 27), 5.0, dtype=np.float32))
+    capsys.readouterr()
+    args = ["predict", "--model", str(trained_run), "--out", str(tmp_path / "o"), "--ik-steps", "5", str(path)]
+    assert main(args) == 2
+    assert "--ik-steps is for arch heatmap" in capsys.readouterr().err

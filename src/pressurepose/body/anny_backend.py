@@ -24,12 +24,13 @@ import logging
 import numpy as np
 import torch
 
+from pressurepose.body.anny_inference import AnnyInference
 from pressurepose.body.anny_skeleton import Skeleton
+from pressurepose.body.anny_skinning import skin_matrix, sparse_linear_blend_skinning
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
 from pressurepose.body.shape_ranges import anny_bounds
-from pressurepose.body.skinning import skin_matrix, sparse_linear_blend_skinning
 from pressurepose.cache import cache_dir, file_lock
 
 log = logging.getLogger(__name__)
@@ -115,7 +116,7 @@ def _quiet(fn):
         return fn()
 
 
-class AnnyBody(BodyModel):
+class AnnyBody(AnnyInference, BodyModel):
     """Anny behind the BodyModel interface. Shape = 6 phenotypes in [0, 1]."""
 
     name = "anny"
@@ -314,13 +315,39 @@ class AnnyBody(BodyModel):
         order = sk.inverse_order
         return torch.cat(rot, 1)[:, order], torch.cat(heads, 1)[:, order]
 
+    def _shape_pass(self, shape, sk):
+        """The pose-independent part of a pass: blendshape coefficients, rest bone heads,
+        rest -> reference rotations A, reference offsets and T-pose corrections G of `sk`.
+
+        With grad mode off the full skeleton's is computed once per batch of shapes and kept
+        (the last one; IK and then the mesh of the same bodies reuse it), and a smaller
+        skeleton's is read from it (its bones keep their parents: the same numbers). With grad
+        mode on it is always computed afresh (a kept inference tensor could not be saved for
+        the backward of a pose that wants gradients)."""
+        if torch.is_grad_enabled():
+            coeffs = self._coefficients(shape)
+            rest_heads, rest_R = self._rest_skeleton(coeffs, sk)
+            A, offsets = self._reference_offsets(rest_heads, rest_R, sk)
+            return coeffs, rest_heads, A, offsets, self._t_pose_corrections(offsets, sk)
+        memo = self.__dict__.get("_shape_memo")
+        same = memo is not None and memo[0].dtype == shape.dtype and memo[0].device == shape.device
+        if not (same and memo[0].shape == shape.shape and torch.equal(memo[0], shape)):
+            with torch.no_grad():
+                full = self.full
+                coeffs = self._coefficients(shape)
+                rest_heads, rest_R = self._rest_skeleton(coeffs, full)
+                A, offsets = self._reference_offsets(rest_heads, rest_R, full)
+                memo = (shape.clone(), (coeffs, rest_heads, A, offsets, self._t_pose_corrections(offsets, full)))
+            self.__dict__["_shape_memo"] = memo
+        if sk is self.full:
+            return memo[1]
+        coeffs, rest_heads, A, offsets, G = memo[1]
+        return coeffs, rest_heads[:, sk.bones], A[:, sk.bones], offsets[:, sk.bones], G[:, sk.bones]
+
     def _skeleton_pass(self, shape, pose, sk):
         """Blendshape coefficients, rest bone heads, rest -> reference rotations A, posed
         accumulated rotations and heads (Anny axes) and the J24 joints (SMPL body axes)."""
-        coeffs = self._coefficients(shape)
-        rest_heads, rest_R = self._rest_skeleton(coeffs, sk)
-        A, offsets = self._reference_offsets(rest_heads, rest_R, sk)
-        G = self._t_pose_corrections(offsets, sk)
+        coeffs, rest_heads, A, offsets, G = self._shape_pass(shape, sk)
         rot, heads = self._forward_kinematics(offsets, self._local_rotations(pose, G, sk), sk)
         C = self.c_smpl_to_anny
         joints = torch.einsum("jk,bkx->bjx", self.joint_regressor[:, sk.bones], heads) @ C

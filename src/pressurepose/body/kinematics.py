@@ -24,15 +24,17 @@ for _j in range(1, NUM_JOINTS):
 LEVELS: tuple[tuple[int, ...], ...] = tuple(
     tuple(j for j in range(NUM_JOINTS) if _DEPTH[j] == d) for d in range(1, max(_DEPTH) + 1)
 )
+# Per level: the joints, their parents and their pose rows, as index tensors made once.
+_LEVEL_INDEX = tuple(
+    (torch.tensor(level), torch.tensor([J24_PARENTS[j] for j in level]), torch.tensor(level) - 1) for level in LEVELS
+)
+_PARENTS = torch.tensor([0, *J24_PARENTS[1:]])
 
 
 def rest_joints(model: BodyModel, shape: torch.Tensor) -> torch.Tensor:
     """(B, 24, 3) T-pose joints of (B, S) shapes in body axes (x left, y head, z front),
-    pelvis at the origin."""
-    params = BodyParams.zeros(shape.shape[0], shape)
-    model.check_params(params)
-    _, joints = model.body_frame(params.shape, params.pose, with_vertices=False)
-    return joints - joints[:, :1]
+    pelvis at the origin (`BodyModel.rest_joints`)."""
+    return model.rest_joints(shape)
 
 
 def forward_kinematics(
@@ -54,14 +56,13 @@ def forward_kinematics(
     rot = rest.new_zeros(B, NUM_JOINTS, 3, 3)
     pos = rest.new_zeros(B, NUM_JOINTS, 3)
     rot[:, 0] = torch.eye(3, dtype=rest.dtype, device=rest.device) if root_rotation is None else root_rotation
-    parents = list(J24_PARENTS)
-    for level in LEVELS:
-        idx = list(level)
-        par = [parents[j] for j in idx]
+    offsets = (rest - rest[:, _PARENTS.to(rest.device)])[..., None]  # (B, 24, 3, 1), the root's 0
+    for idx, par, row in _LEVEL_INDEX:
+        if idx.device != rest.device:
+            idx, par, row = idx.to(rest.device), par.to(rest.device), row.to(rest.device)
         rot_p = rot[:, par]
-        rot[:, idx] = rot_p @ local[:, [j - 1 for j in idx]]
-        offset = rest[:, idx] - rest[:, par]
-        pos[:, idx] = pos[:, par] + (rot_p @ offset[..., None])[..., 0]
+        rot[:, idx] = rot_p @ local[:, row]
+        pos[:, idx] = pos[:, par] + (rot_p @ offsets[:, idx])[..., 0]
     return rot, pos
 
 

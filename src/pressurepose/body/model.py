@@ -161,6 +161,13 @@ class BodyModel(torch.nn.Module, abc.ABC):
         _, joints = self.body_frame(params.shape, params.pose, with_vertices=False)
         return place_in_mat(joints, joints[:, 0], params)
 
+    def rest_joints(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B, 24, 3) T-pose joints of (B, S) shapes in body axes, pelvis at the origin."""
+        params = BodyParams.zeros(shape.shape[0], shape)
+        self.check_params(params)
+        _, joints = self.body_frame(params.shape, params.pose, with_vertices=False)
+        return joints - joints[:, :1]
+
     def rest_vertices(self, shape: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) zero-pose (T-pose) mesh in body axes, pelvis at the origin."""
         params = BodyParams.zeros(shape.shape[0], shape)
@@ -180,9 +187,16 @@ class BodyModel(torch.nn.Module, abc.ABC):
 
 
 def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Enclosed volume (B,) of closed, outward-oriented triangle meshes (B, V, 3), (F, 3)."""
-    v0, v1, v2 = (vertices[:, faces[:, k]] for k in range(3))
-    return (torch.linalg.cross(v0, v1, dim=-1) * v2).sum((-1, -2)) / 6.0
+    """Enclosed volume (B,) of closed, outward-oriented triangle meshes (B, V, 3), (F, 3).
+    Summed over blocks of faces, corners gathered as rows of a (V, B, 3) copy: mesh-sized
+    temporaries and per-sample gathers cost ~5x more on a CPU at batch 128."""
+    by_vertex = vertices.transpose(0, 1).contiguous()  # (V, B, 3)
+    step = max(1024, (1 << 18) // max(1, vertices.shape[0]))
+    total = vertices.new_zeros(vertices.shape[0])
+    for start in range(0, faces.shape[0], step):
+        v0, v1, v2 = (by_vertex.index_select(0, faces[start : start + step, k]) for k in range(3))
+        total = total + (torch.linalg.cross(v0, v1, dim=-1) * v2).sum((0, 2))
+    return total / 6.0
 
 
 def part_weights_onto_j24(

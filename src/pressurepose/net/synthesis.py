@@ -6,8 +6,8 @@ estimated mesh (beyond the seed; issue 7).
 reads it with the sensor model (`sim.sensor.taxel_reading`) and returns the mean absolute
 difference between the two images, each scaled to a mean of 1 per taxel (the input's overall
 level is unknown on real mats). Samples sim #2 cannot rest (no support, tipping over) are left
-out of the mean. `refine` lowers that loss at test time by a few Adam steps on the final raw
-output vector, with a pull back towards the network's answer.
+out of the mean. (A test-time `refine` that lowered this loss by Adam steps on the output
+made MPJPE worse, 136 -> 149-234 mm, and was removed: docs/network.md.)
 Costs one extra skinning pass for the mass and one sim #2 solve per step (~15 ms a sample).
 """
 
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from pressurepose.net.model import Estimate, NetInputs, PressureNet
+from pressurepose.net.model import Estimate, PressureNet
 from pressurepose.sim.foundation import simulate_pressure
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.sensor import sensing_area, taxel_reading
@@ -54,44 +54,4 @@ def synthesis_loss(
     return diff[ok].mean()
 
 
-def refine(
-    net: PressureNet,
-    inputs: NetInputs,
-    steps: int = 5,
-    lr: float = 0.02,
-    prior_weight: float = 1.0,
-    mattress: MattressParams | None = None,
-) -> tuple[Estimate, list[float]]:
-    """Test-time refinement: the final estimate after `steps` Adam steps on its raw vector
-    lowering synthesis_loss + prior_weight x mean squared change of the raw vector.
-    Returns the refined estimate (with mesh) and the loss before each step and at the end."""
-    if steps < 0:
-        raise ValueError(f"steps must be >= 0, got {steps}")
-    if net.config.arch == "heatmap":  # its raw vector is the head's answer before the IK
-        from pressurepose.errors import UserError
-
-        raise UserError(
-            "arch heatmap refines its estimate by IK on the localised joints; "
-            "--refine-steps is for the fast and paper archs"
-        )
-    net.eval()
-    with torch.no_grad():
-        start = net(inputs, mesh=True, maps=False)[-1]
-    gender = inputs.gender if net.config.gender_input else None
-    raw = start.raw.detach().clone().requires_grad_(True)
-    opt = torch.optim.Adam([raw], lr=lr)
-    history = []
-    for _ in range(steps):
-        est = net.estimate(raw, gender, mesh=True, maps=False)
-        loss = synthesis_loss(net, est, inputs.pressure_mmhg, mattress)
-        history.append(float(loss.detach()))
-        opt.zero_grad()
-        (loss + prior_weight * (raw - start.raw).square().mean()).backward()
-        opt.step()
-    with torch.no_grad():
-        est = net.estimate(raw.detach(), gender, mesh=True, maps=False)
-        history.append(float(synthesis_loss(net, est, inputs.pressure_mmhg, mattress)))
-    return est, history
-
-
-__all__ = ["refine", "synthesis_loss", "synthesised_pressure"]
+__all__ = ["synthesis_loss", "synthesised_pressure"]
