@@ -101,19 +101,14 @@ def load_anny(topology: str = DEFAULT_TOPOLOGY):
                 "and 2 GB of RAM; set PRESSUREPOSE_CACHE to put it elsewhere)",
                 root,
             )
-        model = _quiet(lambda: anny.Anny(topology=topology, skinning_method="lbs"))
+        with contextlib.redirect_stdout(io.StringIO()):  # Anny and Warp print banners on stdout
+            model = anny.Anny(topology=topology, skinning_method="lbs")
         if not stamp.exists():
             for pattern in ("*/build_model_data_*", "*/load_data_*"):
                 for path in root.glob(pattern):
                     path.unlink()  # only the compact file is read afterwards
             stamp.touch()
     return model
-
-
-def _quiet(fn):
-    # Anny and Warp print banners on stdout; keep the CLI's stdout clean.
-    with contextlib.redirect_stdout(io.StringIO()):
-        return fn()
 
 
 class AnnyBody(AnnyInference, BodyModel):

@@ -31,7 +31,6 @@ from pressurepose.sampling.partitions import (
     LEG_CELLS,
 )
 
-FIRST_ROUND, LARGEST_ROUND = 64, 4096  # joint-angle draws per round, per limb and sample
 # The float32 screen of every draw is looser than the exact tests by this much (its round-off
 # is < 1e-6 m), so it never drops a draw they would accept: samples stay exact and
 # batch-independent.
@@ -398,14 +397,3 @@ class LimbDraws:
         a, b = batch.a[rows], batch.b[rows]
         a[:, caps], b[:, caps] = ends
         return (capsule_clearance(a, b, batch.radius[rows], pairs) >= 0).all(-1)
-
-
-def draw_schedule(budget: int) -> np.ndarray:
-    """Cumulative draw counts at the end of each round: 64, 128, ..., 4096, 4096, ... up to
-    `budget`."""
-    ends, drawn, size = [], 0, FIRST_ROUND
-    while drawn < budget:
-        drawn += min(size, budget - drawn)
-        size = min(2 * size, LARGEST_ROUND)
-        ends.append(drawn)
-    return np.array(ends)

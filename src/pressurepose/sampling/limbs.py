@@ -177,3 +177,17 @@ def arm_cell(rise: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
     3 = [0, A/4), 4 = [-A/4, 0), 7 = below -3A/4."""
     q = (rise / (A / 4)).floor().clamp(-4, 3).long()  # -4..3
     return 3 - q
+
+
+FIRST_ROUND, LARGEST_ROUND = 64, 4096  # joint-angle draws per round, per limb and sample
+
+
+def draw_schedule(budget: int) -> np.ndarray:
+    """Cumulative draw counts at the end of each round: 64, 128, ..., 4096, 4096, ... up to
+    `budget`."""
+    ends, drawn, size = [], 0, FIRST_ROUND
+    while drawn < budget:
+        drawn += min(size, budget - drawn)
+        size = min(2 * size, LARGEST_ROUND)
+        ends.append(drawn)
+    return np.array(ends)

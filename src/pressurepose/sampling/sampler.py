@@ -56,12 +56,13 @@ from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.attempt import SampleState
-from pressurepose.sampling.limb_draws import LimbDraws, draw_schedule
+from pressurepose.sampling.limb_draws import LimbDraws
 from pressurepose.sampling.limbs import (
     GEOMETRY_QUANTUM_M,
     LIMBS,
     TORSO_JOINTS,
     J,
+    draw_schedule,
     limb_pose,
     limb_table,
     rotating_joints,
