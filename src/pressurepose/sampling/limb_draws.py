@@ -4,14 +4,13 @@ order (module docstring of `sampling.sampler`)."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
-from pressurepose.body.capsules import CAPSULES, capsule_clearance
+from pressurepose.body.capsules import capsule_clearance
 from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.sampling.attempt import ALONG, MAT_X, MAT_Y, UP, Attempt, SampleState
+from pressurepose.sampling.limb_context import PREFILTER_MARGIN_M, LimbContext, limb_context
 from pressurepose.sampling.limbs import (
     LIMBS,
     Limb,
@@ -26,15 +25,9 @@ from pressurepose.sampling.limbs import (
     vdot,
 )
 from pressurepose.sampling.partitions import (
-    ARM_CELLS,
     HEIGHT_TOLERANCE_M,
-    LEG_CELLS,
 )
 
-# The float32 screen of every draw is looser than the exact tests by this much (its round-off
-# is < 1e-6 m), so it never drops a draw they would accept: samples stay exact and
-# batch-independent.
-PREFILTER_MARGIN_M = 1e-4
 # Elements per temporary of the screen: samples x draws chunks that stay in the CPU cache.
 _SCREEN_ELEMENTS = 1 << 16
 # Draws tested at once (pending samples x rounds of a window): ~4 ms of work, so that the fixed
@@ -76,14 +69,13 @@ class LimbDraws:
         they accept); survivors are tested exactly (float64), then for self-collisions."""
         done = []
         reachable = torch.zeros(len(batch.states), dtype=torch.bool)
-        ctx = self._limb_context(batch, limb)
+        ctx = limb_context(batch, limb, self._limb_capsules[limb.name])
         ends = self._round_ends
         grid = self._grids.get(limb.name)
         # Over the bed: the first PLAIN_ROUNDS rounds as above; the rest of the budget, for the
         # samples still without a draw, from the boxes that may reach the cell (same law).
         plain = ends if grid is None else ends[:PLAIN_ROUNDS]
-        ctx["budget"] = torch.full((len(batch.states),), int(plain[-1]), dtype=torch.long)
-        ctx["children"] = {}
+        ctx.budget = torch.full((len(batch.states),), int(plain[-1]), dtype=torch.long)
         pending = self._phase(batch, ctx, rows, limb, plain, reachable, done)
         if pending.numel() and len(plain) < len(ends):
             self._proposals(batch, ctx, pending, limb, grid, int(ends[-1] - plain[-1]))
@@ -100,9 +92,9 @@ class LimbDraws:
         return won.sort().values
 
     def _phase(self, batch, ctx, pending, limb, ends, reachable, done) -> torch.Tensor:
-        """Rounds ending at `ends` (each row up to its budget, ctx["budget"]) in windows;
+        """Rounds ending at `ends` (each row up to its budget, ctx.budget) in windows;
         returns the rows left without a winner."""
-        budget = ctx["budget"]
+        budget = ctx.budget
         start, j = 0, 0
         while j < len(ends):
             pending = pending[budget[pending] > start]
@@ -125,29 +117,29 @@ class LimbDraws:
             start, j = stop, j + 1
         return pending
 
-    def _proposals(self, batch: Attempt, ctx: dict, rows: torch.Tensor, limb: Limb, grid, left: int) -> None:
+    def _proposals(self, batch: Attempt, ctx: LimbContext, rows: torch.Tensor, limb: Limb, grid, left: int) -> None:
         """The rest of each row's budget for this limb attempt (`left` uniform draws) as
         N ~ Binomial(left, |S| / |box|) draws uniform in the boxes S that may reach the cell
         (`sampling.support`: the same law), from a generator seeded from the sample's stream."""
         bed = (self.x_lo, self.x_hi, self.y_lo, self.y_hi)
         for r in rows.tolist():
             st = batch.states[r]
-            key = (limb.name, int(ctx["cell"][r]))
+            key = (limb.name, int(ctx.cell[r]))
             if key not in st.support:
                 st.support[key] = grid.support(
-                    ctx["offsets"][r].numpy(),
-                    ctx["root"][r].numpy(),
-                    ctx["frame"][r].numpy(),
-                    ctx["shift"][r].numpy(),
-                    (float(ctx["lo"][r]), float(ctx["hi"][r])),
+                    ctx.offsets[r].numpy(),
+                    ctx.root[r].numpy(),
+                    ctx.frame[r].numpy(),
+                    ctx.shift[r].numpy(),
+                    (float(ctx.lo[r]), float(ctx.hi[r])),
                     bed,
-                    ctx["over_bed"],
+                    ctx.over_bed,
                     below_shoulder=self.part.hands_behind_head and not grid.leg,
                     left_of_midline=self.part.crossed_legs and limb.name == "left_leg",
                 )
             boxes = st.support[key]
-            ctx["budget"][r] = int(st.rng.binomial(left, boxes.size / grid.boxes))
-            ctx["children"][r] = (np.random.Generator(np.random.PCG64(int(st.rng.integers(2**63)))), boxes)
+            ctx.budget[r] = int(st.rng.binomial(left, boxes.size / grid.boxes))
+            ctx.children[r] = (np.random.Generator(np.random.PCG64(int(st.rng.integers(2**63)))), boxes)
 
     def _window(self, batch, ctx, pending, limb, ends, start, W, reachable, done) -> torch.Tensor:
         """Draws start .. start + W (whole rounds ending at `ends`) of each pending row;
@@ -157,7 +149,7 @@ class LimbDraws:
         one_round = int(np.searchsorted(ends, start, side="right")) == int(
             np.searchsorted(ends, start + W - 1, side="right")
         )
-        children = [ctx["children"].get(r) for r in pending.tolist()]
+        children = [ctx.children.get(r) for r in pending.tolist()]
         saved = [None if (one_round or ch) else st.rng.bit_generator.state for st, ch in zip(states, children)]
         u = np.empty((P, W, limb.low.shape[0]))
         for p, (st, ch) in enumerate(zip(states, children)):
@@ -166,7 +158,7 @@ class LimbDraws:
             else:  # uniform in the reachable boxes (sampling.support)
                 u[p] = self._grids[limb.name].propose(ch[1], ch[0].random((W, 5)))
         u = torch.from_numpy(u)
-        avail = (ctx["budget"][pending] - start).clamp(0, W)  # draws of the budget in this window
+        avail = (ctx.budget[pending] - start).clamp(0, W)  # draws of the budget in this window
         # 1. Screen every draw (float32, conservative).
         p_idx, k_idx = self._screen(ctx, pending, limb, u)
         inside = k_idx < avail[p_idx]
@@ -220,63 +212,7 @@ class LimbDraws:
             done.append(r)
         return won
 
-    def _limb_context(self, batch: Attempt, limb: Limb) -> dict:
-        """Per-row constants of the attempt for one limb (every row; windows index them)."""
-        m = PREFILTER_MARGIN_M
-        f32 = torch.float32
-        leg = limb.name.endswith("leg")
-        slot = LIMBS.index(limb.name)
-        chain = list(limb.chain)
-        rest = batch.rest
-        offsets = rest[:, chain[1:]] - rest[:, chain[:-1]]  # (R, n - 1, 3)
-        # 'along' bounds of each row's target cell (outer cells open-ended).
-        cell = batch.cells[:, slot].to(torch.float64)
-        inf = torch.full_like(cell, math.inf)
-        if leg:
-            q = batch.lengths[:, 0] / LEG_CELLS
-            lo, hi = cell * q, torch.where(cell == LEG_CELLS - 1, inf, (cell + 1) * q)
-            lo = lo.clamp_min(0.0)  # the ankle may not lie above its hip
-        else:  # rise = -along in [(3 - cell) A/4, (4 - cell) A/4)
-            q = batch.lengths[:, 1] / 4
-            lo = torch.where(cell == 0, -inf, (cell - 4) * q)
-            hi = torch.where(cell == ARM_CELLS - 1, inf, (cell - 3) * q)
-        caps = self._limb_capsules[limb.name]
-        rj = rest[:, [CAPSULES[k].joint for k in caps]]
-        ci = {j: i for i, j in enumerate(chain)}
-        # Screen (float32, loosened by the margin).
-        reach_off = (offsets[:, 0], offsets[:, 1]) if leg else (offsets[:, 1], offsets[:, 2])
-        # Legs are measured against the bed as they will lie once a raised-bed body sits up.
-        frame, shift = (batch.leg_frame, batch.leg_shift) if leg else (batch.frame, batch.shift)
-        ctx = dict(
-            o1=reach_off[0].to(f32),
-            o2=reach_off[1].to(f32),
-            frame32=frame.to(f32),
-            lo32=(lo - m).to(f32),
-            hi32=(hi + m).to(f32),
-            prox32=rest[:, limb.proximal].to(f32),
-            shift32=shift.to(f32),
-            # bed-outline slack: the margin (legs), or the collar's reach per radian (arms)
-            slack32=(torch.full_like(cell, m) if leg else offsets[:, 0].norm(dim=-1) / 3).to(f32),
-            left_ankle32=(batch.left_ankle_x - m).to(f32),
-            # Exact tests (float64).
-            offsets=offsets,
-            root=rest[:, chain[0]],
-            frame=frame,
-            shift=shift,
-            cell=batch.cells[:, slot],
-            length=batch.lengths[:, 0 if leg else 1],
-            left_ankle=batch.left_ankle_x,
-            lo=lo,
-            hi=hi,
-            local=torch.cat([batch.start0[:, caps] - rj, batch.end0[:, caps] - rj], 1),  # (R, 2c, 3)
-            cap_joints=[ci[CAPSULES[k].joint] for k in caps] * 2,
-            over_bed=[ci[j] for j in limb.over_bed],
-            distal=ci[limb.distal],
-            proximal=ci[limb.proximal],
-        )
-        return ctx
-
-    def _screen(self, ctx: dict, pending: torch.Tensor, limb: Limb, u: torch.Tensor):
+    def _screen(self, ctx: LimbContext, pending: torch.Tensor, limb: Limb, u: torch.Tensor):
         """(p, k) of the draws that may meet the conditions, from the uniform numbers u (P, M, 4)
         the angles are made of: first the distal joint's cell and height above the bed (bed
         axes after the roll) for every draw, then for those left crossing and, over the bed,
@@ -295,15 +231,15 @@ class LimbDraws:
             rows = pending[lo : lo + step]
             x = u[lo : lo + step].permute(2, 0, 1).to(f32, memory_format=torch.contiguous_format)  # (4, p, M)
             rot = rodrigues(tuple(low[i] + span[i] * x[i] for i in range(3)))
-            o2 = cols(ctx["o2"][rows])
+            o2 = cols(ctx.o2[rows])
             if not self.part.straight_limbs:
                 o2 = apply_hinge(limb, low[3] + span[3] * x[3], o2)
-            reach = rotate(rot, vadd(cols(ctx["o1"][rows]), o2))
-            frame = ctx["frame32"][rows]
+            reach = rotate(rot, vadd(cols(ctx.o1[rows]), o2))
+            frame = ctx.frame32[rows]
             up = vdot(reach, cols(frame[:, UP]))
             along = vdot(reach, cols(frame[:, ALONG]))
             ok = up.abs() <= HEIGHT_TOLERANCE_M + m
-            ok &= (along >= ctx["lo32"][rows, None]) & (along < ctx["hi32"][rows, None])
+            ok &= (along >= ctx.lo32[rows, None]) & (along < ctx.hi32[rows, None])
             if not leg and self.part.hands_behind_head:
                 ok &= up <= m  # no higher than the shoulder
             idx = ok.nonzero()
@@ -312,18 +248,18 @@ class LimbDraws:
             if crossed or self.config.over_bed:
                 # The same draws' distal joint, for those left.
                 r = rows[p]
-                dist = vadd(split_xyz(ctx["prox32"][r]), tuple(c.expand(ok.shape)[p, k] for c in reach))
+                dist = vadd(split_xyz(ctx.prox32[r]), tuple(c.expand(ok.shape)[p, k] for c in reach))
                 keep = torch.ones_like(p, dtype=torch.bool)
                 if crossed:
                     if limb.side == "left":
                         keep &= dist[0] < m
                     else:
-                        keep &= dist[0] > ctx["left_ankle32"][r]
+                        keep &= dist[0] > ctx.left_ankle32[r]
                 if self.config.over_bed:
-                    slack = ctx["slack32"][r]
+                    slack = ctx.slack32[r]
                     if not leg:
                         slack = slack * rot[1][p, k].sqrt() + m
-                    fr, shift = ctx["frame32"][r], ctx["shift32"][r]
+                    fr, shift = ctx.frame32[r], ctx.shift32[r]
                     wx = vdot(split_xyz(fr[:, MAT_X]), dist) + shift[:, 0]
                     wy = vdot(split_xyz(fr[:, MAT_Y]), dist) + shift[:, 1]
                     keep &= (wx > self.x_lo - slack) & (wx < self.x_hi + slack)
@@ -333,7 +269,7 @@ class LimbDraws:
             ks.append(k)
         return torch.cat(ps), torch.cat(ks)
 
-    def _limb_survivors(self, ctx: dict, rows: torch.Tensor, limb: Limb, angles: torch.Tensor):
+    def _limb_survivors(self, ctx: LimbContext, rows: torch.Tensor, limb: Limb, angles: torch.Tensor):
         """For N draws (rows (N,), angles (N, 4)) that passed the screen: whether they meet
         every condition (N,) - cell, height, the partition's conditions, the bed outline - the
         chain joints' positions (N, n, 3) in body axes and the limb's capsule end points
@@ -352,24 +288,24 @@ class LimbDraws:
             rots = torch.stack([R, lower, lower, lower], 1)
         else:  # collar (1/3 of the rotation), shoulder, elbow, wrist, hand
             rots = torch.stack([axis_angle_to_matrix(angles[:, :3] / 3), R, lower, lower, lower], 1)
-        steps = (rots[:, :-1] @ ctx["offsets"][rows, ..., None])[..., 0]
-        pos = torch.cat([ctx["root"][rows, None], steps], 1).cumsum(1)  # (N, n, 3)
+        steps = (rots[:, :-1] @ ctx.offsets[rows, ..., None])[..., 0]
+        pos = torch.cat([ctx.root[rows, None], steps], 1).cumsum(1)  # (N, n, 3)
         # Cell and height in the bed's axes after the roll only: 'along' is the body's long
         # axis and 'up' the height above the bed, whatever the yaw (a yawed body keeps its cells).
-        frame = ctx["frame"][rows]
-        dist, prox = pos[:, ctx["distal"]], pos[:, ctx["proximal"]]
+        frame = ctx.frame[rows]
+        dist, prox = pos[:, ctx.distal], pos[:, ctx.proximal]
         reach = dist - prox
         up = (reach * frame[:, UP]).sum(-1)
         along = (reach * frame[:, ALONG]).sum(-1)  # toward the foot
         ok = up.abs() <= HEIGHT_TOLERANCE_M
-        cell, length = ctx["cell"][rows], ctx["length"][rows]
+        cell, length = ctx.cell[rows], ctx.length[rows]
         if leg:
             ok &= (along >= 0) & (leg_cell(along, length) == cell)
             if self.part.crossed_legs:
                 # Feet crossed: the left ankle lies on the right of the right ankle (body x =
                 # the subject's left). The left leg, drawn first, crosses the midline; the
                 # right ankle must then stay on its left.
-                ok &= (dist[:, 0] < 0) if limb.side == "left" else (ctx["left_ankle"][rows] < dist[:, 0])
+                ok &= (dist[:, 0] < 0) if limb.side == "left" else (ctx.left_ankle[rows] < dist[:, 0])
         else:
             ok &= arm_cell(-along, length) == cell
             if self.part.hands_behind_head:
@@ -377,14 +313,14 @@ class LimbDraws:
                 # than the shoulder (it lies under the head).
                 ok &= (dist[:, 0].abs() < prox[:, 0].abs()) & (up <= 0)
         if self.config.over_bed:
-            bed = pos[:, ctx["over_bed"]]  # (N, k, 3)
-            shift = ctx["shift"][rows]
+            bed = pos[:, ctx.over_bed]  # (N, k, 3)
+            shift = ctx.shift[rows]
             x = (bed * frame[:, None, MAT_X]).sum(-1) + shift[:, None, 0]
             y = (bed * frame[:, None, MAT_Y]).sum(-1) + shift[:, None, 1]
             ok &= ((x > self.x_lo) & (x < self.x_hi) & (y > self.y_lo) & (y < self.y_hi)).all(-1)
         # Capsule end points: joint position + the joint's rotation of the rest offset.
-        cj = ctx["cap_joints"]
-        ab = (rots[:, cj] @ ctx["local"][rows, ..., None])[..., 0] + pos[:, cj]
+        cj = ctx.cap_joints
+        ab = (rots[:, cj] @ ctx.local[rows, ..., None])[..., 0] + pos[:, cj]
         c2 = len(cj) // 2
         return ok, pos, (ab[:, :c2], ab[:, c2:])
 
