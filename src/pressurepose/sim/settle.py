@@ -124,11 +124,11 @@ def settle(
         pool=batch,
     )
     for i, o in enumerate(outs):
-        reasons.append(o["reason"])
+        reasons.append(o.reason)
         for k in stats:
-            stats[k][i] = o[k]
-        if o["rest"] is not None:
-            root_rot[i], root_t[i], pose[i] = o["rest"]
+            stats[k][i] = getattr(o, k)
+        if o.rest is not None:
+            root_rot[i], root_t[i], pose[i] = o.rest
     return SettleResult(
         params=params.replace(root_rotation=root_rot, root_translation=root_t, pose=pose),
         ok=np.array([not r for r in reasons]),

@@ -34,6 +34,23 @@ V_STICK = 0.02  # m/s: below this sliding speed Coulomb friction becomes a (stif
 STICK_STIFFNESS = 0.2
 
 
+@dataclasses.dataclass
+class EpisodeOutcome:
+    """How one body's settling episode ended (`settle_steps.run_batch`): the reason ("" = at
+    rest), step counts, the largest capsule speed (m/s) and acceleration (m/s^2) at the end,
+    the deepest sink (m), wall time per body (ms) and the resting (root rotation, root
+    translation, pose), or None when the state is not kept."""
+
+    reason: str = ""
+    steps: int = 0
+    touch_step: int = -1
+    max_speed: float = math.inf
+    max_accel: float = math.inf
+    sink: float = 0.0
+    wall_ms: float = 0.0
+    rest: tuple | None = None
+
+
 @dataclasses.dataclass(frozen=True)
 class SettleConfig:
     timestep_s: float = 0.0103  # the seed's DART step

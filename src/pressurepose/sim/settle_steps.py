@@ -33,6 +33,7 @@ from pressurepose.sim.settle_config import (
     REASON_OFF_BED,
     REASON_SANK,
     REASON_TIMEOUT,
+    EpisodeOutcome,
     SettleConfig,
 )
 
@@ -214,7 +215,7 @@ def run_batch(
     mattress: MattressParams,
     bed: BedShape | None = None,
     pool: int = 16,
-) -> list[dict]:
+) -> list[EpisodeOutcome]:
     """Settle episodes 0..n-1 (`make(k)` builds episode k) `pool` at a time (see `SlotPool`);
     an episode is built when a slot takes it and released when it is done, so memory is
     bounded by the pool. Returns per episode its statistics and its resting parameters
@@ -222,21 +223,20 @@ def run_batch(
     dt = config.timestep_s
     every = max(1, round(config.zero_velocity_every_s / dt))
     thickness = float(mattress.thickness_m)
-    out = [
-        dict(reason="", steps=0, touch_step=-1, max_speed=np.inf, max_accel=np.inf, sink=0.0, wall_ms=0.0, rest=None)
-        for _ in range(n)
-    ]
+    out = [EpisodeOutcome() for _ in range(n)]
     t0 = time.perf_counter()
     if n:
         p = SlotPool(make, n, mat, config, mattress, bed, min(pool, n))
         drive_pool(p, list(range(n)), out, every, thickness, dt)
     wall = (time.perf_counter() - t0) * 1e3 / max(n, 1)
     for o in out:
-        o["wall_ms"] = wall
+        o.wall_ms = wall
     return out
 
 
-def drive_pool(p: SlotPool, queue: list[int], out: list[dict], every: int, thickness: float, dt: float) -> None:
+def drive_pool(
+    p: SlotPool, queue: list[int], out: list[EpisodeOutcome], every: int, thickness: float, dt: float
+) -> None:
     """The lockstep loop. Per step and running body, in this order: mj_step1; non-finite
     check; capsule speeds and accelerations; at rest?; mattress forces (from the current
     state); touch; mj_step2; velocity reset before the touch; energy, sinking and falling
@@ -254,11 +254,11 @@ def drive_pool(p: SlotPool, queue: list[int], out: list[dict], every: int, thick
             ep, o = eps[k], out[k]
             if any(ep.data.warning[w].number for w in bad_state):
                 reason, keep_state = REASON_NONFINITE, False
-            o["reason"] = reason
-            o["steps"] = int(p.step[s])
-            o["touch_step"] = int(p.touched[s])
-            o["max_speed"], o["max_accel"], o["sink"] = float(p.speed[s]), float(p.accel[s]), float(p.sink[s])
-            o["rest"] = ep.resting_params(ep.data.qpos) if keep_state else None
+            o.reason = reason
+            o.steps = int(p.step[s])
+            o.touch_step = int(p.touched[s])
+            o.max_speed, o.max_accel, o.sink = float(p.speed[s]), float(p.accel[s]), float(p.sink[s])
+            o.rest = ep.resting_params(ep.data.qpos) if keep_state else None
             p.ep[s] = -1
             p.slot[s] = None
             eps[k] = None  # release the model and data
@@ -271,8 +271,8 @@ def drive_pool(p: SlotPool, queue: list[int], out: list[dict], every: int, thick
             ep = eps[k] = p.make(k)
             (xr, xr1), (yr, yr1) = ep.bounds
             if not (xr <= ep.root_surface[0] <= xr1 and yr <= ep.root_surface[1] <= yr1):
-                out[k]["reason"] = REASON_OFF_BED
-                out[k]["rest"] = ep.resting_params(ep.data.qpos)
+                out[k].reason = REASON_OFF_BED
+                out[k].rest = ep.resting_params(ep.data.qpos)
                 eps[k] = None
                 continue
             if p.body_ids is None:
