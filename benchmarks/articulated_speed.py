@@ -18,9 +18,9 @@ import torch
 from pressurepose.body import load_body_model
 from pressurepose.sampling.partitions import SamplingConfig
 from pressurepose.sampling.sampler import PoseSampler
-from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
+from pressurepose.sim.articulated import rest_articulated
 from pressurepose.sim.mattress import MattressParams
-from pressurepose.sim.run import settle_config_for
+from pressurepose.sim.run import articulated_config_for
 
 
 def main() -> None:
@@ -34,7 +34,7 @@ def main() -> None:
     bed = MattressParams.preset("sponge")
     for part in args.partitions.split(","):
         poses = PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=0)).sample(range(args.n)).params
-        config = ArticulatedConfig(hold_roll_m=settle_config_for(part).hold_roll_m)
+        config = articulated_config_for(part)
         t0, rejected, steps = time.process_time(), 0, []
         for b0 in range(0, args.n, args.batch):
             chunk = poses.index(torch.arange(b0, min(b0 + args.batch, args.n)))

@@ -92,15 +92,14 @@ def test_heavier_sinks_deeper_and_stiffer_bed_touches_less(anny64):
     assert int((stiff.foundation_pa > 0).sum()) < int((soft.foundation_pa > 0).sum())
 
 
-def test_mirrored_side_gives_mirrored_image(anny64, monkeypatch):
+def test_mirrored_side_gives_mirrored_image(anny64):
     """A body on its left side and the same body on its right side (mirrored pose) give
     mirrored images (the mesh is symmetric to ~1 mm: loose tolerance on the image)."""
-    import pressurepose.commands.realism as realism
+    from pressurepose.commands.realism import SIDE_POSE, resting_pose
 
     # The arms forward 1.2 rad, elbows 0.9 (not the report's current pose, whose forearms rest
     # on each other: which lies on top is a bifurcation the mesh's asymmetry decides).
-    monkeypatch.setattr(realism, "SIDE_POSE", dict(realism.SIDE_POSE, shoulder=1.2, elbow=0.9))
-    pose = realism.resting_pose("left", 1)
+    pose = resting_pose("left", 1, dict(SIDE_POSE, shoulder=1.2, elbow=0.9))
     # Without friction: with it the rest depends on the path (which part touches first), and
     # the mesh's ~1 mm asymmetry sends the two sides along slightly different paths (docs/physics.md).
     held = ArticulatedConfig(hold_roll_m=0.5, friction=False)

@@ -23,7 +23,7 @@ from pressurepose.calib.coupling import coupling_check
 from pressurepose.calib.evaluator import Evaluator
 from pressurepose.calib.loss import DEFAULT_FREE, CalibrationLoss, ParamSpace
 from pressurepose.calib.measurements import load_measurements
-from pressurepose.commands.outputs import Written
+from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.files import write_text
 from pressurepose.mat import MatSpec
@@ -136,7 +136,7 @@ def run_calibrate(cfg: CalibrateConfig, progress: bool = True) -> Written:
     breakdown = loss.breakdown(result.best_x)
     finished = not (cfg.stop_after and not result.stop)
     record = {
-        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "config": flat_config(cfg),
         "finished": finished,
         "stop": result.stop,
         "iterations": result.iterations,

@@ -18,7 +18,7 @@ import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from pressurepose.body.params import BodyParams
-from pressurepose.commands.outputs import Written
+from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.eval import evaluation as E
 from pressurepose.eval.evaluation import METRICS, PREDICTIONS, REGIONS, SEED_SYNTH_VPE_CM, write_predictions
@@ -131,7 +131,7 @@ def _write_report(
     failures = [int(i) for i in order[::-1][: cfg.failures]]
     record = {
         "command": "evaluate",
-        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "config": flat_config(cfg),
         "count": n,
         "seconds": round(seconds, 2),
         "overall": {m: _summary(rows[m]) for m in METRICS},

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pressurepose.commands.outputs import Written
+from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index
 from pressurepose.errors import UserError
 from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
@@ -141,7 +141,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {
         "command": "evaluate-real",
-        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "config": flat_config(cfg),
         "frames": len(rows),
         "seconds": round(seconds, 2),
         "by_mattress": summary,
@@ -254,7 +254,7 @@ def run_evaluate_cloud(cfg) -> Written:
     record = {
         "command": "evaluate-real",
         "kind": "point-cloud",
-        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(cfg).items()},
+        "config": flat_config(cfg),
         "frames": n,
         "seconds": round(seconds, 2),
         "overall": overall,

@@ -97,10 +97,11 @@ def load_real(
     return out, [RealSubject(s, h / 100, w) for s, h, w in subjects]
 
 
-def resting_pose(posture: str, batch: int) -> torch.Tensor:
+def resting_pose(posture: str, batch: int, side_pose: dict[str, float] | None = None) -> torch.Tensor:
     """(B, 23, 3) the report's pose: supine in the home pose (arms at the sides, legs
     straight); on a side with the hips bent 35 deg, the knees 50 deg, the arms forward ~90 deg and
-    the elbows bent ~85 deg, as people lie on their side (PmatData groups C, D)."""
+    the elbows bent ~85 deg, as people lie on their side (PmatData groups C, D). `side_pose`:
+    other side-lying angles (SIDE_POSE's keys, rad)."""
     from pressurepose.body.capsules import home_pose
     from pressurepose.body.joints import joint_index
     from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -108,13 +109,14 @@ def resting_pose(posture: str, batch: int) -> torch.Tensor:
     pose = home_pose(batch)
     if posture == "supine":
         return pose
-    forward = axis_angle_to_matrix(torch.tensor([-SIDE_POSE["shoulder"], 0.0, 0.0], dtype=pose.dtype))
+    angles = SIDE_POSE if side_pose is None else side_pose
+    forward = axis_angle_to_matrix(torch.tensor([-angles["shoulder"], 0.0, 0.0], dtype=pose.dtype))
     for side, sign in (("left", -1.0), ("right", 1.0)):
         j = joint_index(f"{side}_shoulder") - 1
         pose[:, j] = matrix_to_axis_angle(forward @ axis_angle_to_matrix(pose[:, j]))
-        pose[:, joint_index(f"{side}_elbow") - 1, 1] = sign * SIDE_POSE["elbow"]
-        pose[:, joint_index(f"{side}_hip") - 1, 0] = -SIDE_POSE["hip"]
-        pose[:, joint_index(f"{side}_knee") - 1, 0] = SIDE_POSE["knee"]
+        pose[:, joint_index(f"{side}_elbow") - 1, 1] = sign * angles["elbow"]
+        pose[:, joint_index(f"{side}_hip") - 1, 0] = -angles["hip"]
+        pose[:, joint_index(f"{side}_knee") - 1, 0] = angles["knee"]
     return pose
 
 

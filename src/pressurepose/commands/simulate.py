@@ -21,9 +21,8 @@ from pressurepose.files import atomic_write, write_text
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import SamplingConfig
 from pressurepose.sampling.sampler import PoseSampler
-from pressurepose.sim.articulated import ArticulatedConfig
 from pressurepose.sim.mattress import MattressParams
-from pressurepose.sim.run import default_mattress, settle_config_for, simulate_poses
+from pressurepose.sim.run import articulated_config_for, default_mattress, settle_config_for, simulate_poses
 from pressurepose.viz.simulation import plot_sample
 
 
@@ -75,7 +74,7 @@ def run_simulate(cfg: SimulateConfig) -> Written:
         bed=bed,
         settle_config=settle_config_for(sampling.partition),
         settle=cfg.settle,
-        articulated=ArticulatedConfig(hold_roll_m=settle_config_for(sampling.partition).hold_roll_m),
+        articulated=articulated_config_for(sampling.partition),
     )
     t2 = time.perf_counter()
     cfg.out.mkdir(parents=True, exist_ok=True)

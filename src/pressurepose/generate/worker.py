@@ -150,8 +150,7 @@ def simulate_indices(
 ):
     """Sample and simulate `indices`; (SampleBatch of the accepted ones or None, reason per
     index ("" = kept), summed sampling rejection counts)."""
-    from pressurepose.sim.articulated import ArticulatedConfig
-    from pressurepose.sim.run import settle_config_for, simulate_poses
+    from pressurepose.sim.run import articulated_config_for, settle_config_for, simulate_poses
 
     initial, unreachable = _sample(sampler, indices)
     reasons = {i: REASON_UNREACHABLE for i in unreachable}
@@ -160,17 +159,16 @@ def simulate_indices(
     B = initial.batch_size
     # Each sample rests on its own bed (raised head section for half_sitting, flat otherwise).
     cfg = sampler.config
-    settle_cfg = settle_config_for(cfg.partition)
     sim = simulate_poses(
         model,
         initial.params,
         mattress,
         seed=seed,
         bed=initial.beds(),
-        settle_config=settle_cfg,
+        settle_config=settle_config_for(cfg.partition),
         settle=settle,
         sim2=sim2,
-        articulated=ArticulatedConfig(hold_roll_m=settle_cfg.hold_roll_m),
+        articulated=articulated_config_for(cfg.partition),
     )
     height = model.measure(sim.params.shape).height_m.detach().numpy()
     p = sim.params

@@ -33,6 +33,7 @@ class Linearised:
     def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None, springs=()):
         # springs: sim.self_contact.LinearSprings (self-contact, friction anchors) added to the energy.
         self.springs = tuple(springs)
+        self._law_key, self._law_cached = None, None  # `_law`: the series law of the last mattress
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
         # [lo, hi]); limits = (angle (B, N), lo (N,), hi (N,), stiffness (B, N)) or None.
         self.limits = limits
@@ -70,7 +71,7 @@ class Linearised:
     def _law(self, mp: MattressParams) -> SeriesLaw:
         """The series law of these cells' tissue on this mattress (its constants computed once)."""
         key = (mp.k1_pa_per_m, mp.k3_pa_per_m3)
-        if getattr(self, "_law_key", None) != key:
+        if self._law_key != key:
             self._law_key, self._law_cached = key, SeriesLaw(mp, self.tissue)
         return self._law_cached
 

@@ -70,6 +70,14 @@ def settle_config_for(partition: str) -> SettleConfig:
     return SettleConfig(hold_roll_m=get_partition(partition).hold_roll_m)
 
 
+def articulated_config_for(partition: str) -> ArticulatedConfig:
+    """The articulated rest's settings for a sampling partition (the same trunk roll hold as
+    sim #1's, `settle_config_for`)."""
+    from pressurepose.sim.articulated import ArticulatedConfig
+
+    return ArticulatedConfig(hold_roll_m=get_partition(partition).hold_roll_m)
+
+
 def simulate_poses(
     model: BodyModel,
     params: BodyParams,
@@ -229,4 +237,11 @@ def _apply_rest_to_root(params: BodyParams, pressed) -> BodyParams:
     return params.replace(root_rotation=root, root_translation=pelvis)
 
 
-__all__ = ["SETTLE_ENGINES", "SimulatedSamples", "default_mattress", "settle_config_for", "simulate_poses"]
+__all__ = [
+    "SETTLE_ENGINES",
+    "SimulatedSamples",
+    "articulated_config_for",
+    "default_mattress",
+    "settle_config_for",
+    "simulate_poses",
+]
