@@ -60,6 +60,7 @@ class Linearised:
         x, y = b[..., 1:2], b[..., 2:3]
         self._moments = torch.cat([b, b, x * self._x[..., None], y * self._x[..., None], y * self._y[..., None]], -1)
         self._scatter_index = self.part[..., None].expand(-1, -1, 9)
+        self._symmetric = _SYMMETRIC.to(h.device)
         # Gravity: d(sum m g z)/d(theta_n) over the parts in the subtree, constant.
         gb = torch.cat([torch.ones_like(com[..., :1]), com[..., :2]], -1) * (mass * GRAVITY_M_S2)[..., None]
         sub_g = torch.einsum("js,bst->bjt", dofs.desc, gb)  # (B, 24, 3)
@@ -125,7 +126,7 @@ class Linearised:
         grad = self.g_grav + self.k * (self.e + q) + g_lim - (self.dof_a * torch.matmul(self.dof_parts, f_part)).sum(-1)
         # Hessian from the parts' stiffness moments sum c (1, x, y)(1, x, y)^T, summed over
         # subtrees: H_nl = a_n^T M[overlap(n, l)] a_l.
-        m_part = sums[..., 3:].index_select(-1, _SYMMETRIC)  # (B, 24, 9) from the six distinct entries
+        m_part = sums[..., 3:].index_select(-1, self._symmetric)  # (B, 24, 9) from the six distinct entries
         m_sub = torch.matmul(self.dofs.desc, m_part).view(B, NUM_JOINTS, 3, 3)
         # a_n^T M_j for every subtree j, then the j = overlap(n, l) one dotted with a_l.
         aM = torch.einsum("bns,bjst->bnjt", self.dof_a, m_sub)  # (B, N, 24, 3)

@@ -55,8 +55,7 @@ class SeriesLaw:
         self.half_inv_kt = 0.5 / kt
         if self.k3 > 0:
             a = self.k3 / kt
-            s = (1 + self.k1 / kt) / (3 * a)
-            s = s**0.5 if isinstance(s, float) else s.sqrt()
+            s = ((1 + self.k1 / kt) / (3 * a)) ** 0.5
             self.two_s = 2 * s
             self.scale = 1 / (2 * a * s**3)
 
