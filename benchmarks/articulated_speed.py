@@ -4,7 +4,7 @@
 
 N initial poses per partition (seed 0, female), rested from the drawn pose on the sponge preset
 in batches of B; prints CPU ms per sample (process time, so other jobs on the machine matter
-less than for wall time), rejections and the median Newton step count. Before/after a change:
+less than for wall time), rejections with their reasons and the median Newton step count. Before/after a change:
 run the same command with PYTHONPATH pointing at each source tree, interleaved (docs/benchmarks.md).
 """
 
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections import Counter
 
 import torch
 
@@ -35,16 +36,16 @@ def main() -> None:
     for part in args.partitions.split(","):
         poses = PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=0)).sample(range(args.n)).params
         config = articulated_config_for(part)
-        t0, rejected, steps = time.process_time(), 0, []
+        t0, reasons, steps = time.process_time(), Counter(), []
         for b0 in range(0, args.n, args.batch):
             chunk = poses.index(torch.arange(b0, min(b0 + args.batch, args.n)))
             rest = rest_articulated(model, chunk, mattress=bed, config=config)
-            rejected += sum(bool(x) for x in rest.failure)
+            reasons.update(x for x in rest.failure if x)
             steps += rest.iterations.tolist()
         ms = (time.process_time() - t0) / args.n * 1e3
         print(
-            f"{part} B={args.batch}: {ms:.1f} CPU ms/sample, rejected {rejected}/{args.n}, "
-            f"Newton steps median {sorted(steps)[len(steps) // 2]}",
+            f"{part} B={args.batch}: {ms:.1f} CPU ms/sample, rejected {sum(reasons.values())}/{args.n} "
+            f"{dict(reasons)}, Newton steps median {sorted(steps)[len(steps) // 2]}",
             flush=True,
         )
 

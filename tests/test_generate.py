@@ -305,6 +305,17 @@ def test_resume_remakes_damaged_and_half_written_shards(reference, tmp_path, cap
     (out / "generate.json").write_text(json.dumps(settings))
     with pytest.raises(ValueError, match="add --settle mujoco"):
         run_generate(GenerateConfig(out=out, **dict(SMALL, settle="articulated")), progress=False)
+    # One rested with the seed's full joint springs (before they were relaxed) does not resume.
+    settings = json.loads((ref / "generate.json").read_text())
+    assert settings["articulated_joints"]["stiffness_scale"] == 0.5
+    settings["articulated_joints"]["stiffness_scale"] = 1.0
+    (out / "generate.json").write_text(json.dumps(settings))
+    with pytest.raises(ValueError, match="joint springs differ.*relaxed"):
+        run_generate(GenerateConfig(out=out, **SMALL), progress=False)
+    del settings["articulated_joints"]
+    (out / "generate.json").write_text(json.dumps(settings))
+    with pytest.raises(ValueError, match="joint springs differ"):
+        run_generate(GenerateConfig(out=out, **SMALL), progress=False)
 
 
 def _children(pid: int) -> list[int]:

@@ -47,12 +47,23 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
     from pressurepose.sampling.partitions import SamplingConfig
 
     sampling = SamplingConfig()
-    return {
+    settings = {
         "pressurepose_version": __version__,
         "config": cfg.identity(),
         "mattress": mattress,
         "sampling_limits": {k: getattr(sampling, k) for k in ("max_failures", "max_shapes", "max_limb_draws")},
     }
+    if cfg.sim2_engine == "articulated":
+        from pressurepose.sim.articulated import ArticulatedConfig
+
+        # The body's joint springs define the rest as much as the bed does (docs/realism.md
+        # "Relaxed joints"): a dataset rested with other springs does not resume.
+        joints = ArticulatedConfig()
+        settings["articulated_joints"] = {k: getattr(joints, k) for k in ARTICULATED_JOINT_FIELDS}
+    return settings
+
+
+ARTICULATED_JOINT_FIELDS = ("stiffness_scale", "neck_stiffness_scale", "spine_stiffness_scale")
 
 
 def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
@@ -80,6 +91,9 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
             hint = ""
             if "settle" in diff and "settle" not in (old or {}).get("config", {}):
                 hint = " (it was made with MuJoCo, the default before the articulated engine: add --settle mujoco)"
+            elif not diff and settings.get("articulated_joints") != (old or {}).get("articulated_joints"):
+                what = "the articulated engine's joint springs"
+                hint = " (made before the joints were relaxed to 0.5 x the seed's, docs/realism.md)"
             raise UserError(
                 f"{out} holds a dataset made with other settings ({what} differ, see {path}){hint}; "
                 "re-run with the same settings to resume, or choose another --out"

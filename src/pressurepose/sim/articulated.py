@@ -71,10 +71,13 @@ MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or b
 class ArticulatedConfig:
     """Settings of the articulated rest (defaults: docs/physics.md)."""
 
-    stiffness_scale: float = 1.0
-    """Multiplies every joint's seed stiffness (1 = sim #1's springs)."""
-    neck_stiffness_scale: float = 0.1
-    """Extra factor on the neck and head springs (a relaxed neck lets the head rest)."""
+    stiffness_scale: float = 0.5
+    """Multiplies every joint's seed stiffness (1 = sim #1's springs; 0.5: a resting person's
+    relaxed limbs, docs/physics.md - side-lying contact area within 2-4% of PmatData's instead
+    of 10-14% short)."""
+    neck_stiffness_scale: float = 0.2
+    """Extra factor on the neck and head springs (a relaxed neck lets the head rest): with
+    `stiffness_scale` 0.5, 0.1 x the seed's neck."""
     spine_stiffness_scale: float = 1.1
     """Extra factor on the spine's springs (spine1-3)."""
     outer: int = 14
