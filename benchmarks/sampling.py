@@ -3,6 +3,7 @@
     python benchmarks/sampling.py              # accepted poses/s per partition, one core
     python benchmarks/sampling.py --shapes     # height / mass / BMI ranges of the shape sampler
     python benchmarks/sampling.py --capsules   # capsule fit, volume (QMC vs 2 mm voxels), full body
+    python benchmarks/sampling.py --stages --n 512   # CPU time per sampler stage, over the bed
 
 Prints figures; record them in docs/benchmarks.md with the machine.
 """
@@ -24,7 +25,7 @@ def bench_sampling(n: int, threads: int, partitions: list[str] | None = None) ->
     model = load_body_model("anny", dtype=torch.float32)
     print(f"accepted initial poses per second ({threads} thread(s), {n} samples, batch {min(n, 256)}, Anny)")
     print(
-        f"{'partition':<18} {'over_bed':<8} {'poses/s':>8} {'draws rej.':>10} {'collisions':>10} "
+        f"{'partition':<18} {'over_bed':<8} {'poses/s':>8} {'cpu p/s':>8} {'draws rej.':>10} {'collisions':>10} "
         f"{'limb fail':>9} {'new shape':>9} {'new cell':>8} {'sit-up rej.':>11}"
     )
     for name, part in PARTITIONS.items():
@@ -33,19 +34,77 @@ def bench_sampling(n: int, threads: int, partitions: list[str] | None = None) ->
         for over_bed in part.over_bed_choices:
             sampler = PoseSampler(model, SamplingConfig(partition=name, gender="male", over_bed=over_bed))
             sampler.sample([10**6])  # warm-up (and the float64 copy of the model)
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             try:
                 out = [sampler.sample(range(lo, min(lo + 256, n))) for lo in range(0, n, 256)]
             except UnreachableConstraints as exc:
                 print(f"{name:<18} {str(over_bed):<8} gave up: {exc}")
                 continue
-            dt = time.perf_counter() - t
+            dt, dc = time.perf_counter() - t, time.process_time() - c
             rej = {k: np.concatenate([o.rejections[k] for o in out]).mean() for k in out[0].rejections}
             print(
-                f"{name:<18} {str(over_bed):<8} {n / dt:8.0f} {rej['limb_draws_rejected']:10.0f} "
+                f"{name:<18} {str(over_bed):<8} {n / dt:8.0f} {n / dc:8.0f} {rej['limb_draws_rejected']:10.0f} "
                 f"{rej['collisions']:10.1f} {rej['limb_failures']:9.2f} {rej['shape_resamples']:9.2f} "
                 f"{rej['cell_redraws']:8.3f} {rej['sit_up_rejections']:11.2f}"
             )
+
+
+def bench_stages(n: int, partitions: list[str] | None) -> None:
+    """CPU seconds per stage of the sampler over the bed (male, batches of 256): the capsule
+    fit, the root's axis-angle, the reachable boxes, the proposals drawn in them, and the
+    windows' float32 screen, exact float64 tests and collision tests (nested: a window's
+    total includes its screen, exact tests and collisions)."""
+    import collections
+    import functools
+
+    from pressurepose.sampling import limb_draws, sampler, support
+
+    torch.set_num_threads(1)
+    model = load_body_model("anny", dtype=torch.float32)
+    spent = collections.Counter()
+
+    def timed(owner, name, label):
+        f = getattr(owner, name)
+
+        @functools.wraps(f)
+        def g(*a, **k):
+            t = time.process_time()
+            try:
+                return f(*a, **k)
+            finally:
+                spent[label] += time.process_time() - t
+
+        setattr(owner, name, g)
+        return owner, name, f
+
+    stages = [
+        (sampler, "fit_capsules", "capsule fit"),
+        (sampler, "root_axis_angle", "root axis-angle"),
+        (limb_draws.LimbDraws, "_draw_limbs", "limb draws (all)"),
+        (support.LimbGrid, "support", "  reachable boxes"),
+        (support.LimbGrid, "propose", "  proposals in the boxes"),
+        (limb_draws.LimbDraws, "_window", "  windows"),
+        (limb_draws.LimbDraws, "_screen", "    screen (float32)"),
+        (limb_draws.LimbDraws, "_limb_survivors", "    exact tests"),
+        (limb_draws.LimbDraws, "_collision_free", "    collisions"),
+    ]
+    labels = [label for _, _, label in stages]
+    patches = [timed(*stage) for stage in stages]
+    try:
+        for name in partitions or ["hands_behind_head", "crossed_legs", "straight_limbs"]:
+            sampler_ = sampler.PoseSampler(model, SamplingConfig(partition=name, gender="male", over_bed=True))
+            sampler_.sample([10**6])
+            spent.clear()
+            c = time.process_time()
+            for lo in range(0, n, 256):
+                sampler_.sample(range(lo, min(lo + 256, n)))
+            total = time.process_time() - c
+            print(f"{name} over the bed: {total:.2f} CPU s for {n} samples ({n / total:.0f}/s)")
+            for label in labels:
+                print(f"  {label:<26} {spent[label]:6.2f} s  {100 * spent[label] / total:4.0f}%")
+    finally:
+        for owner, name, f in patches:
+            setattr(owner, name, f)
 
 
 def bench_shapes(n: int) -> None:
@@ -100,8 +159,11 @@ if __name__ == "__main__":
     ap.add_argument("--partitions", nargs="*", help="only these partitions (default: all)")
     ap.add_argument("--shapes", action="store_true")
     ap.add_argument("--capsules", action="store_true")
+    ap.add_argument("--stages", action="store_true", help="CPU time per sampler stage, over the bed")
     args = ap.parse_args()
-    if args.shapes:
+    if args.stages:
+        bench_stages(args.n, args.partitions)
+    elif args.shapes:
         bench_shapes(1000)
     elif args.capsules:
         bench_capsules()

@@ -91,7 +91,7 @@ def test_the_boxes_hold_every_valid_draw(name, straight, cell):
 
 def test_proposals_are_uniform_in_the_kept_boxes():
     grid = LimbGrid(LIMBS["left_arm"], False)
-    boxes = np.array([3, 70, 4095 * 8 + 7])
+    boxes = np.array([3, 70, grid.boxes - 1])
     u = grid.propose(boxes, np.random.default_rng(1).random((30_000, 5)))
     assert ((u >= 0) & (u < 1)).all()
     idx = (u * grid.n).astype(np.int64)
@@ -100,3 +100,45 @@ def test_proposals_are_uniform_in_the_kept_boxes():
     counts = np.array([(box == b).sum() for b in boxes])
     assert counts.sum() == 30_000
     assert (np.abs(counts - 10_000) < 400).all()
+
+
+@pytest.mark.parametrize("name, flag", [("left_arm", "below_shoulder"), ("left_leg", "left_of_midline")])
+def test_the_boxes_hold_every_valid_draw_of_the_partition_conditions(name, flag):
+    """Hands behind the head (wrist no higher than the shoulder) and the crossing left leg
+    (ankle left of the midline) on the bent limbs' grid: every valid draw lies in a kept box."""
+    limb = LIMBS[name]
+    grid = LimbGrid(limb, False)
+    assert tuple(grid.n) == (8, 8, 8, 8)  # bent limbs: the coarser rotation grid
+    leg = name.endswith("leg")
+    if leg:
+        offsets = np.array([[0.01, -0.40, 0.0], [0.0, -0.42, -0.02], [0.0, -0.05, 0.13]])
+        root, L = np.array([0.09, -0.08, 0.0]), 0.82
+        lo, hi = L / 4, 2 * L / 4
+        over_bed, prox, dist = [1, 2, 3], 0, 2
+    else:
+        offsets = np.array([[0.12, 0.02, -0.01], [0.27, 0.0, 0.0], [0.25, 0.0, 0.0], [0.08, 0, 0]])
+        root, A = np.array([0.07, 0.35, 0.0]), 0.52
+        lo, hi = -np.inf, -3 * A / 4  # arm cell 0: the wrist over the head
+        over_bed, prox, dist = [2, 3, 4], 1, 3
+    shift = np.array([0.95, 0.45, 0.0])
+    kw = {flag: True}
+    boxes = grid.support(offsets, root, FRAME, shift, (lo, hi), BED, over_bed, **kw)
+    assert 0 < boxes.size < 0.6 * grid.boxes
+    rng = np.random.default_rng(2)
+    u = rng.random((200_000, 4))
+    angles = limb.low + (limb.high - limb.low) * u
+    pos = chain_positions(name, offsets, root, angles)
+    reach = pos[:, dist] - pos[:, prox]
+    up, along = reach @ FRAME[1], reach @ FRAME[0]
+    ok = (np.abs(up) <= HEIGHT_TOLERANCE_M) & (along >= lo) & (along < hi)
+    ok &= (up <= 0) if flag == "below_shoulder" else (pos[:, dist, 0] < 0)
+    x = pos[:, over_bed] @ FRAME[2] + shift[0]
+    y = pos[:, over_bed] @ FRAME[3] + shift[1]
+    ok &= ((x > BED[0]) & (x < BED[1]) & (y > BED[2]) & (y < BED[3])).all(-1)
+    assert ok.sum() > 20
+    idx = np.minimum((u * grid.n).astype(np.int64), grid.n - 1)
+    n = int(grid.n[0])
+    box = ((idx[:, 0] * n + idx[:, 1]) * n + idx[:, 2]) * int(grid.n[3]) + idx[:, 3]
+    assert np.isin(box[ok], boxes).all()
+    # the condition itself drops boxes: without it more are kept
+    assert boxes.size < grid.support(offsets, root, FRAME, shift, (lo, hi), BED, over_bed).size

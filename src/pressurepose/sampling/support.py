@@ -36,7 +36,11 @@ from pressurepose.sampling.attempt import ALONG, MAT_X, MAT_Y, UP
 from pressurepose.sampling.limbs import Limb
 from pressurepose.sampling.partitions import HEIGHT_TOLERANCE_M
 
-GRID_ROTATION = 16  # boxes per rotation-vector component
+# Boxes per rotation-vector component: 8 for bent limbs, 16 for straight ones (whose hinge is
+# 0: one box along it). 8^3 x 8 boxes cost an eighth of 16^3 x 8 to bound; the looser boxes
+# let more proposals through to the screen, which costs less (docs/benchmarks.md, issue 21).
+GRID_ROTATION = 8
+GRID_ROTATION_STRAIGHT = 16
 GRID_HINGE = 8  # boxes along the knee / elbow angle (1 for straight limbs: the hinge is 0)
 SUPPORT_MARGIN_M = 1e-5  # every bound loosened by this (the float32 tests round off by < 1e-6 m)
 DIMS = 4  # drawn angles per limb: rotation vector (3) and hinge
@@ -49,7 +53,7 @@ class LimbGrid:
         self.limb = limb
         self.leg = limb.name.endswith("leg")
         self.straight = straight
-        n = GRID_ROTATION
+        n = GRID_ROTATION_STRAIGHT if straight else GRID_ROTATION
         self.n = np.array([n, n, n, 1 if straight else GRID_HINGE])
         low, span = limb.low, limb.high - limb.low
         centre = [low[d] + span[d] * (np.arange(self.n[d]) + 0.5) / self.n[d] for d in range(DIMS)]
