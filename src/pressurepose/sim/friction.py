@@ -34,6 +34,10 @@ class CoulombSprings:
     stiffness: torch.Tensor
     sliding_force: torch.Tensor
 
+    def take(self, idx: torch.Tensor) -> CoulombSprings:
+        """The springs of the bodies `idx` (a (B',) index)."""
+        return CoulombSprings(self.offset[idx], self.jac[idx], self.stiffness[idx], self.sliding_force[idx])
+
     def _s(self, q):
         B, P = self.offset.shape[:2]
         return self.offset + (self.jac.reshape(B, 2 * P, -1) @ q[..., None]).view(B, P, 2)

@@ -46,6 +46,17 @@ class LinearSprings:
     """(B, M) which of the source's rows these are (self-contact: the pairs within reach, packed
     first), or None (all, in order)."""
 
+    def take(self, idx: torch.Tensor) -> LinearSprings:
+        """The springs of the bodies `idx` (a (B',) index)."""
+        return dataclasses.replace(
+            self,
+            gap=self.gap[idx],
+            jac=self.jac[idx],
+            stiffness=self.stiffness[idx],
+            mask=self.mask[idx],
+            rows=None if self.rows is None else self.rows[idx],
+        )
+
     def _stretch(self, q):
         g = self.gap + (self.jac @ q[..., None])[..., 0]
         return (torch.relu(-g) if self.one_sided else -g) * self.mask
