@@ -86,6 +86,13 @@ class Friction:
         self.stiffness = torch.zeros(batch, NUM_JOINTS, dtype=dtype, device=device)
         self.load = torch.zeros(batch, NUM_JOINTS, dtype=dtype, device=device)
 
+    def take(self, idx: torch.Tensor) -> Friction:
+        """The anchors of the bodies `idx` (a (B',) index)."""
+        out = Friction(len(idx), self.mu, self.anchor.dtype, self.anchor.device)
+        for name in ("anchored", "anchor", "local", "stiffness", "load"):
+            setattr(out, name, getattr(self, name)[idx])
+        return out
+
     def _points(self, rot, joints):
         """(B, 24, 3) the anchored material points in the mat frame."""
         return (rot @ self.local[..., None])[..., 0] + joints

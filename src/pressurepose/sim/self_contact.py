@@ -99,6 +99,15 @@ class SelfContact:
         gap, _, _ = self._gap(rot, joints)
         self.apart = gap > 0  # (B, P)
 
+    def take(self, idx: torch.Tensor) -> SelfContact:
+        """The pairs of the bodies `idx` (a (B',) index)."""
+        out = object.__new__(SelfContact)
+        out.__dict__.update(self.__dict__)
+        caps = self.caps
+        out.caps = dataclasses.replace(caps, **{f.name: getattr(caps, f.name)[idx] for f in dataclasses.fields(caps)})
+        out.stiffness, out.apart = self.stiffness[idx], self.apart[idx]
+        return out
+
     def _gap(self, rot, joints):
         a, b = self.caps.place(rot, joints)
         i, j = self.pairs[:, 0], self.pairs[:, 1]
