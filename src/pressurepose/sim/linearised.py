@@ -104,12 +104,13 @@ class Linearised:
         # The height change of a cell is affine in its (x, y) with per-part coefficients
         # A_s = sum over the DoFs that move part s of q_n a_n: no (cells x DoFs) matrix.
         A = (q[:, None] @ self._G)[:, 0]  # (B, 24 * 3)
-        dz = A.gather(1, self._coef) + A.gather(1, self._coef + 1) * self._x + A.gather(1, self._coef + 2) * self._y
-        return torch.relu(-(self.h + dz)) * self.mask
+        dz = A.gather(1, self._coef + 1).mul_(self._x).add_(A.gather(1, self._coef))
+        dz.add_(A.gather(1, self._coef + 2).mul_(self._y))
+        return dz.add_(self.h).neg_().clamp_(min=0).mul_(self.mask)  # relu(-(h + dz)), masked
 
     def energy(self, q, mp: MattressParams):
         w = self.compression(q)
-        _, _, phi = self._law(mp)(w)
+        phi = self._law(mp).energy(w)
         out = (
             (self.g_grav * q).sum(1)
             + 0.5 * (self.k * (self.e + q) ** 2).sum(1)
@@ -136,7 +137,7 @@ class Linearised:
         w = self.compression(q)
         p, dp, phi = self._law(mp)(w)
         f = p * self.area
-        c = dp * self.area * (w > 0)
+        c = dp.mul_(self.area).mul_(w > 0)
         B = q.shape[0]
         # One pass over the cells: per part the force moments sum f (1, x, y) and the stiffness
         # moments sum c (1, x, y)(1, x, y)^T (its six distinct entries).
