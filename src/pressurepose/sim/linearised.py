@@ -47,19 +47,16 @@ class Linearised:
         # Tissue modulus per cell (B, K) from its lowest point (`tissue` (B, all cells)), or a
         # number, or None (no tissue).
         self.tissue = tissue.gather(1, self.index) if isinstance(tissue, torch.Tensor) else tissue
-        self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
         self.dof_parts = dofs.desc[dofs.joint]  # (N, 24): parts each DoF moves
-        self.cell_basis = self.basis * self.mask[..., None]
         # Constant within the linearisation: each cell's x, y and index into the per-part
         # coefficients (B, 24 * 3), and its moments (1, x, y) and the six distinct entries of
-        # (1, x, y)(1, x, y)^T (masked), summed per part with the force or the stiffness.
-        self._x, self._y = self.basis[..., 1], self.basis[..., 2]
+        # (1, x, y)(1, x, y)^T (masked), summed per part with the force or the stiffness,
+        # coordinate-major (B, 9, K): the scatter along the cells' own axis is ~3x faster.
+        cell_xy = xy[self.index]
+        self._x, self._y = cell_xy[..., 0].contiguous(), cell_xy[..., 1].contiguous()
         self._coef = self.part * 3
-        b = self.cell_basis
-        x, y = b[..., 1:2], b[..., 2:3]
-        # Coordinate-major (B, 9, K): the scatter along the cells' own axis is ~3x faster.
-        self._moments = torch.cat([b, b, x * self._x[..., None], y * self._x[..., None], y * self._y[..., None]], -1)
-        self._moments = self._moments.transpose(1, 2).contiguous()
+        m, mx, my = self.mask, self._x * self.mask, self._y * self.mask
+        self._moments = torch.stack([m, mx, my, m, mx, my, mx * self._x, my * self._x, my * self._y], 1)
         self._scatter_index = self.part[:, None].expand(-1, 9, -1)
         self._symmetric = _SYMMETRIC.to(h.device)
         # Gravity: d(sum m g z)/d(theta_n) over the parts in the subtree, constant.
@@ -73,7 +70,7 @@ class Linearised:
         self._G = (dof_a[:, :, None, :] * self.dof_parts[None, :, :, None]).reshape(dof_a.shape[0], dofs.n, -1)
 
     # Attributes with one row per body (`take` selects them).
-    _PER_BODY = ("h", "mask", "part", "index", "basis", "cell_basis", "_x", "_y", "_coef", "_moments")
+    _PER_BODY = ("h", "mask", "part", "index", "_x", "_y", "_coef", "_moments")
     _PER_BODY += ("g_grav", "e", "k", "dof_a", "_G")
 
     def take(self, idx: torch.Tensor) -> Linearised:
@@ -90,7 +87,8 @@ class Linearised:
         if self.limits is not None:
             new.limits = tuple(x[idx] if x.ndim == 2 else x for x in self.limits)
         new.springs = tuple(s.take(idx) for s in self.springs)
-        new._law_key, new._law_cached = None, None
+        if self._law_cached is not None:
+            new._law_cached = self._law_cached.take(idx)
         return new
 
     def _law(self, mp: MattressParams) -> SeriesLaw:
@@ -137,7 +135,7 @@ class Linearised:
         w = self.compression(q)
         p, dp, phi = self._law(mp)(w)
         f = p * self.area
-        c = dp.mul_(self.area).mul_(w > 0)
+        c = dp.mul_(self.area).masked_fill_(w <= 0, 0.0)
         B = q.shape[0]
         # One pass over the cells: per part the force moments sum f (1, x, y) and the stiffness
         # moments sum c (1, x, y)(1, x, y)^T (its six distinct entries).
@@ -167,7 +165,7 @@ class Linearised:
         w = self.compression(q)
         p, dp, _ = self._law(mp)(w)
         on = (w > 0).to(w.dtype) * self.mask
-        xyz = torch.cat([self.basis[..., 1:3], -w[..., None]], -1)
+        xyz = torch.stack([self._x, self._y, -w], -1)
         return self.part, xyz, p * self.area * on, dp * self.area * on
 
     def unpack(self, values, cells):
@@ -190,7 +188,7 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
     act = torch.arange(B, device=q.device)  # the bodies still stepping; below, their rows only
     grad, H, f, _, e0 = lin.newton_step(q, mp)
     qa, wa = q, weight
-    for _ in range(max_steps):
+    for i in range(max_steps):
         scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
         # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
         # or spring (the root's roll and pitch in the air) from taking arbitrary steps.
@@ -221,7 +219,12 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
         # Hessian) is usually accepted at once; only the bodies whose energy rose halve their
         # step (energies alone) and evaluate again where they end.
         imbalance = (f.sum(1) - wa).abs() / wa
-        grad, H, f, _, energy = lin.newton_step(qa + t[:, None] * step, mp)
+        # The last step needs the energy alone (nothing steps from where it ends).
+        final = i == max_steps - 1
+        if final:
+            energy = lin.energy(qa + t[:, None] * step, mp)
+        else:
+            grad, H, f, _, energy = lin.newton_step(qa + t[:, None] * step, mp)
         better = (energy <= e0) | free
         if not bool(better.all()):
             bad = (~better).nonzero()[:, 0]
@@ -233,13 +236,16 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
                 if bool(ok.all()):
                     break
             tb = torch.where(ok, tb, torch.zeros_like(tb))  # no descent found: stay (counted as done)
-            redo = back.newton_step(qb + tb[:, None] * sb, mp)
             t[bad] = tb
             better[bad] = ok
-            grad[bad], H[bad], f[bad], energy[bad] = redo[0], redo[1], redo[2], redo[4]
+            if not final:
+                redo = back.newton_step(qb + tb[:, None] * sb, mp)
+                grad[bad], H[bad], f[bad], energy[bad] = redo[0], redo[1], redo[2], redo[4]
         qa = qa + t[:, None] * step
         e0 = energy
         iters[act] += better.long()
+        if final:
+            break
         done = ~better | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))
         if bool(done.any()):
             q[act] = qa
