@@ -71,12 +71,13 @@ class Dofs:
     def axes(self, rot: torch.Tensor) -> torch.Tensor:
         """(B, N, 3) each DoF's rotation axis in the mat frame (the dz DoF: zero); rot: (B, 24,
         3, 3) the joints' world rotations (a hinge's axis turns with its joint)."""
-        u = rot.new_zeros(rot.shape[0], self.n, 3)
-        for i in range(1, self.n):
-            if self.axis_world[i] is not None:
-                u[:, i, 0], u[:, i, 1] = self.axis_world[i]
-            else:
-                u[:, i] = rot[:, int(self.joint[i]), :, self.axis_body[i]]
+        world = torch.tensor(
+            [(0.0, 0.0) if a is None else a for a in self.axis_world], dtype=rot.dtype, device=rot.device
+        )
+        u = torch.cat([world, torch.zeros_like(world[:, :1])], -1).expand(rot.shape[0], -1, -1).clone()
+        hinge = self.hinge_axis >= 0
+        # A hinge's axis: column `axis_body` of its joint's rotation.
+        u[:, hinge] = rot.transpose(-1, -2)[:, self.joint[hinge], self.hinge_axis[hinge]]
         return u
 
     def hinge_angles(self, pose: torch.Tensor) -> torch.Tensor:
