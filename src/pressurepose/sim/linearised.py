@@ -125,7 +125,7 @@ class Linearised:
             return q.new_zeros(q.shape[0]), torch.zeros_like(q), torch.zeros_like(q)
         angle, lo, hi, k_lim = self.limits
         a = angle + q
-        over = torch.relu(a - hi) - torch.relu(lo - a)  # signed excess beyond the range
+        over = a - torch.clamp(a, lo, hi)  # signed excess beyond the range
         active = (over != 0).to(q.dtype)
         return 0.5 * (k_lim * over**2).sum(1), k_lim * over, k_lim * active
 
@@ -209,8 +209,9 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
             step[redo] = -torch.linalg.solve(H[redo] + torch.diag_embed(damp[redo]), grad[redo, :, None])[..., 0]
         # Nothing touches yet (no contact stiffness on dz): fall by the cap, no tilt.
         free = H[:, 0, 0] <= 1e-6 * wa
-        step[:, 0] = torch.where(free, torch.full_like(step[:, 0], -cfg.max_shift_m), step[:, 0])
-        step[:, 1:3] = torch.where(free[:, None], torch.zeros_like(step[:, 1:3]), step[:, 1:3])
+        if bool(free.any()):
+            step[:, 0] = torch.where(free, torch.full_like(step[:, 0], -cfg.max_shift_m), step[:, 0])
+            step[:, 1:3] = torch.where(free[:, None], torch.zeros_like(step[:, 1:3]), step[:, 1:3])
         # Trust region: the largest t <= 1 that keeps q + t step within the caps, the step's
         # direction kept (clipping components one by one can turn it uphill).
         room = torch.where(step > 0, cap - qa, cap + qa).clamp(min=0)
