@@ -136,6 +136,59 @@ class ArticulatedRest:
     sub: int
 
 
+@dataclasses.dataclass
+class _Bodies:
+    """The per-body state of the bodies still moving (`rest_articulated`)."""
+
+    cur: BodyParams  # the pose of this re-posing
+    rest: torch.Tensor  # (B, 24, 3) rest joints
+    local_com: torch.Tensor  # (B, 24, 3) parts' centres of mass in their joint frames
+    mass: torch.Tensor  # (B, 24)
+    local_pts: torch.Tensor  # (B, P, 3) surface points in their parts' joint frames
+    point_tissue: torch.Tensor | None  # (B, P) tissue modulus under each point
+    dof_lo: torch.Tensor  # (B, N) hinge limits
+    dof_hi: torch.Tensor
+    ref_local: torch.Tensor  # (B, 23, 3, 3) the springs' rest rotations
+    root_start: torch.Tensor  # (B, 3, 3)
+    k: torch.Tensor  # (B, N) joint stiffness
+    weight: torch.Tensor  # (B,)
+
+    def take(self, idx: torch.Tensor) -> _Bodies:
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return _Bodies(**{n: v if v is None else v.index(idx) if n == "cur" else v[idx] for n, v in fields.items()})
+
+
+class _Done:
+    """The rests of B bodies, filled in as they finish (`rest_articulated`)."""
+
+    def __init__(self, params: BodyParams, cells: int, area: float, dofs: Dofs):
+        B = params.batch_size
+        self.params, self.area, self.dofs, self.cells = params, area, dofs, cells
+        new = params.pose.new_zeros
+        self.foundation, self.part_force = new(B, cells), new(B, NUM_JOINTS)
+        self.force, self.max_compression = new(B), new(B)
+        self.support = torch.zeros(B, dtype=torch.bool, device=params.pose.device)
+
+    def finish(self, idx, lin: Linearised, q, cur: BodyParams, rot, joints, body_com, mp: MattressParams) -> None:
+        """Bodies `idx` rest at q of their linearisation `lin` (at the posing cur, rot, joints):
+        its field balances the weight; the mesh is moved by its (small) motion exactly."""
+        _, _, f, w, _ = lin.newton_step(q, mp)
+        if lin.tissue is not None:
+            w = (w - f / self.area / lin.tissue).clamp(min=0)  # the foam's share of the compression
+        final = apply_motion(cur, q, self.dofs, rot, joints, body_com)
+        self.params = self.params.replace(
+            **{n: getattr(self.params, n).index_copy(0, idx, getattr(final, n)) for n in _MOVED}
+        )
+        self.foundation[idx] = lin.unpack(f, self.cells) / self.area
+        self.part_force[idx] = f.new_zeros(len(idx), NUM_JOINTS).scatter_add_(1, lin.part, f * lin.mask)
+        self.force[idx], self.max_compression[idx] = f.sum(1), w.amax(1)
+        self.support[idx] = lin.mask.any(1)
+
+
+# The pose parameters the articulated rest changes.
+_MOVED = ("pose", "root_rotation", "root_translation")
+
+
 # A hinge pushed beyond its limit meets a spring this many times its own stiffness.
 _LIMIT_STIFFNESS_RATIO = 100.0
 
@@ -209,84 +262,100 @@ def rest_articulated(
         contact = SelfContact(fit_capsules(model, params.shape), rot, joints, weight, cfg.self_contact_sink_m)
     friction = Friction(B, mp.friction, dtype, device) if cfg.friction else None
     dof_parts = dofs.desc[dofs.joint]
-    q, solved = None, None
-    # A body whose re-posing no longer moves it is frozen there (its later linearisations are
-    # the same, so its rest does not depend on how long the others in its batch take).
-    settled = torch.zeros(B, dtype=torch.bool, device=device)
+    nr, nc = grid_shape(mat, cfg.sub, True)
+    done = _Done(params, nr * nc, area, dofs)
+    # The bodies still moving and their state; a body whose re-posing no longer moves it leaves
+    # (its rest is its last linearisation's solve, finished on its own, so it does not depend
+    # on how long the others in its batch take).
+    act = torch.arange(B, device=device)
+    body = _Bodies(
+        cur, rest, local_com, mass, local_pts, point_tissue, dof_lo, dof_hi, ref_local, root_start, k, weight
+    )
+    moving_contact, solved = contact, None
     for outer in range(cfg.outer + 1):
+        cur = body.cur
         if outer > 0:
-            rot, joints = pose_in_mat(rest, cur)
-        com = (rot @ local_com[..., None])[..., 0] + joints
-        body_com = (mass[..., None] * com).sum(1) / mass.sum(1)[:, None]
+            rot, joints = pose_in_mat(body.rest, cur)
+        com = (rot @ body.local_com[..., None])[..., 0] + joints
+        body_com = (body.mass[..., None] * com).sum(1) / body.mass.sum(1)[:, None]
         h, part, cell_tissue = lowest_points(
-            from_part_frames(local_pts, labels, rot, joints), labels, mat, cfg.sub, point_tissue
+            from_part_frames(body.local_pts, labels, rot, joints), labels, mat, cfg.sub, body.point_tissue
         )
-        dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, ref_local)
-        e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ root_start.transpose(-1, -2))[:, 0]
+        dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, body.ref_local)
+        e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ body.root_start.transpose(-1, -2))[:, 0]
         axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)
-        springs = [] if contact is None else [contact.linearise(rot, joints, axes, pivots, dof_parts)]
+        springs = [] if moving_contact is None else [moving_contact.linearise(rot, joints, axes, pivots, dof_parts)]
         if friction is not None and solved is not None:
-            friction.update(rot, joints, *solved, active=~settled)
+            friction.update(rot, joints, *solved)
             springs.append(friction.linearise(rot, joints, axes, pivots, dof_parts))
         lin = Linearised(
             h,
             part,
             xy,
             dof_a,
-            mass,
+            body.mass,
             com,
             e,
-            k,
+            body.k,
             dofs,
             area,
             cell_tissue,
-            (dofs.hinge_angles(cur.pose), dof_lo, dof_hi, _LIMIT_STIFFNESS_RATIO * k),
+            (dofs.hinge_angles(cur.pose), body.dof_lo, body.dof_hi, _LIMIT_STIFFNESS_RATIO * body.k),
             springs,
         )
+        last = outer == cfg.outer
         q, it = minimise(
             lin,
-            h.new_zeros(B, dofs.n),
+            h.new_zeros(len(act), dofs.n),
             mp,
-            weight,
+            body.weight,
             cfg,
-            max_steps=cfg.inner if outer == cfg.outer else cfg.inner_reposing,
+            max_steps=cfg.inner if last else cfg.inner_reposing,
         )
-        iters += it * (~settled)  # a frozen body's repeated solves are not its steps
-        if outer == cfg.outer:
+        iters[act] += it
+        moved = ~((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
+        if last or not bool(moved.any()):
+            # The last re-posing, or nothing moves any more: each finishes its solve (the last
+            # re-posing's already has the rest's step count); it is the rest.
+            if not last:
+                q, it = minimise(lin, q, mp, body.weight, cfg, max_steps=cfg.inner)
+                iters[act] += it
+            done.finish(act, lin, q, cur, rot, joints, body_com, mp)
             break
-        settled = settled | ((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
-        if bool(settled.all()):
-            # Nothing moves any more: finish this linearisation's solve; it is the rest.
-            q, it = minimise(lin, q, mp, weight, cfg, max_steps=cfg.inner)
-            iters += it
-            break
-        if friction is not None:
+        if not bool(moved.all()):
+            # These have settled: their solve goes on to the rest, on their own.
+            idx, keep = (~moved).nonzero()[:, 0], moved.nonzero()[:, 0]
+            lin_s = lin.take(idx)
+            q_s, it = minimise(lin_s, q[idx], mp, body.weight[idx], cfg, max_steps=cfg.inner)
+            iters[act[idx]] += it
+            done.finish(act[idx], lin_s, q_s, cur.index(idx), rot[idx], joints[idx], body_com[idx], mp)
+            if friction is not None:
+                solved = tuple(x[keep] for x in lin.contact_state(q, mp))
+                friction = friction.take(keep)
+            if moving_contact is not None:
+                moving_contact = moving_contact.take(keep)
+            act, body, q = act[keep], body.take(keep), q[keep]
+            rot, joints, body_com = rot[keep], joints[keep], body_com[keep]
+        elif friction is not None:
             solved = lin.contact_state(q, mp)
-        cur = apply_motion(cur, q * (~settled)[:, None].to(q.dtype), dofs, rot, joints, body_com)
-    # The last linearised solve is the rest: its field balances the weight; the mesh is moved
-    # by its (small) motion exactly.
-    _, _, f, w, _ = lin.newton_step(q, mp)
-    if lin.tissue is not None:
-        w = (w - f / area / lin.tissue).clamp(min=0)  # the foam's share of the compression
-    final = apply_motion(cur, q, dofs, rot, joints, body_com)
+        body.cur = apply_motion(body.cur, q, dofs, rot, joints, body_com)
+    final = done.params
     out = model(final)
     penetration = (
         torch.zeros(B, dtype=dtype, device=device)
         if contact is None
         else contact.penetration(*pose_in_mat(rest, final))
     )
-    nr, nc = grid_shape(mat, cfg.sub, True)
-    foundation = (lin.unpack(f, nr * nc) / area).view(B, nr, nc)
-    part_force = h.new_zeros(B, NUM_JOINTS).scatter_add_(1, lin.part, f * lin.mask)
+    foundation = done.foundation.view(B, nr, nc)
+    force, w_max = done.force, done.max_compression
     failure = []
-    force = f.sum(1)
     turned = rotation_angle(root_matrix(params.root_rotation), root_matrix(final.root_rotation))
     for i in range(B):
-        if not bool(lin.mask[i].any()) or float(force[i]) <= 0:
+        if not bool(done.support[i]) or float(force[i]) <= 0:
             failure.append(FAIL_NO_SUPPORT)
         elif float(turned[i]) > MAX_ROLL_RAD:
             failure.append(FAIL_TILT)
-        elif float(w[i].max()) > float(mp.thickness_m):
+        elif float(w_max[i]) > float(mp.thickness_m):
             failure.append(FAIL_BOTTOM)
         elif abs(float(force[i]) - float(weight[i])) > 1e-3 * float(weight[i]):
             failure.append(FAIL_NOT_CONVERGED)
@@ -300,8 +369,8 @@ def rest_articulated(
         joints=out.joints,
         foundation_pa=foundation,
         force_n=force,
-        max_compression_m=w.amax(1),
-        part_force_n=part_force,
+        max_compression_m=w_max,
+        part_force_n=done.part_force,
         self_penetration_m=penetration,
         iterations=iters,
         failure=failure,

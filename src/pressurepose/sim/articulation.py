@@ -71,12 +71,13 @@ class Dofs:
     def axes(self, rot: torch.Tensor) -> torch.Tensor:
         """(B, N, 3) each DoF's rotation axis in the mat frame (the dz DoF: zero); rot: (B, 24,
         3, 3) the joints' world rotations (a hinge's axis turns with its joint)."""
-        u = rot.new_zeros(rot.shape[0], self.n, 3)
-        for i in range(1, self.n):
-            if self.axis_world[i] is not None:
-                u[:, i, 0], u[:, i, 1] = self.axis_world[i]
-            else:
-                u[:, i] = rot[:, int(self.joint[i]), :, self.axis_body[i]]
+        world = torch.tensor(
+            [(0.0, 0.0) if a is None else a for a in self.axis_world], dtype=rot.dtype, device=rot.device
+        )
+        u = torch.cat([world, torch.zeros_like(world[:, :1])], -1).expand(rot.shape[0], -1, -1).clone()
+        hinge = self.hinge_axis >= 0
+        # A hinge's axis: column `axis_body` of its joint's rotation.
+        u[:, hinge] = rot.transpose(-1, -2)[:, self.joint[hinge], self.hinge_axis[hinge]]
         return u
 
     def hinge_angles(self, pose: torch.Tensor) -> torch.Tensor:
@@ -123,23 +124,33 @@ def part_mass_and_com(
     part's triangles with tetrahedra to the part's own centre (the mean of its triangles'
     centroids, inside the part), density BODY_DENSITY_KG_M3. The part surfaces are open where
     parts meet, so the parts' masses add up to the body's within a few per cent; callers
-    scale them to the body's mass."""
+    scale them to the body's mass. Per part, its triangles' corners as (B, 3, n) rows (one
+    contiguous slice of the faces sorted by part): no scatter over the faces."""
     B = vertices.shape[0]
-    tri = vertices[:, faces]  # (B, F, 3, 3)
-    centroid = tri.mean(2)
-    idx = face_part[None].expand(B, -1)
-    count = vertices.new_zeros(NUM_JOINTS).scatter_add_(0, face_part, torch.ones_like(face_part, dtype=vertices.dtype))
-    apex = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(1, idx[..., None].expand(-1, -1, 3), centroid)
-    apex = apex / count.clamp(min=1)[None, :, None]
-    rel = tri - apex[:, face_part][:, :, None]
-    # (B, F) signed tetrahedron volumes: the triple product of the corners relative to the apex.
-    vol = (rel[:, :, 0] * torch.linalg.cross(rel[:, :, 1], rel[:, :, 2])).sum(-1) / 6.0
-    cen = apex[:, face_part] + rel.sum(2) / 4.0
-    mass = vertices.new_zeros(B, NUM_JOINTS).scatter_add_(1, idx, vol) * BODY_DENSITY_KG_M3
-    moment = vertices.new_zeros(B, NUM_JOINTS, 3).scatter_add_(
-        1, idx[..., None].expand(-1, -1, 3), vol[..., None] * cen
-    )
-    com = torch.where(mass[..., None] > 0, moment * BODY_DENSITY_KG_M3 / mass.clamp(min=1e-12)[..., None], apex)
+    order = torch.argsort(face_part, stable=True)
+    tri = faces[order]
+    cols = vertices.transpose(1, 2).contiguous()  # (B, 3, V)
+    v0, v1, v2 = (cols.index_select(2, tri[:, i]) for i in range(3))  # (B, 3, F) each
+    mass = vertices.new_zeros(B, NUM_JOINTS)
+    com = vertices.new_zeros(B, NUM_JOINTS, 3)
+    for j, sl in _part_slices(face_part[order]):
+        a0, a1, a2 = v0[:, :, sl], v1[:, :, sl], v2[:, :, sl]
+        corners = a0 + a1 + a2
+        apex = corners.sum(2, keepdim=True) / (3 * a0.shape[2])  # (B, 3, 1)
+        r0, r1, r2 = a0 - apex, a1 - apex, a2 - apex
+        # Signed tetrahedron volumes (B, n): the triple product of the corners relative to the apex.
+        cross = (
+            r1[:, 1] * r2[:, 2] - r1[:, 2] * r2[:, 1],
+            r1[:, 2] * r2[:, 0] - r1[:, 0] * r2[:, 2],
+            r1[:, 0] * r2[:, 1] - r1[:, 1] * r2[:, 0],
+        )
+        vol = (r0[:, 0] * cross[0] + r0[:, 1] * cross[1] + r0[:, 2] * cross[2]) / 6.0
+        volume = vol.sum(1)
+        # sum vol x (apex + (r0 + r1 + r2) / 4): the tetrahedra's centroids weighted by volume.
+        moment = ((corners - 3 * apex) @ vol[..., None])[..., 0] / 4.0  # (B, 3), about the apex
+        mass[:, j] = volume * BODY_DENSITY_KG_M3
+        centre = apex[..., 0] + moment / volume.clamp(min=1e-12 / BODY_DENSITY_KG_M3)[:, None]
+        com[:, j] = torch.where(volume[:, None] > 0, centre, apex[..., 0])
     return mass.clamp(min=0), com
 
 

@@ -34,6 +34,10 @@ class CoulombSprings:
     stiffness: torch.Tensor
     sliding_force: torch.Tensor
 
+    def take(self, idx: torch.Tensor) -> CoulombSprings:
+        """The springs of the bodies `idx` (a (B',) index)."""
+        return CoulombSprings(self.offset[idx], self.jac[idx], self.stiffness[idx], self.sliding_force[idx])
+
     def _s(self, q):
         B, P = self.offset.shape[:2]
         return self.offset + (self.jac.reshape(B, 2 * P, -1) @ q[..., None]).view(B, P, 2)
@@ -81,6 +85,13 @@ class Friction:
         self.local = torch.zeros(batch, NUM_JOINTS, 3, dtype=dtype, device=device)  # in the part's frame
         self.stiffness = torch.zeros(batch, NUM_JOINTS, dtype=dtype, device=device)
         self.load = torch.zeros(batch, NUM_JOINTS, dtype=dtype, device=device)
+
+    def take(self, idx: torch.Tensor) -> Friction:
+        """The anchors of the bodies `idx` (a (B',) index)."""
+        out = Friction(len(idx), self.mu, self.anchor.dtype, self.anchor.device)
+        for name in ("anchored", "anchor", "local", "stiffness", "load"):
+            setattr(out, name, getattr(self, name)[idx])
+        return out
 
     def _points(self, rot, joints):
         """(B, 24, 3) the anchored material points in the mat frame."""

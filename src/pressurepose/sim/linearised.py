@@ -47,27 +47,49 @@ class Linearised:
         # Tissue modulus per cell (B, K) from its lowest point (`tissue` (B, all cells)), or a
         # number, or None (no tissue).
         self.tissue = tissue.gather(1, self.index) if isinstance(tissue, torch.Tensor) else tissue
-        self.basis = torch.cat([torch.ones_like(self.h)[..., None], xy[self.index]], -1)  # (B, K, 3): 1, x, y
         self.dof_parts = dofs.desc[dofs.joint]  # (N, 24): parts each DoF moves
-        self._parts_of_dofs = self.dof_parts.T.contiguous()  # (24, N)
-        self.cell_basis = self.basis * self.mask[..., None]
         # Constant within the linearisation: each cell's x, y and index into the per-part
         # coefficients (B, 24 * 3), and its moments (1, x, y) and the six distinct entries of
-        # (1, x, y)(1, x, y)^T (masked), summed per part with the force or the stiffness.
-        self._x, self._y = self.basis[..., 1], self.basis[..., 2]
+        # (1, x, y)(1, x, y)^T (masked), summed per part with the force or the stiffness,
+        # coordinate-major (B, 9, K): the scatter along the cells' own axis is ~3x faster.
+        cell_xy = xy[self.index]
+        self._x, self._y = cell_xy[..., 0].contiguous(), cell_xy[..., 1].contiguous()
         self._coef = self.part * 3
-        b = self.cell_basis
-        x, y = b[..., 1:2], b[..., 2:3]
-        self._moments = torch.cat([b, b, x * self._x[..., None], y * self._x[..., None], y * self._y[..., None]], -1)
-        self._scatter_index = self.part[..., None].expand(-1, -1, 9)
+        m, mx, my = self.mask, self._x * self.mask, self._y * self.mask
+        self._moments = torch.stack([m, mx, my, m, mx, my, mx * self._x, my * self._x, my * self._y], 1)
+        self._scatter_index = self.part[:, None].expand(-1, 9, -1)
         self._symmetric = _SYMMETRIC.to(h.device)
         # Gravity: d(sum m g z)/d(theta_n) over the parts in the subtree, constant.
         gb = torch.cat([torch.ones_like(com[..., :1]), com[..., :2]], -1) * (mass * GRAVITY_M_S2)[..., None]
         sub_g = torch.einsum("js,bst->bjt", dofs.desc, gb)  # (B, 24, 3)
         self.g_grav = (dof_a * sub_g[:, dofs.joint]).sum(-1)
         self.e, self.k = e, k
-        self.deeper_ok = dofs.deeper >= 0
-        self.deeper = dofs.deeper.clamp(min=0)
+        # (B, N, 24 * 3): a_n in the slots of the parts DoF n moves (zero elsewhere); the parts'
+        # affine height coefficients are q G, the gradient's force term G (per-part force
+        # moments), the Hessian G M G^T with M the parts' 3 x 3 stiffness moments.
+        self._G = (dof_a[:, :, None, :] * self.dof_parts[None, :, :, None]).reshape(dof_a.shape[0], dofs.n, -1)
+
+    # Attributes with one row per body (`take` selects them).
+    _PER_BODY = ("h", "mask", "part", "index", "_x", "_y", "_coef", "_moments")
+    _PER_BODY += ("g_grav", "e", "k", "dof_a", "_G")
+
+    def take(self, idx: torch.Tensor) -> Linearised:
+        """The same problem for the bodies `idx` only (a (B',) index): each body's rows are
+        computed the same way whatever else is in its batch, so `minimise` can drop the bodies
+        that are done and step the others alone."""
+        new = object.__new__(Linearised)
+        new.__dict__.update(self.__dict__)
+        for name in self._PER_BODY:
+            setattr(new, name, getattr(self, name)[idx])
+        new._scatter_index = new.part[:, None].expand(-1, 9, -1)
+        if isinstance(self.tissue, torch.Tensor):
+            new.tissue = self.tissue[idx]
+        if self.limits is not None:
+            new.limits = tuple(x[idx] if x.ndim == 2 else x for x in self.limits)
+        new.springs = tuple(s.take(idx) for s in self.springs)
+        if self._law_cached is not None:
+            new._law_cached = self._law_cached.take(idx)
+        return new
 
     def _law(self, mp: MattressParams) -> SeriesLaw:
         """The series law of these cells' tissue on this mattress (its constants computed once)."""
@@ -79,13 +101,14 @@ class Linearised:
     def compression(self, q):
         # The height change of a cell is affine in its (x, y) with per-part coefficients
         # A_s = sum over the DoFs that move part s of q_n a_n: no (cells x DoFs) matrix.
-        A = torch.matmul(self._parts_of_dofs, q[..., None] * self.dof_a).reshape(q.shape[0], -1)  # (B, 24 * 3)
-        dz = A.gather(1, self._coef) + A.gather(1, self._coef + 1) * self._x + A.gather(1, self._coef + 2) * self._y
-        return torch.relu(-(self.h + dz)) * self.mask
+        A = (q[:, None] @ self._G)[:, 0]  # (B, 24 * 3)
+        dz = A.gather(1, self._coef + 1).mul_(self._x).add_(A.gather(1, self._coef))
+        dz.add_(A.gather(1, self._coef + 2).mul_(self._y))
+        return dz.add_(self.h).neg_().clamp_(min=0).mul_(self.mask)  # relu(-(h + dz)), masked
 
     def energy(self, q, mp: MattressParams):
         w = self.compression(q)
-        _, _, phi = self._law(mp)(w)
+        phi = self._law(mp).energy(w)
         out = (
             (self.g_grav * q).sum(1)
             + 0.5 * (self.k * (self.e + q) ** 2).sum(1)
@@ -102,7 +125,7 @@ class Linearised:
             return q.new_zeros(q.shape[0]), torch.zeros_like(q), torch.zeros_like(q)
         angle, lo, hi, k_lim = self.limits
         a = angle + q
-        over = torch.relu(a - hi) - torch.relu(lo - a)  # signed excess beyond the range
+        over = a - torch.clamp(a, lo, hi)  # signed excess beyond the range
         active = (over != 0).to(q.dtype)
         return 0.5 * (k_lim * over**2).sum(1), k_lim * over, k_lim * active
 
@@ -112,27 +135,24 @@ class Linearised:
         w = self.compression(q)
         p, dp, phi = self._law(mp)(w)
         f = p * self.area
-        c = dp * self.area * (w > 0)
+        c = dp.mul_(self.area).masked_fill_(w <= 0, 0.0)
         B = q.shape[0]
         # One pass over the cells: per part the force moments sum f (1, x, y) and the stiffness
         # moments sum c (1, x, y)(1, x, y)^T (its six distinct entries).
         weighted = torch.empty_like(self._moments)
-        torch.mul(self._moments[..., :3], f[..., None], out=weighted[..., :3])
-        torch.mul(self._moments[..., 3:], c[..., None], out=weighted[..., 3:])
-        sums = q.new_zeros(B, NUM_JOINTS, 9).scatter_add_(1, self._scatter_index, weighted)
+        torch.mul(self._moments[:, :3], f[:, None], out=weighted[:, :3])
+        torch.mul(self._moments[:, 3:], c[:, None], out=weighted[:, 3:])
+        sums = q.new_zeros(B, 9, NUM_JOINTS).scatter_add_(2, self._scatter_index, weighted).transpose(1, 2)
         f_part = sums[..., :3]
         e_lim, g_lim, c_lim = self._limit(q)
         energy = (self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area + e_lim
         grad = self.g_grav + self.k * (self.e + q) + g_lim - (self.dof_a * torch.matmul(self.dof_parts, f_part)).sum(-1)
-        # Hessian from the parts' stiffness moments sum c (1, x, y)(1, x, y)^T, summed over
-        # subtrees: H_nl = a_n^T M[overlap(n, l)] a_l.
-        m_part = sums[..., 3:].index_select(-1, self._symmetric)  # (B, 24, 9) from the six distinct entries
-        m_sub = torch.matmul(self.dofs.desc, m_part).view(B, NUM_JOINTS, 3, 3)
-        # a_n^T M_j for every subtree j, then the j = overlap(n, l) one dotted with a_l.
-        aM = torch.einsum("bns,bjst->bnjt", self.dof_a, m_sub)  # (B, N, 24, 3)
-        n = self.deeper.shape[0]
-        picked = aM.gather(2, self.deeper[None, :, :, None].expand(B, n, n, 3))  # (B, N, N, 3)
-        H = (picked * self.dof_a[:, None]).sum(-1) * self.deeper_ok
+        # Hessian from the parts' stiffness moments M_s = sum c (1, x, y)(1, x, y)^T: H_nl = sum
+        # over the parts s both DoFs move of a_n^T M_s a_l, i.e. G M G^T (M block-diagonal).
+        m_part = sums[..., 3:].index_select(-1, self._symmetric).view(B, NUM_JOINTS, 3, 3)  # from the six entries
+        n = self.dof_a.shape[1]
+        gm = self._G.view(B, n, NUM_JOINTS, 3).transpose(1, 2) @ m_part  # (B, 24, N, 3): a_n^T M_s
+        H = gm.transpose(1, 2).reshape(B, n, -1) @ self._G.transpose(1, 2)
         H = H + torch.diag_embed(self.k + c_lim)
         for s in self.springs:
             e_s, g_s, h_s = s.gradient_hessian(q)
@@ -145,7 +165,7 @@ class Linearised:
         w = self.compression(q)
         p, dp, _ = self._law(mp)(w)
         on = (w > 0).to(w.dtype) * self.mask
-        xyz = torch.cat([self.basis[..., 1:3], -w[..., None]], -1)
+        xyz = torch.stack([self._x, self._y, -w], -1)
         return self.part, xyz, p * self.area * on, dp * self.area * on
 
     def unpack(self, values, cells):
@@ -156,60 +176,86 @@ class Linearised:
 def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
     """Newton with backtracking on the (convex) linearised energy from q; weight (B,) N; cfg an
     `ArticulatedConfig` (trust region max_rotation_rad / max_shift_m, tolerance tol). Returns q
-    and the step counts (B,)."""
+    and the step counts (B,). Each body steps on its own: a body that is done leaves the
+    batch (`Linearised.take`), and only the bodies whose step needs it backtrack or re-solve,
+    so a body's result and its cost do not depend on the others."""
     B, n = q.shape
     iters = torch.zeros(B, dtype=torch.long, device=q.device)
     cap = torch.full((n,), cfg.max_rotation_rad, dtype=q.dtype, device=q.device)
     cap[0] = cfg.max_shift_m
-    done = torch.zeros(B, dtype=torch.bool, device=q.device)
     eye = torch.eye(n, dtype=q.dtype, device=q.device)
+    q = q.clone()
+    act = torch.arange(B, device=q.device)  # the bodies still stepping; below, their rows only
     grad, H, f, _, e0 = lin.newton_step(q, mp)
-    for _ in range(max_steps):
+    qa, wa = q, weight
+    for i in range(max_steps):
         scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
         # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
         # or spring (the root's roll and pitch in the air) from taking arbitrary steps.
-        reg = 1e-9 * scale + 1e-7 * weight
+        reg = 1e-9 * scale + 1e-7 * wa
         H = H + reg[:, None, None] * eye
         # Levenberg-Marquardt damping on the unknowns whose step would leave the trust region
-        # (a limb falling freely): they take a shorter step, the others their Newton step.
-        damp = torch.zeros_like(q)
-        for _ in range(4):
-            step = -torch.linalg.solve(H + torch.diag_embed(damp), grad[..., None])[..., 0]
-            room = torch.where(step > 0, cap - q, cap + q).clamp(min=0)
+        # (a limb falling freely): they take a shorter step, the others their Newton step (up
+        # to four solves; only the bodies with an unknown over re-solve).
+        damp = torch.zeros_like(qa)
+        step = -torch.linalg.solve(H, grad[..., None])[..., 0]
+        for attempt in range(4):
+            room = torch.where(step > 0, cap - qa, cap + qa).clamp(min=0)
             over = step.abs() > room * 1.0001
-            if not bool(over.any()):
+            if attempt == 3 or not bool(over.any()):
                 break
             damp = torch.where(over, 4 * damp + H.diagonal(dim1=-2, dim2=-1), damp)
+            redo = over.any(-1).nonzero()[:, 0]
+            step[redo] = -torch.linalg.solve(H[redo] + torch.diag_embed(damp[redo]), grad[redo, :, None])[..., 0]
         # Nothing touches yet (no contact stiffness on dz): fall by the cap, no tilt.
-        free = H[:, 0, 0] <= 1e-6 * weight
-        step[:, 0] = torch.where(free, torch.full_like(step[:, 0], -cfg.max_shift_m), step[:, 0])
-        step[:, 1:3] = torch.where(free[:, None], torch.zeros_like(step[:, 1:3]), step[:, 1:3])
-        step = torch.where(done[:, None], torch.zeros_like(step), step)
+        free = H[:, 0, 0] <= 1e-6 * wa
+        if bool(free.any()):
+            step[:, 0] = torch.where(free, torch.full_like(step[:, 0], -cfg.max_shift_m), step[:, 0])
+            step[:, 1:3] = torch.where(free[:, None], torch.zeros_like(step[:, 1:3]), step[:, 1:3])
         # Trust region: the largest t <= 1 that keeps q + t step within the caps, the step's
         # direction kept (clipping components one by one can turn it uphill).
-        room = torch.where(step > 0, cap - q, cap + q).clamp(min=0)
+        room = torch.where(step > 0, cap - qa, cap + qa).clamp(min=0)
         t = (room / step.abs().clamp(min=1e-15)).amin(-1).clamp(max=1.0)
         # Backtracking: the full step's evaluation (energy, and the next step's gradient and
-        # Hessian) is usually accepted at once; only if some body's energy rose, their step is
-        # halved (energies alone) and the evaluation redone where they end.
-        imbalance = (f.sum(1) - weight).abs() / weight
-        trial = lin.newton_step(q + t[:, None] * step, mp)
-        better = (trial[4] <= e0) | done | free
+        # Hessian) is usually accepted at once; only the bodies whose energy rose halve their
+        # step (energies alone) and evaluate again where they end.
+        imbalance = (f.sum(1) - wa).abs() / wa
+        # The last step needs the energy alone (nothing steps from where it ends).
+        final = i == max_steps - 1
+        if final:
+            energy = lin.energy(qa + t[:, None] * step, mp)
+        else:
+            grad, H, f, _, energy = lin.newton_step(qa + t[:, None] * step, mp)
+        better = (energy <= e0) | free
         if not bool(better.all()):
+            bad = (~better).nonzero()[:, 0]
+            back = lin.take(bad)
+            qb, sb, tb, eb, ok = qa[bad], step[bad], t[bad], e0[bad], better[bad]
             for _ in range(9):
-                t = torch.where(better, t, t / 2)
-                better = (lin.energy(q + t[:, None] * step, mp) <= e0) | done | free
-                if bool(better.all()):
+                tb = torch.where(ok, tb, tb / 2)
+                ok = back.energy(qb + tb[:, None] * sb, mp) <= eb
+                if bool(ok.all()):
                     break
-            t = torch.where(better, t, torch.zeros_like(t))  # no descent found: stay (counted as done)
-            trial = lin.newton_step(q + t[:, None] * step, mp)
-        q = q + t[:, None] * step
-        grad, H, f, _, e0 = trial
-        done = done | ~better
-        iters += (~done).long()
-        done = done | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))
-        if bool(done.all()):
+            tb = torch.where(ok, tb, torch.zeros_like(tb))  # no descent found: stay (counted as done)
+            t[bad] = tb
+            better[bad] = ok
+            if not final:
+                redo = back.newton_step(qb + tb[:, None] * sb, mp)
+                grad[bad], H[bad], f[bad], energy[bad] = redo[0], redo[1], redo[2], redo[4]
+        qa = qa + t[:, None] * step
+        e0 = energy
+        iters[act] += better.long()
+        if final:
             break
+        done = ~better | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))
+        if bool(done.any()):
+            q[act] = qa
+            keep = (~done).nonzero()[:, 0]
+            if not len(keep):
+                break
+            act, lin = act[keep], lin.take(keep)
+            qa, wa, grad, H, f, e0 = qa[keep], wa[keep], grad[keep], H[keep], f[keep], e0[keep]
+    q[act] = qa
     return q, iters
 
 

@@ -46,6 +46,17 @@ class LinearSprings:
     """(B, M) which of the source's rows these are (self-contact: the pairs within reach, packed
     first), or None (all, in order)."""
 
+    def take(self, idx: torch.Tensor) -> LinearSprings:
+        """The springs of the bodies `idx` (a (B',) index)."""
+        return dataclasses.replace(
+            self,
+            gap=self.gap[idx],
+            jac=self.jac[idx],
+            stiffness=self.stiffness[idx],
+            mask=self.mask[idx],
+            rows=None if self.rows is None else self.rows[idx],
+        )
+
     def _stretch(self, q):
         g = self.gap + (self.jac @ q[..., None])[..., 0]
         return (torch.relu(-g) if self.one_sided else -g) * self.mask
@@ -88,6 +99,15 @@ class SelfContact:
         gap, _, _ = self._gap(rot, joints)
         self.apart = gap > 0  # (B, P)
 
+    def take(self, idx: torch.Tensor) -> SelfContact:
+        """The pairs of the bodies `idx` (a (B',) index)."""
+        out = object.__new__(SelfContact)
+        out.__dict__.update(self.__dict__)
+        caps = self.caps
+        out.caps = dataclasses.replace(caps, **{f.name: getattr(caps, f.name)[idx] for f in dataclasses.fields(caps)})
+        out.stiffness, out.apart = self.stiffness[idx], self.apart[idx]
+        return out
+
     def _gap(self, rot, joints):
         a, b = self.caps.place(rot, joints)
         i, j = self.pairs[:, 0], self.pairs[:, 1]
@@ -99,25 +119,29 @@ class SelfContact:
         """At the posing (rot, joints): axes (B, N, 3) and pivots (B, N, 3) of the DoFs,
         dof_parts (N, 24) the parts each DoF moves."""
         gap, c1, c2 = self._gap(rot, joints)
-        diff = c1 - c2
-        dist = diff.norm(dim=-1, keepdim=True)
-        up = torch.zeros_like(diff)
-        up[..., 2] = 1.0
-        normal = torch.where(dist > 1e-9, diff / dist.clamp(min=1e-9), up)  # (B, P, 3)
-        # n . (u x (c - p)) = u . ((c - p) x n), per DoF; the DoF counts where it moves the part.
-        m1 = dof_parts[:, self.part[:, 0]].T  # (P, N)
-        m2 = dof_parts[:, self.part[:, 1]].T
-        r1 = torch.linalg.cross(c1[:, :, None] - pivots[:, None], normal[:, :, None].expand(-1, -1, axes.shape[1], -1))
-        r2 = torch.linalg.cross(c2[:, :, None] - pivots[:, None], normal[:, :, None].expand(-1, -1, axes.shape[1], -1))
-        u = axes[:, None]
-        jac = (u * r1).sum(-1) * m1 - (u * r2).sum(-1) * m2  # (B, P, N)
         near = self.apart & (gap < _REACH_M)
         # Only the pairs within reach count: packed first per body (M of them at most).
         m = max(int(near.sum(1).max()), 1)
         rows = torch.argsort((~near).to(torch.int8), dim=1, stable=True)[:, :m]
+        pick = rows[..., None].expand(-1, -1, 3)
+        c1, c2 = c1.gather(1, pick), c2.gather(1, pick)
+        diff = c1 - c2
+        dist = diff.norm(dim=-1, keepdim=True)
+        up = torch.zeros_like(diff)
+        up[..., 2] = 1.0
+        normal = torch.where(dist > 1e-9, diff / dist.clamp(min=1e-9), up)  # (B, M, 3)
+        # n . (u x (c - p)) = u . (c x n) - n . (u x p), per DoF (two (M x 3)(3 x N) products per
+        # capsule); the DoF counts where it moves the capsule's part.
+        part = self.part[rows]  # (B, M, 2)
+        m1 = dof_parts.T[part[..., 0]]  # (B, M, N)
+        m2 = dof_parts.T[part[..., 1]]
+        ut = axes.transpose(1, 2)  # (B, 3, N)
+        about = normal @ torch.linalg.cross(axes, pivots).transpose(1, 2)  # n . (u x p), (B, M, N)
+        j1 = torch.linalg.cross(c1, normal) @ ut - about
+        j2 = torch.linalg.cross(c2, normal) @ ut - about
         return LinearSprings(
             gap=gap.gather(1, rows),
-            jac=jac.gather(1, rows[..., None].expand(-1, -1, jac.shape[-1])),
+            jac=j1 * m1 - j2 * m2,
             stiffness=self.stiffness,
             mask=near.gather(1, rows).to(gap.dtype),
             rows=rows,
