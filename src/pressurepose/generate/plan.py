@@ -108,8 +108,9 @@ class GenerateConfig:
     """Mattress/sensor parameters (MattressParams JSON, e.g. from `pressurepose calibrate`)."""
     shard_size: int = 128
     """Samples per shard (the unit of work and of resume)."""
-    batch: int = 16
-    """Samples simulated together inside a shard (part of the dataset's definition)."""
+    batch: int = 32
+    """Samples simulated together inside a shard (part of the dataset's definition; 16 before
+    session 28 - such datasets resume with --batch 16)."""
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: Path | None = None
     settle: Literal["articulated", "mujoco"] = "articulated"
