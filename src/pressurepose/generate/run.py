@@ -42,6 +42,10 @@ SETTINGS = "generate.json"
 TIMING = "timing.json"
 
 
+# The articulated engine's settings a dataset pins (`generate.json`), beside the mattress.
+ARTICULATED_JOINT_FIELDS = ("stiffness_scale", "neck_stiffness_scale", "spine_stiffness_scale")
+
+
 def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
     from pressurepose import __version__
     from pressurepose.sampling.partitions import SamplingConfig
@@ -61,9 +65,6 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
         joints = ArticulatedConfig()
         settings["articulated_joints"] = {k: getattr(joints, k) for k in ARTICULATED_JOINT_FIELDS}
     return settings
-
-
-ARTICULATED_JOINT_FIELDS = ("stiffness_scale", "neck_stiffness_scale", "spine_stiffness_scale")
 
 
 def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
