@@ -24,26 +24,14 @@ import numpy as np
 import torch
 
 from pressurepose.commands.realism import RealismConfig, load_real, real_scenes, simulate_subjects
-from pressurepose.eval.real import posture_of, roll_deg
-from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
+from pressurepose.eval.real import read_bodies
 from pressurepose.train.checkpoint import load_network
 
 
 def estimate(net, images: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """Estimated heights (N,) m and postures of (N, 64, 27) mmHg images."""
-    p = torch.as_tensor(np.asarray(images), dtype=torch.float32).clamp(max=100.0)
-    n = p.shape[0]
-    with torch.no_grad():
-        est = net(
-            NetInputs(
-                pressure_mmhg=p,
-                gender=torch.full((n,), GENDER_UNKNOWN),
-                height_m=torch.zeros(n),
-                mass_kg=torch.zeros(n),
-            ),
-            mesh=False,
-        )[-1].params
-    return net.body.measure(est.shape).height_m.numpy(), posture_of(roll_deg(est.root_rotation.to(torch.float64)))
+    read = read_bodies(net, torch.as_tensor(np.asarray(images), dtype=torch.float32).clamp(max=100.0), batch=64)
+    return read.height_m.numpy(), read.postures
 
 
 def summary(est_h: np.ndarray, true_h: np.ndarray, postures: list[str], posture: str) -> str:

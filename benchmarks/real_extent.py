@@ -22,8 +22,8 @@ import pyarrow.parquet as pq
 import torch
 
 from pressurepose.data.pmatdata import load_images, load_index
+from pressurepose.eval.real import read_bodies
 from pressurepose.mat import MatSpec
-from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
 from pressurepose.samples import resolve_pmatdata
 from pressurepose.train.checkpoint import load_network
 
@@ -49,14 +49,9 @@ def synthetic(data: Path, every: int) -> dict[str, tuple[np.ndarray, np.ndarray]
 
 
 def height_error(net, images: np.ndarray, heights: np.ndarray) -> str:
-    est = []
-    with torch.inference_mode():
-        for lo in range(0, len(images), 64):
-            x = torch.from_numpy(images[lo : lo + 64])
-            e = net(NetInputs(x, gender=torch.full((len(x),), GENDER_UNKNOWN)), mesh=False)[-1]
-            est.append(net.body.measure(e.params.shape).height_m.double().numpy())
-    d = np.concatenate(est) - heights
-    r = np.corrcoef(np.concatenate(est), heights)[0, 1]
+    est = read_bodies(net, torch.from_numpy(images), batch=64).height_m.double().numpy()
+    d = est - heights
+    r = np.corrcoef(est, heights)[0, 1]
     return f"height error median {100 * np.median(d):+.1f} cm, MAE {100 * np.abs(d).mean():.1f} cm, r {r:.2f}"
 
 

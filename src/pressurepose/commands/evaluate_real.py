@@ -36,7 +36,7 @@ from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index
 from pressurepose.errors import UserError
 from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
-from pressurepose.eval.real import GROUP_POSTURE, POSTURES, posture_of, roll_deg
+from pressurepose.eval.real import GROUP_POSTURE, POSTURES, read_bodies
 from pressurepose.eval.real_cloud import load_cloud_file
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import check_images
@@ -90,25 +90,9 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     heights = [r.height_cm / 100 for r in records]
     masses = [r.weight_kg for r in records]
     t0 = time.perf_counter()
-    rolls, est_h, est_m = [], [], []
-    with torch.no_grad():
-        for lo in range(0, len(records), cfg.batch):
-            sl = slice(lo, lo + cfg.batch)
-            p = images[sl]
-            inputs = NetInputs(
-                pressure_mmhg=p,
-                gender=torch.full((p.shape[0],), GENDER_UNKNOWN),
-                height_m=torch.tensor(heights[sl]),
-                mass_kg=torch.tensor(masses[sl]),
-            )
-            est = net(inputs, mesh=False)[-1].params
-            meas = net.body.measure(est.shape)
-            rolls.append(roll_deg(est.root_rotation.to(torch.float64)))
-            est_h.append(meas.height_m)
-            est_m.append(meas.mass_kg)
+    read = read_bodies(net, images, torch.tensor(heights), torch.tensor(masses), cfg.batch)
     seconds = time.perf_counter() - t0
-    roll = torch.cat(rolls)
-    predicted = posture_of(roll)
+    predicted = read.postures
     rows = [
         {
             "file": str(r.path.relative_to(Path(cfg.pmatdata))),
@@ -122,7 +106,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "mass_kg": r.weight_kg,
             "estimated_mass_kg": float(m),
         }
-        for r, e, a, h, m in zip(records, predicted, roll, torch.cat(est_h), torch.cat(est_m))
+        for r, e, a, h, m in zip(records, predicted, read.roll_deg, read.height_m, read.mass_kg)
     ]
     summary = {}
     for mattress in sorted({r["mattress"] for r in rows}):

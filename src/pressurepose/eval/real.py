@@ -10,9 +10,12 @@ the roll about the bed's long axis, roll = atan2(left_z, front_z) whatever the y
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from pressurepose.body.params import root_matrix
+from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
 
 POSTURES = ("supine", "left", "right", "prone")
 GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
@@ -33,4 +36,39 @@ def posture_of(roll: torch.Tensor) -> list[str]:
     return out
 
 
-__all__ = ["GROUP_POSTURE", "POSTURES", "posture_of", "roll_deg"]
+@dataclasses.dataclass(frozen=True)
+class BodyReadings:
+    """What a network says about each of N images: height (N,) m, mass (N,) kg (`body.measure`
+    of the estimated shape) and roll (N,) deg (`roll_deg` of the estimated root)."""
+
+    height_m: torch.Tensor
+    mass_kg: torch.Tensor
+    roll_deg: torch.Tensor
+
+    @property
+    def postures(self) -> list[str]:
+        return posture_of(self.roll_deg)
+
+
+def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, batch: int = 32) -> BodyReadings:
+    """Run a network (no gender given) on (N, 64, 27) mmHg images in batches; height_m and
+    mass_kg (N,) are passed as inputs for networks that take them (ignored otherwise)."""
+    heights, masses, rolls = [], [], []
+    with torch.no_grad():
+        for lo in range(0, pressure_mmhg.shape[0], batch):
+            p = pressure_mmhg[lo : lo + batch]
+            inputs = NetInputs(
+                pressure_mmhg=p,
+                gender=torch.full((p.shape[0],), GENDER_UNKNOWN),
+                height_m=None if height_m is None else torch.as_tensor(height_m[lo : lo + batch]),
+                mass_kg=None if mass_kg is None else torch.as_tensor(mass_kg[lo : lo + batch]),
+            )
+            est = net(inputs, mesh=False)[-1].params
+            meas = net.body.measure(est.shape)
+            heights.append(meas.height_m)
+            masses.append(meas.mass_kg)
+            rolls.append(roll_deg(est.root_rotation.to(torch.float64)))
+    return BodyReadings(torch.cat(heights), torch.cat(masses), torch.cat(rolls))
+
+
+__all__ = ["GROUP_POSTURE", "POSTURES", "BodyReadings", "posture_of", "read_bodies", "roll_deg"]
