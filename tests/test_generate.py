@@ -30,7 +30,7 @@ from pressurepose.generate.plan import (
     preset_rows,
 )
 from pressurepose.generate.run import run_generate
-from pressurepose.sampling.partitions import PARTITIONS
+from pressurepose.sampling.partitions import PARTITIONS, SAMPLING_LAW
 
 # A tiny dataset: 6 supine samples spread over the preset's supine rows, shards of 2, chunks of 2.
 SMALL = dict(preset="small", partition="supine", n=6, shard_size=2, batch=2, seed=3)
@@ -315,6 +315,14 @@ def test_resume_remakes_damaged_and_half_written_shards(reference, tmp_path, cap
     del settings["articulated_joints"]
     (out / "generate.json").write_text(json.dumps(settings))
     with pytest.raises(ValueError, match="joint springs differ"):
+        run_generate(GenerateConfig(out=out, **SMALL), progress=False)
+    # One drawn under the sampling law before face-down bodies stopped kneeling (no
+    # `sampling_law` in its settings) does not resume either, and says why.
+    settings = json.loads((ref / "generate.json").read_text())
+    assert settings["sampling_law"] == SAMPLING_LAW
+    del settings["sampling_law"]
+    (out / "generate.json").write_text(json.dumps(settings))
+    with pytest.raises(ValueError, match="sampler's law differ.*kneeling"):
         run_generate(GenerateConfig(out=out, **SMALL), progress=False)
 
 

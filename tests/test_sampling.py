@@ -15,6 +15,7 @@ from pressurepose.body.params import root_matrix
 from pressurepose.mat import MatSpec
 from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig, UnreachableConstraints, get_partition
 from pressurepose.sampling.partitions import HEIGHT_TOLERANCE_M
+from pressurepose.sampling.sampler import FACE_DOWN_LEG_CELLS, FACE_DOWN_LEG_CELLS_OVER_BED, FACE_DOWN_ROLL_RAD
 from pressurepose.sampling.shapes import shape_bounds
 
 J = J24_NAMES.index
@@ -109,17 +110,32 @@ def test_distal_joint_cells_are_uniform_and_reached(anny):
     poses = draw(anny, 2000, partition="general", gender="male")
     cells = limb_cells(poses)
     np.testing.assert_array_equal(cells, poses.cells)  # every distal joint lies in its drawn cell
+    # Face-down bodies draw their legs from the far cells (FACE_DOWN_LEG_CELLS); every other
+    # cell choice is uniform.
+    down = np.abs(poses.root_draw[:, 0]) > FACE_DOWN_ROLL_RAD
+    assert 0.12 < down.mean() < 0.22  # the roll's share beyond 150 deg: 1/6
+    assert np.isin(cells[down, :2], FACE_DOWN_LEG_CELLS).all()
     for k, n_cells in enumerate((4, 4, 8, 8)):
-        counts = np.bincount(cells[:, k], minlength=n_cells)
-        expected = len(cells) / n_cells
+        sel = cells[~down, k] if k < 2 else cells[:, k]
+        counts = np.bincount(sel, minlength=n_cells)
+        expected = len(sel) / n_cells
         chi2 = ((counts - expected) ** 2 / expected).sum()
         assert chi2 < CHI2_CRIT[n_cells - 1], (k, counts)
-    # distal joints start within 10 cm of their proximal joint's height
+    for k in (0, 1):
+        counts = np.bincount(cells[down, k], minlength=4)[list(FACE_DOWN_LEG_CELLS)]
+        assert abs(counts[0] - counts[1]) < 3 * math.sqrt(counts.sum()), counts  # about even
+    # The roll is the sample's own, whatever its shapes failed: uniform on the circle (12 bins).
+    counts = np.histogram(poses.root_draw[:, 0], bins=12, range=(-math.pi, math.pi))[0]
+    assert ((counts - len(cells) / 12) ** 2 / (len(cells) / 12)).sum() < 24.725  # chi-square, df 11, p 0.01
+    # distal joints start within 10 cm of their proximal joint's height, knees and elbows no
+    # lower than 10 cm below it
     p = roll_frame(poses)
-    for prox, dist in (("hip", "ankle"), ("shoulder", "wrist")):
+    for prox, mid, dist in (("hip", "knee", "ankle"), ("shoulder", "elbow", "wrist")):
         for side in ("left", "right"):
             dz = p[:, J(f"{side}_{dist}"), 2] - p[:, J(f"{side}_{prox}"), 2]
             assert dz.abs().max() <= HEIGHT_TOLERANCE_M + 1e-9
+            dz = p[:, J(f"{side}_{mid}"), 2] - p[:, J(f"{side}_{prox}"), 2]
+            assert dz.min() >= -HEIGHT_TOLERANCE_M - 1e-9
     # angles inside the limits, unsampled joints at zero
     assert JointLimits.default(torch.float64).contains(poses.params.pose).all()
     sampled = {J(f"{s}_{n}") - 1 for s in ("left", "right") for n in ("hip", "knee", "collar", "shoulder", "elbow")}
@@ -318,6 +334,11 @@ def test_hands_behind_head_and_prone_hands_up(anny):
     p = roll_frame(prone)
     for s in ("left", "right"):
         assert (p[:, J(f"{s}_wrist"), 0] <= p[:, J(f"{s}_shoulder"), 0]).all()  # hands above the shoulders
+        # not kneeling: the knee no lower than 10 cm below the hip (the bed would hold the body
+        # up on it), and over the bed face down the legs reach only the far cell
+        assert (p[:, J(f"{s}_knee"), 2] - p[:, J(f"{s}_hip"), 2] >= -HEIGHT_TOLERANCE_M - 1e-9).all()
+    assert (prone.cells[:, :2] == FACE_DOWN_LEG_CELLS_OVER_BED[0]).all()
+    np.testing.assert_array_equal(limb_cells(prone)[:, :2], prone.cells[:, :2])
 
 
 def test_unreachable_constraints_fail_fast_with_a_clear_error(anny):

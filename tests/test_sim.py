@@ -292,7 +292,7 @@ def test_trunk_roll_hold_keeps_straight_legged_side_lying_bodies_on_their_side(a
     from pressurepose.eval.real import roll_deg
 
     cfg = SamplingConfig(partition="lateral_straight", gender="female", seed=5)
-    params = PoseSampler(anny64, cfg).sample([0, 3]).params  # both passive bodies roll onto their back
+    params = PoseSampler(anny64, cfg).sample([3, 5]).params  # both passive bodies roll onto their back
     start = roll_deg(params.root_rotation)
     passive = settle(anny64, params)
     held = settle(anny64, params, config=settle_config_for("lateral_straight"))

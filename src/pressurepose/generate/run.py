@@ -48,7 +48,7 @@ ARTICULATED_JOINT_FIELDS = ("stiffness_scale", "neck_stiffness_scale", "spine_st
 
 def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
     from pressurepose import __version__
-    from pressurepose.sampling.partitions import SamplingConfig
+    from pressurepose.sampling.partitions import SAMPLING_LAW, SamplingConfig
 
     sampling = SamplingConfig()
     settings = {
@@ -56,6 +56,7 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
         "config": cfg.identity(),
         "mattress": mattress,
         "sampling_limits": {k: getattr(sampling, k) for k in ("max_failures", "max_shapes", "max_limb_draws")},
+        "sampling_law": SAMPLING_LAW,
     }
     if cfg.sim2_engine == "articulated":
         from pressurepose.sim.articulated import ArticulatedConfig
@@ -92,6 +93,9 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
             hint = ""
             if "settle" in diff and "settle" not in (old or {}).get("config", {}):
                 hint = " (it was made with MuJoCo, the default before the articulated engine: add --settle mujoco)"
+            elif not diff and settings["sampling_law"] != (old or {}).get("sampling_law", 1):
+                what = "the pose sampler's law"
+                hint = " (drawn before face-down bodies stopped kneeling on the bed, docs/sampling.md)"
             elif not diff and settings.get("articulated_joints") != (old or {}).get("articulated_joints"):
                 what = "the articulated engine's joint springs"
                 hint = " (made before the joints were relaxed to 0.5 x the seed's, docs/realism.md)"

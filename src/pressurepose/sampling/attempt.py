@@ -39,6 +39,7 @@ class SampleState:
     given_up: dict = dataclasses.field(default_factory=dict)  # limb -> cells it was redrawn away from
     placed: tuple | None = None  # capsule start, end (20, 3) of the accepted pose
     head_angle: float = 0.0  # head-of-bed angle (deg), drawn with the cells
+    roll: float | None = None  # the root's roll, drawn with the first shape and kept (sampler)
     pitch: torch.Tensor | None = None  # (1,) rad the trunk turns up by on a raised bed
     leg_frame: torch.Tensor | None = None  # (4, 3) `frame` for the legs (turned back by the pitch)
     leg_shift: torch.Tensor | None = None  # (3,) `shift` for the legs (the pelvis once turned)

@@ -298,6 +298,9 @@ class LimbDraws:
         up = (reach * frame[:, UP]).sum(-1)
         along = (reach * frame[:, ALONG]).sum(-1)  # toward the foot
         ok = up.abs() <= HEIGHT_TOLERANCE_M
+        # The knee or elbow no lower than that below its hip or shoulder: lower, it would be
+        # pressed into the bed and prop the trunk up (a face-down body kneeling on the bed).
+        ok &= ((pos[:, ctx.distal - 1] - prox) * frame[:, UP]).sum(-1) >= -HEIGHT_TOLERANCE_M
         cell, length = ctx.cell[rows], ctx.length[rows]
         if leg:
             ok &= (along >= 0) & (leg_cell(along, length) == cell)

@@ -32,6 +32,13 @@ HOLD_ROLL_M = 0.5  # lateral_straight's trunk roll hold: 0.5 m x weight per radi
 GENDERS = ("female", "male")
 
 
+# The sampling law's version, pinned by generated datasets (generate.json): a dataset drawn
+# under another law does not resume. 1: up to 2026-11-25; 2: knees and elbows no lower than
+# HEIGHT_TOLERANCE_M below their hip or shoulder, face-down bodies' legs in the far cells, a
+# sample's roll kept across its shapes (docs/sampling.md "Face-down bodies do not kneel").
+SAMPLING_LAW = 2
+
+
 @dataclasses.dataclass(frozen=True)
 class Partition:
     """One row group of seed Table 4 (angles in radians, lengths in metres)."""
