@@ -414,6 +414,38 @@ def test_a_second_run_on_the_same_folder_is_refused(tmp_path):
     assert not (out / "manifest.json").exists() and not list((out / "shards").iterdir())
 
 
+def test_the_over_the_bed_sampling_law_is_pinned(tmp_path):
+    """A dataset with over-the-bed rows of a partition that caps its attempts per shape
+    (issue 21) pins the caps; one made with the older law (no pin) or another cap is refused
+    in one line before any work, and datasets without such rows keep their old settings."""
+    from pressurepose.generate.run import SETTINGS, _settings
+
+    cfg = GenerateConfig(out=tmp_path / "ds", partition="straight_limbs", n=4)
+    settings = _settings(cfg, {})
+    assert settings["over_bed_max_failures"] == {"straight_limbs": PARTITIONS["straight_limbs"].over_bed_max_failures}
+    assert "over_bed_max_failures" not in _settings(GenerateConfig(partition="supine", n=4), {})
+    assert "over_bed_max_failures" not in _settings(GenerateConfig(partition="general", n=4), {})
+    paper = _settings(GenerateConfig(preset="paper"), {})["over_bed_max_failures"]
+    assert sorted(paper) == sorted(n for n, p in PARTITIONS.items() if p.over_bed_max_failures is not None)
+    for old in (None, 20):
+        (tmp_path / "ds" / "shards").mkdir(parents=True, exist_ok=True)
+        made = _settings(cfg, {})
+        if old is None:
+            del made["over_bed_max_failures"]
+        else:
+            made["over_bed_max_failures"]["straight_limbs"] = old
+        made["mattress"] = "unchanged"
+        new = dict(_settings(cfg, {}), mattress="unchanged")
+        from pressurepose.generate.run import _prepare_folder
+
+        (tmp_path / "ds" / SETTINGS).write_text(json.dumps(made))
+        with pytest.raises(ValueError, match=r"over-the-bed sampling law differ") as err:
+            _prepare_folder(cfg, new)
+        assert "\n" not in str(err.value)
+        (tmp_path / "ds" / SETTINGS).write_text(json.dumps(new, indent=1, sort_keys=True))
+        _prepare_folder(cfg, new)  # the same law resumes
+
+
 def test_rigid_dataset_settings_leave_out_the_tissue(tmp_path, monkeypatch, anny64):
     """The rigid rest (MuJoCo + rigid sim #2) ignores soft tissue and uses the class-default bed:
     its settings stay those of datasets made before these fields existed (they resume); the

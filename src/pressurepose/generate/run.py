@@ -33,9 +33,11 @@ from pressurepose.generate.plan import (
     TEST_INDEX_BASE,
     GenerateConfig,
     ShardSpec,
+    plan_groups,
     plan_shards,
 )
 from pressurepose.generate.worker import WorkContext, make_shard
+from pressurepose.sampling.partitions import get_partition
 
 log = logging.getLogger(__name__)
 SETTINGS = "generate.json"
@@ -57,6 +59,15 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
         "mattress": mattress,
         "sampling_limits": {k: getattr(sampling, k) for k in ("max_failures", "max_shapes", "max_limb_draws")},
     }
+    # The over-the-bed attempts per shape and root of the partitions that cap them (issue 21):
+    # pinned only when the dataset has such rows, so that other datasets made before it resume.
+    caps = {
+        g.partition: get_partition(g.partition).over_bed_max_failures
+        for g in plan_groups(cfg)
+        if g.over_bed and get_partition(g.partition).over_bed_max_failures is not None
+    }
+    if caps:
+        settings["over_bed_max_failures"] = dict(sorted(caps.items()))
     if cfg.sim2_engine == "articulated":
         from pressurepose.sim.articulated import ArticulatedConfig
 
@@ -95,6 +106,12 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
             elif not diff and settings.get("articulated_joints") != (old or {}).get("articulated_joints"):
                 what = "the articulated engine's joint springs"
                 hint = " (made before the joints were relaxed to 0.5 x the seed's, docs/realism.md)"
+            elif not diff and settings.get("over_bed_max_failures") != (old or {}).get("over_bed_max_failures"):
+                what = "the over-the-bed sampling law"
+                hint = (
+                    " (made with another number of attempts per shape and root over the bed: its samples "
+                    "differ, docs/sampling.md; finish it with the pressurepose version that started it)"
+                )
             raise UserError(
                 f"{out} holds a dataset made with other settings ({what} differ, see {path}){hint}; "
                 "re-run with the same settings to resume, or choose another --out"

@@ -30,6 +30,9 @@ ARM_CELLS = 8
 HEIGHT_TOLERANCE_M = 0.10  # seed A.1: distal joint within +-10 cm of the proximal joint's height
 HOLD_ROLL_M = 0.5  # lateral_straight's trunk roll hold: 0.5 m x weight per radian (docs/sampling.md)
 GENDERS = ("female", "male")
+# Failed attempts per shape and root over the bed for the partitions whose limbs fail often
+# there (hands behind the head, crossed legs, straight limbs; issue 21, docs/sampling.md).
+OVER_BED_MAX_FAILURES = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +49,10 @@ class Partition:
     leg_cells: tuple[int, ...] = tuple(range(LEG_CELLS))
     arm_cells: tuple[int, ...] = tuple(range(ARM_CELLS))
     over_bed_arm_cells: tuple[int, ...] | None = None  # arm cells over the bed (None: arm_cells)
+    # Failed attempts per shape and root over the bed (None: SamplingConfig.max_failures, the
+    # seed's 20; the smaller of the two applies). Issue 21: where the limbs often fail over the
+    # bed, most attempts went to shapes and roots that fail every one (docs/sampling.md).
+    over_bed_max_failures: int | None = None
     hands_behind_head: bool = False
     crossed_legs: bool = False
     straight_limbs: bool = False
@@ -79,6 +86,7 @@ def _partitions() -> dict[str, Partition]:
             roll=(0.0, 0.0),
             arm_cells=(0, 1, 2, 3),
             hands_behind_head=True,
+            over_bed_max_failures=OVER_BED_MAX_FAILURES,
             checked_capsules=no_hands,
             over_bed_choices=(True,),
         ),
@@ -96,6 +104,7 @@ def _partitions() -> dict[str, Partition]:
             roll=(0.0, 0.0),
             leg_cells=(1, 2, 3),
             crossed_legs=True,
+            over_bed_max_failures=OVER_BED_MAX_FAILURES,
         ),
         # A straight leg held within 10 cm of the hip's height ends more than 3/4 of its length
         # below the hip (hip abduction <= 38.6 deg), so only the last leg cell is reachable.
@@ -111,6 +120,7 @@ def _partitions() -> dict[str, Partition]:
             leg_cells=(LEG_CELLS - 1,),
             straight_limbs=True,
             over_bed_arm_cells=(0, 1, 2, 6, 7),
+            over_bed_max_failures=OVER_BED_MAX_FAILURES,
         ),
         # Beyond Table 4 (seed A.2: sitting poses on a bent bed). PmatData group F's subjects
         # rest with the buttocks 6-19 taxel rows (0.17-0.54 m) foot-ward of the hinge at
@@ -214,6 +224,13 @@ class SamplingConfig:
     @property
     def spec(self) -> Partition:
         return get_partition(self.partition)
+
+
+def max_failures(partition: Partition, config: SamplingConfig) -> int:
+    """Failed attempts a shape and root get before they are drawn again: the config's
+    `max_failures`, capped over the bed by the partition's `over_bed_max_failures`."""
+    cap = partition.over_bed_max_failures if config.over_bed else None
+    return config.max_failures if cap is None else min(config.max_failures, cap)
 
 
 def limb_cells(partition: Partition, over_bed: bool) -> tuple[tuple[int, ...], tuple[int, ...]]:
