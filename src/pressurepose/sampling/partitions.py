@@ -192,10 +192,13 @@ class SamplingConfig:
         over_bed: Keep knees, ankles, feet, elbows, wrists and hands over the mattress.
         seed: dataset seed; a sample is a function of (seed, partition, gender, over_bed, index).
         max_failures: failed pose attempts (a limb that cannot reach its cell, or a self
-            collision) before the shape and root are drawn again (seed: 20).
+            collision) before the shape and root are drawn again (seed: 20; over the bed, a
+            partition's `over_bed_max_failures` caps it: 5 for hands behind the head, crossed
+            legs and straight limbs).
         max_shapes: shapes tried per sample before giving up with an error (50: the hardest
             partition, straight limbs over the bed, needed 14 shape resamples for 2 male samples
-            in 2,048, and that count's tail falls ~2x per extra shape; more is stopped).
+            in 2,048 - at most 17 in 2,048 with 5 attempts per shape - and that count's tail
+            falls ~2x per extra shape; more is stopped).
         max_limb_draws: joint-angle draws per limb and attempt before it counts as a failure.
     """
 
