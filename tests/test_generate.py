@@ -422,6 +422,31 @@ def test_a_second_run_on_the_same_folder_is_refused(tmp_path):
     assert not (out / "manifest.json").exists() and not list((out / "shards").iterdir())
 
 
+def test_the_sampling_law_is_pinned(tmp_path):
+    """Every dataset pins the sampling law (law 2: face-down bodies do not kneel, capped attempts
+    over the bed); one drawn under law 1 (no pin) or another law is refused in one line before
+    any work, and the same law resumes."""
+    from pressurepose.generate.run import SETTINGS, _prepare_folder, _settings
+
+    cfg = GenerateConfig(out=tmp_path / "ds", partition="straight_limbs", n=4)
+    for c in (cfg, GenerateConfig(partition="supine", n=4), GenerateConfig(preset="paper")):
+        assert _settings(c, {})["sampling_law"] == SAMPLING_LAW
+    for old in (None, 1):
+        (tmp_path / "ds" / "shards").mkdir(parents=True, exist_ok=True)
+        made = dict(_settings(cfg, {}), mattress="unchanged")
+        if old is None:
+            del made["sampling_law"]
+        else:
+            made["sampling_law"] = old
+        new = dict(_settings(cfg, {}), mattress="unchanged")
+        (tmp_path / "ds" / SETTINGS).write_text(json.dumps(made))
+        with pytest.raises(ValueError, match=r"sampler's law differ") as err:
+            _prepare_folder(cfg, new)
+        assert "\n" not in str(err.value)
+        (tmp_path / "ds" / SETTINGS).write_text(json.dumps(new, indent=1, sort_keys=True))
+        _prepare_folder(cfg, new)  # the same law resumes
+
+
 def test_rigid_dataset_settings_leave_out_the_tissue(tmp_path, monkeypatch, anny64):
     """The rigid rest (MuJoCo + rigid sim #2) ignores soft tissue and uses the class-default bed:
     its settings stay those of datasets made before these fields existed (they resume); the

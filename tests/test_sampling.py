@@ -264,6 +264,38 @@ def test_straight_limbs_over_the_bed_always_yield_a_sample(anny):
         assert_collision_free(anny, poses, PARTITIONS["straight_limbs"].checked_capsules)
 
 
+def test_over_the_bed_attempts_per_shape_are_capped(anny):
+    """Over the bed, hands behind the head, crossed legs and straight limbs give a shape and
+    root at most `over_bed_max_failures` failed attempts (issue 21); flat rows and the other
+    partitions keep the config's max_failures, a smaller config value wins, and a sample still
+    follows from its index alone."""
+    from pressurepose.sampling.partitions import OVER_BED_MAX_FAILURES, max_failures
+
+    cap = OVER_BED_MAX_FAILURES
+    assert cap < SamplingConfig().max_failures
+    capped = {n for n, p in PARTITIONS.items() if p.over_bed_max_failures is not None}
+    assert capped == {"hands_behind_head", "crossed_legs", "straight_limbs"}
+    cfg = SamplingConfig(partition="straight_limbs", gender="male", over_bed=True)
+    assert max_failures(cfg.spec, cfg) == cap
+    assert max_failures(cfg.spec, dataclasses.replace(cfg, over_bed=False)) == cfg.max_failures
+    assert max_failures(cfg.spec, dataclasses.replace(cfg, max_failures=2)) == 2
+    general = SamplingConfig(partition="general", over_bed=True)
+    assert max_failures(general.spec, general) == general.max_failures
+    # Failures per sample: at most cap + 1 per given-up shape, at most cap on the accepted one.
+    bound = lambda r, c: r["shape_resamples"] * (c + 1) + c  # noqa: E731
+    failed = lambda r: r["limb_failures"] + r["sit_up_rejections"]  # noqa: E731
+    poses = PoseSampler(anny, cfg).sample(range(48))
+    assert (failed(poses.rejections) <= bound(poses.rejections, cap)).all()
+    # The law before (the seed's 20 attempts): some shapes took more than the cap allows.
+    old = PoseSampler(anny, cfg, partition=dataclasses.replace(cfg.spec, over_bed_max_failures=None))
+    before = old.sample(range(48)).rejections
+    assert (failed(before) > bound(before, cap)).any()
+    for i in (5, 31):
+        alone = PoseSampler(anny, cfg).sample([i])
+        for field in ("shape", "root_rotation", "root_translation", "pose"):
+            torch.testing.assert_close(getattr(alone.params, field)[0], getattr(poses.params, field)[i], rtol=0, atol=0)
+
+
 def test_determinism_over_the_bed(anny):
     # Over the bed most draws are rejected: several rounds are tested at once and the
     # generator is wound back to the winner's round - invisible in the samples.

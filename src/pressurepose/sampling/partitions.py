@@ -30,12 +30,16 @@ ARM_CELLS = 8
 HEIGHT_TOLERANCE_M = 0.10  # seed A.1: distal joint within +-10 cm of the proximal joint's height
 HOLD_ROLL_M = 0.5  # lateral_straight's trunk roll hold: 0.5 m x weight per radian (docs/sampling.md)
 GENDERS = ("female", "male")
+# Failed attempts per shape and root over the bed for the partitions whose limbs fail often
+# there (hands behind the head, crossed legs, straight limbs; issue 21, docs/sampling.md).
+OVER_BED_MAX_FAILURES = 5
 
 
 # The sampling law's version, pinned by generated datasets (generate.json): a dataset drawn
 # under another law does not resume. 1: up to 2026-11-25; 2: knees and elbows no lower than
 # HEIGHT_TOLERANCE_M below their hip or shoulder, face-down bodies' legs in the far cells, a
-# sample's roll kept across its shapes (docs/sampling.md "Face-down bodies do not kneel").
+# sample's roll kept across its shapes (docs/sampling.md "Face-down bodies do not kneel"), and
+# over the bed OVER_BED_MAX_FAILURES attempts per shape where limbs fail often.
 SAMPLING_LAW = 2
 
 
@@ -53,6 +57,10 @@ class Partition:
     leg_cells: tuple[int, ...] = tuple(range(LEG_CELLS))
     arm_cells: tuple[int, ...] = tuple(range(ARM_CELLS))
     over_bed_arm_cells: tuple[int, ...] | None = None  # arm cells over the bed (None: arm_cells)
+    # Failed attempts per shape and root over the bed (None: SamplingConfig.max_failures, the
+    # seed's 20; the smaller of the two applies). Issue 21: where the limbs often fail over the
+    # bed, most attempts went to shapes and roots that fail every one (docs/sampling.md).
+    over_bed_max_failures: int | None = None
     hands_behind_head: bool = False
     crossed_legs: bool = False
     straight_limbs: bool = False
@@ -86,6 +94,7 @@ def _partitions() -> dict[str, Partition]:
             roll=(0.0, 0.0),
             arm_cells=(0, 1, 2, 3),
             hands_behind_head=True,
+            over_bed_max_failures=OVER_BED_MAX_FAILURES,
             checked_capsules=no_hands,
             over_bed_choices=(True,),
         ),
@@ -103,6 +112,7 @@ def _partitions() -> dict[str, Partition]:
             roll=(0.0, 0.0),
             leg_cells=(1, 2, 3),
             crossed_legs=True,
+            over_bed_max_failures=OVER_BED_MAX_FAILURES,
         ),
         # A straight leg held within 10 cm of the hip's height ends more than 3/4 of its length
         # below the hip (hip abduction <= 38.6 deg), so only the last leg cell is reachable.
@@ -118,6 +128,7 @@ def _partitions() -> dict[str, Partition]:
             leg_cells=(LEG_CELLS - 1,),
             straight_limbs=True,
             over_bed_arm_cells=(0, 1, 2, 6, 7),
+            over_bed_max_failures=OVER_BED_MAX_FAILURES,
         ),
         # Beyond Table 4 (seed A.2: sitting poses on a bent bed). PmatData group F's subjects
         # rest with the buttocks 6-19 taxel rows (0.17-0.54 m) foot-ward of the hinge at
@@ -189,10 +200,13 @@ class SamplingConfig:
         over_bed: Keep knees, ankles, feet, elbows, wrists and hands over the mattress.
         seed: dataset seed; a sample is a function of (seed, partition, gender, over_bed, index).
         max_failures: failed pose attempts (a limb that cannot reach its cell, or a self
-            collision) before the shape and root are drawn again (seed: 20).
+            collision) before the shape and root are drawn again (seed: 20; over the bed, a
+            partition's `over_bed_max_failures` caps it: 5 for hands behind the head, crossed
+            legs and straight limbs).
         max_shapes: shapes tried per sample before giving up with an error (50: the hardest
             partition, straight limbs over the bed, needed 14 shape resamples for 2 male samples
-            in 2,048, and that count's tail falls ~2x per extra shape; more is stopped).
+            in 2,048 - at most 17 in 2,048 with 5 attempts per shape - and that count's tail
+            falls ~2x per extra shape; more is stopped).
         max_limb_draws: joint-angle draws per limb and attempt before it counts as a failure.
     """
 
@@ -221,6 +235,13 @@ class SamplingConfig:
     @property
     def spec(self) -> Partition:
         return get_partition(self.partition)
+
+
+def max_failures(partition: Partition, config: SamplingConfig) -> int:
+    """Failed attempts a shape and root get before they are drawn again: the config's
+    `max_failures`, capped over the bed by the partition's `over_bed_max_failures`."""
+    cap = partition.over_bed_max_failures if config.over_bed else None
+    return config.max_failures if cap is None else min(config.max_failures, cap)
 
 
 def limb_cells(partition: Partition, over_bed: bool) -> tuple[tuple[int, ...], tuple[int, ...]]:

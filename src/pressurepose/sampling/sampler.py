@@ -4,10 +4,11 @@ For each sample: draw the shape, the root (roll, yaw, shift) and, once, the cell
 must reach; then draw joint angles limb by limb until the distal joint lands in its cell (and
 over the bed, crossed, ... as the partition asks) with the limb's capsules clear of the torso,
 the head and the limbs placed before it. A limb that finds no such draw within
-`max_limb_draws` draws fails the attempt; after `max_failures` failures (or at once when no
-draw even reached the cell) the shape and root are drawn again, a limb that blocked
-CELL_REDRAW_AFTER shapes gets a new cell, and after `max_shapes` shapes the sample gives up
-with an error naming the partition - never an endless loop.
+`max_limb_draws` draws fails the attempt; after `max_failures` failures (over the bed at most
+the partition's `over_bed_max_failures`), or at once when no draw even reached the cell, the
+shape and root are drawn again, a limb that blocked CELL_REDRAW_AFTER shapes gets a new cell,
+and after `max_shapes` shapes the sample gives up with an error naming the partition - never
+an endless loop.
 
 Determinism: every sample owns a random generator seeded from (seed, partition, gender,
 over_bed, index) and draws from it in a fixed pattern that depends only on its own outcomes,
@@ -73,6 +74,7 @@ from pressurepose.sampling.partitions import (
     Partition,
     SamplingConfig,
     limb_cells,
+    max_failures,
 )
 from pressurepose.sampling.poses import (
     REJECTION_KEYS,
@@ -126,6 +128,7 @@ class PoseSampler(LimbDraws):
             )
         self.shape_low, self.shape_high = model.shape_bounds(config.gender, model.shape_names)
         self.leg_cells, self.arm_cells = limb_cells(self.part, config.over_bed)
+        self.max_failures = max_failures(self.part, config)
         self.limits = JointLimits.default(torch.float64)
         self.limbs = limb_table(self.limits)
         self.pairs = collision_pairs(self.part.checked_capsules)
@@ -182,7 +185,7 @@ class PoseSampler(LimbDraws):
                     continue
                 st.failures += 1
                 last = st.failed_limb  # None: the pose failed when sat up
-                if st.failures > self.config.max_failures or st.unreachable is not None:
+                if st.failures > self.max_failures or st.unreachable is not None:
                     # This shape is given up; a limb that blocked CELL_REDRAW_AFTER shapes
                     # gets a new cell.
                     st.blocked[last] = st.blocked.get(last, 0) + 1
@@ -202,7 +205,7 @@ class PoseSampler(LimbDraws):
                         raise UnreachableConstraints(
                             f"sample {st.index} of partition {self.config.partition!r} "
                             f"({self.config.gender}, over_bed={self.config.over_bed}) found no valid pose "
-                            f"after {self.config.max_shapes} shapes x {self.config.max_failures + 1} attempts; "
+                            f"after {self.config.max_shapes} shapes x {self.max_failures + 1} attempts; "
                             f"its constraints are unreachable with these settings "
                             f"(raise max_shapes or max_limb_draws, or use another partition); "
                             + (
