@@ -23,6 +23,8 @@ _REACH_M = 0.12
 # The 3 x 3 stiffness moment sum c (1, x, y)(1, x, y)^T rebuilt from its six distinct entries
 # (1, x, y, xx, xy, yy).
 _SYMMETRIC = torch.tensor([0, 1, 2, 1, 3, 4, 2, 4, 5])
+# A step that moves no unknown more than this (rad or m) has stalled (`minimise`).
+_STALLED = 1e-12
 
 
 class Linearised:
@@ -187,7 +189,7 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
     q = q.clone()
     act = torch.arange(B, device=q.device)  # the bodies still stepping; below, their rows only
     grad, H, f, _, e0 = lin.newton_step(q, mp)
-    qa, wa = q, weight
+    qa, wa = q.clone(), weight
     for i in range(max_steps):
         scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
         # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
@@ -216,6 +218,18 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
         # direction kept (clipping components one by one can turn it uphill).
         room = torch.where(step > 0, cap - qa, cap + qa).clamp(min=0)
         t = (room / step.abs().clamp(min=1e-15)).amin(-1).clamp(max=1.0)
+        # A body whose step stalls at the trust region (an unknown at its cap that its step pushes
+        # further: t = 0) would only repeat it at the same point (the same step, t = 0 again) to
+        # the last step: it is done, its point not evaluated again.
+        stalled = (t[:, None] * step).abs().amax(-1) < _STALLED
+        if bool(stalled.any()):
+            q[act] = qa
+            keep = (~stalled).nonzero()[:, 0]
+            if not len(keep):
+                break
+            act, lin = act[keep], lin.take(keep)
+            qa, wa, grad, H, f, e0 = qa[keep], wa[keep], grad[keep], H[keep], f[keep], e0[keep]
+            step, t, free = step[keep], t[keep], free[keep]
         # Backtracking: the full step's evaluation (energy, and the next step's gradient and
         # Hessian) is usually accepted at once; only the bodies whose energy rose halve their
         # step (energies alone) and evaluate again where they end.
