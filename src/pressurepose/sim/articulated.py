@@ -87,6 +87,10 @@ class ArticulatedConfig:
     """Newton steps of the last linearisation (the rest itself)."""
     inner_reposing: int = 6
     """Newton steps of the linearisations before each re-posing."""
+    reposing_step_tol: float = 1e-3
+    """A re-posing's solve is done once a full Newton step moves no unknown more than this (rad
+    or m): the re-posing's own linearisation error is larger. The rest's solve (the last) goes
+    to `tol`."""
     max_rotation_rad: float = 0.25
     """Largest joint rotation per re-posing (the linearisation's trust region)."""
     max_shift_m: float = 0.05
@@ -311,6 +315,7 @@ def rest_articulated(
             body.weight,
             cfg,
             max_steps=cfg.inner if last else cfg.inner_reposing,
+            step_tol=0.0 if last else cfg.reposing_step_tol,
         )
         iters[act] += it
         moved = ~((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
