@@ -60,6 +60,11 @@ from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.self_contact import SELF_CONTACT_SINK_M, SelfContact
 from pressurepose.sim.soft_contact import lowest_points
 
+# The revision of the engine's numerics: raised whenever a change alters its rests beyond
+# bitwise (datasets pin it, `generate.run`). 2: stalled solves leave, trimmed cells, a
+# re-posing's solve stops at 1 mrad steps (docs/benchmarks.md, branch speed4).
+ENGINE_REVISION = 2
+
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
@@ -383,4 +388,4 @@ def rest_articulated(
     )
 
 
-__all__ = ["ArticulatedConfig", "ArticulatedRest", "rest_articulated"]
+__all__ = ["ENGINE_REVISION", "ArticulatedConfig", "ArticulatedRest", "rest_articulated"]
