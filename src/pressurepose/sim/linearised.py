@@ -182,10 +182,12 @@ class Linearised:
 
 def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int, step_tol: float = 0.0):
     """Newton with backtracking on the (convex) linearised energy from q; weight (B,) N; cfg an
-    `ArticulatedConfig` (trust region max_rotation_rad / max_shift_m, tolerance tol). Returns q
-    and the step counts (B,). Each body steps on its own: a body that is done leaves the
-    batch (`Linearised.take`), and only the bodies whose step needs it backtrack or re-solve,
-    so a body's result and its cost do not depend on the others."""
+    `ArticulatedConfig` (trust region max_rotation_rad / max_shift_m, tolerance tol); a body
+    is also done once a full step moves no unknown more than `step_tol` (re-posings' solves),
+    or its step stalls at the trust region. Returns q and the step counts (B,). Each body steps
+    on its own: a body that is done leaves the batch (`Linearised.take`), and only the bodies
+    whose step needs it backtrack or re-solve, so a body's result and its cost do not depend on
+    the others."""
     B, n = q.shape
     iters = torch.zeros(B, dtype=torch.long, device=q.device)
     cap = torch.full((n,), cfg.max_rotation_rad, dtype=q.dtype, device=q.device)
