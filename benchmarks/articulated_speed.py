@@ -1,11 +1,15 @@
 """CPU time per sample of the articulated rest on drawn poses (issues 20, 21).
 
     OMP_NUM_THREADS=1 python benchmarks/articulated_speed.py [--partitions supine,general] [--batch 16] [--n 64]
+        [--save DIR] [--jitter 1e-12]
 
 N initial poses per partition (seed 0, female), rested from the drawn pose on the sponge preset
 in batches of B; prints CPU ms per sample (process time, so other jobs on the machine matter
 less than for wall time), rejections with their reasons and the median Newton step count. Before/after a change:
 run the same command with PYTHONPATH pointing at each source tree, interleaved (docs/benchmarks.md).
+`--save DIR` writes each partition's rests (joints, foam pressure, failures) to DIR/<partition>.pt
+for `benchmarks/articulated_agreement.py`; `--jitter D` moves every drawn body by D m first (the
+engine's own round-off spread: the same code with and without it).
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections import Counter
+from pathlib import Path
 
 import torch
 
@@ -29,25 +34,39 @@ def main() -> None:
     ap.add_argument("--partitions", default="supine,general")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--n", type=int, default=64)
+    ap.add_argument("--save", default=None, help="directory for the rests (<partition>.pt)")
+    ap.add_argument("--jitter", type=float, default=0.0, help="move every body by this many metres first")
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = load_body_model("anny", dtype=torch.float64)
     bed = MattressParams.preset("sponge")
     for part in args.partitions.split(","):
         poses = PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=0)).sample(range(args.n)).params
+        if args.jitter:
+            poses = poses.replace(root_translation=poses.root_translation + args.jitter)
         config = articulated_config_for(part)
         t0, reasons, steps = time.process_time(), Counter(), []
+        saved = {"joints": [], "foundation_pa": [], "failure": []}
         for b0 in range(0, args.n, args.batch):
             chunk = poses.index(torch.arange(b0, min(b0 + args.batch, args.n)))
             rest = rest_articulated(model, chunk, mattress=bed, config=config)
             reasons.update(x for x in rest.failure if x)
             steps += rest.iterations.tolist()
+            if args.save:
+                saved["joints"].append(rest.joints)
+                saved["foundation_pa"].append(rest.foundation_pa)
+                saved["failure"] += rest.failure
         ms = (time.process_time() - t0) / args.n * 1e3
         print(
             f"{part} B={args.batch}: {ms:.1f} CPU ms/sample, rejected {sum(reasons.values())}/{args.n} "
             f"{dict(reasons)}, Newton steps median {sorted(steps)[len(steps) // 2]}",
             flush=True,
         )
+        if args.save:
+            Path(args.save).mkdir(parents=True, exist_ok=True)
+            torch.save(
+                {k: v if k == "failure" else torch.cat(v) for k, v in saved.items()}, Path(args.save) / f"{part}.pt"
+            )
 
 
 if __name__ == "__main__":

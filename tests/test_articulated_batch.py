@@ -23,9 +23,9 @@ def solves(anny64):
     params = PoseSampler(anny64, cfg).sample(range(4)).params
     seen = []
 
-    def capture(lin, q, mp, weight, config, max_steps):
-        seen.append((lin, q.clone(), weight, max_steps))
-        return minimise(lin, q, mp, weight, config, max_steps)
+    def capture(lin, q, mp, weight, config, max_steps, step_tol=0.0):
+        seen.append((lin, q.clone(), weight, max_steps, step_tol))
+        return minimise(lin, q, mp, weight, config, max_steps, step_tol)
 
     mp, config = MattressParams.preset("sponge"), articulated_config_for("general")
     patch = pytest.MonkeyPatch()
@@ -46,7 +46,13 @@ def test_take_gives_the_same_rows(solves):
     idx = torch.tensor([B - 1, 0])
     part = lin.take(idx).newton_step(q[idx], mp)
     for a, b in zip(full, part):
-        torch.testing.assert_close(a[idx], b, rtol=1e-12, atol=1e-9)
+        # Per-cell results (forces, compressions) come trimmed to the taken bodies' cells: the
+        # rest of the batch's padding, zero.
+        a = a[idx]
+        if a.ndim == 2 and a.shape[1] > b.shape[1]:
+            assert not bool(a[:, b.shape[1] :].any())
+            a = a[:, : b.shape[1]]
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-9)
     torch.testing.assert_close(lin.energy(q, mp)[idx], lin.take(idx).energy(q[idx], mp), rtol=1e-14, atol=0.0)
 
 
@@ -55,11 +61,11 @@ def test_a_body_steps_alone_as_in_its_batch(solves):
     (counts) and the same motion to round-off (batched LAPACK and matrix products are not
     bitwise the same for every batch size)."""
     seen, mp, config = solves
-    for lin, q0, weight, steps in seen:
-        q, iters = minimise(lin, q0, mp, weight, config, steps)
+    for lin, q0, weight, steps, step_tol in seen:
+        q, iters = minimise(lin, q0, mp, weight, config, steps, step_tol)
         for i in range(q.shape[0]):
             idx = torch.tensor([i])
-            qi, it = minimise(lin.take(idx), q0[idx], mp, weight[idx], config, steps)
+            qi, it = minimise(lin.take(idx), q0[idx], mp, weight[idx], config, steps, step_tol)
             assert int(it[0]) == int(iters[i])
             torch.testing.assert_close(qi[0], q[i], rtol=0.0, atol=1e-8)
 

@@ -31,6 +31,7 @@ from pressurepose.generate.plan import (
 )
 from pressurepose.generate.run import run_generate
 from pressurepose.sampling.partitions import PARTITIONS, SAMPLING_LAW
+from pressurepose.sim.articulated import ENGINE_REVISION
 
 # A tiny dataset: 6 supine samples spread over the preset's supine rows, shards of 2, chunks of 2.
 SMALL = dict(preset="small", partition="supine", n=6, shard_size=2, batch=2, seed=3)
@@ -324,6 +325,18 @@ def test_resume_remakes_damaged_and_half_written_shards(reference, tmp_path, cap
     (out / "generate.json").write_text(json.dumps(settings))
     with pytest.raises(ValueError, match="sampler's law differ.*kneeling"):
         run_generate(GenerateConfig(out=out, **SMALL), progress=False)
+    # One rested by another revision of the engine's numerics (or before revisions were
+    # pinned) does not resume either: a remade shard would not equal the lost one.
+    settings = json.loads((ref / "generate.json").read_text())
+    assert settings["articulated_engine"] == ENGINE_REVISION
+    for revision in (ENGINE_REVISION - 1, None):
+        if revision is None:
+            del settings["articulated_engine"]
+        else:
+            settings["articulated_engine"] = revision
+        (out / "generate.json").write_text(json.dumps(settings))
+        with pytest.raises(ValueError, match="engine's revisions differ.*another revision"):
+            run_generate(GenerateConfig(out=out, **SMALL), progress=False)
 
 
 def _children(pid: int) -> list[int]:

@@ -59,12 +59,15 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
         "sampling_law": SAMPLING_LAW,
     }
     if cfg.sim2_engine == "articulated":
-        from pressurepose.sim.articulated import ArticulatedConfig
+        from pressurepose.sim.articulated import ENGINE_REVISION, ArticulatedConfig
 
         # The body's joint springs define the rest as much as the bed does (docs/realism.md
-        # "Relaxed joints"): a dataset rested with other springs does not resume.
+        # "Relaxed joints"): a dataset rested with other springs does not resume. Nor does one
+        # rested by another revision of the engine's numerics (its rests differ from these, so
+        # a remade shard would not equal the lost one).
         joints = ArticulatedConfig()
         settings["articulated_joints"] = {k: getattr(joints, k) for k in ARTICULATED_JOINT_FIELDS}
+        settings["articulated_engine"] = ENGINE_REVISION
     return settings
 
 
@@ -99,6 +102,9 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
             elif not diff and settings.get("articulated_joints") != (old or {}).get("articulated_joints"):
                 what = "the articulated engine's joint springs"
                 hint = " (made before the joints were relaxed to 0.5 x the seed's, docs/realism.md)"
+            elif not diff and settings.get("articulated_engine") != (old or {}).get("articulated_engine"):
+                what = "the articulated engine's revisions"
+                hint = " (made by another revision of the engine, whose rests differ: docs/benchmarks.md)"
             raise UserError(
                 f"{out} holds a dataset made with other settings ({what} differ, see {path}){hint}; "
                 "re-run with the same settings to resume, or choose another --out"

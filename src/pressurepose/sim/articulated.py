@@ -60,6 +60,11 @@ from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.self_contact import SELF_CONTACT_SINK_M, SelfContact
 from pressurepose.sim.soft_contact import lowest_points
 
+# The revision of the engine's numerics: raised whenever a change alters its rests beyond
+# bitwise (datasets pin it, `generate.run`). 2: stalled solves leave, trimmed cells, a
+# re-posing's solve stops at 1 mrad steps (docs/benchmarks.md, branch speed4).
+ENGINE_REVISION = 2
+
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
@@ -87,6 +92,10 @@ class ArticulatedConfig:
     """Newton steps of the last linearisation (the rest itself)."""
     inner_reposing: int = 6
     """Newton steps of the linearisations before each re-posing."""
+    reposing_step_tol: float = 1e-3
+    """A re-posing's solve is done once a full Newton step moves no unknown more than this (rad
+    or m): the re-posing's own linearisation error is larger. The rest's solve (the last) goes
+    to `tol`."""
     max_rotation_rad: float = 0.25
     """Largest joint rotation per re-posing (the linearisation's trust region)."""
     max_shift_m: float = 0.05
@@ -311,6 +320,7 @@ def rest_articulated(
             body.weight,
             cfg,
             max_steps=cfg.inner if last else cfg.inner_reposing,
+            step_tol=0.0 if last else cfg.reposing_step_tol,
         )
         iters[act] += it
         moved = ~((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
@@ -378,4 +388,4 @@ def rest_articulated(
     )
 
 
-__all__ = ["ArticulatedConfig", "ArticulatedRest", "rest_articulated"]
+__all__ = ["ENGINE_REVISION", "ArticulatedConfig", "ArticulatedRest", "rest_articulated"]

@@ -23,6 +23,8 @@ _REACH_M = 0.12
 # The 3 x 3 stiffness moment sum c (1, x, y)(1, x, y)^T rebuilt from its six distinct entries
 # (1, x, y, xx, xy, yy).
 _SYMMETRIC = torch.tensor([0, 1, 2, 1, 3, 4, 2, 4, 5])
+# A step that moves no unknown more than this (rad or m) has stalled (`minimise`).
+_STALLED = 1e-12
 
 
 class Linearised:
@@ -69,26 +71,31 @@ class Linearised:
         # moments), the Hessian G M G^T with M the parts' 3 x 3 stiffness moments.
         self._G = (dof_a[:, :, None, :] * self.dof_parts[None, :, :, None]).reshape(dof_a.shape[0], dofs.n, -1)
 
-    # Attributes with one row per body (`take` selects them).
-    _PER_BODY = ("h", "mask", "part", "index", "_x", "_y", "_coef", "_moments")
-    _PER_BODY += ("g_grav", "e", "k", "dof_a", "_G")
+    # Attributes with one row per body (`take` selects them): per cell (B, K), (B, 9, K) and
+    # per DoF.
+    _PER_CELL = ("h", "mask", "part", "index", "_x", "_y", "_coef", "_moments")
+    _PER_DOF = ("g_grav", "e", "k", "dof_a", "_G")
 
     def take(self, idx: torch.Tensor) -> Linearised:
         """The same problem for the bodies `idx` only (a (B',) index): each body's rows are
         computed the same way whatever else is in its batch, so `minimise` can drop the bodies
-        that are done and step the others alone."""
+        that are done and step the others alone. The cells are trimmed to the most any of
+        these bodies has (the others' padding: masked cells, which add exact zeros)."""
         new = object.__new__(Linearised)
         new.__dict__.update(self.__dict__)
-        for name in self._PER_BODY:
+        K = max(int(self.mask[idx].sum(1).max()), 1) if len(idx) else 1
+        for name in self._PER_CELL:
+            setattr(new, name, getattr(self, name)[..., :K][idx])
+        for name in self._PER_DOF:
             setattr(new, name, getattr(self, name)[idx])
         new._scatter_index = new.part[:, None].expand(-1, 9, -1)
         if isinstance(self.tissue, torch.Tensor):
-            new.tissue = self.tissue[idx]
+            new.tissue = self.tissue[:, :K][idx]
         if self.limits is not None:
             new.limits = tuple(x[idx] if x.ndim == 2 else x for x in self.limits)
         new.springs = tuple(s.take(idx) for s in self.springs)
         if self._law_cached is not None:
-            new._law_cached = self._law_cached.take(idx)
+            new._law_cached = self._law_cached.take(idx, K)
         return new
 
     def _law(self, mp: MattressParams) -> SeriesLaw:
@@ -173,12 +180,14 @@ class Linearised:
         return out.scatter(1, self.index, values * self.mask)
 
 
-def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
+def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int, step_tol: float = 0.0):
     """Newton with backtracking on the (convex) linearised energy from q; weight (B,) N; cfg an
-    `ArticulatedConfig` (trust region max_rotation_rad / max_shift_m, tolerance tol). Returns q
-    and the step counts (B,). Each body steps on its own: a body that is done leaves the
-    batch (`Linearised.take`), and only the bodies whose step needs it backtrack or re-solve,
-    so a body's result and its cost do not depend on the others."""
+    `ArticulatedConfig` (trust region max_rotation_rad / max_shift_m, tolerance tol); a body
+    is also done once a full step moves no unknown more than `step_tol` (re-posings' solves),
+    or its step stalls at the trust region. Returns q and the step counts (B,). Each body steps
+    on its own: a body that is done leaves the batch (`Linearised.take`), and only the bodies
+    whose step needs it backtrack or re-solve, so a body's result and its cost do not depend on
+    the others."""
     B, n = q.shape
     iters = torch.zeros(B, dtype=torch.long, device=q.device)
     cap = torch.full((n,), cfg.max_rotation_rad, dtype=q.dtype, device=q.device)
@@ -187,7 +196,8 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
     q = q.clone()
     act = torch.arange(B, device=q.device)  # the bodies still stepping; below, their rows only
     grad, H, f, _, e0 = lin.newton_step(q, mp)
-    qa, wa = q, weight
+    force = f.sum(1)  # (B,): the cells' total force (the cells are trimmed as bodies leave)
+    qa, wa = q.clone(), weight
     for i in range(max_steps):
         scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
         # A small Levenberg term (1e-5 x weight x (0.1 m)^2 per unit) keeps DoFs without contact
@@ -216,16 +226,29 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
         # direction kept (clipping components one by one can turn it uphill).
         room = torch.where(step > 0, cap - qa, cap + qa).clamp(min=0)
         t = (room / step.abs().clamp(min=1e-15)).amin(-1).clamp(max=1.0)
+        # A body whose step stalls at the trust region (an unknown at its cap that its step pushes
+        # further: t = 0) would only repeat it at the same point (the same step, t = 0 again) to
+        # the last step: it is done, its point not evaluated again.
+        stalled = (t[:, None] * step).abs().amax(-1) < _STALLED
+        if bool(stalled.any()):
+            q[act] = qa
+            keep = (~stalled).nonzero()[:, 0]
+            if not len(keep):
+                break
+            act, lin = act[keep], lin.take(keep)
+            qa, wa, grad, H, force, e0 = qa[keep], wa[keep], grad[keep], H[keep], force[keep], e0[keep]
+            step, t, free = step[keep], t[keep], free[keep]
         # Backtracking: the full step's evaluation (energy, and the next step's gradient and
         # Hessian) is usually accepted at once; only the bodies whose energy rose halve their
         # step (energies alone) and evaluate again where they end.
-        imbalance = (f.sum(1) - wa).abs() / wa
+        imbalance = (force - wa).abs() / wa
         # The last step needs the energy alone (nothing steps from where it ends).
         final = i == max_steps - 1
         if final:
             energy = lin.energy(qa + t[:, None] * step, mp)
         else:
             grad, H, f, _, energy = lin.newton_step(qa + t[:, None] * step, mp)
+            force = f.sum(1)
         better = (energy <= e0) | free
         if not bool(better.all()):
             bad = (~better).nonzero()[:, 0]
@@ -241,20 +264,21 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int):
             better[bad] = ok
             if not final:
                 redo = back.newton_step(qb + tb[:, None] * sb, mp)
-                grad[bad], H[bad], f[bad], energy[bad] = redo[0], redo[1], redo[2], redo[4]
+                grad[bad], H[bad], force[bad], energy[bad] = redo[0], redo[1], redo[2].sum(1), redo[4]
         qa = qa + t[:, None] * step
         e0 = energy
         iters[act] += better.long()
         if final:
             break
-        done = ~better | ((imbalance < cfg.tol) & ((t[:, None] * step).abs().amax(-1) < 1e-6))
+        moved = (t[:, None] * step).abs().amax(-1)
+        done = ~better | ((imbalance < cfg.tol) & (moved < 1e-6)) | ((t == 1) & (moved < step_tol))
         if bool(done.any()):
             q[act] = qa
             keep = (~done).nonzero()[:, 0]
             if not len(keep):
                 break
             act, lin = act[keep], lin.take(keep)
-            qa, wa, grad, H, f, e0 = qa[keep], wa[keep], grad[keep], H[keep], f[keep], e0[keep]
+            qa, wa, grad, H, force, e0 = qa[keep], wa[keep], grad[keep], H[keep], force[keep], e0[keep]
     q[act] = qa
     return q, iters
 

@@ -68,10 +68,13 @@ class SeriesLaw:
             self.two_s = 2 * s
             self.scale = 1 / (2 * a * s**3)
 
-    def take(self, idx: torch.Tensor) -> SeriesLaw:
-        """The law of the bodies `idx` (rows of per-cell constants; numbers stay)."""
+    def take(self, idx: torch.Tensor, cells: int | None = None) -> SeriesLaw:
+        """The law of the bodies `idx` (rows of per-cell constants, their first `cells` cells
+        if given; numbers stay)."""
         out = object.__new__(SeriesLaw)
-        out.__dict__.update({n: v[idx] if isinstance(v, torch.Tensor) else v for n, v in self.__dict__.items()})
+        out.__dict__.update(
+            {n: v[..., :cells][idx] if isinstance(v, torch.Tensor) else v for n, v in self.__dict__.items()}
+        )
         return out
 
     def __call__(self, w: torch.Tensor):
