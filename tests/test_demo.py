@@ -67,7 +67,7 @@ def test_packaged_default_model_estimates_bodies(anny64):
 
     assert (default_model_dir() / "model.safetensors").is_file()
     net, record = load_network(DEFAULT)
-    assert record["net"]["arch"] == "fast" and record["net"]["gender_input"] is False
+    assert record["net"]["arch"] == "heatmap" and record["net"]["gender_input"] is False
     a = synthetic_arrays(12, seed=321, body=anny64)
     with torch.no_grad():
         est = net(NetInputs(pressure_mmhg=a["pressure_mmhg"]))[-1]
