@@ -170,7 +170,7 @@ def simulate_indices(
         sim2=sim2,
         articulated=articulated_config_for(cfg.partition),
     )
-    height = model.measure(sim.params.shape).height_m.detach().numpy()
+    height = sim.height_m.detach().numpy()  # measured with the mass, in float64
     p = sim.params
     arrays = dict(
         split=np.array([split] * B, dtype=object),

@@ -43,6 +43,7 @@ class SimulatedSamples:
     depth_mm: torch.Tensor  # (B, 64, 27) Q
     contact: torch.Tensor  # (B, 64, 27) C
     mass_kg: torch.Tensor  # (B,)
+    height_m: torch.Tensor  # (B,) `BodyModel.measure` of the shape, with the mass
     reason: list[str]  # "" = accepted
     settle_steps: np.ndarray
     settle_ms: np.ndarray
@@ -147,6 +148,7 @@ def _concat(parts: list[SimulatedSamples], back: torch.Tensor) -> SimulatedSampl
         depth_mm=cat_t("depth_mm"),
         contact=cat_t("contact"),
         mass_kg=cat_t("mass_kg"),
+        height_m=cat_t("height_m"),
         reason=[reason[i] for i in back.tolist()],
         settle_steps=cat_n("settle_steps"),
         settle_ms=cat_n("settle_ms"),
@@ -183,7 +185,8 @@ def _simulate_one_bed(
             np.zeros(B, dtype=np.int64),
             np.zeros(B),
         )
-    mass = model64.measure(rest.shape).mass_kg
+    measured = model64.measure(rest.shape)
+    mass = measured.mass_kg
     t0 = time.perf_counter()
     if sim2 == "articulated" and bed.flat:  # raised beds keep the rigid rest (docs/physics.md)
         from pressurepose.sim.articulated import rest_articulated
@@ -219,6 +222,7 @@ def _simulate_one_bed(
         depth_mm=depth,
         contact=contact,
         mass_kg=mass,
+        height_m=measured.height_m,
         reason=reason,
         settle_steps=steps,
         settle_ms=settle_ms,
