@@ -245,6 +245,10 @@ def test_counts_exact_no_nan_and_labels_consistent(reference, anny64):
     params = BodyParams(*(torch.from_numpy(data[k]) for k in ("shape", "root_rotation", "root_translation", "pose")))
     joints = anny64.joints(params).numpy()
     assert np.abs(joints - data["joints_m"]).max() < 1e-6
+    # ... and the stored height and mass through its measure (one float64 measure of the shape).
+    measured = anny64.measure(params.shape)
+    np.testing.assert_allclose(data["height_m"], measured.height_m.numpy(), rtol=1e-9)
+    np.testing.assert_allclose(data["mass_kg"], measured.mass_kg.numpy(), rtol=1e-6)
     # each sample's initial pose is the sampler's for its index (regenerable alone)
     from pressurepose.sampling import PoseSampler, SamplingConfig
 
