@@ -62,7 +62,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--engine", choices=("local", "ray"), default="local")
     ap.add_argument("--shard-size", type=int, default=16)
-    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--batch", type=int, default=32, help="chunk per batched rest (the generator's default: 32)")
     ap.add_argument("--preset", default="paper")
     args = ap.parse_args()
 
