@@ -14,8 +14,12 @@ from pressurepose.body.limits import JointLimits
 from pressurepose.body.params import root_matrix
 from pressurepose.mat import MatSpec
 from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig, UnreachableConstraints, get_partition
-from pressurepose.sampling.partitions import HEIGHT_TOLERANCE_M
-from pressurepose.sampling.sampler import FACE_DOWN_LEG_CELLS, FACE_DOWN_LEG_CELLS_OVER_BED, FACE_DOWN_ROLL_RAD
+from pressurepose.sampling.partitions import (
+    FACE_DOWN_LEG_CELLS,
+    FACE_DOWN_LEG_CELLS_OVER_BED,
+    FACE_DOWN_ROLL_RAD,
+    HEIGHT_TOLERANCE_M,
+)
 from pressurepose.sampling.shapes import shape_bounds
 
 J = J24_NAMES.index

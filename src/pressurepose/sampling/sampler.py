@@ -43,7 +43,6 @@ first rounds - the same law, far fewer draws).
 from __future__ import annotations
 
 import copy
-import math
 
 import numpy as np
 import torch
@@ -73,6 +72,7 @@ from pressurepose.sampling.partitions import (
     HEIGHT_TOLERANCE_M,
     Partition,
     SamplingConfig,
+    leg_cells_for_roll,
     limb_cells,
     max_failures,
 )
@@ -95,13 +95,6 @@ SEAT_TOLERANCE_M = HEIGHT_TOLERANCE_M
 # can lie off the mattress for nearly every body (a straight arm held out sideways); the seed
 # clips such cells, the original redrew them.
 CELL_REDRAW_AFTER = 2
-# Bodies whose front faces the bed within 30 deg: their legs draw only the far cells (ankle at
-# least half the leg's length below the hip along the body). Measured with the knee rule of
-# `limb_draws`, 1,024 flat general samples: beyond 165 deg cells 0 and 1 ended in 6 of 162 legs
-# (the others redrawn after failing two shapes), 150-165 deg cell 0 in 24 of 184 (docs/sampling.md).
-FACE_DOWN_ROLL_RAD = math.radians(150.0)
-FACE_DOWN_LEG_CELLS = (2, 3)
-FACE_DOWN_LEG_CELLS_OVER_BED = (3,)
 
 
 class PoseSampler(LimbDraws):
@@ -231,11 +224,8 @@ class PoseSampler(LimbDraws):
         return st
 
     def _leg_cells(self, st: SampleState) -> tuple[int, ...]:
-        """The cells a sample's legs may draw: the far ones once its roll is face down."""
-        if st.roll is None or abs(st.roll) <= FACE_DOWN_ROLL_RAD:
-            return self.leg_cells
-        far = FACE_DOWN_LEG_CELLS_OVER_BED if self.config.over_bed else FACE_DOWN_LEG_CELLS
-        return tuple(c for c in self.leg_cells if c in far) or self.leg_cells
+        """The cells a sample's legs may draw (`partitions.leg_cells_for_roll`, once rolled)."""
+        return self.leg_cells if st.roll is None else leg_cells_for_roll(self.leg_cells, st.roll, self.config.over_bed)
 
     def _draw_shape_and_root(self, st: SampleState) -> None:
         st.shape = draw_shape(st.rng, self.shape_low, self.shape_high)
