@@ -1,7 +1,7 @@
 """CPU time per sample of the articulated rest on drawn poses (issues 20, 21).
 
     OMP_NUM_THREADS=1 python benchmarks/articulated_speed.py [--partitions supine,general] [--batch 16] [--n 64]
-        [--save DIR] [--jitter 1e-12]
+        [--save DIR] [--jitter 1e-12] [--set outer=8]
 
 N initial poses per partition (seed 0, female), rested from the drawn pose on the sponge preset
 in batches of B; prints CPU ms per sample (process time, so other jobs on the machine matter
@@ -15,6 +15,7 @@ engine's own round-off spread: the same code with and without it).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from collections import Counter
 from pathlib import Path
@@ -36,6 +37,7 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=64)
     ap.add_argument("--save", default=None, help="directory for the rests (<partition>.pt)")
     ap.add_argument("--jitter", type=float, default=0.0, help="move every body by this many metres first")
+    ap.add_argument("--set", default="", help="ArticulatedConfig overrides, e.g. outer=8,inner_reposing=6")
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = load_body_model("anny", dtype=torch.float64)
@@ -44,7 +46,8 @@ def main() -> None:
         poses = PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=0)).sample(range(args.n)).params
         if args.jitter:
             poses = poses.replace(root_translation=poses.root_translation + args.jitter)
-        config = articulated_config_for(part)
+        over = {k: eval(v) for k, v in (kv.split("=") for kv in args.set.split(",") if kv)}  # noqa: S307
+        config = dataclasses.replace(articulated_config_for(part), **over)
         t0, reasons, steps = time.process_time(), Counter(), []
         saved = {"joints": [], "foundation_pa": [], "failure": []}
         for b0 in range(0, args.n, args.batch):
