@@ -111,16 +111,23 @@ def bench_shapes(n: int) -> None:
     from pressurepose.sampling.shapes import draw_shape, shape_bounds
 
     model = load_body_model("anny", dtype=torch.float64)
-    rng = np.random.default_rng(0)
+    power = model.shape_powers(model.shape_names)
     for gender in ("female", "male"):
         low, high = shape_bounds("anny", gender, model.shape_names)
-        shape = torch.tensor(np.stack([draw_shape(rng, low, high) for _ in range(n)]))
-        m = model.measure(shape)
-        h, w = m.height_m.numpy(), m.mass_kg.numpy()
-        bmi = w / h**2
-        q = lambda x: " / ".join(f"{v:.2f}" for v in np.quantile(x, [0, 0.01, 0.5, 0.99, 1]))  # noqa: E731
-        print(f"{gender} (n={n}; min / 1% / median / 99% / max)")
-        print(f"  height m : {q(h)}\n  mass kg  : {q(w)}\n  BMI      : {q(bmi)}")
+        # the sampler's law and, from the same numbers, the uniform law (sampling laws 1-2)
+        for law, pw in (("sampler's law", power), ("uniform weight (laws 1-2)", None)):
+            rng = np.random.default_rng(0)
+            shape = torch.tensor(np.stack([draw_shape(rng, low, high, pw) for _ in range(n)]))
+            with torch.no_grad():
+                m = model.measure(shape)
+            h, w = m.height_m.numpy(), m.mass_kg.numpy()
+            bmi = w / h**2
+            q = lambda x: " / ".join(f"{v:.2f}" for v in np.quantile(x, [0, 0.01, 0.5, 0.99, 1]))  # noqa: E731
+            print(f"{gender}, {law} (n={n}; min / 1% / median / 99% / max)")
+            print(f"  height m : {q(h)}\n  mass kg  : {q(w)}\n  BMI      : {q(bmi)}")
+            print(
+                f"  BMI < 18.5: {np.mean(bmi < 18.5):.3f}, >= 25: {np.mean(bmi >= 25):.3f}, >= 30: {np.mean(bmi >= 30):.3f}"
+            )
 
 
 def bench_capsules() -> None:

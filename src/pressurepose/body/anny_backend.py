@@ -30,7 +30,7 @@ from pressurepose.body.anny_skinning import skin_matrix, sparse_linear_blend_ski
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
-from pressurepose.body.shape_ranges import anny_bounds
+from pressurepose.body.shape_ranges import anny_bounds, anny_powers
 from pressurepose.cache import cache_dir, file_lock
 
 log = logging.getLogger(__name__)
@@ -189,6 +189,10 @@ class AnnyBody(AnnyInference, BodyModel):
     @classmethod
     def shape_bounds(cls, gender: str, shape_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         return anny_bounds(gender, shape_names)
+
+    @classmethod
+    def shape_powers(cls, shape_names: tuple[str, ...]) -> np.ndarray:
+        return anny_powers(shape_names)
 
     def female_fraction(self, shape: torch.Tensor) -> torch.Tensor:
         return shape[:, ANNY_SHAPE_NAMES.index("gender")]  # Anny's gender phenotype: 1 female

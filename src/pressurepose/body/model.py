@@ -100,6 +100,12 @@ class BodyModel(torch.nn.Module, abc.ABC):
         """(low, high) arrays (S,) of the box the pose sampler draws adults of `gender`
         ("female" or "male") from, for the shape entries `shape_names` (`body.shape_ranges`)."""
 
+    @classmethod
+    def shape_powers(cls, shape_names: tuple[str, ...]) -> np.ndarray:
+        """(S,) power p of the sampler's draw of each shape entry on its interval: density ~
+        t^(p - 1) over t in [0, 1] (1 = uniform, the default)."""
+        return np.ones(len(shape_names))
+
     @property
     def fixed_gender(self) -> str | None:
         """The gender the model itself fixes ("female" or "male": SMPL's gendered files), or

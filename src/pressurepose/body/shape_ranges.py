@@ -3,7 +3,8 @@ each backend's `BodyModel.shape_bounds` gives the pose sampler (docs/sampling.md
 
 Anny (default): gender is exact (1 female, 0 male); age uniform over adults (Anny age 0.77 to
 0.852, i.e. 18 to ~70 years on Anny's anchors); muscle and proportions uniform on [0, 1];
-height and weight uniform on per-gender intervals chosen so the population spans
+height uniform and weight drawn with a density rising linearly (`ANNY_POWERS`) on per-gender
+intervals chosen so the population spans
 - male:   ~1.48-2.02 m, ~37-140 kg, BMI ~16-40,
 - female: ~1.43-1.95 m, ~35-113 kg, BMI ~16-32.5
 (measured over 1,000 draws each: `python benchmarks/sampling.py --shapes`; docs/sampling.md).
@@ -38,6 +39,12 @@ ANNY_RANGES = {  # phenotype -> (low, high) per gender
     },
 }
 SMPL_BETA_RANGE = (-3.0, 3.0)
+# Sampling law 3 (docs/sampling.md "An adult population's body mass"): Anny's weight phenotype
+# is drawn with a density rising linearly over its interval (t = u^(1/2) of a uniform u; the
+# power p gives a density ~ t^(p - 1)), the others uniform. Uniform weights gave women a median
+# mass of 58 kg (BMI 20.4, 17% under 18.5) and men 72 kg; this gives 62 / 78 kg, the seed's
+# average adult masses (62.5 / 78.4 kg, Tozeren; REFERENCE.md), the same box kept.
+ANNY_POWERS = {"weight": 2.0}
 
 
 def anny_bounds(gender: str, shape_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -46,9 +53,14 @@ def anny_bounds(gender: str, shape_names: tuple[str, ...]) -> tuple[np.ndarray, 
     return np.array([ranges[n][0] for n in shape_names]), np.array([ranges[n][1] for n in shape_names])
 
 
+def anny_powers(shape_names: tuple[str, ...]) -> np.ndarray:
+    """(S,) power p of each phenotype's draw on its interval (density ~ t^(p - 1); 1 = uniform)."""
+    return np.array([ANNY_POWERS.get(n, 1.0) for n in shape_names])
+
+
 def beta_bounds(num_betas: int) -> tuple[np.ndarray, np.ndarray]:
     """(low, high) arrays (S,) of SMPL's betas (either gender: the model file sets it)."""
     return np.full(num_betas, SMPL_BETA_RANGE[0]), np.full(num_betas, SMPL_BETA_RANGE[1])
 
 
-__all__ = ["ANNY_RANGES", "SMPL_BETA_RANGE", "anny_bounds", "beta_bounds"]
+__all__ = ["ANNY_POWERS", "ANNY_RANGES", "SMPL_BETA_RANGE", "anny_bounds", "anny_powers", "beta_bounds"]

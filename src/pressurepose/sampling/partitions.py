@@ -39,8 +39,10 @@ OVER_BED_MAX_FAILURES = 5
 # under another law does not resume. 1: up to 2026-11-25; 2: knees and elbows no lower than
 # HEIGHT_TOLERANCE_M below their hip or shoulder, face-down bodies' legs in the far cells, a
 # sample's roll kept across its shapes (docs/sampling.md "Face-down bodies do not kneel"), and
-# over the bed OVER_BED_MAX_FAILURES attempts per shape where limbs fail often.
-SAMPLING_LAW = 2
+# over the bed OVER_BED_MAX_FAILURES attempts per shape where limbs fail often; 3: Anny's weight
+# phenotype drawn with a density rising linearly (`body.shape_ranges.ANNY_POWERS`; docs/sampling.md
+# "An adult population's body mass").
+SAMPLING_LAW = 3
 
 
 @dataclasses.dataclass(frozen=True)

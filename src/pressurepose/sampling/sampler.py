@@ -120,6 +120,7 @@ class PoseSampler(LimbDraws):
                 f"{config.gender}; load the {config.gender} model or the neutral one"
             )
         self.shape_low, self.shape_high = model.shape_bounds(config.gender, model.shape_names)
+        self.shape_power = model.shape_powers(model.shape_names)
         self.leg_cells, self.arm_cells = limb_cells(self.part, config.over_bed)
         self.max_failures = max_failures(self.part, config)
         self.limits = JointLimits.default(torch.float64)
@@ -228,7 +229,7 @@ class PoseSampler(LimbDraws):
         return self.leg_cells if st.roll is None else leg_cells_for_roll(self.leg_cells, st.roll, self.config.over_bed)
 
     def _draw_shape_and_root(self, st: SampleState) -> None:
-        st.shape = draw_shape(st.rng, self.shape_low, self.shape_high)
+        st.shape = draw_shape(st.rng, self.shape_low, self.shape_high, self.shape_power)
         p = self.part
         roll = st.rng.uniform(*p.roll)
         if p.either_side and st.rng.random() < 0.5:  # drawn only by such partitions: the others' streams stay
