@@ -91,7 +91,7 @@ def nearest_rotation(M: torch.Tensor) -> torch.Tensor:
         K = _horn_matrix(m)
         eye4 = torch.eye(4, dtype=m.dtype, device=m.device)[..., None]
         P = _mm(_mm(K - (s1 - u) * eye4, K - (v - s1) * eye4), K + (s1 + v) * eye4)
-        column = torch.stack([P[i, i] for i in range(4)]).argmax(0)  # (N,)
+        column = torch.stack([P[i, i] for i in range(4)]).max(0).indices  # (N,); argmax(0) is 7x slower
         q = torch.gather(P, 1, column.expand(4, 1, -1))[:, 0]  # (4, N)
         q = (P * q[None]).sum(1)  # P q: the other eigenvectors' traces squared away
         q = q / q.square().sum(0).sqrt()
