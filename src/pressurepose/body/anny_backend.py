@@ -241,11 +241,10 @@ class AnnyBody(AnnyInference, BodyModel):
         computed without the rest mesh (Anny's 'cached' orientation: a special Procrustes of
         a cross-covariance that is linear in the blendshape coefficients)."""
         m = self.anny
-        heads = m.template_bone_heads[sk.bones] + torch.einsum(
-            "ba,akx->bkx", coeffs, m.bone_heads_blendshapes[:, sk.bones]
-        )
-        M = m.bone_template_orientation_matrices[sk.bones] + torch.einsum(
-            "ba,akij->bkij", coeffs, m.bone_orientation_blendshapes[:, sk.bones]
+        bones = slice(None) if sk is self.full else sk.bones  # the full skeleton: views, no gathers
+        heads = m.template_bone_heads[bones] + torch.einsum("ba,akx->bkx", coeffs, m.bone_heads_blendshapes[:, bones])
+        M = m.bone_template_orientation_matrices[bones] + torch.einsum(
+            "ba,akij->bkij", coeffs, m.bone_orientation_blendshapes[:, bones]
         )
         R = nearest_rotation(M[:, 1:])  # roma.special_procrustes's numbers; roma itself under autograd
         eye = torch.eye(3, dtype=R.dtype, device=R.device).expand(R.shape[0], 1, 3, 3)
