@@ -28,6 +28,7 @@ def fusable(net: nn.Module, x: torch.Tensor) -> bool:
         and x.dtype == torch.float32
         and torch.backends.mkldnn.enabled
         and torch.backends.mkldnn.is_available()
+        and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
     )
 
 
