@@ -217,7 +217,8 @@ def ik_step(
     residual = (pos - target).reshape(B, -1)
     prior = torch.zeros(NUM_UNKNOWNS, dtype=pos.dtype, device=pos.device)
     prior[6:] = 1.0 / config.prior_sigma_rad**2
-    if wants_grad(rest, shape, target, weights, prior_free_pose, state.free_pose, state.root_rotation):
+    unknowns = (state.root_translation, state.root_rotation, state.free_pose)
+    if wants_grad(rest, shape, target, weights, prior_free_pose, *unknowns):
         J = joint_jacobian(rot, pos, params)  # (B, 72, 75)
         if slope is not None:
             J = torch.cat([J[..., :6], J[..., 6:] * slope.reshape(B, 1, -1)], -1)
