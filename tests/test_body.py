@@ -325,6 +325,23 @@ def test_anny_inference_path_matches_the_differentiable_one(anny64):
         skin.pose(coeffs, T[:, :5], t)
 
 
+def test_blocked_skinning_from_the_transposed_basis_matches_row_by_row(anny64):
+    """Batches of TRANSPOSED_FROM bodies or more take the rest vertices from a transposed copy
+    of the blendshapes: each body's mesh is the one it gets posed alone."""
+    from pressurepose.body.anny_skinning import TRANSPOSED_FROM, BlockedSkinning
+
+    B = TRANSPOSED_FROM + 1
+    g = torch.Generator().manual_seed(6)
+    skin = BlockedSkinning(anny64.anny.template_vertices, anny64.anny.blendshapes, anny64.skin_matrix)
+    coeffs = anny64._coefficients(torch.rand(B, 6, dtype=torch.float64, generator=g))
+    T = torch.linalg.qr(torch.randn(B, skin.num_bones, 3, 3, dtype=torch.float64, generator=g))[0]
+    t = torch.randn(B, skin.num_bones, 3, dtype=torch.float64, generator=g)
+    batch = skin.pose(coeffs, T, t)
+    assert skin._basis_t is not None  # the transposed path ran
+    alone = torch.cat([skin.pose(coeffs[i : i + 1], T[i : i + 1], t[i : i + 1]) for i in range(B)])
+    torch.testing.assert_close(batch, alone, atol=1e-12, rtol=0)
+
+
 def test_anny_rest_joints_without_kinematics_match_the_posing(anny64):
     """Anny's closed-form T-pose joints (chains of T-pose corrections) equal the joints of
     the zero pose posed level by level, with and without autograd."""
@@ -367,3 +384,33 @@ def test_anny_copies_and_pickles_after_inference(anny32):
         assert "_blocked" not in twin.__dict__ and "_shape_memo" not in twin.__dict__
         with torch.inference_mode():
             torch.testing.assert_close(twin(p).vertices, before)
+
+
+def test_nearest_rotation_matches_roma_on_anny_and_random_matrices(anny32):
+    """The elementwise special Procrustes (Anny's rest bone orientations without autograd) gives
+    roma's rotations: to float64 round-off, and the same float32 numbers on Anny's matrices;
+    with autograd it is roma's."""
+    import roma
+
+    from pressurepose.body.procrustes import nearest_rotation
+
+    g = torch.Generator().manual_seed(7)
+    m = anny32.anny
+    coeffs = anny32._coefficients(torch.rand(128, 6, generator=g))
+    M = m.bone_template_orientation_matrices + torch.einsum("ba,akij->bkij", coeffs, m.bone_orientation_blendshapes)
+    M = M[:, 1:]
+    assert (torch.linalg.det(M) < 0).any()  # both signs of det occur
+    with torch.no_grad():
+        assert torch.equal(nearest_rotation(M), roma.special_procrustes(M))
+        X = torch.randn(2000, 3, 3, dtype=torch.float64, generator=g)
+        R = nearest_rotation(X)
+        torch.testing.assert_close(R, roma.special_procrustes(X), atol=1e-11, rtol=0)
+        torch.testing.assert_close(torch.linalg.det(R), torch.ones(2000, dtype=torch.float64))
+        zero = nearest_rotation(torch.zeros(1, 3, 3, dtype=torch.float64))
+        torch.testing.assert_close(zero, torch.eye(3, dtype=torch.float64)[None])
+        # a nearly ambiguous matrix (two equal singular values, det < 0) is left to roma
+        tie = torch.diag(torch.tensor([1.0, 0.5, -0.5], dtype=torch.float64))[None]
+        assert torch.equal(nearest_rotation(tie), roma.special_procrustes(tie))
+    wanting = torch.randn(3, 3, 3, dtype=torch.float64, generator=g).requires_grad_(True)
+    (grad,) = torch.autograd.grad(nearest_rotation(wanting).sum(), wanting)
+    assert torch.isfinite(grad).all()

@@ -363,3 +363,58 @@ def test_heatmap_net_eval_in_chunks_equals_one_pass():
     torch.testing.assert_close(raw2, raw)
     for name in ("joints", "grid_joints", "spread_m2", "log_prob"):
         torch.testing.assert_close(getattr(loc2, name), getattr(loc, name))
+
+
+def test_heatmap_net_fused_inference_matches_the_modules():
+    """Without autograd on a CPU the encoder-decoder runs with batch norm folded into fused
+    convolutions: the same outputs as the modules to float32 round-off, and a change of the
+    weights (training between evaluations) is picked up."""
+    from pressurepose.net.heatmap_fused import fusable
+
+    torch.manual_seed(0)
+    net = HeatmapNet(3, 84).eval()
+    for bn in [m for m in net.modules() if isinstance(m, torch.nn.BatchNorm2d)]:
+        bn.running_mean.uniform_(-0.5, 0.5)
+        bn.running_var.uniform_(0.5, 2.0)
+        bn.weight.data.uniform_(0.5, 1.5)
+        bn.bias.data.uniform_(-0.5, 0.5)
+    x = torch.rand(3, 3, 64, 27) * 50
+    for _ in range(2):
+        with torch.no_grad():
+            assert fusable(net, x)
+            raw, loc = net(x)
+        with torch.enable_grad():  # autograd: the modules
+            assert not fusable(net, x)
+            raw_ref, loc_ref = net(x)
+        torch.testing.assert_close(raw, raw_ref.detach(), atol=1e-5, rtol=1e-5)
+        for name in ("joints", "grid_joints", "spread_m2", "logits"):
+            torch.testing.assert_close(getattr(loc, name), getattr(loc_ref, name).detach(), atol=1e-5, rtol=1e-5)
+        with torch.no_grad():
+            net.dec1[0].weight.mul_(1.5)  # the next round must see it
+
+
+@pytest.mark.parametrize("limited", [False, True])
+def test_ik_step_without_autograd_matches_the_differentiable_step(limited):
+    """Without autograd an IK step builds W^(1/2) J in place (`scaled_jacobian`): the same step
+    as the differentiable one, to float64 round-off."""
+    from pressurepose.net.ik import scaled_jacobian
+
+    limits = JointLimits.default(f64) if limited else None
+    rest, p = _random_body(4, seed=8, scale=0.3)
+    _, target_params = _random_body(4, seed=9, scale=0.3)
+    target = pose_in_mat(rest, target_params)[1]
+    weights = torch.rand(4, NUM_JOINTS, dtype=f64, generator=torch.Generator().manual_seed(10)) + 0.1
+    u = free_pose(p.pose, limits)
+    with torch.no_grad():
+        fast = ik_step(
+            rest, p.shape, IKState(p.root_translation, p.root_rotation, u), target, weights, 0.5 * u, limits=limits
+        )
+    wanting = IKState(p.root_translation, p.root_rotation, u.clone().requires_grad_())
+    ref = ik_step(rest, p.shape, wanting, target, weights, 0.5 * u, limits=limits)
+    for name in ("root_translation", "root_rotation", "free_pose"):
+        torch.testing.assert_close(getattr(fast, name), getattr(ref, name).detach(), rtol=0, atol=1e-10)
+    rot, pos = pose_in_mat(rest, p)
+    rows, cols = torch.rand(4, NUM_JOINTS, dtype=f64), torch.rand(4, 23, 3, dtype=f64)
+    J = joint_jacobian(rot, pos, p)
+    J = torch.cat([J[..., :6], J[..., 6:] * cols.reshape(4, 1, -1)], -1) * rows.repeat_interleave(3, 1)[..., None]
+    torch.testing.assert_close(scaled_jacobian(rot, pos, p, rows, cols), J, rtol=0, atol=1e-14)

@@ -29,6 +29,7 @@ from pressurepose.body.anny_skeleton import Skeleton
 from pressurepose.body.anny_skinning import skin_matrix, sparse_linear_blend_skinning
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
+from pressurepose.body.procrustes import nearest_rotation
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
 from pressurepose.body.shape_ranges import anny_bounds, anny_powers
 from pressurepose.cache import cache_dir, file_lock
@@ -243,16 +244,13 @@ class AnnyBody(AnnyInference, BodyModel):
         """Rest bone heads (B, n, 3) and orientations (B, n, 3, 3) of the bones `sk.bones`,
         computed without the rest mesh (Anny's 'cached' orientation: a special Procrustes of
         a cross-covariance that is linear in the blendshape coefficients)."""
-        import roma
-
         m = self.anny
-        heads = m.template_bone_heads[sk.bones] + torch.einsum(
-            "ba,akx->bkx", coeffs, m.bone_heads_blendshapes[:, sk.bones]
+        bones = slice(None) if sk is self.full else sk.bones  # the full skeleton: views, no gathers
+        heads = m.template_bone_heads[bones] + torch.einsum("ba,akx->bkx", coeffs, m.bone_heads_blendshapes[:, bones])
+        M = m.bone_template_orientation_matrices[bones] + torch.einsum(
+            "ba,akij->bkij", coeffs, m.bone_orientation_blendshapes[:, bones]
         )
-        M = m.bone_template_orientation_matrices[sk.bones] + torch.einsum(
-            "ba,akij->bkij", coeffs, m.bone_orientation_blendshapes[:, sk.bones]
-        )
-        R = roma.special_procrustes(M[:, 1:])
+        R = nearest_rotation(M[:, 1:])  # roma.special_procrustes's numbers; roma itself under autograd
         eye = torch.eye(3, dtype=R.dtype, device=R.device).expand(R.shape[0], 1, 3, 3)
         return heads, torch.cat([eye, R], 1)  # the root keeps an identity rest orientation
 

@@ -37,6 +37,7 @@ from torch import nn
 
 from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.mat import MatSpec
+from pressurepose.net.heatmap_fused import fusable, fused_trunk
 from pressurepose.net.losses import JOINT_SCALE_M
 
 OFFSET_SCALE_M = 0.1
@@ -155,13 +156,9 @@ class HeatmapNet(nn.Module):
             self.fc[-1].weight.mul_(0.1)
             self.fc[-1].bias.zero_()
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, Localisation]:
-        if not self.training and x.shape[0] > self.EVAL_CHUNK:  # exact: batch norm uses running stats
-            parts = [self.forward(c) for c in x.split(self.EVAL_CHUNK)]
-            cat = lambda name: torch.cat([getattr(loc, name) for _, loc in parts])  # noqa: E731
-            loc = Localisation(cat("joints"), cat("grid_joints"), cat("spread_m2"), cat("logits"), self.centres)
-            return torch.cat([raw for raw, _ in parts]), loc
-        B = x.shape[0]
+    def _trunk(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The encoder-decoder by the modules: (bottleneck e3, maps (B, 4 J, H, W)); without
+        autograd on a CPU `heatmap_fused.fused_trunk` computes the same faster."""
         if not self.training:  # mkldnn's convolutions: ~20% faster at batch 128 (docs/benchmarks.md)
             x = x.contiguous(memory_format=torch.channels_last)
         e1 = self.enc1(x * self.INPUT_SCALE)  # (B, 48, 32, 14)
@@ -170,8 +167,17 @@ class HeatmapNet(nn.Module):
         up = lambda a, like: F.interpolate(a, size=like.shape[-2:], mode="nearest")  # noqa: E731
         d2 = self.dec2(torch.cat([up(e3, e2), e2], 1))  # (B, 64, 16, 7)
         d1 = self.dec1(torch.cat([up(self.squeeze(d2), e1), e1], 1))  # (B, 32, 32, 14)
-        maps = self.maps(d1).reshape(B, NUM_JOINTS, MAPS_PER_JOINT, *d1.shape[-2:])
-        loc = integral_joints(maps, self.centres)
+        return e3, self.maps(d1)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, Localisation]:
+        if not self.training and x.shape[0] > self.EVAL_CHUNK:  # exact: batch norm uses running stats
+            parts = [self.forward(c) for c in x.split(self.EVAL_CHUNK)]
+            cat = lambda name: torch.cat([getattr(loc, name) for _, loc in parts])  # noqa: E731
+            loc = Localisation(cat("joints"), cat("grid_joints"), cat("spread_m2"), cat("logits"), self.centres)
+            return torch.cat([raw for raw, _ in parts]), loc
+        B = x.shape[0]
+        e3, maps = fused_trunk(self, x) if fusable(self, x) else self._trunk(x)
+        loc = integral_joints(maps.reshape(B, NUM_JOINTS, MAPS_PER_JOINT, *maps.shape[-2:]), self.centres)
         pooled = torch.cat([e3.mean((-2, -1)), e3.amax((-2, -1))], 1)  # (B, 192)
         rel = (loc.joints.detach() - self.joint_origin) / JOINT_SCALE_M  # (B, 24, 3)
         raw = self.fc(torch.cat([rel.flatten(1), pooled], 1))

@@ -30,6 +30,7 @@ import dataclasses
 
 import torch
 
+from pressurepose.body.anny_skinning import wants_grad
 from pressurepose.body.joints import J24_PARENTS, NUM_JOINTS, NUM_POSE_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.limits import ALPHA, JointLimits
@@ -122,6 +123,36 @@ def joint_jacobian(rot: torch.Tensor, pos: torch.Tensor, params: BodyParams) -> 
     return torch.cat([J_t, J_rot], -1)
 
 
+@torch.no_grad()
+def scaled_jacobian(
+    rot: torch.Tensor, pos: torch.Tensor, params: BodyParams, rows: torch.Tensor, pose_columns: torch.Tensor | None
+) -> torch.Tensor:
+    """(B, 72, 75) `joint_jacobian` with joint k's three rows times rows (B, 24) and the pose
+    columns times pose_columns (B, 23, 3) (None: 1), without autograd: the scales are folded
+    into the rotation axes and the lever arms, and the cross products written straight into
+    the Jacobian's blocks (no stacking, permuting or concatenating copies)."""
+    B = pos.shape[0]
+    angles = torch.cat([params.root_rotation[:, None], params.pose], 1)  # (B, 24, 3)
+    parent_rot = torch.cat(
+        [torch.eye(3, dtype=rot.dtype, device=rot.device).expand(B, 1, 3, 3), rot[:, _PARENTS_OF_POSED.to(rot.device)]],
+        1,
+    )
+    a = (parent_rot @ left_jacobian(angles)).transpose(-1, -2)  # (B, j, i, xyz)
+    if pose_columns is not None:
+        a[:, 1:] *= pose_columns[..., None]
+    factor = _DESCENDANTS_F.to(pos)[None] * rows[:, None, :]  # (B, j, k): 0 off the subtree
+    d = ((pos[:, None, :, :] - pos[:, :, None, :]) * factor[..., None]).transpose(1, 2)  # (B, k, j, xyz)
+    J = pos.new_empty(B, 3 * NUM_JOINTS, NUM_UNKNOWNS)
+    eye = torch.eye(3, dtype=pos.dtype, device=pos.device)
+    J[:, :, :3] = (rows[:, :, None, None] * eye).reshape(B, 3 * NUM_JOINTS, 3)
+    blocks = J[:, :, 3:].unflatten(2, (NUM_JOINTS, 3)).unflatten(1, (NUM_JOINTS, 3))  # (B, k, xyz, j, i)
+    for x, (y, z) in enumerate(((1, 2), (2, 0), (0, 1))):  # (a x d)_x = a_y d_z - a_z d_y
+        block = blocks[:, :, x]
+        torch.mul(a[:, None, :, :, y], d[:, :, :, None, z], out=block)
+        block.addcmul_(a[:, None, :, :, z], d[:, :, :, None, y], value=-1)
+    return J
+
+
 @dataclasses.dataclass(frozen=True)
 class IKState:
     """The unknowns of the fit: root translation (B, 3) m and rotation (B, 3) rad (mat frame),
@@ -177,23 +208,34 @@ def ik_step(
             raise ValueError(f"{name} must have shape {(B, *tail)}, got {tuple(value.shape)}")
     params = state.params(shape, limits)
     rot, pos = pose_in_mat(rest, params)
-    J = joint_jacobian(rot, pos, params)  # (B, 72, 75)
+    slope = None
     if limits is not None:  # d theta / d u of theta = squash(u) = mid + half tanh((u - mid) / half)
         mid = (limits.lower + limits.upper).to(pos) / 2
         half = ALPHA * (limits.upper - limits.lower).to(pos) / 2
         slope = 1 - torch.tanh((state.free_pose - mid) / half).square()
-        J = torch.cat([J[..., :6], J[..., 6:] * slope.reshape(B, 1, -1)], -1)
-    w = (weights / config.joint_sigma_m**2).repeat_interleave(3, 1)  # (B, 72)
+    w = weights / config.joint_sigma_m**2  # (B, 24)
     residual = (pos - target).reshape(B, -1)
     prior = torch.zeros(NUM_UNKNOWNS, dtype=pos.dtype, device=pos.device)
     prior[6:] = 1.0 / config.prior_sigma_rad**2
-    eye = torch.eye(NUM_UNKNOWNS, dtype=pos.dtype, device=pos.device)
-    Jw = J.transpose(1, 2) * w[:, None, :]  # (B, 75, 72)
-    H = Jw @ J + torch.diag(prior) + config.damping * eye
-    g = (Jw @ residual[..., None])[..., 0]
-    g = torch.cat([g[:, :6], g[:, 6:] + prior[6:] * (state.free_pose - prior_free_pose).reshape(B, -1)], 1)
-    # H is symmetric positive definite (damping > 0): Cholesky, ~2x cheaper than LU
-    delta = -torch.cholesky_solve(g[..., None], torch.linalg.cholesky(H))[..., 0]  # (B, 75)
+    unknowns = (state.root_translation, state.root_rotation, state.free_pose)
+    if wants_grad(rest, shape, target, weights, prior_free_pose, *unknowns):
+        J = joint_jacobian(rot, pos, params)  # (B, 72, 75)
+        if slope is not None:
+            J = torch.cat([J[..., :6], J[..., 6:] * slope.reshape(B, 1, -1)], -1)
+        Jw = J.transpose(1, 2) * w.repeat_interleave(3, 1)[:, None, :]  # (B, 75, 72)
+        H = Jw @ J + torch.diag(prior + config.damping)
+        g = (Jw @ residual[..., None])[..., 0]
+        g = torch.cat([g[:, :6], g[:, 6:] + prior[6:] * (state.free_pose - prior_free_pose).reshape(B, -1)], 1)
+    else:  # the same system from W^(1/2) J written in place (fewer passes over the Jacobian)
+        root = w.sqrt()
+        Js = scaled_jacobian(rot, pos, params, root, slope)
+        H = Js.transpose(1, 2) @ Js
+        H.diagonal(dim1=1, dim2=2).add_(prior + config.damping)
+        g = (Js * (root.repeat_interleave(3, 1) * residual)[..., None]).sum(1)  # 5x faster than a batched gemv
+        g[:, 6:].add_(prior[6:] * (state.free_pose - prior_free_pose).reshape(B, -1))
+    # H is symmetric positive definite (damping > 0): Cholesky, ~2x cheaper than LU (the upper
+    # factor: ~15% faster than the lower one in torch 2.13 on a CPU)
+    delta = -torch.cholesky_solve(g[..., None], torch.linalg.cholesky(H, upper=True), upper=True)[..., 0]  # (B, 75)
     return IKState(
         root_translation=state.root_translation + delta[:, :3],
         root_rotation=state.root_rotation + delta[:, 3:6],
@@ -234,4 +276,5 @@ __all__ = [
     "ik_step",
     "joint_jacobian",
     "left_jacobian",
+    "scaled_jacobian",
 ]

@@ -43,11 +43,16 @@ _SOBEL_X = ((-1.0, 0.0, 1.0), (-2.0, 0.0, 2.0), (-1.0, 0.0, 1.0))
 
 
 def sobel_magnitude(images: torch.Tensor) -> torch.Tensor:
-    """(B, H, W) -> (B, H, W) gradient magnitude (Sobel, zero padded)."""
-    kx = torch.tensor(_SOBEL_X, dtype=images.dtype, device=images.device)
-    k = torch.stack([kx, kx.T])[:, None]  # (2, 1, 3, 3)
-    g = F.conv2d(images[:, None], k, padding=1)
-    return (g.square().sum(1) + 1e-12).sqrt() - 1e-6
+    """(B, H, W) -> (B, H, W) gradient magnitude (Sobel, zero padded). The kernels
+    _SOBEL_X and its transpose, separated into a [1, 2, 1] smoothing and a [-1, 0, 1]
+    difference and written as shifted sums (a 2-channel conv2d of one input channel takes a
+    slow path on CPU: 3x the time at 128 images)."""
+    p = F.pad(images, (1, 1, 1, 1))  # (B, H + 2, W + 2)
+    diff = p[..., 2:] - p[..., :-2]  # along W, every padded row
+    smooth = p[..., :-2] + 2 * p[..., 1:-1] + p[..., 2:]
+    gx = diff[..., :-2, :] + 2 * diff[..., 1:-1, :] + diff[..., 2:, :]
+    gy = smooth[..., 2:, :] - smooth[..., :-2, :]
+    return (gx.square() + gy.square() + 1e-12).sqrt() - 1e-6
 
 
 def _to_sum(images: torch.Tensor) -> torch.Tensor:
