@@ -62,8 +62,10 @@ from pressurepose.sim.soft_contact import lowest_points
 
 # The revision of the engine's numerics: raised whenever a change alters its rests beyond
 # bitwise (datasets pin it, `generate.run`). 2: stalled solves leave, trimmed cells, a
-# re-posing's solve stops at 1 mrad steps (docs/benchmarks.md, branch speed4).
-ENGINE_REVISION = 2
+# re-posing's solve stops at 1 mrad steps (docs/benchmarks.md, branch speed4); 3: the body
+# model's rest skeleton by `body.procrustes.nearest_rotation` (roma's numbers to round-off,
+# branch pred6), which the rests amplify beyond bitwise.
+ENGINE_REVISION = 3
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
