@@ -79,7 +79,7 @@ def bench_stages(n: int, partitions: list[str] | None) -> None:
 
     stages = [
         (sampler, "fit_capsules", "capsule fit"),
-        (sampler, "root_axis_angle", "root axis-angle"),
+        (sampler, "root_axis_angles", "root axis-angle"),
         (limb_draws.LimbDraws, "_draw_limbs", "limb draws (all)"),
         (support.LimbGrid, "support", "  reachable boxes"),
         (support.LimbGrid, "propose", "  proposals in the boxes"),

@@ -3,6 +3,7 @@ import math
 import pytest
 import torch
 
+from pressurepose.body.capsule_geometry import dot
 from pressurepose.body.capsules import (
     CAPSULE_NAMES,
     CAPSULE_PARENTS,
@@ -96,6 +97,29 @@ def test_segment_distance_matches_brute_force_including_degenerate_cases():
     t = torch.linspace(0, 1, 2001, dtype=D)
     brute = torch.cdist(x, a + t[:, None] * (b - a)).min(-1).values
     torch.testing.assert_close(point_segment_distance(x, a, b), brute, atol=1e-6, rtol=0)
+
+
+def test_capsule_clearance_is_the_segment_distance_minus_the_radii_bit_for_bit():
+    # capsule_clearance is segment_closest_points written out per coordinate (the pose
+    # sampler's collision test): the same operations in the same order, so the same bits.
+    g = torch.Generator().manual_seed(3)
+    B, C = 300, 20
+    start = 0.3 * torch.randn(B, C, 3, generator=g, dtype=D)
+    end = start + 0.2 * torch.randn(B, C, 3, generator=g, dtype=D)
+    end[:, 0] = start[:, 0]  # point-like capsules
+    end[:, 1] = start[:, 1] + torch.tensor([0.1, 0.0, 0.0], dtype=D)  # parallel to capsule 2's
+    end[:, 2] = start[:, 2] + torch.tensor([0.3, 0.0, 0.0], dtype=D)
+    start[:5, 3] = start[:5, 4]  # touching ends
+    radius = 0.1 * torch.rand(B, C, generator=g, dtype=D)
+    pairs = torch.cat(
+        [torch.tensor([[0, 5], [1, 2], [3, 4], [0, 0], [6, 0]]), torch.randint(0, C, (40, 2), generator=g)]
+    )
+    i, j = pairs[:, 0], pairs[:, 1]
+    want = segment_distance(start[:, i], end[:, i], start[:, j], end[:, j]) - radius[:, i] - radius[:, j]
+    got = capsule_clearance(start, end, radius, pairs)
+    assert torch.equal(got.view(torch.int64), want.view(torch.int64))
+    x, y = torch.randn(2, 7, 11, 3, generator=g, dtype=D)
+    assert torch.equal(dot(x, y), (x * y).sum(-1))
 
 
 def test_capsule_inertia_matches_monte_carlo():

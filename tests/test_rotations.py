@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 from torch.autograd import gradcheck
@@ -13,7 +14,7 @@ from pressurepose.body.rotations import (
     rotation_between,
     swing_twist,
 )
-from pressurepose.sampling.poses import root_axis_angle
+from pressurepose.sampling.poses import root_axis_angle, root_axis_angles
 
 
 def naive_rodrigues(r):
@@ -136,3 +137,15 @@ def test_root_axis_angle_is_yaw_after_roll(roll, yaw):
     Rx = axis_angle_to_matrix(torch.tensor([roll, 0.0, 0.0], dtype=torch.float64))
     assert aa.dtype == torch.float64 and aa.shape == (3,) and aa.norm() <= math.pi
     assert torch.allclose(axis_angle_to_matrix(aa), Rz @ Rx, atol=1e-14)
+
+
+def test_root_axis_angles_of_a_batch_are_those_of_one_sample_bit_for_bit():
+    # The sampler converts every new root of an attempt at once: each row must have the bits
+    # it has alone, whatever the batch (a sample follows from its seed and index only).
+    rng = np.random.default_rng(4)
+    roll = np.concatenate([rng.uniform(-math.pi, math.pi, 300), [0.0, math.pi, -math.pi, 1e-9, 0.0]])
+    yaw = np.concatenate([rng.uniform(-math.pi / 6, math.pi / 6, 300), [0.0, 0.3, -0.2, 0.0, 1e-3]])
+    alone = np.stack([root_axis_angle(r, y) for r, y in zip(roll, yaw)])
+    for size in (1, 3, 8, 64, 305):
+        batched = np.concatenate([root_axis_angles(roll[i : i + size], yaw[i : i + size]) for i in range(0, 305, size)])
+        assert batched.tobytes() == alone.tobytes()

@@ -102,6 +102,20 @@ def test_proposals_are_uniform_in_the_kept_boxes():
     assert (np.abs(counts - 10_000) < 400).all()
 
 
+@pytest.mark.parametrize("straight", [False, True])
+def test_proposals_are_the_box_index_plus_the_offset_in_it(straight):
+    # (i + u) / n per component, i the picked box's grid index: the table of box corners gives
+    # the same numbers, bit for bit, as the index arithmetic it replaced.
+    grid = LimbGrid(LIMBS["left_leg"], straight)
+    rng = np.random.default_rng(2)
+    boxes = np.sort(rng.choice(grid.boxes, 300, replace=False))
+    u = rng.random((5_000, 5))
+    pick = boxes[np.minimum((u[:, 0] * boxes.shape[0]).astype(np.int64), boxes.shape[0] - 1)]
+    n, nphi = int(grid.n[0]), int(grid.n[3])
+    idx = np.stack([pick // nphi // (n * n), pick // nphi // n % n, pick // nphi % n, pick % nphi], -1)
+    assert grid.propose(boxes, u).tobytes() == ((idx + u[:, 1:]) / grid.n).tobytes()
+
+
 @pytest.mark.parametrize("name, flag", [("left_arm", "below_shoulder"), ("left_leg", "left_of_midline")])
 def test_the_boxes_hold_every_valid_draw_of_the_partition_conditions(name, flag):
     """Hands behind the head (wrist no higher than the shoulder) and the crossing left leg

@@ -6,6 +6,12 @@ import torch
 
 
 # --- geometry -------------------------------------------------------------------------------
+def dot(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(x * y).sum(-1) over a last axis of 3, written out: the same sum in the same order (the
+    same bits), ~7x faster than torch's reduction over so short an axis."""
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
+
+
 def point_segment_distance(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Distance from points x (..., 3) to segments [a, b] (..., 3) (broadcast)."""
     d = b - a
@@ -31,11 +37,7 @@ def segment_closest_points(
     """
     eps = 1e-12
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
-    a = (d1 * d1).sum(-1)
-    e = (d2 * d2).sum(-1)
-    f = (d2 * r).sum(-1)
-    c = (d1 * r).sum(-1)
-    b = (d1 * d2).sum(-1)
+    a, e, f, c, b = dot(d1, d1), dot(d2, d2), dot(d2, r), dot(d1, r), dot(d1, d2)
     denom = a * e - b * b
     safe = lambda z: torch.where(z > eps, z, torch.ones_like(z))  # noqa: E731
     # s on segment 1 from the lines' closest points (0 if parallel), then t, then re-clamp s.
@@ -53,7 +55,31 @@ def segment_closest_points(
 def capsule_clearance(
     start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, pairs: torch.Tensor
 ) -> torch.Tensor:
-    """(B, P) gap between the surfaces of capsule pairs (negative = interpenetrating)."""
+    """(B, P) gap between the surfaces of capsule pairs (negative = interpenetrating).
+
+    `segment_closest_points` written out per coordinate on (B, P) arrays (the same operations
+    in the same order: the same bits, test), the pairs gathered by `index_select`: ~3x faster
+    for the pose sampler's many small collision tests."""
     i, j = pairs[:, 0], pairs[:, 1]
-    d = segment_distance(start[:, i], end[:, i], start[:, j], end[:, j])
-    return d - radius[:, i] - radius[:, j]
+    sx, ex = start.movedim(-1, 0), end.movedim(-1, 0)  # (3, B, C)
+    p1, q1, p2, q2 = sx.index_select(2, i), ex.index_select(2, i), sx.index_select(2, j), ex.index_select(2, j)
+    eps = 1e-12
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2  # (3, B, P)
+    a, e, f, c, b = (_dot0(x, y) for x, y in ((d1, d1), (d2, d2), (d2, r), (d1, r), (d1, d2)))
+    denom = a * e - b * b
+    safe = lambda z: torch.where(z > eps, z, torch.ones_like(z))  # noqa: E731
+    s = torch.where(denom > eps * a * e + eps, ((b * f - c * e) / safe(denom)).clamp(0, 1), torch.zeros_like(a))
+    t = (b * s + f) / safe(e)
+    s = torch.where(t < 0, (-c / safe(a)).clamp(0, 1), torch.where(t > 1, ((b - c) / safe(a)).clamp(0, 1), s))
+    t = t.clamp(0, 1)
+    s = torch.where(a <= eps, torch.zeros_like(s), s)
+    t = torch.where(e <= eps, torch.zeros_like(t), torch.where(a <= eps, (f / safe(e)).clamp(0, 1), t))
+    s = torch.where((e <= eps) & (a > eps), (-c / safe(a)).clamp(0, 1), s)
+    gap = (p1 + s * d1) - (p2 + t * d2)
+    d = gap.movedim(0, -1).contiguous().norm(dim=-1)
+    return d - radius.index_select(1, i) - radius.index_select(1, j)
+
+
+def _dot0(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """`dot` over a leading axis of 3."""
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]

