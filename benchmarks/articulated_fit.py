@@ -9,7 +9,7 @@ evaluation is 24 articulated rests (~10-20 s on one core). Every evaluation is a
 <out>/evals.jsonl; the best parameters go to <out>/<mattress>.json (MattressParams file).
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/articulated_fit.py --mattress sponge --out out/fit
-        [--bed-only] [--from-preset]
+        [--bed-only] [--from-preset] [--tissue 98300]
 """
 
 from __future__ import annotations
@@ -64,6 +64,12 @@ def main() -> None:
         help="fit the bed (k1, k3, tissue, spread) alone, the body's factors at ArticulatedConfig's defaults",
     )
     ap.add_argument("--from-preset", action="store_true", help="start at the mattress's preset (sigma 0.25)")
+    ap.add_argument(
+        "--tissue",
+        type=float,
+        default=None,
+        help="hold the soft tissue's modulus (Pa/m; the body's, shared by every mattress) and fit k1, k3, spread",
+    )
     args = ap.parse_args()
     import cma
 
@@ -85,6 +91,8 @@ def main() -> None:
     def loss(x):
         nonlocal best
         v = decode(x, space)
+        if args.tissue is not None:
+            v["tissue_pa_per_m"] = args.tissue
         mp = MattressParams(
             k1_pa_per_m=v["k1_pa_per_m"],
             k3_pa_per_m3=v["k3_pa_per_m3"],
@@ -145,6 +153,8 @@ def main() -> None:
         return total
 
     space = SPACE[:4] if args.bed_only else SPACE
+    if args.tissue is not None:  # the body's tissue held: the bed's foam and cover alone
+        space = tuple(d for d in SPACE[:4] if d[0] != "tissue_pa_per_m")
     x0 = [math.log(s) for _, s, _, _ in space]
     sigma = 0.5
     if args.from_preset:  # start at the mattress's preset, a narrower search around it

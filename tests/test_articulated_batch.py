@@ -57,17 +57,23 @@ def test_take_gives_the_same_rows(solves):
 
 
 def test_a_body_steps_alone_as_in_its_batch(solves):
-    """Every solve of the rest, once for the batch and once per body alone: the same steps
-    (counts) and the same motion to round-off (batched LAPACK and matrix products are not
-    bitwise the same for every batch size)."""
+    """Every solve of the rest, once for the batch and once per body alone: the same motion to
+    round-off (batched LAPACK and matrix products are not bitwise the same for every batch
+    size) and the same steps - up to one: a stopping test (a step below 1e-6, the imbalance
+    below `tol`) that lands within round-off of its threshold ends the solve a step earlier or
+    later, a step too small to move the body beyond the motion's tolerance (seen: 2 against 3
+    steps, the motions 1.8e-9 apart)."""
     seen, mp, config = solves
+    differ = 0
     for lin, q0, weight, steps, step_tol in seen:
         q, iters = minimise(lin, q0, mp, weight, config, steps, step_tol)
         for i in range(q.shape[0]):
             idx = torch.tensor([i])
             qi, it = minimise(lin.take(idx), q0[idx], mp, weight[idx], config, steps, step_tol)
-            assert int(it[0]) == int(iters[i])
+            assert abs(int(it[0]) - int(iters[i])) <= 1
+            differ += int(it[0]) != int(iters[i])
             torch.testing.assert_close(qi[0], q[i], rtol=0.0, atol=1e-8)
+    assert differ <= 2  # of the ~64 solves: a coincidence, not a batch effect
 
 
 def _lowest_reference(points, labels, mat, sub, values):
