@@ -35,9 +35,14 @@ def segment_closest_points(
     Clamping the line parameters (Ericson, Real-Time Collision Detection 5.1.9), vectorised;
     degenerate (point-like) segments are handled.
     """
-    eps = 1e-12
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
-    a, e, f, c, b = dot(d1, d1), dot(d2, d2), dot(d2, r), dot(d1, r), dot(d1, d2)
+    s, t = _closest_parameters(dot(d1, d1), dot(d2, d2), dot(d2, r), dot(d1, r), dot(d1, d2))
+    return p1 + s[..., None] * d1, p2 + t[..., None] * d2
+
+
+def _closest_parameters(a, e, f, c, b, eps: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
+    """The closest points' parameters s, t on two segments from the dot products a = d1.d1,
+    e = d2.d2, f = d2.r, c = d1.r, b = d1.d2 (d1, d2 the segments' directions, r = p1 - p2)."""
     denom = a * e - b * b
     safe = lambda z: torch.where(z > eps, z, torch.ones_like(z))  # noqa: E731
     # s on segment 1 from the lines' closest points (0 if parallel), then t, then re-clamp s.
@@ -49,7 +54,7 @@ def segment_closest_points(
     s = torch.where(a <= eps, torch.zeros_like(s), s)
     t = torch.where(e <= eps, torch.zeros_like(t), torch.where(a <= eps, (f / safe(e)).clamp(0, 1), t))
     s = torch.where((e <= eps) & (a > eps), (-c / safe(a)).clamp(0, 1), s)
-    return p1 + s[..., None] * d1, p2 + t[..., None] * d2
+    return s, t
 
 
 def capsule_clearance(
@@ -63,18 +68,8 @@ def capsule_clearance(
     i, j = pairs[:, 0], pairs[:, 1]
     sx, ex = start.movedim(-1, 0), end.movedim(-1, 0)  # (3, B, C)
     p1, q1, p2, q2 = sx.index_select(2, i), ex.index_select(2, i), sx.index_select(2, j), ex.index_select(2, j)
-    eps = 1e-12
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2  # (3, B, P)
-    a, e, f, c, b = (_dot0(x, y) for x, y in ((d1, d1), (d2, d2), (d2, r), (d1, r), (d1, d2)))
-    denom = a * e - b * b
-    safe = lambda z: torch.where(z > eps, z, torch.ones_like(z))  # noqa: E731
-    s = torch.where(denom > eps * a * e + eps, ((b * f - c * e) / safe(denom)).clamp(0, 1), torch.zeros_like(a))
-    t = (b * s + f) / safe(e)
-    s = torch.where(t < 0, (-c / safe(a)).clamp(0, 1), torch.where(t > 1, ((b - c) / safe(a)).clamp(0, 1), s))
-    t = t.clamp(0, 1)
-    s = torch.where(a <= eps, torch.zeros_like(s), s)
-    t = torch.where(e <= eps, torch.zeros_like(t), torch.where(a <= eps, (f / safe(e)).clamp(0, 1), t))
-    s = torch.where((e <= eps) & (a > eps), (-c / safe(a)).clamp(0, 1), s)
+    s, t = _closest_parameters(*(_dot0(x, y) for x, y in ((d1, d1), (d2, d2), (d2, r), (d1, r), (d1, d2))))
     gap = (p1 + s * d1) - (p2 + t * d2)
     d = gap.movedim(0, -1).contiguous().norm(dim=-1)
     return d - radius.index_select(1, i) - radius.index_select(1, j)
