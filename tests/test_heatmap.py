@@ -393,6 +393,29 @@ def test_heatmap_net_fused_inference_matches_the_modules():
             net.dec1[0].weight.mul_(1.5)  # the next round must see it
 
 
+def test_heatmap_net_falls_back_to_the_modules_when_the_fused_operator_fails(monkeypatch):
+    """The fused path calls a private oneDNN operator: if this torch's differs (or lacks it),
+    the modules run instead - the same outputs - and keep running."""
+    import pressurepose.net.heatmap_fused as hf
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("unknown signature")
+
+    torch.manual_seed(0)
+    net = HeatmapNet(3, 84).eval()
+    x = torch.rand(2, 3, 64, 27) * 50
+    with torch.no_grad():
+        raw_ref, loc_ref = net(x)
+        monkeypatch.setattr(hf, "_FAILED", [])
+        monkeypatch.setattr(hf, "_run", broken)
+        raw, loc = net(x)
+        assert hf._FAILED and not hf.fusable(net, x)
+        raw2, _ = net(x)
+    torch.testing.assert_close(raw, raw_ref, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(raw2, raw, atol=0, rtol=0)
+    torch.testing.assert_close(loc.joints, loc_ref.joints, atol=1e-5, rtol=1e-5)
+
+
 @pytest.mark.parametrize("limited", [False, True])
 def test_ik_step_without_autograd_matches_the_differentiable_step(limited):
     """Without autograd an IK step builds W^(1/2) J in place (`scaled_jacobian`): the same step

@@ -176,7 +176,8 @@ class HeatmapNet(nn.Module):
             loc = Localisation(cat("joints"), cat("grid_joints"), cat("spread_m2"), cat("logits"), self.centres)
             return torch.cat([raw for raw, _ in parts]), loc
         B = x.shape[0]
-        e3, maps = fused_trunk(self, x) if fusable(self, x) else self._trunk(x)
+        fused = fused_trunk(self, x) if fusable(self, x) else None
+        e3, maps = fused if fused is not None else self._trunk(x)
         loc = integral_joints(maps.reshape(B, NUM_JOINTS, MAPS_PER_JOINT, *maps.shape[-2:]), self.centres)
         pooled = torch.cat([e3.mean((-2, -1)), e3.amax((-2, -1))], 1)  # (B, 192)
         rel = (loc.joints.detach() - self.joint_origin) / JOINT_SCALE_M  # (B, 24, 3)

@@ -17,12 +17,16 @@ import torch.nn.functional as F
 from torch import nn
 
 _CACHE = "_fused_weights"
+# Set when the private oneDNN operator fails (another torch version's signature, a build without
+# it): the modules run from then on (`fused_trunk` returns None once, `fusable` is False after).
+_FAILED: list[str] = []
 
 
 def fusable(net: nn.Module, x: torch.Tensor) -> bool:
     """Whether `fused_trunk` can run: eval mode, no autograd, float32 on a CPU with oneDNN."""
     return (
-        not net.training
+        not _FAILED
+        and not net.training
         and not torch.is_grad_enabled()
         and x.device.type == "cpu"
         and x.dtype == torch.float32
@@ -69,9 +73,18 @@ def _run(layers: list[tuple], x: torch.Tensor) -> torch.Tensor:
     return x
 
 
-def fused_trunk(net: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def fused_trunk(net: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     """HeatmapNet's encoder-decoder on channels x (B, C, 64, 27): (bottleneck e3 (B, 96, 8, 4),
-    maps (B, 4 J, 32, 14) contiguous). Call only when `fusable`."""
+    maps (B, 4 J, 32, 14) contiguous), or None if the fused operator fails in this torch (the
+    caller runs the modules; so does every later call). Call only when `fusable`."""
+    try:
+        return _fused(net, x)
+    except (RuntimeError, TypeError, NotImplementedError) as exc:  # a private operator: may change
+        _FAILED.append(f"{type(exc).__name__}: {exc}")
+        return None
+
+
+def _fused(net: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     w = _weights(net)
     e1 = _run(w["enc1"], x.contiguous(memory_format=torch.channels_last))
     e2 = _run(w["enc2"], e1)
