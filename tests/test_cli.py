@@ -78,6 +78,9 @@ def test_sample_writes_poses_and_figures(tmp_path):
     record = json.loads((out / "config.json").read_text())
     assert record["sampling"]["partition"] == "supine" and record["count"] == 12
     assert sum(record["cell_counts"]["left_leg"]) == 12
+    # the shape law: the box and each entry's power (Anny's weight drawn with a rising density)
+    power = dict(zip(record["shape_names"], record["shape_power"]))
+    assert power.pop("weight") == 2.0 and set(power.values()) == {1.0} and record["sampling_law"] >= 3
     for name in ("cells.png", "bodies.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
     assert not list(out.glob(".*partial*"))  # no temporary files left behind

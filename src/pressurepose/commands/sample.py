@@ -28,7 +28,7 @@ from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.mat import MatSpec
-from pressurepose.sampling.partitions import SamplingConfig
+from pressurepose.sampling.partitions import SAMPLING_LAW, SamplingConfig
 from pressurepose.sampling.sampler import InitialPoses, PoseSampler
 from pressurepose.viz.sampling import plot_bodies, plot_cells, posed_vertices
 
@@ -129,6 +129,8 @@ def run_sample(cfg: SampleConfig) -> Written:
         "shape_names": list(model.shape_names),
         "shape_low": low.tolist(),
         "shape_high": high.tolist(),
+        "shape_power": model.shape_powers(model.shape_names).tolist(),  # density ~ t^(p - 1) on [low, high]
+        "sampling_law": SAMPLING_LAW,
         "count": cfg.n,
         "seconds": round(seconds, 3),
         "samples_per_second": round(cfg.n / seconds, 1),
