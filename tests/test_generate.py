@@ -481,14 +481,24 @@ def test_rigid_dataset_settings_leave_out_the_tissue(tmp_path, monkeypatch, anny
 
     monkeypatch.setattr(worker, "simulate_indices", fake)
     monkeypatch.setitem(worker._MODELS, ("anny", None), anny64)
-    for name, settle in (("rigid", "mujoco"), ("default", "articulated")):
-        run_generate(GenerateConfig(out=tmp_path / name, partition="supine", n=2, settle=settle), progress=False)
-    rigid = json.loads((tmp_path / "rigid" / "manifest.json").read_text())
-    default = json.loads((tmp_path / "default" / "manifest.json").read_text())
+    for name, settle, params in (
+        ("rigid", "mujoco", None),
+        ("default", "articulated", None),
+        ("air", "articulated", "air"),
+    ):
+        run_generate(
+            GenerateConfig(out=tmp_path / name, partition="supine", n=2, settle=settle, params=params), progress=False
+        )
+    rigid, default, air = (
+        json.loads((tmp_path / n / "manifest.json").read_text()) for n in ("rigid", "default", "air")
+    )
     expected = MattressParams().to_dict()
     expected.pop("tissue_pa_per_m")
     assert rigid["mattress"] == expected and "settle" not in rigid["config"]
     assert default["mattress"] == MattressParams.preset("sponge").to_dict()
+    # Flat beds leave the air cells' fields out (datasets made before them resume); air keeps them.
+    assert "cell_depth_m" not in default["mattress"] and "cell_depth_m" not in rigid["mattress"]
+    assert air["mattress"] == MattressParams.preset("air").to_dict() and air["mattress"]["cell_depth_m"] > 0
 
 
 def _assert_params_reproduce_joints(data):

@@ -232,6 +232,8 @@ def rest_articulated(
     X, Y = cell_centres(mat, cfg.sub, covered=True, dtype=dtype, device=device)
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
     area = mat.pitch_row_m * mat.pitch_col_m / cfg.sub**2
+    # The mattress top under each cell (air cells; None: flat, heights used as they are).
+    top = mp.top_height(xy[:, 0]) if mp.has_cells else None
     # A pose may start beyond a limit (the sampler's ranges are not the limits'): the limit
     # then sits where the joint starts, so the spring stops it going further, never pushes.
     dof_lo, dof_hi = dofs.limits(dtype, device)
@@ -292,6 +294,8 @@ def rest_articulated(
         h, part, cell_tissue = lowest_points(
             from_part_frames(body.local_pts, labels, rot, joints), labels, mat, cfg.sub, body.point_tissue
         )
+        if top is not None:
+            h = h - top  # heights above the (air cells') top, not above z = 0
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, body.ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ body.root_start.transpose(-1, -2))[:, 0]
         axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)

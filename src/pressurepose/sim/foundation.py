@@ -93,7 +93,7 @@ class _Grid:
     along the bed). Residual: vertical force - weight, moments about x and y through the
     centre of mass, force along the bed."""
 
-    def __init__(self, h, mat, sub, com, bed: BedShape | None = None):
+    def __init__(self, h, mat, sub, com, bed: BedShape | None = None, params: MattressParams | None = None):
         B = h.shape[0]
         self.shape = h.shape
         S, Y = cell_centres(mat, sub, covered=True, dtype=h.dtype, device=h.device)
@@ -105,6 +105,8 @@ class _Grid:
         self.mask = valid.gather(1, self.index).to(h.dtype)
         self.area = mat.pitch_row_m * mat.pitch_col_m / sub**2
         s_cells, y_cells = S.reshape(-1)[self.index], Y.reshape(-1)[self.index]
+        if params is not None and params.has_cells:  # heights above the air cells' top
+            self.h = self.h - params.top_height(s_cells) * self.mask
         bed = bed or BedShape()
         self.nu, self.tau, base = bed.frame_at(s_cells, mat)
         self.r = base + torch.stack([torch.zeros_like(y_cells), y_cells, torch.zeros_like(y_cells)], -1) - com[:, None]
@@ -285,10 +287,10 @@ def simulate_pressure(
     for p in range(passes):
         points = bed.to_surface(world_points, mat) if bed is not None and not bed.flat else world_points
         h = heights_from_points(points, mat, sub=sub, covered=True)
-        grid = _Grid(h, mat, sub, com, bed)
+        grid = _Grid(h, mat, sub, com, bed, params)
         with torch.no_grad():
             hd = h.detach()
-            gd = _Grid(hd, mat, sub, com.detach(), bed)
+            gd = _Grid(hd, mat, sub, com.detach(), bed, _detached(params))
             q0 = verts.new_zeros(B, 4)
             q0[:, 3] = mu.detach()
             if p == 0:

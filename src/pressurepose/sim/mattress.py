@@ -30,6 +30,13 @@ class MattressParams:
     are preserved). Sensor: the mat layer compresses d = p / mat_stiffness (mm) and a taxel
     reads c0 + c1 d + c2 d^2 mmHg for d > 0 (the seed's quadratic taxel law), clipped to
     [0, 100]; `noise_mmhg` adds Gaussian noise on the loaded taxels.
+
+    Air cells: an air mattress is a row of tubes across the bed, so its top is not flat - the
+    body rests on the tubes' crests and bridges the seams between them. With `cell_pitch_m` and
+    `cell_depth_m` > 0 the top lies at z(x) = -depth (1 - cos(2 pi (x - crest) / pitch)) / 2
+    (`top_height`): crests at z = 0 at x = `cell_crest_m` + k pitch, seams `depth` lower, half
+    way between (docs/physics.md, "Air cells"). Sim #2 (both rests) measures the compression
+    from this top; sim #1 (MuJoCo) treats the top as flat.
     """
 
     # Defaults: k1, k3, spread fitted to PmatData's sponge (foam) mattress, supine subjects
@@ -49,6 +56,11 @@ class MattressParams:
     # sim #1 contact: damping time constant (s) of the foundation, friction coefficient.
     damping_s: float = 0.05
     friction: float = 0.5
+    # Air cells across the bed (0: a flat top): pitch along the bed, depth of the seams below the
+    # crests, x of one crest in the mat frame (m).
+    cell_pitch_m: float = 0.0
+    cell_depth_m: float = 0.0
+    cell_crest_m: float = 0.0
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -59,11 +71,16 @@ class MattressParams:
                 raise UserError(f"MattressParams.{f.name} must be a number, got {value!r}") from None
             if not math.isfinite(v):
                 raise UserError(f"MattressParams.{f.name} must be finite, got {v}")
-            if f.name not in ("c0_mmhg",) and v < 0:
+            if f.name not in ("c0_mmhg", "cell_crest_m") and v < 0:
                 raise UserError(f"MattressParams.{f.name} must be >= 0, got {v}")
         for name in ("k1_pa_per_m", "thickness_m", "mat_stiffness_pa_per_mm"):
             if _scalar(getattr(self, name)) <= 0:
                 raise UserError(f"MattressParams.{name} must be > 0, got {getattr(self, name)}")
+        if _scalar(self.cell_depth_m) > 0 and _scalar(self.cell_pitch_m) <= 0:
+            raise UserError(
+                f"MattressParams.cell_depth_m is {_scalar(self.cell_depth_m)} but cell_pitch_m is 0: "
+                "air cells need a pitch (or set the depth to 0 for a flat top)"
+            )
 
     def replace(self, **changes) -> MattressParams:
         return dataclasses.replace(self, **changes)
@@ -76,8 +93,30 @@ class MattressParams:
         """dp/dw (Pa/m)."""
         return self.k1_pa_per_m + 3.0 * self.k3_pa_per_m3 * w**2
 
+    @property
+    def has_cells(self) -> bool:
+        """True when the top is not flat (air cells, `top_height`)."""
+        return _scalar(self.cell_depth_m) > 0 and _scalar(self.cell_pitch_m) > 0
+
+    def top_height(self, x):
+        """Height (m, <= 0) of the mattress top at x along the bed (m, mat frame; a tensor): 0 on
+        a flat top, else the air cells' profile (class doc)."""
+        import torch
+
+        if not self.has_cells:
+            return torch.zeros_like(x)
+        phase = (x - self.cell_crest_m) * (2 * math.pi / self.cell_pitch_m)
+        return -0.5 * self.cell_depth_m * (1 - torch.cos(phase))
+
     def to_dict(self) -> dict:
-        return {f.name: _scalar(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        """The fields as numbers; a flat top leaves out the air cells' fields, so the files and
+        dataset settings of flat beds are those written before the fields existed."""
+        flat = not self.has_cells
+        return {
+            f.name: _scalar(getattr(self, f.name))
+            for f in dataclasses.fields(self)
+            if not (flat and f.name in _CELL_FIELDS)
+        }
 
     def save(self, path: str | os.PathLike) -> None:
         from pressurepose.files import atomic_write
@@ -130,8 +169,21 @@ class MattressParams:
 # fit (docs/calibration.md), which the generator's default uses.
 PRESETS: dict[str, dict[str, float]] = {
     "sponge": {"k1_pa_per_m": 92340.0, "k3_pa_per_m3": 6800000.0, "tissue_pa_per_m": 98300.0, "spread_m": 0.002114},
-    "air": {"k1_pa_per_m": 68450.0, "k3_pa_per_m3": 25950000.0, "tissue_pa_per_m": 662100.0, "spread_m": 0.002804},
+    "air": {
+        "k1_pa_per_m": 68450.0,
+        "k3_pa_per_m3": 25950000.0,
+        "tissue_pa_per_m": 662100.0,
+        "spread_m": 0.002804,
+        # The air mattress's tubes (docs/physics.md "Air cells"): pitch and crest measured from
+        # the transverse bands of PmatData's air frames, depth fitted to the bands' amplitude.
+        "cell_pitch_m": 0.1024,
+        "cell_depth_m": 0.010,
+        "cell_crest_m": 0.0013,
+    },
 }
+
+
+_CELL_FIELDS = ("cell_pitch_m", "cell_depth_m", "cell_crest_m")
 
 
 def _scalar(value) -> float:
