@@ -73,6 +73,41 @@ def test_summarise_and_compare_by_hand():
         R.summarise(np.zeros((1, 4, 3)), np.ones(1), 0.5, 0.5)
 
 
+def test_band_ratios_against_a_loop():
+    rng = np.random.default_rng(0)
+    images = rng.uniform(0, 10, (3, 64, 27)) * (rng.uniform(size=(3, 64, 1)) > 0.2)
+    got = R.band_ratios(images)
+    for n in range(3):
+        rows = images[n].sum(1) / images[n].sum()
+        for i in range(64):
+            if i < 2 or i > 61:
+                assert np.isnan(got[n, i])
+                continue
+            avg = sum(rows[j] for j in range(i - 2, i + 3)) / 5
+            want = rows[i] / avg - 1 if avg >= R.BAND_MIN_SHARE else np.nan
+            np.testing.assert_allclose(got[n, i], want, rtol=1e-12, equal_nan=True)
+
+
+def test_fit_bands_by_hand():
+    """Rows modulated by 1 + a cos(2 pi (x - c) / T): the fit finds T and c, and the amplitude a
+    times (1 - g), g the 5-row average's gain at that period (to first order in a)."""
+    pitch, period, crest, a = 0.0286, 0.1024, 0.013, 0.02
+    x = (np.arange(64) + 0.5) * pitch
+    rows = 1 + a * np.cos(2 * np.pi * (x - crest) / period)
+    images = np.repeat(rows[None, :, None], 27, axis=2).repeat(2, axis=0)
+    b = R.fit_bands(images, pitch)
+    assert b.period_m == pytest.approx(period, abs=4e-4)
+    assert b.crest_m == pytest.approx(crest, abs=1e-3)
+    gain = np.mean([np.cos(2 * np.pi * k * pitch / period) for k in range(-2, 3)])
+    assert b.amplitude == pytest.approx(a * (1 - gain), rel=0.05)
+    assert b.r2 > 0.99
+    # A given period is used as it is; unbanded frames have no amplitude.
+    assert R.fit_bands(images, pitch, 0.11).period_m == 0.11
+    assert R.fit_bands(np.ones((2, 64, 27)), pitch).amplitude < 1e-12
+    with pytest.raises(ValueError, match="too few loaded rows"):
+        R.fit_bands(np.pad(np.ones((1, 2, 27)), ((0, 0), (0, 62), (0, 0))), pitch)  # load in rows 0-1 only
+
+
 def _tiny_folder(tmp_path, frame_text=None, rows=64):
     """Two subjects' supine, left and right frames copied from the packaged PmatData."""
     import csv

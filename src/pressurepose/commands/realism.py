@@ -266,6 +266,10 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
             if sim_set:
                 row["comparison"] = dataclasses.asdict(R.compare(real_set, sim_set))
                 figures[(posture, mattress)] = (real_set, sim_set)
+                # Transverse bands at the pitch the real frames show (air cells, docs/realism.md).
+                real_bands = R.fit_bands(imgs, pitch[0])
+                sim_bands = R.fit_bands(images, pitch[0], real_bands.period_m)
+                row["bands"] = {"real": _bands_dict(real_bands), "simulated": _bands_dict(sim_bands)}
             rows.append(row)
             # Ceiling: real against real, first half of the subjects against the second.
             ids = sorted(set(subj.tolist()))
@@ -312,6 +316,10 @@ def _set_dict(s: R.FrameSet) -> dict:
     }
 
 
+def _bands_dict(b: R.Bands) -> dict:
+    return {k: round(v, 4) for k, v in dataclasses.asdict(b).items()}
+
+
 def _markdown(record: dict) -> str:
     lines = [
         "# Realism: simulated vs real pressure images",
@@ -351,6 +359,21 @@ def _markdown(record: dict) -> str:
                     f"{r['simulated']['regions'][k]:.2f} ({r['real']['regions'][k]:.2f})" for k in R.REGION_NAMES
                 )
                 + " |"
+            )
+    lines += [
+        "",
+        "Transverse bands (air cells; row force over its 5-row average, one cosine fitted along the bed "
+        "at the real frames' best period):",
+        "",
+        "| posture | mattress | period (m) | amplitude sim (real) | crest x sim (real) (m) | R^2 of the real fit |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in record["rows"]:
+        if r.get("bands"):
+            b, rb = r["bands"]["simulated"], r["bands"]["real"]
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | {rb['period_m']:.4f} | {b['amplitude']:.3f} "
+                f"({rb['amplitude']:.3f}) | {b['crest_m']:.4f} ({rb['crest_m']:.4f}) | {rb['r2']:.3f} |"
             )
     lines += [
         "",

@@ -7,6 +7,9 @@ Pure numpy on (N, 64, 27) images in mmHg, row 0 at the head end (docs/realism.md
 - `profile_similarity`: force profiles along (row sums) or across (column sums) the bed, the
   mean over frames of unit-sum profiles, compared by 1 - L1 / 2 (1 = identical shapes, 0 =
   disjoint), best over integer shifts so that placement on the mat is not judged.
+- `fit_bands`: transverse bands (an air mattress's tubes): each row's force over its 5-row moving
+  average, minus 1, fitted over every frame with one cosine along the bed; its period (scanned
+  over `BAND_PERIODS_M` unless given), amplitude and the position of a crest.
 - Body regions are found in the image, the same way for real and simulated frames: the top of
   the head is the first loaded row from the head end, the subject's height (known) scales the
   anthropometric fractions of `REGIONS` along the bed, and the arms are the load beside the
@@ -36,6 +39,9 @@ REGIONS: tuple[tuple[str, float, float], ...] = (
 ARM_ROWS = (0.13, 0.55)  # arms at the sides lie beside the trunk, shoulders to hips
 ARM_HALF_WIDTH_OF_HEIGHT = 0.09  # trunk half-width (~0.16 m at 1.78 m); beyond it: arms
 REGION_NAMES = tuple(r[0] for r in REGIONS) + ("arms",)
+BAND_PERIODS_M = np.arange(0.08, 0.1301, 0.0002)  # pitches scanned for transverse bands
+BAND_SMOOTH_ROWS = 5  # the moving average the rows are compared with
+BAND_MIN_SHARE = 0.005  # rows whose moving average holds less of the force are left out
 
 
 def _check(images: np.ndarray, name: str = "images") -> np.ndarray:
@@ -171,6 +177,52 @@ def profile_similarity(a: np.ndarray, b: np.ndarray, max_shift: int) -> tuple[fl
     return float(best), best_shift
 
 
+def band_ratios(images: np.ndarray) -> np.ndarray:
+    """(N, rows): each row's force over its `BAND_SMOOTH_ROWS`-row moving average, minus 1 (NaN
+    where that average holds less than `BAND_MIN_SHARE` of the frame's force, and in the rows
+    the average does not cover fully)."""
+    images = _check(images)
+    rows = images.sum(2)
+    rows = rows / np.maximum(rows.sum(1, keepdims=True), 1e-300)
+    k = BAND_SMOOTH_ROWS
+    smooth = np.stack([np.convolve(r, np.ones(k) / k, mode="same") for r in rows])
+    ok = smooth >= BAND_MIN_SHARE
+    ok[:, : k // 2] = ok[:, rows.shape[1] - k // 2 :] = False
+    return np.where(ok, rows / np.where(ok, smooth, 1.0) - 1.0, np.nan)
+
+
+@dataclasses.dataclass(frozen=True)
+class Bands:
+    """A cosine fitted to `band_ratios` along the bed."""
+
+    period_m: float
+    amplitude: float
+    crest_m: float  # x of a crest (mat frame, row 0's head edge at 0), in [0, period)
+    r2: float  # share of the ratios' variance about 0 the cosine explains
+
+
+def fit_bands(images: np.ndarray, pitch_row_m: float, period_m: float | None = None) -> Bands:
+    """Least-squares cosine through the row ratios of all frames (`band_ratios`), at `period_m` or
+    at the best of `BAND_PERIODS_M`."""
+    ratios = band_ratios(images)
+    known = ~np.isnan(ratios)
+    if known.sum() < 3:
+        raise ValueError("too few loaded rows to fit bands")
+    x = (np.nonzero(known)[1] + 0.5) * pitch_row_m
+    y = ratios[known]
+    best = None
+    for period in [period_m] if period_m is not None else BAND_PERIODS_M:
+        phase = 2 * np.pi * x / period
+        A = np.stack([np.cos(phase), np.sin(phase)], 1)
+        coef = np.linalg.lstsq(A, y, rcond=None)[0]
+        r2 = 1.0 - float(((y - A @ coef) ** 2).sum() / max((y**2).sum(), 1e-300))
+        if best is None or r2 > best[0]:
+            best = (r2, float(period), coef)
+    r2, period, (a, b) = best
+    crest = (np.arctan2(b, a) / (2 * np.pi) * period) % period
+    return Bands(period_m=period, amplitude=float(np.hypot(a, b)), crest_m=float(crest), r2=r2)
+
+
 @dataclasses.dataclass(frozen=True)
 class Comparison:
     along: float
@@ -196,12 +248,15 @@ def compare(a: FrameSet, b: FrameSet) -> Comparison:
 
 
 __all__ = [
+    "Bands",
     "Comparison",
     "FrameSet",
     "REGIONS",
     "REGION_NAMES",
+    "band_ratios",
     "compare",
     "coverage",
+    "fit_bands",
     "profile_similarity",
     "region_shares",
     "shifted",
