@@ -10,6 +10,7 @@ evaluation is 24 articulated rests (~10-20 s on one core). Every evaluation is a
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/articulated_fit.py --mattress sponge --out out/fit
         [--bed-only] [--from-preset] [--tissue 98300]
+    ... --mattress air --air-support --tissue 98300   # the air support (P0, kappa) and the cells' depth
 """
 
 from __future__ import annotations
@@ -38,6 +39,14 @@ SPACE = (
     ("neck", 0.1, 0.01, 1.0),
     ("spine", 1.0, 0.1, 10.0),
     ("belly", 0.3, 0.05, 1.5),
+)
+
+# The air support (`sim.air_law`) and the air cells' depth, on the preset's other fields.
+AIR_SPACE = (
+    ("air_pressure_pa", 3500.0, 500.0, 2e4),
+    ("air_stiffness_pa_per_m3", 6e5, 2e4, 2e7),
+    ("cell_depth_m", 0.015, 0.003, 0.04),
+    ("thickness_m", 0.06, 0.015, 0.15),  # the tubes' travel before the base
 )
 
 
@@ -70,6 +79,11 @@ def main() -> None:
         default=None,
         help="hold the soft tissue's modulus (Pa/m; the body's, shared by every mattress) and fit k1, k3, spread",
     )
+    ap.add_argument(
+        "--air-support",
+        action="store_true",
+        help="fit the air support's P0 and kappa and the cells' depth on the preset (tissue: --tissue or the preset's)",
+    )
     args = ap.parse_args()
     import cma
 
@@ -93,12 +107,18 @@ def main() -> None:
         v = decode(x, space)
         if args.tissue is not None:
             v["tissue_pa_per_m"] = args.tissue
-        mp = MattressParams(
-            k1_pa_per_m=v["k1_pa_per_m"],
-            k3_pa_per_m3=v["k3_pa_per_m3"],
-            tissue_pa_per_m=v["tissue_pa_per_m"],
-            spread_m=v["spread_m"],
-        )
+        if args.air_support:
+            bed = {k: v[k] for k, *_ in AIR_SPACE}
+            if "tissue_pa_per_m" in v:
+                bed["tissue_pa_per_m"] = v["tissue_pa_per_m"]
+            mp = MattressParams.preset(args.mattress).replace(**bed)
+        else:
+            mp = MattressParams(
+                k1_pa_per_m=v["k1_pa_per_m"],
+                k3_pa_per_m3=v["k3_pa_per_m3"],
+                tissue_pa_per_m=v["tissue_pa_per_m"],
+                spread_m=v["spread_m"],
+            )
         t0 = time.perf_counter()
         sims = simulate_subjects(
             subjects,
@@ -140,12 +160,7 @@ def main() -> None:
         log.flush()
         if total < best[0]:
             best = (total, v)
-            MattressParams(
-                k1_pa_per_m=v["k1_pa_per_m"],
-                k3_pa_per_m3=v["k3_pa_per_m3"],
-                tissue_pa_per_m=v["tissue_pa_per_m"],
-                spread_m=v["spread_m"],
-            ).save(args.out / f"{args.mattress}.json")
+            mp.save(args.out / f"{args.mattress}.json")
             (args.out / f"{args.mattress}_best.json").write_text(
                 json.dumps({"loss": total, "params": v, "parts": parts}, indent=1)
             )
@@ -155,11 +170,15 @@ def main() -> None:
     space = SPACE[:4] if args.bed_only else SPACE
     if args.tissue is not None:  # the body's tissue held: the bed's foam and cover alone
         space = tuple(d for d in SPACE[:4] if d[0] != "tissue_pa_per_m")
+    if args.air_support:  # with the tissue unless it is held
+        space = AIR_SPACE + (() if args.tissue is not None else (("tissue_pa_per_m", 2.5e5, 3e4, 3e6),))
     x0 = [math.log(s) for _, s, _, _ in space]
     sigma = 0.5
     if args.from_preset:  # start at the mattress's preset, a narrower search around it
         preset = MattressParams.preset(args.mattress)
-        x0 = [math.log(getattr(preset, name)) if hasattr(preset, name) else x for (name, *_), x in zip(space, x0)]
+        x0 = [
+            math.log(getattr(preset, name)) if getattr(preset, name, 0) > 0 else x for (name, *_), x in zip(space, x0)
+        ]
         sigma = 0.25
     es = cma.CMAEvolutionStrategy(
         x0, sigma, {"popsize": args.popsize, "maxiter": args.max_iter, "seed": 1, "verbose": -9}

@@ -3,7 +3,7 @@
     OMP_NUM_THREADS=1 python benchmarks/articulated_speed.py [--partitions supine,general] [--batch 16] [--n 64]
         [--save DIR] [--jitter 1e-12] [--set outer=8]
 
-N initial poses per partition (seed 0, female), rested from the drawn pose on the sponge preset
+N initial poses per partition (seed 0, female), rested from the drawn pose on the sponge preset (`--bed`)
 in batches of B; prints CPU ms per sample (process time, so other jobs on the machine matter
 less than for wall time), rejections with their reasons and the median Newton step count. Before/after a change:
 run the same command with PYTHONPATH pointing at each source tree, interleaved (docs/benchmarks.md).
@@ -38,10 +38,11 @@ def main() -> None:
     ap.add_argument("--save", default=None, help="directory for the rests (<partition>.pt)")
     ap.add_argument("--jitter", type=float, default=0.0, help="move every body by this many metres first")
     ap.add_argument("--set", default="", help="ArticulatedConfig overrides, e.g. outer=8,inner_reposing=6")
+    ap.add_argument("--bed", default="sponge", help="mattress preset (sponge, air) or parameter file")
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = load_body_model("anny", dtype=torch.float64)
-    bed = MattressParams.preset("sponge")
+    bed = MattressParams.load(args.bed)
     for part in args.partitions.split(","):
         poses = PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=0)).sample(range(args.n)).params
         if args.jitter:

@@ -139,9 +139,10 @@ def test_series_law_derivatives():
     assert float(p_t[0]) == 0.0 and bool((p_t[1:] < p_f[1:]).all())
 
 
-def test_hessian_from_moments_matches_autograd(anny64):
-    """The Newton step's Hessian (assembled from per-part moments) and gradient against
-    autograd on the same linearised energy."""
+@pytest.mark.parametrize("air", [False, True], ids=["foam", "air"])
+def test_hessian_from_moments_matches_autograd(anny64, air):
+    """The Newton step's Hessian (assembled from per-part moments, plus the air support's
+    rank-one coupling) and gradient against autograd on the same linearised energy."""
     from pressurepose.body.kinematics import forward_kinematics, rest_joints
     from pressurepose.body.params import root_matrix
     from pressurepose.body.rotations import axis_angle_to_matrix
@@ -149,7 +150,8 @@ def test_hessian_from_moments_matches_autograd(anny64):
     from pressurepose.sim.articulation import dof_geometry, joint_stiffness
     from pressurepose.sim.soft_contact import lowest_points
 
-    mat, mp = MatSpec(), MattressParams()
+    mat = MatSpec()
+    mp = MattressParams(air_pressure_pa=3000.0, air_stiffness_pa_per_m3=5e5) if air else MattressParams()
     p = _bodies(anny64, 1)
     lowest = float(surface_points(anny64(p).vertices, anny64.faces)[..., 2].min())
     p = p.replace(root_translation=p.root_translation - torch.tensor([[0.0, 0.0, lowest]], dtype=torch.float64))
@@ -179,6 +181,9 @@ def test_hessian_from_moments_matches_autograd(anny64):
     q[0, 0] = -lowest - 0.03
     q[0, 1:] = 0.01 * torch.sin(torch.arange(1, dofs.n, dtype=torch.float64))
     grad, H, _, _, energy = lin.newton_step(q, mp)
+    if air:  # the coupling is exercised: some cells push the air, others rest on their tissue
+        law = lin._law(mp)
+        assert bool(law.displaced.any()) and bool((~law.displaced & (lin.compression(q) > 0)).any())
     qa = q.clone().requires_grad_(True)
     g_auto = torch.autograd.grad(lin.energy(qa, mp).sum(), qa)[0]
     np.testing.assert_allclose(grad.numpy(), g_auto.numpy(), rtol=1e-6, atol=1e-6)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 
 from pressurepose.body.joints import NUM_JOINTS
+from pressurepose.sim.air_law import AirLaw
 from pressurepose.sim.articulation import Dofs
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.soft_contact import SeriesLaw
@@ -98,11 +99,17 @@ class Linearised:
             new._law_cached = self._law_cached.take(idx, K)
         return new
 
-    def _law(self, mp: MattressParams) -> SeriesLaw:
-        """The series law of these cells' tissue on this mattress (its constants computed once)."""
-        key = (mp.k1_pa_per_m, mp.k3_pa_per_m3)
-        if self._law_key != key:
-            self._law_key, self._law_cached = key, SeriesLaw(mp, self.tissue)
+    def _law(self, mp: MattressParams) -> SeriesLaw | AirLaw:
+        """The law of these cells' tissue on this mattress: in series with the foam, or with air
+        at one pressure (`sim.air_law`; its constants computed once)."""
+        if mp.has_air_support:
+            key = ("air", mp.air_pressure_pa, mp.air_stiffness_pa_per_m3, mp.thickness_m)
+            if self._law_key != key:
+                self._law_key, self._law_cached = key, AirLaw(mp, self.tissue, self.area)
+        else:
+            key = (mp.k1_pa_per_m, mp.k3_pa_per_m3)
+            if self._law_key != key:
+                self._law_key, self._law_cached = key, SeriesLaw(mp, self.tissue)
         return self._law_cached
 
     def compression(self, q):
@@ -115,13 +122,16 @@ class Linearised:
 
     def energy(self, q, mp: MattressParams):
         w = self.compression(q)
-        phi = self._law(mp).energy(w)
+        law = self._law(mp)
+        phi = law.energy(w)
         out = (
             (self.g_grav * q).sum(1)
             + 0.5 * (self.k * (self.e + q) ** 2).sum(1)
             + phi.sum(1) * self.area
             + self._limit(q)[0]
         )
+        if law.coupled:
+            out = out + law.air_energy()
         for s in self.springs:
             out = out + s.energy(q)
         return out
@@ -140,7 +150,8 @@ class Linearised:
         """Gradient (B, N), Hessian (B, N, N), cell forces (B, K) N, compressions (B, K) m and
         the energy (B,) at q."""
         w = self.compression(q)
-        p, dp, phi = self._law(mp)(w)
+        law = self._law(mp)
+        p, dp, phi = law(w)
         f = p * self.area
         c = dp.mul_(self.area).masked_fill_(w <= 0, 0.0)
         B = q.shape[0]
@@ -161,6 +172,18 @@ class Linearised:
         gm = self._G.view(B, n, NUM_JOINTS, 3).transpose(1, 2) @ m_part  # (B, 24, N, 3): a_n^T M_s
         H = gm.transpose(1, 2).reshape(B, n, -1) @ self._G.transpose(1, 2)
         H = H + torch.diag_embed(self.k + c_lim)
+        if law.coupled:
+            # The air: its energy term, and the rank-one coupling of the displaced cells
+            # (beta g g^T, g = sum over them of dw/dq, from their parts' moments of (1, x, y)).
+            energy = energy + law.air_energy()
+            d = law.displaced.to(q.dtype)
+            d_part = (
+                q.new_zeros(B, 3, NUM_JOINTS)
+                .scatter_add_(2, self._scatter_index[:, :3], self._moments[:, :3] * d[:, None])
+                .transpose(1, 2)
+            )
+            g = (self.dof_a * torch.matmul(self.dof_parts, d_part)).sum(-1)
+            H = H + law.beta[:, None, None] * (g[:, :, None] * g[:, None, :])
         for s in self.springs:
             e_s, g_s, h_s = s.gradient_hessian(q)
             energy, grad, H = energy + e_s, grad + g_s, H + h_s

@@ -61,6 +61,10 @@ class MattressParams:
     cell_pitch_m: float = 0.0
     cell_depth_m: float = 0.0
     cell_crest_m: float = 0.0
+    # Air support (the articulated rest; 0 stiffness: the foam law): the tubes' inflation
+    # pressure P0 (Pa) and the air's volume stiffness kappa (Pa per m^3 displaced), `sim.air_law`.
+    air_pressure_pa: float = 0.0
+    air_stiffness_pa_per_m3: float = 0.0
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -94,6 +98,12 @@ class MattressParams:
         return self.k1_pa_per_m + 3.0 * self.k3_pa_per_m3 * w**2
 
     @property
+    def has_air_support(self) -> bool:
+        """True when the articulated rest's cells press on air at one pressure (`sim.air_law`)
+        instead of the foam (k1, k3)."""
+        return _scalar(self.air_stiffness_pa_per_m3) > 0
+
+    @property
     def has_cells(self) -> bool:
         """True when the top is not flat (air cells, `top_height`)."""
         return _scalar(self.cell_depth_m) > 0 and _scalar(self.cell_pitch_m) > 0
@@ -109,14 +119,11 @@ class MattressParams:
         return -0.5 * self.cell_depth_m * (1 - torch.cos(phase))
 
     def to_dict(self) -> dict:
-        """The fields as numbers; a flat top leaves out the air cells' fields, so the files and
-        dataset settings of flat beds are those written before the fields existed."""
-        flat = not self.has_cells
-        return {
-            f.name: _scalar(getattr(self, f.name))
-            for f in dataclasses.fields(self)
-            if not (flat and f.name in _CELL_FIELDS)
-        }
+        """The fields as numbers; a flat top leaves out the air cells' fields and a foam bed the
+        air support's, so the files and dataset settings of such beds are those written before
+        the fields existed."""
+        skip = (() if self.has_cells else _CELL_FIELDS) + (() if self.has_air_support else _AIR_FIELDS)
+        return {f.name: _scalar(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name not in skip}
 
     def save(self, path: str | os.PathLike) -> None:
         from pressurepose.files import atomic_write
@@ -172,18 +179,23 @@ PRESETS: dict[str, dict[str, float]] = {
     "air": {
         "k1_pa_per_m": 68450.0,
         "k3_pa_per_m3": 25950000.0,
-        "tissue_pa_per_m": 662100.0,
+        "tissue_pa_per_m": 172000.0,
         "spread_m": 0.002804,
         # The air mattress's tubes (docs/physics.md "Air cells"): pitch and crest measured from
-        # the transverse bands of PmatData's air frames, depth fitted to the bands' amplitude.
+        # the transverse bands of PmatData's air frames; the tubes' air at one pressure ("Air
+        # support"): inflation pressure, volume stiffness, the seams' depth and the tissue fitted
+        # together (benchmarks/articulated_fit.py --mattress air --air-support, docs/realism.md).
         "cell_pitch_m": 0.1024,
-        "cell_depth_m": 0.010,
+        "cell_depth_m": 0.0088,
         "cell_crest_m": 0.0013,
+        "air_pressure_pa": 3295.0,
+        "air_stiffness_pa_per_m3": 685600.0,
     },
 }
 
 
 _CELL_FIELDS = ("cell_pitch_m", "cell_depth_m", "cell_crest_m")
+_AIR_FIELDS = ("air_pressure_pa", "air_stiffness_pa_per_m3")
 
 
 def _scalar(value) -> float:

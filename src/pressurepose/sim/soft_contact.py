@@ -51,6 +51,8 @@ class SeriesLaw:
     u + p(u)/k_t is increasing: one root, in closed form below). tissue: a number or a tensor
     broadcasting with w (its per-cell constants are computed once here); None: the foam alone."""
 
+    coupled = False  # each cell on its own (`sim.air_law.AirLaw` couples them)
+
     def __init__(self, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
         self.k1, self.k3, self.kt = mp.k1_pa_per_m, mp.k3_pa_per_m3, tissue_pa_per_m
         if tissue_pa_per_m is None:
