@@ -65,11 +65,13 @@ class AirLaw:
     def solve(self, w: torch.Tensor) -> torch.Tensor:
         """The air pressure (B,) Pa for the cells' compressions w (B, K) (module doc): Newton on
         the decreasing F(P) = A sum u(P) - (P - P0) / kappa inside a bracket [lo, hi] that it
-        keeps (a step leaving it bisects)."""
+        keeps (a step leaving it bisects). A body stops at its own last step, whatever the others
+        in its batch still need."""
         inv_kt = torch.as_tensor(self.inv_kt, dtype=w.dtype, device=w.device).expand_as(w)
         lo = torch.full_like(w[:, 0], self.p0)  # F(P0) >= 0
         hi = self.p0 + self.kappa * self.area * w.clamp(max=self.travel).sum(1)  # F(hi) <= 0
         P = lo.clone()
+        settled = torch.zeros_like(P, dtype=torch.bool)
         for _ in range(_MAX_PRESSURE_STEPS):
             u = (w - P[:, None] * inv_kt).clamp(0.0, self.travel)
             F = self.area * u.sum(1) - (P - self.p0) / self.kappa
@@ -79,9 +81,10 @@ class AirLaw:
             slope = self.area * torch.where(D, inv_kt, 0.0).sum(1) + 1.0 / self.kappa
             nxt = P + F / slope
             nxt = torch.where((nxt < lo) | (nxt > hi), 0.5 * (lo + hi), nxt)
-            done = (nxt - P).abs() <= 1e-12 * P.abs().clamp(min=1.0)
-            P = nxt
-            if bool(done.all()):
+            small = (nxt - P).abs() <= 1e-12 * P.abs().clamp(min=1.0)
+            P = torch.where(settled, P, nxt)
+            settled = settled | small
+            if bool(settled.all()):
                 break
         return P
 
