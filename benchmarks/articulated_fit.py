@@ -10,7 +10,9 @@ evaluation is 24 articulated rests (~10-20 s on one core). Every evaluation is a
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/articulated_fit.py --mattress sponge --out out/fit
         [--bed-only] [--from-preset] [--tissue 98300]
-    ... --mattress air --air-support --tissue 98300   # the air support (P0, kappa) and the cells' depth
+    ... --mattress air --air-support [--tissue 98300] [--fit-travel]
+        # the air support (P0, kappa), the cells' depth and the tissue (unless held); with
+        # --fit-travel also the tubes' travel (thickness_m; else the preset's)
 """
 
 from __future__ import annotations
@@ -46,8 +48,9 @@ AIR_SPACE = (
     ("air_pressure_pa", 3500.0, 500.0, 2e4),
     ("air_stiffness_pa_per_m3", 6e5, 2e4, 2e7),
     ("cell_depth_m", 0.015, 0.003, 0.04),
-    ("thickness_m", 0.06, 0.015, 0.15),  # the tubes' travel before the base
 )
+AIR_TRAVEL = ("thickness_m", 0.06, 0.015, 0.15)  # the tubes' travel before the base (--fit-travel)
+TISSUE = ("tissue_pa_per_m", 2.5e5, 3e4, 3e6)
 
 
 def decode(x, space=SPACE):
@@ -84,6 +87,7 @@ def main() -> None:
         action="store_true",
         help="fit the air support's P0 and kappa and the cells' depth on the preset (tissue: --tissue or the preset's)",
     )
+    ap.add_argument("--fit-travel", action="store_true", help="with --air-support: fit the tubes' travel too")
     args = ap.parse_args()
     import cma
 
@@ -108,7 +112,7 @@ def main() -> None:
         if args.tissue is not None:
             v["tissue_pa_per_m"] = args.tissue
         if args.air_support:
-            bed = {k: v[k] for k, *_ in AIR_SPACE}
+            bed = {k: v[k] for k, *_ in space}
             if "tissue_pa_per_m" in v:
                 bed["tissue_pa_per_m"] = v["tissue_pa_per_m"]
             mp = MattressParams.preset(args.mattress).replace(**bed)
@@ -171,7 +175,7 @@ def main() -> None:
     if args.tissue is not None:  # the body's tissue held: the bed's foam and cover alone
         space = tuple(d for d in SPACE[:4] if d[0] != "tissue_pa_per_m")
     if args.air_support:  # with the tissue unless it is held
-        space = AIR_SPACE + (() if args.tissue is not None else (("tissue_pa_per_m", 2.5e5, 3e4, 3e6),))
+        space = AIR_SPACE + ((AIR_TRAVEL,) if args.fit_travel else ()) + (() if args.tissue is not None else (TISSUE,))
     x0 = [math.log(s) for _, s, _, _ in space]
     sigma = 0.5
     if args.from_preset:  # start at the mattress's preset, a narrower search around it

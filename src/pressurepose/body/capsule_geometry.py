@@ -6,10 +6,11 @@ import torch
 
 
 # --- geometry -------------------------------------------------------------------------------
-def dot(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """(x * y).sum(-1) over a last axis of 3, written out: the same sum in the same order (the
+def dot(x: torch.Tensor, y: torch.Tensor, axis: int = -1) -> torch.Tensor:
+    """(x * y).sum(axis) over an axis of 3, written out: the same sum in the same order (the
     same bits), ~7x faster than torch's reduction over so short an axis."""
-    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
+    (x0, x1, x2), (y0, y1, y2) = x.unbind(axis), y.unbind(axis)
+    return x0 * y0 + x1 * y1 + x2 * y2
 
 
 def point_segment_distance(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -69,12 +70,7 @@ def capsule_clearance(
     sx, ex = start.movedim(-1, 0), end.movedim(-1, 0)  # (3, B, C)
     p1, q1, p2, q2 = sx.index_select(2, i), ex.index_select(2, i), sx.index_select(2, j), ex.index_select(2, j)
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2  # (3, B, P)
-    s, t = _closest_parameters(*(_dot0(x, y) for x, y in ((d1, d1), (d2, d2), (d2, r), (d1, r), (d1, d2))))
+    s, t = _closest_parameters(*(dot(x, y, 0) for x, y in ((d1, d1), (d2, d2), (d2, r), (d1, r), (d1, d2))))
     gap = (p1 + s * d1) - (p2 + t * d2)
     d = gap.movedim(0, -1).contiguous().norm(dim=-1)
     return d - radius.index_select(1, i) - radius.index_select(1, j)
-
-
-def _dot0(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """`dot` over a leading axis of 3."""
-    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]

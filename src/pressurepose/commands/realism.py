@@ -22,6 +22,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from pressurepose.commands.realism_report import bands_dict, markdown, set_dict
 from pressurepose.errors import UserError
 from pressurepose.eval import realism as R
 from pressurepose.files import write_text
@@ -257,8 +258,8 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
             row = {
                 "posture": posture,
                 "mattress": mattress,
-                "real": _set_dict(real_set),
-                "simulated": _set_dict(sim_set) if sim_set else None,
+                "real": set_dict(real_set),
+                "simulated": set_dict(sim_set) if sim_set else None,
                 "rejected": reasons,
                 "simulated_bodies": int(len(images)),
                 "sim_seconds": round(seconds, 2),
@@ -269,7 +270,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
                 # Transverse bands at the pitch the real frames show (air cells, docs/realism.md).
                 real_bands = R.fit_bands(imgs, pitch[0])
                 sim_bands = R.fit_bands(images, pitch[0], real_bands.period_m)
-                row["bands"] = {"real": _bands_dict(real_bands), "simulated": _bands_dict(sim_bands)}
+                row["bands"] = {"real": bands_dict(real_bands), "simulated": bands_dict(sim_bands)}
             rows.append(row)
             # Ceiling: real against real, first half of the subjects against the second.
             ids = sorted(set(subj.tolist()))
@@ -295,7 +296,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
         "ceilings": ceilings,
     }
     paths = {"json": write_text(cfg.out / "report.json", json.dumps(record, indent=1))}
-    paths["markdown"] = write_text(cfg.out / "report.md", _markdown(record))
+    paths["markdown"] = write_text(cfg.out / "report.md", markdown(record))
     from pressurepose.viz.realism import plot_realism
 
     for (posture, mattress), (a, b) in figures.items():
@@ -303,90 +304,6 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
             cfg.out / f"realism_{posture}_{mattress}.png", a, b, f"{posture}, {mattress} mattress"
         )
     return paths
-
-
-def _set_dict(s: R.FrameSet) -> dict:
-    return {
-        "frames": s.n,
-        "area_m2": round(s.area_m2, 4),
-        "mean_mmhg": round(s.mean_mmhg, 2),
-        "peak_mmhg": round(s.peak_mmhg, 1),
-        "coverage": round(s.coverage, 3),
-        "regions": {k: round(v, 3) for k, v in s.regions.items()},
-    }
-
-
-def _bands_dict(b: R.Bands) -> dict:
-    return {k: round(v, 4) for k, v in dataclasses.asdict(b).items()}
-
-
-def _markdown(record: dict) -> str:
-    lines = [
-        "# Realism: simulated vs real pressure images",
-        "",
-        f"sim #2 `{record['config']['sim2']}`, sim #1 `{record['config']['settle']}`, "
-        f"placement `{record['config']['placement']}`, "
-        f"real frames `{record['config']['real']}`",
-        "",
-        "| posture | mattress | along | across | area sim/real | coverage sim (real) | mean mmHg sim (real) "
-        "| peak mmHg sim (real) | bodies |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
-    for r in record["rows"]:
-        s, re_, c = r["simulated"], r["real"], r.get("comparison")
-        if not s:
-            lines.append(
-                f"| {r['posture']} | {r['mattress']} | - | - | - | - | - | - | 0 ({len(r['rejected'])} rejected) |"
-            )
-            continue
-        lines.append(
-            f"| {r['posture']} | {r['mattress']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} "
-            f"| {s['coverage']:.2f} ({re_['coverage']:.2f}) | {s['mean_mmhg']:.1f} ({re_['mean_mmhg']:.1f}) "
-            f"| {s['peak_mmhg']:.0f} ({re_['peak_mmhg']:.0f}) | {r['simulated_bodies']} |"
-        )
-    lines += [
-        "",
-        "Load share per body region, simulated (real):",
-        "",
-        "| posture | mattress | " + " | ".join(R.REGION_NAMES) + " |",
-        "| --- | --- |" + " --- |" * len(R.REGION_NAMES),
-    ]
-    for r in record["rows"]:
-        if r["simulated"]:
-            lines.append(
-                f"| {r['posture']} | {r['mattress']} | "
-                + " | ".join(
-                    f"{r['simulated']['regions'][k]:.2f} ({r['real']['regions'][k]:.2f})" for k in R.REGION_NAMES
-                )
-                + " |"
-            )
-    lines += [
-        "",
-        "Transverse bands (air cells; row force over its 5-row average, one cosine fitted along the bed "
-        "at the real frames' best period):",
-        "",
-        "| posture | mattress | period (m) | amplitude sim (real) | crest x sim (real) (m) | R^2 of the real fit |",
-        "| --- | --- | --- | --- | --- | --- |",
-    ]
-    for r in record["rows"]:
-        if r.get("bands"):
-            b, rb = r["bands"]["simulated"], r["bands"]["real"]
-            lines.append(
-                f"| {r['posture']} | {r['mattress']} | {rb['period_m']:.4f} | {b['amplitude']:.3f} "
-                f"({rb['amplitude']:.3f}) | {b['crest_m']:.4f} ({rb['crest_m']:.4f}) | {rb['r2']:.3f} |"
-            )
-    lines += [
-        "",
-        "Ceiling (real against real, the same measures):",
-        "",
-        "| posture | between | along | across | area ratio |",
-        "| --- | --- | --- | --- | --- |",
-    ]
-    for c in record["ceilings"]:
-        lines.append(
-            f"| {c['posture']} | {c['between']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} |"
-        )
-    return "\n".join(lines) + "\n"
 
 
 def realism(cfg: RealismConfig) -> None:

@@ -101,6 +101,12 @@ class AirLaw:
         self.beta = self.kappa * self.area**2 / (1.0 + self.kappa * self.area * S)
         return p, dp, psi
 
+    def bed_share(self, w: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """How far the tubes' top went down (m) under cells at compression w carrying p: u, at
+        most the travel (a bottomed cell's p / k_t leaves it exactly there, up to round-off)."""
+        kt = torch.as_tensor(self.kt, dtype=w.dtype, device=w.device)
+        return (w - p / kt).clamp(0.0, self.travel)
+
     def energy(self, w: torch.Tensor) -> torch.Tensor:
         """psi per unit area (B, K), as `__call__` gives it (the air's own term: `air_energy`)."""
         return self(w)[2]

@@ -184,8 +184,7 @@ class _Done:
         """Bodies `idx` rest at q of their linearisation `lin` (at the posing cur, rot, joints):
         its field balances the weight; the mesh is moved by its (small) motion exactly."""
         _, _, f, w, _ = lin.newton_step(q, mp)
-        if lin.tissue is not None:
-            w = (w - f / self.area / lin.tissue).clamp(min=0)  # the foam's share of the compression
+        w = lin.bed_compression(w, f, mp)  # the bed's share of the compression
         final = apply_motion(cur, q, self.dofs, rot, joints, body_com)
         self.params = self.params.replace(
             **{n: getattr(self.params, n).index_copy(0, idx, getattr(final, n)) for n in _MOVED}
@@ -371,8 +370,7 @@ def rest_articulated(
             failure.append(FAIL_NO_SUPPORT)
         elif float(turned[i]) > MAX_ROLL_RAD:
             failure.append(FAIL_TILT)
-        elif float(w_max[i]) > float(mp.thickness_m) and not mp.has_air_support:
-            # (On air the tubes' travel ends on the base, which carries the rest: `sim.air_law`.)
+        elif float(w_max[i]) > float(mp.thickness_m):  # (on air the travel ends on a base: never)
             failure.append(FAIL_BOTTOM)
         elif abs(float(force[i]) - float(weight[i])) > 1e-3 * float(weight[i]):
             failure.append(FAIL_NOT_CONVERGED)

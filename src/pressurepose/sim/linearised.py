@@ -112,6 +112,11 @@ class Linearised:
                 self._law_key, self._law_cached = key, SeriesLaw(mp, self.tissue)
         return self._law_cached
 
+    def bed_compression(self, w, f, mp: MattressParams):
+        """The bed's share (B, K) m of the cells' compressions w carrying forces f (N): the
+        foam's, or how far the air tubes' top went down."""
+        return self._law(mp).bed_share(w, f / self.area)
+
     def compression(self, q):
         # The height change of a cell is affine in its (x, y) with per-part coefficients
         # A_s = sum over the DoFs that move part s of q_n a_n: no (cells x DoFs) matrix.

@@ -90,6 +90,11 @@ class SeriesLaw:
         dp = kf.div_(kf.mul(self.inv_kt).add_(1))
         return p, dp, self._stored(u2, p)
 
+    def bed_share(self, w: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """The foam's compression (m) of cells at total compression w carrying pressure p (the
+        tissue's p / k_t taken off; without tissue, all of w)."""
+        return w if self.kt is None else (w - p / self.kt).clamp(min=0)
+
     def energy(self, w: torch.Tensor) -> torch.Tensor:
         """The stored energy per unit area alone (J/m^2), as `__call__` gives it."""
         if self.kt is None:

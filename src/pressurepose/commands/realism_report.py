@@ -1,0 +1,96 @@
+"""The `pressurepose realism` report's records and markdown (`commands.realism` runs it): per
+posture and mattress the frame sets' measures, the comparison, load per region, transverse
+bands and the real-vs-real ceiling."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from pressurepose.eval import realism as R
+
+
+def set_dict(s: R.FrameSet) -> dict:
+    return {
+        "frames": s.n,
+        "area_m2": round(s.area_m2, 4),
+        "mean_mmhg": round(s.mean_mmhg, 2),
+        "peak_mmhg": round(s.peak_mmhg, 1),
+        "coverage": round(s.coverage, 3),
+        "regions": {k: round(v, 3) for k, v in s.regions.items()},
+    }
+
+
+def bands_dict(b: R.Bands) -> dict:
+    return {k: round(v, 4) for k, v in dataclasses.asdict(b).items()}
+
+
+def markdown(record: dict) -> str:
+    lines = [
+        "# Realism: simulated vs real pressure images",
+        "",
+        f"sim #2 `{record['config']['sim2']}`, sim #1 `{record['config']['settle']}`, "
+        f"placement `{record['config']['placement']}`, "
+        f"real frames `{record['config']['real']}`",
+        "",
+        "| posture | mattress | along | across | area sim/real | coverage sim (real) | mean mmHg sim (real) "
+        "| peak mmHg sim (real) | bodies |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in record["rows"]:
+        s, re_, c = r["simulated"], r["real"], r.get("comparison")
+        if not s:
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | - | - | - | - | - | - | 0 ({len(r['rejected'])} rejected) |"
+            )
+            continue
+        lines.append(
+            f"| {r['posture']} | {r['mattress']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} "
+            f"| {s['coverage']:.2f} ({re_['coverage']:.2f}) | {s['mean_mmhg']:.1f} ({re_['mean_mmhg']:.1f}) "
+            f"| {s['peak_mmhg']:.0f} ({re_['peak_mmhg']:.0f}) | {r['simulated_bodies']} |"
+        )
+    lines += [
+        "",
+        "Load share per body region, simulated (real):",
+        "",
+        "| posture | mattress | " + " | ".join(R.REGION_NAMES) + " |",
+        "| --- | --- |" + " --- |" * len(R.REGION_NAMES),
+    ]
+    for r in record["rows"]:
+        if r["simulated"]:
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | "
+                + " | ".join(
+                    f"{r['simulated']['regions'][k]:.2f} ({r['real']['regions'][k]:.2f})" for k in R.REGION_NAMES
+                )
+                + " |"
+            )
+    lines += [
+        "",
+        "Transverse bands (air cells; row force over its 5-row average, one cosine fitted along the bed "
+        "at the real frames' best period):",
+        "",
+        "| posture | mattress | period (m) | amplitude sim (real) | crest x sim (real) (m) | R^2 of the real fit |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in record["rows"]:
+        if r.get("bands"):
+            b, rb = r["bands"]["simulated"], r["bands"]["real"]
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | {rb['period_m']:.4f} | {b['amplitude']:.3f} "
+                f"({rb['amplitude']:.3f}) | {b['crest_m']:.4f} ({rb['crest_m']:.4f}) | {rb['r2']:.3f} |"
+            )
+    lines += [
+        "",
+        "Ceiling (real against real, the same measures):",
+        "",
+        "| posture | between | along | across | area ratio |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for c in record["ceilings"]:
+        lines.append(
+            f"| {c['posture']} | {c['between']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["bands_dict", "markdown", "set_dict"]
