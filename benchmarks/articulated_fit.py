@@ -85,7 +85,7 @@ def main() -> None:
     ap.add_argument(
         "--air-support",
         action="store_true",
-        help="fit the air support's P0 and kappa and the cells' depth on the preset (tissue: --tissue or the preset's)",
+        help="fit the air support's P0 and kappa, the cells' depth and the tissue (unless --tissue holds it) on the preset",
     )
     ap.add_argument("--fit-travel", action="store_true", help="with --air-support: fit the tubes' travel too")
     args = ap.parse_args()
