@@ -84,8 +84,11 @@ def test_articulated_rest_on_cells_balances_and_loads_the_crests(anny64, supine_
     # The crests carry most of the load, wherever they are.
     assert _crest_share(cells.foundation_pa[0], cells.sub) > share_flat + 0.04
     assert _crest_share(shifted.foundation_pa[0], shifted.sub, CREST + PITCH / 2) > share_flat + 0.04
-    # Bridging the seams, the body touches fewer cells.
-    assert int((cells.foundation_pa > 0).sum()) < int((flat.foundation_pa > 0).sum())
+    # Bridging the seams, the body touches fewer cells near them (~7% fewer; in all, about as
+    # many: the tubes' one pressure sets the contact area, and the crests take the rest).
+    X, _ = cell_centres(MatSpec(), cells.sub, covered=True, dtype=torch.float64)
+    seam = torch.cos(2 * math.pi * (X - CREST) / PITCH) < 0
+    assert int(((cells.foundation_pa[0] > 0) & seam).sum()) < 0.97 * int(((flat.foundation_pa[0] > 0) & seam).sum())
 
 
 def test_deeper_seams_concentrate_more(anny64, supine_on_cells):

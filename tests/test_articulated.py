@@ -255,7 +255,7 @@ def test_mattress_presets_load_by_name(tmp_path):
 
 def test_tissue_depth_by_hand():
     """Distance to the part's bone: segments from the joint to its children (the pelvis has
-    three), a leaf part to its points' centroid."""
+    three), a leaf part to its points' centroid; a part's cap (a wide bone) bounds its depths."""
     from pressurepose.body.joints import joint_index
     from pressurepose.sim.articulation import tissue_depth
 
@@ -279,6 +279,9 @@ def test_tissue_depth_by_hand():
     labels = torch.tensor([0, 0, head, head])
     d = tissue_depth(points, labels, joints)
     np.testing.assert_allclose(d[0].numpy(), [0.04, 0.05, 0.03, 0.03], atol=1e-12)
+    # A wide bone under a part: its depths at most the cap, the other parts' unchanged.
+    d = tissue_depth(points, labels, joints, (("pelvis", 0.045),))
+    np.testing.assert_allclose(d[0].numpy(), [0.04, 0.045, 0.03, 0.03], atol=1e-12)
 
 
 def test_part_frames_round_trip_and_rigid_motion():

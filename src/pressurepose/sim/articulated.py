@@ -64,8 +64,9 @@ from pressurepose.sim.soft_contact import lowest_points
 # bitwise (datasets pin it, `generate.run`). 2: stalled solves leave, trimmed cells, a
 # re-posing's solve stops at 1 mrad steps (docs/benchmarks.md, branch speed4); 3: the body
 # model's rest skeleton by `body.procrustes.nearest_rotation` (roma's numbers to round-off,
-# branch pred6), which the rests amplify beyond bitwise.
-ENGINE_REVISION = 3
+# branch pred6), which the rests amplify beyond bitwise; 4: the thorax's tissue depth at most
+# `ArticulatedConfig.tissue_depth_max` (the ribcage, docs/realism.md "The ribcage").
+ENGINE_REVISION = 4
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
@@ -111,6 +112,11 @@ class ArticulatedConfig:
     """Tissue modulus inversely proportional to the local tissue depth over the bone (the
     modulus `MattressParams.tissue_pa_per_m` is that of a TISSUE_REFERENCE_DEPTH_M layer):
     stiff over bony prominences, soft over muscle and fat. False: uniform tissue."""
+    tissue_depth_max: tuple[tuple[str, float], ...] = (("spine2", 0.05), ("spine3", 0.05))
+    """Largest tissue depth (m) per J24 part: the ribs lie under at most this much muscle and fat
+    all around the chest, however far the point is from the spine's axis (the depth's bone);
+    without it a side-lying chest sank into 15 cm of soft "tissue" and the head carried the
+    shoulder's load (docs/realism.md "The ribcage")."""
     hold_roll_m: float = 0.0
     """Trunk roll hold: a spring on the body's roll about the bed's long axis of this many metres
     x its weight per radian (0: none; side-lying bodies need ~0.5 to stay on their side, as in
@@ -265,8 +271,9 @@ def rest_articulated(
     mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     rot, joints = pose_in_mat(rest, cur)
     local_pts = to_part_frames(pts - drop[:, None], labels, rot, joints)
+    depth_max = cfg.tissue_depth_max
     point_tissue = tissue_modulus(
-        pts - drop[:, None], labels, joints, mp.tissue_pa_per_m, cfg.tissue_by_part, cfg.tissue_depth
+        pts - drop[:, None], labels, joints, mp.tissue_pa_per_m, cfg.tissue_by_part, cfg.tissue_depth, depth_max
     )
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     contact = None

@@ -189,9 +189,13 @@ def from_part_frames(local, labels, rot, joints):
     return out.transpose(1, 2)
 
 
-def tissue_depth(points: torch.Tensor, labels: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+def tissue_depth(
+    points: torch.Tensor, labels: torch.Tensor, joints: torch.Tensor, max_by_part: tuple = ()
+) -> torch.Tensor:
     """(B, P) distance (m) of each surface point to its part's bone: the segments from the
-    part's joint to its children's joints (leaf parts: to the part's point centroid)."""
+    part's joint to its children's joints (leaf parts: to the part's point centroid), at most
+    `max_by_part`'s depth for its parts ((J24 name, m) pairs: a wide bone - the ribcage around
+    the thoracic spine - lies that close under the skin wherever the point is)."""
     out = torch.empty(points.shape[:2], dtype=points.dtype, device=points.device)
     children = {j: [c for c in range(NUM_JOINTS) if J24_PARENTS[c] == j] for j in range(NUM_JOINTS)}
     for j, sl in _part_slices(labels):
@@ -205,6 +209,9 @@ def tissue_depth(points: torch.Tensor, labels: torch.Tensor, joints: torch.Tenso
             d = (pts - a - t[..., None] * ab).norm(dim=-1)
             best = d if best is None else torch.minimum(best, d)
         out[:, sl] = best
+    for name, depth in max_by_part:
+        sl = labels == J24_NAMES.index(name)
+        out[:, sl] = out[:, sl].clamp(max=depth)
     return out
 
 
@@ -213,11 +220,13 @@ def tissue_depth(points: torch.Tensor, labels: torch.Tensor, joints: torch.Tenso
 TISSUE_REFERENCE_DEPTH_M = 0.05
 
 
-def tissue_modulus(points, labels, joints, tissue_pa_per_m: float, by_part, use_depth: bool = True):
+def tissue_modulus(
+    points, labels, joints, tissue_pa_per_m: float, by_part, use_depth: bool = True, max_depth_by_part: tuple = ()
+):
     """(B, P) the tissue modulus (Pa/m) under each surface point: `tissue_pa_per_m` x its part's
     factor (`by_part`: (J24 name, factor) pairs, else 1) x (TISSUE_REFERENCE_DEPTH_M / its depth
-    over the bone) with `use_depth`: stiff over bony prominences, soft over muscle and fat.
-    None when tissue_pa_per_m is not > 0 (no tissue)."""
+    over the bone, `tissue_depth` with `max_depth_by_part`) with `use_depth`: stiff over bony
+    prominences, soft over muscle and fat. None when tissue_pa_per_m is not > 0 (no tissue)."""
     if not float(tissue_pa_per_m) > 0:
         return None
     factor = torch.ones(NUM_JOINTS, dtype=points.dtype, device=points.device)
@@ -225,7 +234,8 @@ def tissue_modulus(points, labels, joints, tissue_pa_per_m: float, by_part, use_
         factor[J24_NAMES.index(name)] = value
     modulus = float(tissue_pa_per_m) * factor[labels].expand(points.shape[0], -1)
     if use_depth:
-        modulus = modulus * (TISSUE_REFERENCE_DEPTH_M / tissue_depth(points, labels, joints).clamp(min=0.01))
+        depth = tissue_depth(points, labels, joints, max_depth_by_part)
+        modulus = modulus * (TISSUE_REFERENCE_DEPTH_M / depth.clamp(min=0.01))
     return modulus
 
 
