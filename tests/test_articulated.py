@@ -303,3 +303,14 @@ def test_part_frames_round_trip_and_rigid_motion():
     assert torch.allclose(moved, expected, atol=1e-12)
     with pytest.raises(ValueError, match="sorted"):
         to_part_frames(pts, labels.flip(0), q, joints)
+
+
+def test_config_refuses_unknown_parts():
+    """A part name the skeleton does not have is a clear error, not a traceback at the rest."""
+    from pressurepose.errors import UserError
+    from pressurepose.sim.articulated import ArticulatedConfig
+
+    with pytest.raises(UserError, match="tissue_depth_max: unknown part 'ribs'"):
+        ArticulatedConfig(tissue_depth_max=(("ribs", 0.05),))
+    with pytest.raises(UserError, match="tissue_by_part: unknown part 'belly'"):
+        ArticulatedConfig(tissue_by_part=(("belly", 0.15),))

@@ -43,6 +43,7 @@ from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle
 from pressurepose.maps import cell_centres, grid_shape, surface_points
 from pressurepose.mat import MatSpec
+from pressurepose.sim.articulated_config import ArticulatedConfig
 from pressurepose.sim.articulation import (
     Dofs,
     apply_motion,
@@ -57,7 +58,7 @@ from pressurepose.sim.articulation import (
 from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
-from pressurepose.sim.self_contact import SELF_CONTACT_SINK_M, SelfContact
+from pressurepose.sim.self_contact import SelfContact
 from pressurepose.sim.soft_contact import lowest_points
 
 # The revision of the engine's numerics: raised whenever a change alters its rests beyond
@@ -73,66 +74,6 @@ FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
 FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
 MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
-
-
-@dataclasses.dataclass(frozen=True)
-class ArticulatedConfig:
-    """Settings of the articulated rest (defaults: docs/physics.md)."""
-
-    stiffness_scale: float = 0.5
-    """Multiplies every joint's seed stiffness (1 = sim #1's springs; 0.5: a resting person's
-    relaxed limbs, docs/physics.md - side-lying contact area within 2-4% of PmatData's instead
-    of 10-14% short)."""
-    neck_stiffness_scale: float = 0.2
-    """Extra factor on the neck and head springs (a relaxed neck lets the head rest): with
-    `stiffness_scale` 0.5, 0.1 x the seed's neck."""
-    spine_stiffness_scale: float = 1.1
-    """Extra factor on the spine's springs (spine1-3)."""
-    outer: int = 14
-    """Re-posings of the mesh at most (each re-linearises the kinematics; friction's sliding
-    and a side-lying body's roll need more than 10 to finish)."""
-    inner: int = 25
-    """Newton steps of the last linearisation (the rest itself)."""
-    inner_reposing: int = 6
-    """Newton steps of the linearisations before each re-posing."""
-    reposing_step_tol: float = 1e-3
-    """A re-posing's solve is done once a full Newton step moves no unknown more than this (rad
-    or m): the re-posing's own linearisation error is larger. The rest's solve (the last) goes
-    to `tol`."""
-    max_rotation_rad: float = 0.25
-    """Largest joint rotation per re-posing (the linearisation's trust region)."""
-    max_shift_m: float = 0.05
-    settled_rotation_rad: float = 5e-3
-    """Re-posing stops once no joint turns more than this (5 mrad: 1.5 mm at a forearm's end)."""
-    settled_shift_m: float = 3e-4
-    tissue_by_part: tuple[tuple[str, float], ...] = (("spine1", 0.15), ("spine2", 0.15))
-    """Factors on the tissue modulus per J24 part: the belly and flanks (spine1-2 parts), soft
-    tissue with no bone beneath, are softer than the rest."""
-    tissue_depth: bool = True
-    """Tissue modulus inversely proportional to the local tissue depth over the bone (the
-    modulus `MattressParams.tissue_pa_per_m` is that of a TISSUE_REFERENCE_DEPTH_M layer):
-    stiff over bony prominences, soft over muscle and fat. False: uniform tissue."""
-    tissue_depth_max: tuple[tuple[str, float], ...] = (("spine2", 0.05), ("spine3", 0.05))
-    """Largest tissue depth (m) per J24 part: the ribs lie under at most this much muscle and fat
-    all around the chest, however far the point is from the spine's axis (the depth's bone);
-    without it a side-lying chest sank into 15 cm of soft "tissue" and the head carried the
-    shoulder's load (docs/realism.md "The ribcage")."""
-    hold_roll_m: float = 0.0
-    """Trunk roll hold: a spring on the body's roll about the bed's long axis of this many metres
-    x its weight per radian (0: none; side-lying bodies need ~0.5 to stay on their side, as in
-    sim #1's `lateral_straight`)."""
-    sub: int = 2
-    """Grid cells per taxel side."""
-    self_contact: bool = True
-    """Keep the body's capsules from passing through each other (`sim.self_contact`): a
-    forearm across the belly rests on it instead of sinking through to the foam."""
-    self_contact_sink_m: float = SELF_CONTACT_SINK_M
-    friction: bool = True
-    """Static friction per part (`sim.friction`, MattressParams.friction): a part that touched
-    the sheet sticks there until pushed beyond mu x its load."""
-    """Self-contact stiffness: the body's whole weight on one contact would press it this far in."""
-    tol: float = 1e-4
-    """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
 
 @dataclasses.dataclass
@@ -271,9 +212,14 @@ def rest_articulated(
     mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     rot, joints = pose_in_mat(rest, cur)
     local_pts = to_part_frames(pts - drop[:, None], labels, rot, joints)
-    depth_max = cfg.tissue_depth_max
     point_tissue = tissue_modulus(
-        pts - drop[:, None], labels, joints, mp.tissue_pa_per_m, cfg.tissue_by_part, cfg.tissue_depth, depth_max
+        pts - drop[:, None],
+        labels,
+        joints,
+        mp.tissue_pa_per_m,
+        cfg.tissue_by_part,
+        cfg.tissue_depth,
+        cfg.tissue_depth_max,
     )
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     contact = None
