@@ -306,6 +306,7 @@ def test_train_heatmap_arch_smoke(anny64, tmp_path):
         gender_input=False,
         shift_rows=4,
         mirror=0.5,
+        pillow=0.5,
     )
     run = train(cfg, dataset)
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]

@@ -1,6 +1,6 @@
 """Training augmentations (`pressurepose train` flags): images moved along and across the bed,
-mirrored left-right, re-pressed into other mattresses from their depth labels, and read through
-an air-cell mattress's transverse bands (docs/network.md)."""
+mirrored left-right, re-pressed into other mattresses from their depth labels, read through
+an air-cell mattress's transverse bands, and the head resting on a pillow (docs/network.md)."""
 
 from __future__ import annotations
 
@@ -146,4 +146,59 @@ def bands_batch(inputs: NetInputs, share: float, generator: torch.Generator | No
     return _read_again(inputs, p * gain[:, :, None], u[0] < share)
 
 
-__all__ = ["bands_batch", "mirror_batch", "repress_batch", "shift_batch"]
+# Pillow augmentation: ranges drawn per image (docs/network.md, "Real frames span the mat").
+PILLOW_BEYOND_HEAD_M = (0.10, 0.45)  # its far edge beyond the head joint, toward the head end
+PILLOW_PAST_NECK_M = (-0.03, 0.05)  # its near edge past the neck joint, toward the feet
+PILLOW_WIDTH_M = (0.20, 0.40)
+PILLOW_SHARE = (0.04, 0.10)  # of the image's force, spread over the pillow's footprint
+PILLOW_HEAD_MOVED = (0.5, 1.0)  # share of the head's own imprint the pillow takes over
+PILLOW_TEXTURE = 0.3  # log-normal sigma of the spread, per taxel
+HEAD, NECK = 15, 12  # J24 joints
+
+
+def pillow_batch(inputs: NetInputs, joints: torch.Tensor, share: float, generator: torch.Generator | None) -> NetInputs:
+    """Rest the head of a random `share` of the images on a pillow: over a footprint from
+    PILLOW_BEYOND_HEAD_M beyond the head joint to PILLOW_PAST_NECK_M past the neck (along the
+    bed) and PILLOW_WIDTH_M wide around the head (across), a share f ~ U(PILLOW_HEAD_MOVED) of
+    the head's own imprint is taken away and a share s ~ U(PILLOW_SHARE) of the image's force is
+    spread instead - nearly flat (a Gaussian about the head with sigma the footprint's length
+    along the bed and half its width across) times a log-normal texture - then the image is scaled to its total and
+    read as the sensor does. Rows beyond the mat's head end are lost, as on a real mat. The
+    labels do not move (the pillow's few centimetres of head lift are ignored). Why: PmatData's
+    supine frames load a broad, low patch (10-12 taxels, ~30 cm across, 10-16 mmHg; the
+    simulated heads 5-6 taxels) from the mat's first row in 85-88%
+    of frames and span 1.01 of the subject's height (the simulated supine bodies: 34% and 0.91);
+    a network trained without pillows reads such a patch as a longer body (heat_rib2 on its own
+    test images with a pillow reaching row 0: height +4.7 cm; docs/network.md). Images whose
+    head is off the mat, or not drawn, are unchanged."""
+    from pressurepose.mat import MatSpec
+
+    mat = MatSpec()
+    p = inputs.pressure_mmhg
+    B, R, C = p.shape
+    u = torch.rand(6, B, generator=generator).to(p)
+    texture = torch.exp(PILLOW_TEXTURE * torch.randn(B, R, C, generator=generator).to(p))
+    head, neck = joints[:, HEAD, :2].to(p), joints[:, NECK, 0].to(p)
+    top = head[:, 0] - _uniform(PILLOW_BEYOND_HEAD_M, u[1])
+    bottom = neck + _uniform(PILLOW_PAST_NECK_M, u[2])
+    half = _uniform(PILLOW_WIDTH_M, u[3]) / 2
+    x = (torch.arange(R, dtype=p.dtype, device=p.device) + 0.5) * mat.pitch_row_m  # taxel centres
+    y = (torch.arange(C, dtype=p.dtype, device=p.device) + 0.5) * mat.pitch_col_m
+    in_x = (x[None] >= top[:, None]) & (x[None] < bottom[:, None])  # (B, R)
+    in_y = (y[None] - head[:, 1:2]).abs() < half[:, None]  # (B, C)
+    inside = in_x[:, :, None] & in_y[:, None, :]
+    sx, sy = (bottom - top).clamp(min=mat.pitch_row_m), half
+    bump = (
+        torch.exp(-0.5 * ((x[None] - head[:, :1]) / sx[:, None]) ** 2)[:, :, None]
+        * torch.exp(-0.5 * ((y[None] - head[:, 1:2]) / sy[:, None]) ** 2)[:, None, :]
+    )
+    spread = bump * texture * inside
+    mass = spread.sum((1, 2), keepdim=True)
+    total = p.sum((1, 2), keepdim=True)
+    f, s = _uniform(PILLOW_HEAD_MOVED, u[4]), _uniform(PILLOW_SHARE, u[5])
+    q = torch.where(inside, p * (1 - f[:, None, None]), p) + spread / mass.clamp(min=1e-30) * (s[:, None, None] * total)
+    on = (u[0] < share) & (mass[:, 0, 0] > 0)
+    return _read_again(inputs, q, on)
+
+
+__all__ = ["bands_batch", "mirror_batch", "pillow_batch", "repress_batch", "shift_batch"]

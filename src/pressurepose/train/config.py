@@ -56,6 +56,8 @@ class TrainConfig:
             from their depth labels (deeper sinking, another pressure law and spread; the force
             kept): real mats read far more uniform pressure than the calibrated simulation, most
             of all under side-lying people (0 = off; `train.augment.repress_batch`).
+        pillow: augmentation: share of training images whose head rests on a pillow (the head's
+            load spread over a broad patch reaching beyond the head; `train.augment.pillow_batch`; 0 = off).
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.
@@ -91,6 +93,7 @@ class TrainConfig:
     mirror: float = 0.0
     repress: float = 0.0
     bands: float = 0.0
+    pillow: float = 0.0
     lr_gamma: float = 1.0
     init: Path | None = None
     synthesis_weight: float = 0.0
@@ -138,7 +141,7 @@ class TrainConfig:
             raise UserError(
                 f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, {self.shift_cols}"
             )
-        for name in ("mirror", "repress", "bands"):
+        for name in ("mirror", "repress", "bands", "pillow"):
             if not 0 <= getattr(self, name) <= 1:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 <= self.dropout < 1:

@@ -26,7 +26,7 @@ from pressurepose.files import atomic_write
 from pressurepose.net.heatmap import localisation_loss
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
-from pressurepose.train.augment import bands_batch, mirror_batch, repress_batch, shift_batch
+from pressurepose.train.augment import bands_batch, mirror_batch, pillow_batch, repress_batch, shift_batch
 from pressurepose.train.checkpoint import (
     CHECKPOINT_FILE,
     MODEL_FILE,
@@ -77,6 +77,8 @@ def step_loss(
         if targets.depth_mm is None:
             raise UserError("--repress needs the depth maps (depth_mm) of the training samples")
         inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
+    if augment and cfg.pillow > 0:
+        inputs = pillow_batch(inputs, targets.joints, cfg.pillow, generator)
     if augment and cfg.bands > 0:
         inputs = bands_batch(inputs, cfg.bands, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
