@@ -161,16 +161,16 @@ def pillow_batch(inputs: NetInputs, joints: torch.Tensor, share: float, generato
     PILLOW_BEYOND_HEAD_M beyond the head joint to PILLOW_PAST_NECK_M past the neck (along the
     bed) and PILLOW_WIDTH_M wide around the head (across), a share f ~ U(PILLOW_HEAD_MOVED) of
     the head's own imprint is taken away and a share s ~ U(PILLOW_SHARE) of the image's force is
-    spread instead - nearly flat (a Gaussian about the head with sigma the footprint's length
-    along the bed and half its width across) times a log-normal texture - then the image is scaled to its total and
-    read as the sensor does. Rows beyond the mat's head end are lost, as on a real mat. The
-    labels do not move (the pillow's few centimetres of head lift are ignored). Why: PmatData's
-    supine frames load a broad, low patch (10-12 taxels, ~30 cm across, 10-16 mmHg; the
-    simulated heads 5-6 taxels) from the mat's first row in 85-88%
-    of frames and span 1.01 of the subject's height (the simulated supine bodies: 34% and 0.91);
-    a network trained without pillows reads such a patch as a longer body (heat_rib2 on its own
-    test images with a pillow reaching row 0: height +4.7 cm; docs/network.md). Images whose
-    head is off the mat, or not drawn, are unchanged."""
+    spread instead, nearly flat (a Gaussian about the head, sigma the footprint's length along
+    the bed and half its width across) times a log-normal texture; then the image is scaled to
+    its total and read as the sensor does. Rows beyond the mat's head end are lost, as on a real
+    mat. The labels do not move (the pillow's few centimetres of head lift are ignored).
+    Why: PmatData's supine frames load a broad, low patch (10-12 taxels, ~30 cm across, 10-16
+    mmHg; the simulated heads 5-6 taxels) from the mat's first row in 85-88% of the frames and
+    span 1.01 of the subject's height (the simulated supine bodies: 34% and 0.91); a network
+    trained without pillows reads such a patch as a longer body (heat_rib2 on its own test
+    images with a pillow reaching row 0: +4.7 cm; docs/network.md). Images whose head is off
+    the mat, or not drawn, are unchanged."""
     from pressurepose.mat import MatSpec
 
     mat = MatSpec()
