@@ -1,0 +1,144 @@
+"""What in a real frame turns a network (issue 22): PmatData frames altered and read again.
+
+    PYTHONPATH=src .venv/bin/python benchmarks/real_probe.py --model RUN [--groups BCD] [--sim DATASET]
+
+Each variant alters every frame of the chosen groups the same way - the first k loaded rows
+(head end) zeroed, a share of the loaded rows zeroed at either end, the pressure made uniform on
+the loaded taxels - and the network reads them again. Prints per variant the
+posture accuracy, the median signed height error (cm), how many supine frames read prone, and
+per PmatData group "correct / read prone". With --sim DATASET (a generated dataset folder), the
+same cuts on its test split's supine images (moved up until their first k loaded rows leave the
+mat; the foot end cut): whether the network reads its own images the way it reads the real ones.
+The measures of docs/network.md "Real frames span the mat" (session 33); "default" is the packaged
+model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pressurepose.data.pmatdata import load_images, load_index
+from pressurepose.eval.real import GROUP_POSTURE, posture_of, read_bodies, roll_deg
+from pressurepose.samples import resolve_pmatdata
+from pressurepose.train.checkpoint import load_network
+
+
+def loaded_rows(image: torch.Tensor) -> tuple[int, int]:
+    """First and one-past-last loaded row of a (64, 27) image."""
+    rows = (image.sum(-1) > 0).nonzero()[:, 0]
+    return int(rows.min()), int(rows.max()) + 1
+
+
+def zero_head_rows(k: int):
+    def f(x):
+        x = x.clone()
+        for i in range(len(x)):
+            a, _ = loaded_rows(x[i])
+            x[i, a : a + k] = 0
+        return x
+
+    return f
+
+
+def zero_share(lo: float, hi: float):
+    """Zero the loaded rows between shares lo and hi of the loaded extent (0 = head end)."""
+
+    def f(x):
+        x = x.clone()
+        for i in range(len(x)):
+            a, b = loaded_rows(x[i])
+            n = b - a
+            x[i, a + int(lo * n) : a + int(hi * n)] = 0
+        return x
+
+    return f
+
+
+def move_up(k: int):
+    """Move each image up until its first k loaded rows leave the mat (the rest kept)."""
+
+    def f(x):
+        out = torch.zeros_like(x)
+        for i in range(len(x)):
+            s = loaded_rows(x[i])[0] + k
+            out[i, : x.shape[1] - s] = x[i, s:]
+        return out
+
+    return f
+
+
+REAL_VARIANTS = {
+    "as recorded": lambda x: x,
+    **{f"first {k} loaded rows zeroed": zero_head_rows(k) for k in (2, 4, 6, 8)},
+    "first 15% of the rows zeroed": zero_share(0.0, 0.15),
+    "last 20% (calves, heels) zeroed": zero_share(0.8, 1.0),
+    "uniform on the loaded taxels": lambda x: torch.where(
+        x > 0, x.sum((1, 2), keepdim=True) / (x > 0).sum((1, 2), keepdim=True), 0
+    ),
+}
+SIM_VARIANTS = {
+    "as generated": lambda x: x,
+    **{f"moved up, first {k} rows off the mat": move_up(k) for k in (2, 4, 6)},
+    "last 10% zeroed": zero_share(0.9, 1.0),
+    "last 20% zeroed": zero_share(0.8, 1.0),
+}
+
+
+def probe_real(net, root: Path, groups: str) -> None:
+    records = [r for r in load_index(root) if r.group in groups]
+    images = torch.from_numpy(load_images(records))
+    heights = torch.tensor([r.height_cm / 100 for r in records])
+    truth = [GROUP_POSTURE[r.group] for r in records]
+    print(f"PmatData groups {groups}: {len(records)} frames")
+    for name, alter in REAL_VARIANTS.items():
+        read = read_bodies(net, alter(images))
+        got = read.postures
+        acc = np.mean([g == t for g, t in zip(got, truth)])
+        prone = sum(g == "prone" and t == "supine" for g, t in zip(got, truth))
+        per = collections.defaultdict(lambda: [0, 0])
+        for r, g, t in zip(records, got, truth):
+            per[f"{r.group}{r.index}"][0] += g == t
+            per[f"{r.group}{r.index}"][1] += g == "prone"
+        groups_txt = " ".join(
+            f"{k}:{v[0]}/{v[1]}" for k, v in sorted(per.items(), key=lambda kv: (kv[0][0], int(kv[0][1:])))
+        )
+        height = float((read.height_m - heights).median()) * 100
+        print(f"  {name:34s} accuracy {acc:.3f}  height {height:+5.1f} cm  supine read prone {prone:3d} | {groups_txt}")
+
+
+def probe_sim(net, folder: Path) -> None:
+    from pressurepose.train.data import KEYS, open_dataset, standardise
+
+    ds = open_dataset(folder, "test")
+    items = [standardise(ds[i]) for i in range(len(ds))]
+    batch = {k: torch.stack([it[k] for it in items]) for k in KEYS}
+    supine = torch.tensor([p == "supine" for p in posture_of(roll_deg(batch["root_rotation"].double()))])
+    images, heights = batch["pressure_mmhg"].float()[supine], batch["height_m"][supine]
+    print(f"{folder} test split: {len(images)} supine images")
+    for name, alter in SIM_VARIANTS.items():
+        read = read_bodies(net, alter(images))
+        count = collections.Counter(read.postures)
+        height = float((read.height_m - heights).median()) * 100
+        print(f"  {name:34s} read {dict(count)}  height {height:+5.1f} cm")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", default="default")
+    ap.add_argument("--groups", default="BCD", help="PmatData groups (B supine, C right, D left)")
+    ap.add_argument("--pmatdata", default="../shared/data/pmatdata")
+    ap.add_argument("--sim", default=None, help="a generated dataset folder: the same cuts on its supine test images")
+    args = ap.parse_args()
+    net, _ = load_network(Path(args.model))
+    probe_real(net, resolve_pmatdata(args.pmatdata), args.groups)
+    if args.sim:
+        probe_sim(net, Path(args.sim))
+
+
+if __name__ == "__main__":
+    main()
