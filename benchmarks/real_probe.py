@@ -3,7 +3,7 @@
     PYTHONPATH=src .venv/bin/python benchmarks/real_probe.py --model RUN [--groups BCD] [--sim DATASET]
 
 Each variant alters every frame of the chosen groups the same way - the first k loaded rows
-(head end) zeroed, a share of the loaded rows zeroed at either end, the pressure made uniform on
+(head end) zeroed or narrowed to a head's width, a share of the loaded rows zeroed at either end, the pressure made uniform on
 the loaded taxels - and the network reads them again. Prints per variant the
 posture accuracy, the median signed height error (cm), how many supine frames read prone, and
 per PmatData group "correct / read prone". With --sim DATASET (a generated dataset folder), the
@@ -59,6 +59,23 @@ def zero_share(lo: float, hi: float):
     return f
 
 
+def narrow_head_rows(k: int, width: int):
+    """Keep, in the first k loaded rows, only the `width` columns about their force centroid
+    (a head's width instead of a pillow's)."""
+
+    def f(x):
+        x = x.clone()
+        cols = torch.arange(x.shape[-1], dtype=x.dtype)
+        for i in range(len(x)):
+            a, _ = loaded_rows(x[i])
+            band = x[i, a : a + k]
+            centre = float((band.sum(0) * cols).sum() / band.sum().clamp(min=1e-9))
+            x[i, a : a + k] = band * ((cols - centre).abs() <= width / 2)
+        return x
+
+    return f
+
+
 def move_up(k: int):
     """Move each image up until its first k loaded rows leave the mat (the rest kept)."""
 
@@ -75,6 +92,7 @@ def move_up(k: int):
 REAL_VARIANTS = {
     "as recorded": lambda x: x,
     **{f"first {k} loaded rows zeroed": zero_head_rows(k) for k in (2, 4, 6, 8)},
+    **{f"first 6 rows narrowed to {w} columns": narrow_head_rows(6, w) for w in (4, 6, 10)},
     "first 15% of the rows zeroed": zero_share(0.0, 0.15),
     "last 20% (calves, heels) zeroed": zero_share(0.8, 1.0),
     "uniform on the loaded taxels": lambda x: torch.where(
