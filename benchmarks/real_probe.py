@@ -24,7 +24,7 @@ import torch
 
 from pressurepose.data.pmatdata import load_images, load_index
 from pressurepose.eval.real import GROUP_POSTURE, posture_of, read_bodies, roll_deg
-from pressurepose.samples import resolve_pmatdata
+from pressurepose.samples import PMATDATA, resolve_pmatdata
 from pressurepose.train.checkpoint import load_network
 
 
@@ -149,7 +149,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="default")
     ap.add_argument("--groups", default="BCD", help="PmatData groups (B supine, C right, D left)")
-    ap.add_argument("--pmatdata", default="../shared/data/pmatdata")
+    ap.add_argument("--pmatdata", default=PMATDATA, help="PmatData folder (default: the packaged copy)")
     ap.add_argument("--sim", default=None, help="a generated dataset folder: the same cuts on its supine test images")
     args = ap.parse_args()
     net, _ = load_network(Path(args.model))

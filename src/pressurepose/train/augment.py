@@ -10,6 +10,7 @@ import math
 
 import torch
 
+from pressurepose.body.joints import joint_index
 from pressurepose.net.losses import Targets
 from pressurepose.net.model import NetInputs
 from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
@@ -153,7 +154,7 @@ PILLOW_WIDTH_M = (0.20, 0.40)
 PILLOW_SHARE = (0.04, 0.10)  # of the image's force, spread over the pillow's footprint
 PILLOW_HEAD_MOVED = (0.5, 1.0)  # share of the head's own imprint the pillow takes over
 PILLOW_TEXTURE = 0.3  # log-normal sigma of the spread, per taxel
-HEAD, NECK = 15, 12  # J24 joints
+HEAD, NECK = joint_index("head"), joint_index("neck")
 
 
 def pillow_batch(inputs: NetInputs, joints: torch.Tensor, share: float, generator: torch.Generator | None) -> NetInputs:
@@ -171,6 +172,7 @@ def pillow_batch(inputs: NetInputs, joints: torch.Tensor, share: float, generato
     trained without pillows reads such a patch as a longer body (heat_rib2 on its own test
     images with a pillow reaching row 0: +4.7 cm; docs/network.md). Images whose head is off
     the mat, or not drawn, are unchanged."""
+    from pressurepose.maps import cell_centres
     from pressurepose.mat import MatSpec
 
     mat = MatSpec()
@@ -182,8 +184,8 @@ def pillow_batch(inputs: NetInputs, joints: torch.Tensor, share: float, generato
     top = head[:, 0] - _uniform(PILLOW_BEYOND_HEAD_M, u[1])
     bottom = neck + _uniform(PILLOW_PAST_NECK_M, u[2])
     half = _uniform(PILLOW_WIDTH_M, u[3]) / 2
-    x = (torch.arange(R, dtype=p.dtype, device=p.device) + 0.5) * mat.pitch_row_m  # taxel centres
-    y = (torch.arange(C, dtype=p.dtype, device=p.device) + 0.5) * mat.pitch_col_m
+    X, Y = cell_centres(mat, covered=False, dtype=p.dtype, device=p.device)  # the taxels' centres
+    x, y = X[:, 0], Y[0]
     in_x = (x[None] >= top[:, None]) & (x[None] < bottom[:, None])  # (B, R)
     in_y = (y[None] - head[:, 1:2]).abs() < half[:, None]  # (B, C)
     inside = in_x[:, :, None] & in_y[:, None, :]
