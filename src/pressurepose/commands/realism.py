@@ -60,6 +60,15 @@ class RealismConfig:
     placement: Literal["real", "centre"] = "real"
     """Where the simulated bodies lie: one per real frame at that frame's centre of pressure and
     long-axis angle (the same scene), or all at the mat's centre, straight."""
+    pillow_m: float = 0.0
+    """Every simulated head on a pillow of this free thickness (m; `sim.pillow`, the articulated
+    sim #2 only); 0: none."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.pillow_m <= 0.3:
+            raise UserError(f"pillow_m is a pillow's thickness in metres, in [0, 0.3]; got {self.pillow_m}")
+        if self.pillow_m > 0 and self.sim2 != "articulated":
+            raise UserError("--pillow-m needs the articulated sim #2 (--sim2 articulated, the default)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,6 +221,7 @@ def simulate_subjects(
             sim2=cfg.sim2,
             articulated=art,
             settle_config=settle_config,
+            pillow_m=torch.full((B,), float(cfg.pillow_m)) if cfg.pillow_m > 0 else None,
         )
         ok = [i for i, r in enumerate(sim.reason) if not r]
         out[(posture, mattress_name)] = (

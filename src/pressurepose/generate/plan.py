@@ -124,6 +124,10 @@ class GenerateConfig:
     its own contact with compliant joints and soft tissue (raised beds keep the rigid rest).
     Default: rigid after MuJoCo; the articulated engine makes the image itself (and allows nothing
     else)."""
+    pillow: float = 0.0
+    """Share of the samples whose head rests on a pillow (the articulated engine; a soft layer
+    5-12 cm thick under the head whose load the mat reads spread over its footprint, `sim.pillow`,
+    docs/physics.md "Pillow"); 0: none, as before."""
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -137,6 +141,10 @@ class GenerateConfig:
                 raise UserError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.seed < 0:
             raise UserError(f"seed must be >= 0, got {self.seed}")
+        if not 0.0 <= self.pillow <= 1.0:
+            raise UserError(f"pillow is a share of the samples, in [0, 1]; got {self.pillow}")
+        if self.pillow > 0 and self.sim2_engine != "articulated":
+            raise UserError("--pillow needs the articulated engine (the default --settle articulated)")
         if self.settle == "articulated" and self.sim2 == "rigid":
             raise UserError(
                 "--sim2 rigid needs --settle mujoco (the articulated engine, the default, makes the image itself)"
@@ -155,6 +163,8 @@ class GenerateConfig:
             ident["sim2"] = self.sim2_engine
         if self.settle != "mujoco":
             ident["settle"] = self.settle
+        if self.pillow > 0:  # absent without pillows, so datasets made before them resume
+            ident["pillow"] = self.pillow
         return ident
 
 

@@ -10,6 +10,7 @@ manifest when all are there. Only this process writes files; workers return byte
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import time
@@ -68,6 +69,10 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
         joints = ArticulatedConfig()
         settings["articulated_joints"] = {k: getattr(joints, k) for k in ARTICULATED_JOINT_FIELDS}
         settings["articulated_engine"] = ENGINE_REVISION
+    if cfg.pillow > 0:  # the pillows' size and material define the images as much as the bed
+        from pressurepose.sim.pillow import PILLOW_THICKNESS_M, Pillow
+
+        settings["pillow"] = {**dataclasses.asdict(Pillow()), "thickness_m": list(PILLOW_THICKNESS_M)}
     return settings
 
 
@@ -198,6 +203,7 @@ def _generate(cfg: GenerateConfig, out: Path, settings: dict, mattress: dict, pr
         mattress=mattress,
         sim2=cfg.sim2_engine,
         settle=cfg.settle,
+        pillow=cfg.pillow,
     )
 
     t0 = time.perf_counter()

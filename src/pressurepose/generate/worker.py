@@ -39,6 +39,7 @@ class WorkContext:
     mattress: dict  # MattressParams.to_dict()
     sim2: str = "rigid"  # sim #2: "rigid" or "articulated" (sim.run.simulate_poses)
     settle: str = "mujoco"  # "mujoco" or "articulated" (sim.run.simulate_poses)
+    pillow: float = 0.0  # share of samples whose head rests on a pillow (`pillow_thickness`)
 
 
 _MODELS: dict = {}
@@ -95,7 +96,15 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
             replacements += len(indices)
         candidates += len(indices)
         batch, reasons, counts = simulate_indices(
-            model, sampler, indices, mattress, noise_seed(ctx.seed, spec.id, chunk), g.split, ctx.sim2, ctx.settle
+            model,
+            sampler,
+            indices,
+            mattress,
+            noise_seed(ctx.seed, spec.id, chunk),
+            g.split,
+            ctx.sim2,
+            ctx.settle,
+            ctx.pillow,
         )
         chunk += 1
         sampling_rejections.update(counts)
@@ -145,11 +154,38 @@ def _sample(sampler, indices: list[int]):
         return (sampler.sample(ok) if ok else None), bad
 
 
+def pillow_thickness(config, index, share: float) -> np.ndarray:
+    """Each sample's pillow (m; 0: none) for a `SamplingConfig` and sampler indices: with
+    probability `share` a thickness uniform in sim.pillow.PILLOW_THICKNESS_M, a function of
+    (seed, partition, gender, over_bed, index) like the sample itself."""
+    from pressurepose.sim.pillow import PILLOW_THICKNESS_M
+
+    lo, hi = PILLOW_THICKNESS_M
+    key = [config.seed, zlib.crc32(config.partition.encode()), zlib.crc32(config.gender.encode()), int(config.over_bed)]
+    out = np.zeros(len(index))
+    for k, i in enumerate(index):
+        u = np.random.default_rng([*key, int(i), _PILLOW_STREAM]).random(2)
+        out[k] = lo + (hi - lo) * u[1] if u[0] < share else 0.0
+    return out
+
+
+_PILLOW_STREAM = 0x9111  # keeps the pillows' draws apart from any other stream of the sample
+
+
 def simulate_indices(
-    model, sampler, indices: list[int], mattress, seed: int, split: str, sim2: str = "rigid", settle: str = "mujoco"
+    model,
+    sampler,
+    indices: list[int],
+    mattress,
+    seed: int,
+    split: str,
+    sim2: str = "rigid",
+    settle: str = "mujoco",
+    pillow: float = 0.0,
 ):
     """Sample and simulate `indices`; (SampleBatch of the accepted ones or None, reason per
-    index ("" = kept), summed sampling rejection counts)."""
+    index ("" = kept), summed sampling rejection counts). `pillow`: the share of samples whose
+    head rests on a pillow (`pillow_thickness`; the articulated rest only)."""
     from pressurepose.sim.run import articulated_config_for, settle_config_for, simulate_poses
 
     initial, unreachable = _sample(sampler, indices)
@@ -169,6 +205,7 @@ def simulate_indices(
         settle=settle,
         sim2=sim2,
         articulated=articulated_config_for(cfg.partition),
+        pillow_m=torch.from_numpy(pillow_thickness(cfg, initial.index, pillow)) if pillow > 0 else None,
     )
     height = sim.height_m.detach().numpy()  # measured with the mass, in float64
     p = sim.params
@@ -205,4 +242,4 @@ def simulate_indices(
     return batch, [reasons[i] for i in indices], counts
 
 
-__all__ = ["WorkContext", "make_shard", "noise_seed", "simulate_indices"]
+__all__ = ["WorkContext", "make_shard", "noise_seed", "pillow_thickness", "simulate_indices"]

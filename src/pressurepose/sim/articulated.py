@@ -41,6 +41,7 @@ from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle
+from pressurepose.errors import UserError
 from pressurepose.maps import cell_centres, grid_shape, surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated_config import ArticulatedConfig
@@ -58,6 +59,7 @@ from pressurepose.sim.articulation import (
 from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
+from pressurepose.sim.pillow import footprint, in_series, spread_load
 from pressurepose.sim.self_contact import SelfContact
 from pressurepose.sim.soft_contact import lowest_points
 
@@ -84,7 +86,9 @@ class ArticulatedRest:
     params: BodyParams  # the pose at rest
     vertices: torch.Tensor  # (B, V, 3) mesh at rest (mat frame, m)
     joints: torch.Tensor  # (B, 24, 3)
-    foundation_pa: torch.Tensor  # (B, rows*sub, cols*sub) foam pressure per cell
+    foundation_pa: (
+        torch.Tensor
+    )  # (B, rows*sub, cols*sub) pressure per cell on the mattress top (under a pillow: its base)
     force_n: torch.Tensor  # (B,)
     max_compression_m: torch.Tensor  # (B,) deepest compression of the foam
     part_force_n: torch.Tensor  # (B, 24) contact force carried by each J24 part
@@ -92,6 +96,7 @@ class ArticulatedRest:
     iterations: torch.Tensor  # (B,) Newton steps
     failure: list[str]
     sub: int
+    pillow_m: torch.Tensor | None = None  # (B,) the pillows' free thickness (0: none), or None
 
 
 @dataclasses.dataclass
@@ -110,6 +115,8 @@ class _Bodies:
     root_start: torch.Tensor  # (B, 3, 3)
     k: torch.Tensor  # (B, N) joint stiffness
     weight: torch.Tensor  # (B,)
+    pillow_m: torch.Tensor | None = None  # (B,) pillow thickness (0: none)
+    pillow_under: torch.Tensor | None = None  # (B, C) cells under the pillow
 
     def take(self, idx: torch.Tensor) -> _Bodies:
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -157,10 +164,13 @@ def rest_articulated(
     mattress: MattressParams | None = None,
     mat: MatSpec | None = None,
     config: ArticulatedConfig | None = None,
+    pillow_m: torch.Tensor | None = None,
 ) -> ArticulatedRest:
     """Rest B posed bodies (BodyParams, float64 model) on the flat mattress, every part on its
     own contact with compliant joints (module doc). The bodies may start above the bed or in
-    it; their horizontal placement and yaw are kept. Failures are reported per sample."""
+    it; their horizontal placement and yaw are kept. Failures are reported per sample.
+    `pillow_m` (B,): each body's head on a pillow of this free thickness (m; 0: none;
+    `ArticulatedConfig.pillow` its size and material, `sim.pillow`)."""
     mp = mattress or MattressParams()
     mat = mat or MatSpec()
     cfg = config or ArticulatedConfig()
@@ -222,6 +232,14 @@ def rest_articulated(
         cfg.tissue_depth_max,
     )
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
+    under = None
+    if pillow_m is not None:
+        pillow_m = torch.as_tensor(pillow_m, dtype=dtype, device=device).reshape(-1)
+        if pillow_m.shape[0] != B or not bool(torch.isfinite(pillow_m).all()) or bool((pillow_m < 0).any()):
+            raise UserError(f"pillow_m must hold {B} finite thicknesses >= 0 (m), got {pillow_m.tolist()}")
+        if point_tissue is None:
+            raise UserError("a pillow needs the soft tissue (MattressParams.tissue_pa_per_m > 0) to rest on")
+        under = footprint(cfg.pillow, joints, xy, pillow_m)
     contact = None
     if cfg.self_contact:
         contact = SelfContact(fit_capsules(model, params.shape), rot, joints, weight, cfg.self_contact_sink_m)
@@ -236,6 +254,7 @@ def rest_articulated(
     body = _Bodies(
         cur, rest, local_com, mass, local_pts, point_tissue, dof_lo, dof_hi, ref_local, root_start, k, weight
     )
+    body.pillow_m, body.pillow_under = pillow_m, under
     moving_contact, solved = contact, None
     for outer in range(cfg.outer + 1):
         cur = body.cur
@@ -248,6 +267,9 @@ def rest_articulated(
         )
         if top is not None:
             h = h - top  # heights above the (air cells') top, not above z = 0
+        if body.pillow_under is not None:  # above the pillows' tops, through them in series
+            h = h - body.pillow_m[:, None] * body.pillow_under
+            cell_tissue = in_series(cell_tissue, cfg.pillow, body.pillow_m, body.pillow_under)
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, body.ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ body.root_start.transpose(-1, -2))[:, 0]
         axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)
@@ -315,6 +337,9 @@ def rest_articulated(
         else contact.penetration(*pose_in_mat(rest, final))
     )
     foundation = done.foundation.view(B, nr, nc)
+    if under is not None:  # what the mat reads beneath the pillows
+        X, Y = cell_centres(mat, cfg.sub, covered=True, dtype=dtype, device=device)
+        foundation = spread_load(foundation, under.view(B, nr, nc), cfg.pillow, pillow_m, X[:, 0], Y[0])
     force, w_max = done.force, done.max_compression
     failure = []
     turned = rotation_angle(root_matrix(params.root_rotation), root_matrix(final.root_rotation))
@@ -343,6 +368,7 @@ def rest_articulated(
         iterations=iters,
         failure=failure,
         sub=cfg.sub,
+        pillow_m=pillow_m,
     )
 
 

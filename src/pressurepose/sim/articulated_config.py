@@ -7,6 +7,7 @@ import dataclasses
 
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.errors import UserError
+from pressurepose.sim.pillow import Pillow
 from pressurepose.sim.self_contact import SELF_CONTACT_SINK_M
 
 
@@ -66,6 +67,9 @@ class ArticulatedConfig:
     friction: bool = True
     """Static friction per part (`sim.friction`, MattressParams.friction): a part that touched
     the sheet sticks there until pushed beyond mu x its load."""
+    pillow: Pillow = Pillow()
+    """The pillow under the heads of the bodies given one (`rest_articulated(pillow_m=...)`,
+    `sim.pillow`): its size and material."""
     tol: float = 1e-4
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 

@@ -90,6 +90,7 @@ def simulate_poses(
     settle: Literal["mujoco", "articulated", "none"] = "mujoco",
     sim2: Literal["rigid", "articulated"] = "rigid",
     articulated: ArticulatedConfig | None = None,
+    pillow_m: torch.Tensor | None = None,
 ) -> SimulatedSamples:
     """Settle (sim #1), press (sim #2), read (sensor) and label B initial poses on a flat bed,
     a bent one (`bed`), or one bed per sample (a sequence of B, e.g. `InitialPoses.beds()`:
@@ -100,7 +101,8 @@ def simulate_poses(
     raised beds keep the rigid rest). `settle="articulated"`: one mechanics - the articulated
     rest settles the drawn pose itself (joint springs, self-contact, the soft bed; no MuJoCo)
     and its field is the image, whatever `sim2` says; raised beds fall back to MuJoCo and the
-    rigid rest."""
+    rigid rest. `pillow_m` (B,): a pillow of this thickness (m, 0: none) under each head in the
+    articulated rest (`sim.pillow`; the rigid rest and raised beds have none)."""
     if settle not in ("mujoco", "articulated", "none") or sim2 not in ("rigid", "articulated"):
         raise ValueError(
             f"settle must be 'mujoco', 'articulated' or 'none' and sim2 'rigid' or 'articulated', "
@@ -108,9 +110,17 @@ def simulate_poses(
         )
     options = {"settle": settle, "sim2": sim2, "articulated": articulated}
     mattress = mattress or MattressParams()
+    if pillow_m is not None:
+        pillow_m = torch.as_tensor(pillow_m, dtype=torch.float64).reshape(-1)
+        if pillow_m.shape[0] != params.batch_size:
+            raise UserError(
+                f"pillow_m must hold one thickness per sample ({params.batch_size}), got {pillow_m.shape[0]}"
+            )
     mat = mat or MatSpec()
     if bed is None or isinstance(bed, BedShape):
-        return _simulate_one_bed(model, params, mattress, mat, seed, bed or BedShape(), settle_config, **options)
+        return _simulate_one_bed(
+            model, params, mattress, mat, seed, bed or BedShape(), settle_config, pillow_m=pillow_m, **options
+        )
     beds = list(bed)
     if len(beds) != params.batch_size or not all(isinstance(b, BedShape) for b in beds):
         raise UserError(
@@ -120,12 +130,24 @@ def simulate_poses(
     for i, b in enumerate(beds):
         groups.setdefault(b, []).append(i)
     if len(groups) == 1:
-        return _simulate_one_bed(model, params, mattress, mat, seed, beds[0], settle_config, **options)
+        return _simulate_one_bed(
+            model, params, mattress, mat, seed, beds[0], settle_config, pillow_m=pillow_m, **options
+        )
     parts, order = [], []
     for k, (b, rows) in enumerate(groups.items()):
+        idx = torch.tensor(rows)
+        part_pillow = None if pillow_m is None else pillow_m[idx]
         parts.append(
             _simulate_one_bed(
-                model, params.index(torch.tensor(rows)), mattress, mat, seed + 7919 * k, b, settle_config, **options
+                model,
+                params.index(idx),
+                mattress,
+                mat,
+                seed + 7919 * k,
+                b,
+                settle_config,
+                pillow_m=part_pillow,
+                **options,
             )
         )
         order += rows
@@ -169,6 +191,7 @@ def _simulate_one_bed(
     settle: str = "mujoco",
     sim2: str = "rigid",
     articulated: ArticulatedConfig | None = None,
+    pillow_m: torch.Tensor | None = None,
 ) -> SimulatedSamples:
 
     model64 = as_float64(model)
@@ -191,7 +214,7 @@ def _simulate_one_bed(
     if sim2 == "articulated" and bed.flat:  # raised beds keep the rigid rest (docs/physics.md)
         from pressurepose.sim.articulated import rest_articulated
 
-        art = rest_articulated(model64, rest, mass, mattress, mat, articulated)
+        art = rest_articulated(model64, rest, mass, mattress, mat, articulated, pillow_m=pillow_m)
         pressure_pa, failure2, sink = (
             taxel_pressure(art.foundation_pa, mattress, mat, art.sub),
             art.failure,
