@@ -160,6 +160,27 @@ def test_pillow_draws_are_per_sample_and_in_range():
     assert not np.array_equal(pillow_thickness(other, range(50), 0.5), pillow_thickness(cfg, range(50), 0.5))
 
 
+def test_bad_pillows_are_refused_by_the_commands(tmp_path, capsys):
+    from pressurepose.cli import main
+    from pressurepose.commands.realism import RealismConfig
+
+    for argv, message in (
+        (["simulate", "--out", str(tmp_path / "s"), "--pillow-m", "0.5"], "pillow_m is a pillow's thickness"),
+        (
+            ["simulate", "--out", str(tmp_path / "s"), "--pillow-m", "0.1", "--settle", "mujoco"],
+            "needs the articulated",
+        ),
+        (["realism", "--out", str(tmp_path / "r"), "--pillow-m", "-0.1"], "pillow_m is a pillow's thickness"),
+        (["generate", "--out", str(tmp_path / "g"), "--pillow", "1.5"], "share of the samples"),
+    ):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err
+        assert not any(tmp_path.iterdir())  # nothing written
+    with pytest.raises(UserError, match="needs the articulated sim #2"):
+        RealismConfig(pillow_m=0.1, sim2="rigid")
+
+
 def test_bad_pillows_are_refused(anny64):
     with pytest.raises(UserError, match="Pillow.modulus_pa must be > 0"):
         Pillow(modulus_pa=0.0)

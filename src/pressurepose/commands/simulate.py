@@ -44,6 +44,9 @@ class SimulateConfig:
     settle: Literal["articulated", "mujoco"] = "articulated"
     """How the pose comes to rest, as `generate --settle`: the articulated engine (default; the
     sponge bed) or MuJoCo then the rigid sim #2 (the class-default bed)."""
+    pillow_m: float = 0.0
+    """The head on a pillow of this free thickness (m; the articulated engine on a flat bed,
+    `sim.pillow`, docs/physics.md "Pillow"); 0: none."""
     backend: Literal["anny", "smpl"] = "anny"
     smpl_dir: Path | None = None
 
@@ -51,6 +54,10 @@ class SimulateConfig:
 def run_simulate(cfg: SimulateConfig) -> Written:
     if cfg.index < 0:
         raise UserError(f"index must be >= 0, got {cfg.index}")
+    if not 0.0 <= cfg.pillow_m <= 0.3:
+        raise UserError(f"pillow_m is a pillow's thickness in metres, in [0, 0.3]; got {cfg.pillow_m}")
+    if cfg.pillow_m > 0 and cfg.settle != "articulated":
+        raise UserError("--pillow-m needs the articulated engine (--settle articulated, the default)")
     mattress = MattressParams.load(cfg.params) if cfg.params is not None else default_mattress(cfg.settle)
     options = {"model_dir": cfg.smpl_dir} if cfg.backend == "smpl" else {}
     model = load_body_model(cfg.backend, dtype=torch.float64, **options)
@@ -75,6 +82,7 @@ def run_simulate(cfg: SimulateConfig) -> Written:
         settle_config=settle_config_for(sampling.partition),
         settle=cfg.settle,
         articulated=articulated_config_for(sampling.partition),
+        pillow_m=torch.tensor([cfg.pillow_m]) if cfg.pillow_m > 0 else None,
     )
     t2 = time.perf_counter()
     cfg.out.mkdir(parents=True, exist_ok=True)
