@@ -31,6 +31,7 @@ from pressurepose.net.preprocess import (
     constant_planes,
     pressure_channels,
     reconstruction_channels,
+    smooth_loaded,
     upsample2,
 )
 
@@ -50,6 +51,9 @@ class NetConfig:
     dropout: float = 0.1  # the seed's dropout after every tanh (paper) / in the FC head (fast)
     width: int = 1  # channel multiplier of the fast CNN (1: 1.3 M parameters)
     ik_steps: int = 3  # heatmap arch: IK steps fitting the body to the localised joints (eval only)
+    # Smooth the reading within its loaded taxels first (sigma in taxels; 0: off), training and
+    # inference alike: a real mat's taxel-scale texture (net.preprocess.smooth_loaded).
+    texture_sigma_taxels: float = 0.0
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast", "heatmap"):
@@ -62,6 +66,8 @@ class NetConfig:
             raise UserError(f"NetConfig.modules must be 1 or 2, got {self.modules!r}")
         if not 0 <= self.dropout < 1:
             raise UserError(f"NetConfig.dropout must lie in [0, 1), got {self.dropout}")
+        if not 0 <= self.texture_sigma_taxels <= 5:
+            raise UserError(f"NetConfig.texture_sigma_taxels must lie in [0, 5], got {self.texture_sigma_taxels}")
 
     @property
     def in_channels(self) -> int:
@@ -158,7 +164,8 @@ class PressureNet(nn.Module):
     ) -> torch.Tensor:
         """(B, C, 64, 27) Mod1 input channels (before any upsampling)."""
         check_pressure(inputs.pressure_mmhg)
-        x = pressure_channels(inputs.pressure_mmhg, augment, generator)
+        p = smooth_loaded(inputs.pressure_mmhg, self.config.texture_sigma_taxels)
+        x = pressure_channels(p, augment, generator)
         extra = []
         if self.config.height_weight:
             if inputs.height_m is None or inputs.mass_kg is None:

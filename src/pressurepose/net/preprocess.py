@@ -17,6 +17,8 @@ independent N(1, 0.2) factors after the sum normalisation (which would cancel th
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -53,6 +55,26 @@ def sobel_magnitude(images: torch.Tensor) -> torch.Tensor:
     gx = diff[..., :-2, :] + 2 * diff[..., 1:-1, :] + diff[..., 2:, :]
     gy = smooth[..., 2:, :] - smooth[..., :-2, :]
     return (gx.square() + gy.square() + 1e-12).sqrt() - 1e-6
+
+
+def smooth_loaded(pressure_mmhg: torch.Tensor, sigma_taxels: float) -> torch.Tensor:
+    """(B, 64, 27) -> the same images smoothed within their loaded taxels: a Gaussian of
+    `sigma_taxels` (separable, zero beyond the mat), kept on the taxels that read > 0 and scaled
+    so each image keeps its total. A real mat's reading carries taxel-scale texture the
+    simulator does not make (row-to-row and taxel-to-taxel gain, noise; docs/network.md "The
+    sensor's texture"); this takes it out and keeps the contact's outline. sigma 0: unchanged."""
+    if sigma_taxels <= 0:
+        return pressure_mmhg
+    r = max(1, int(math.ceil(3 * sigma_taxels)))
+    k = torch.arange(-r, r + 1, dtype=pressure_mmhg.dtype, device=pressure_mmhg.device)
+    k = torch.exp(-0.5 * (k / sigma_taxels) ** 2)
+    k = k / k.sum()
+    x = pressure_mmhg[:, None]
+    y = F.conv2d(F.conv2d(x, k.view(1, 1, -1, 1), padding=(r, 0)), k.view(1, 1, 1, -1), padding=(0, r))[:, 0]
+    loaded = pressure_mmhg > 0
+    y = torch.where(loaded, y, torch.zeros_like(y))
+    scale = pressure_mmhg.sum((-2, -1), keepdim=True) / y.sum((-2, -1), keepdim=True).clamp(min=1e-12)
+    return y * scale
 
 
 def _to_sum(images: torch.Tensor) -> torch.Tensor:

@@ -58,6 +58,9 @@ class TrainConfig:
             of all under side-lying people (0 = off; `train.augment.repress_batch`).
         pillow: augmentation: share of training images whose head rests on a pillow (the head's
             load spread over a broad patch reaching beyond the head; `train.augment.pillow_batch`; 0 = off).
+        texture_sigma: the network smooths every reading within its loaded taxels by a Gaussian of
+            this many taxels before its channels, in training and in use (a real mat's taxel-scale
+            texture, which the simulator does not make; `net.preprocess.smooth_loaded`; 0 = off).
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.
@@ -94,6 +97,7 @@ class TrainConfig:
     repress: float = 0.0
     bands: float = 0.0
     pillow: float = 0.0
+    texture_sigma: float = 0.0
     lr_gamma: float = 1.0
     init: Path | None = None
     synthesis_weight: float = 0.0
@@ -146,6 +150,8 @@ class TrainConfig:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 <= self.dropout < 1:
             raise UserError(f"dropout must lie in [0, 1), got {self.dropout}")
+        if not 0 <= self.texture_sigma <= 5:
+            raise UserError(f"texture_sigma must lie in [0, 5] taxels, got {self.texture_sigma}")
         if not 0 < self.lr_gamma <= 1:
             raise UserError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:

@@ -110,6 +110,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         smpl_dir=cfg.smpl_dir,
         dropout=cfg.dropout,
         width=cfg.width,
+        texture_sigma_taxels=cfg.texture_sigma,
     )
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
