@@ -65,8 +65,9 @@ class RealismConfig:
     sim #2 only); 0: none."""
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.pillow_m <= 0.3:
-            raise UserError(f"pillow_m is a pillow's thickness in metres, in [0, 0.3]; got {self.pillow_m}")
+        from pressurepose.sim.pillow import check_thickness
+
+        check_thickness(self.pillow_m)
         if self.pillow_m > 0 and self.sim2 != "articulated":
             raise UserError("--pillow-m needs the articulated sim #2 (--sim2 articulated, the default)")
 

@@ -22,6 +22,7 @@ from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import SamplingConfig
 from pressurepose.sampling.sampler import PoseSampler
 from pressurepose.sim.mattress import MattressParams
+from pressurepose.sim.pillow import check_thickness
 from pressurepose.sim.run import articulated_config_for, default_mattress, settle_config_for, simulate_poses
 from pressurepose.viz.simulation import plot_sample
 
@@ -54,8 +55,7 @@ class SimulateConfig:
 def run_simulate(cfg: SimulateConfig) -> Written:
     if cfg.index < 0:
         raise UserError(f"index must be >= 0, got {cfg.index}")
-    if not 0.0 <= cfg.pillow_m <= 0.3:
-        raise UserError(f"pillow_m is a pillow's thickness in metres, in [0, 0.3]; got {cfg.pillow_m}")
+    check_thickness(cfg.pillow_m)
     if cfg.pillow_m > 0 and cfg.settle != "articulated":
         raise UserError("--pillow-m needs the articulated engine (--settle articulated, the default)")
     mattress = MattressParams.load(cfg.params) if cfg.params is not None else default_mattress(cfg.settle)

@@ -7,7 +7,9 @@ per-image sum normalisation makes the input independent of the overall pressure 
 mats read ~3x lower under a blanket, seed A.8; PmatData frames are in raw units). Mod2 adds
 two channels from Mod1's reconstruction: -min(Q-hat, 0) in mm and C-hat x 100. Optional
 extras: two constant planes (height in m, mass in units of 100 kg) and one gender plane.
-The paper arch upsamples x2 (bilinear) to 128 x 54; the fast arch works at 64 x 27.
+The paper arch upsamples x2 (bilinear) to 128 x 54; the fast arch works at 64 x 27. A network
+whose `NetConfig.texture_sigma_taxels` > 0 first smooths the reading within its loaded taxels
+(`smooth_loaded`: a real mat's taxel-scale texture out, the outline and the force kept).
 
 Augmentation ("calibration noise", per image, training only): an offset N(0, 14) mmHg and
 integer noise on the loaded taxels, re-masked to the originally loaded taxels, a blur of

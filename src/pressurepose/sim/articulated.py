@@ -86,9 +86,8 @@ class ArticulatedRest:
     params: BodyParams  # the pose at rest
     vertices: torch.Tensor  # (B, V, 3) mesh at rest (mat frame, m)
     joints: torch.Tensor  # (B, 24, 3)
-    foundation_pa: (
-        torch.Tensor
-    )  # (B, rows*sub, cols*sub) pressure per cell on the mattress top (under a pillow: its base)
+    # (B, rows*sub, cols*sub) pressure per cell on the mattress top (under a pillow: at its base)
+    foundation_pa: torch.Tensor
     force_n: torch.Tensor  # (B,)
     max_compression_m: torch.Tensor  # (B,) deepest compression of the foam
     part_force_n: torch.Tensor  # (B, 24) contact force carried by each J24 part

@@ -56,6 +56,13 @@ class Pillow:
 
 PILLOW_THICKNESS_M = (0.05, 0.12)
 """The generator's pillows (`generate --pillow`): free thickness drawn uniformly in this range."""
+MAX_THICKNESS_M = 0.3
+
+
+def check_thickness(thickness_m: float) -> None:
+    """UserError unless a pillow's thickness given on the command line lies in [0, MAX_THICKNESS_M]."""
+    if not 0.0 <= thickness_m <= MAX_THICKNESS_M:
+        raise UserError(f"pillow_m is a pillow's thickness in metres, in [0, {MAX_THICKNESS_M}]; got {thickness_m}")
 
 
 def footprint(pillow: Pillow, joints: torch.Tensor, xy: torch.Tensor, thickness: torch.Tensor) -> torch.Tensor:
@@ -102,4 +109,12 @@ def spread_load(
     return torch.where(has, pressure * (1 - on) + spread * scale, pressure)
 
 
-__all__ = ["PILLOW_THICKNESS_M", "Pillow", "footprint", "in_series", "spread_load"]
+__all__ = [
+    "MAX_THICKNESS_M",
+    "PILLOW_THICKNESS_M",
+    "Pillow",
+    "check_thickness",
+    "footprint",
+    "in_series",
+    "spread_load",
+]
