@@ -52,7 +52,7 @@ class NetConfig:
     width: int = 1  # channel multiplier of the fast CNN (1: 1.3 M parameters)
     ik_steps: int = 3  # heatmap arch: IK steps fitting the body to the localised joints (eval only)
     # Smooth the reading within its loaded taxels first (sigma in taxels; 0: off), training and
-    # inference alike: a real mat's taxel-scale texture (net.preprocess.smooth_loaded).
+    # inference alike: detail at the taxel scale out (net.preprocess.smooth_loaded).
     texture_sigma_taxels: float = 0.0
 
     def __post_init__(self) -> None:

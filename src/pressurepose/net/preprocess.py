@@ -9,7 +9,7 @@ two channels from Mod1's reconstruction: -min(Q-hat, 0) in mm and C-hat x 100. O
 extras: two constant planes (height in m, mass in units of 100 kg) and one gender plane.
 The paper arch upsamples x2 (bilinear) to 128 x 54; the fast arch works at 64 x 27. A network
 whose `NetConfig.texture_sigma_taxels` > 0 first smooths the reading within its loaded taxels
-(`smooth_loaded`: a real mat's taxel-scale texture out, the outline and the force kept).
+(`smooth_loaded`: detail at the taxel scale out, the outline and the force kept).
 
 Augmentation ("calibration noise", per image, training only): an offset N(0, 14) mmHg and
 integer noise on the loaded taxels, re-masked to the originally loaded taxels, a blur of
@@ -62,9 +62,9 @@ def sobel_magnitude(images: torch.Tensor) -> torch.Tensor:
 def smooth_loaded(pressure_mmhg: torch.Tensor, sigma_taxels: float) -> torch.Tensor:
     """(B, 64, 27) -> the same images smoothed within their loaded taxels: a Gaussian of
     `sigma_taxels` (separable, zero beyond the mat), kept on the taxels that read > 0 and scaled
-    so each image keeps its total. A real mat's reading carries taxel-scale texture the
-    simulator does not make (row-to-row and taxel-to-taxel gain, noise; docs/network.md "The
-    sensor's texture"); this takes it out and keeps the contact's outline. sigma 0: unchanged."""
+    so each image keeps its total: detail at the taxel scale (a real mat's rows and taxels of
+    uneven gain, a simulation's bony points) out, the contact's outline kept (docs/network.md
+    "The sensor's texture"). sigma 0: unchanged."""
     if sigma_taxels <= 0:
         return pressure_mmhg
     r = max(1, int(math.ceil(3 * sigma_taxels)))

@@ -59,8 +59,8 @@ class TrainConfig:
         pillow: augmentation: share of training images whose head rests on a pillow (the head's
             load spread over a broad patch reaching beyond the head; `train.augment.pillow_batch`; 0 = off).
         texture_sigma: the network smooths every reading within its loaded taxels by a Gaussian of
-            this many taxels before its channels, in training and in use (a real mat's taxel-scale
-            texture, which the simulator does not make; `net.preprocess.smooth_loaded`; 0 = off).
+            this many taxels before its channels, in training and in use (detail at the taxel scale
+            out, the outline kept; `net.preprocess.smooth_loaded`; 0 = off).
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.
