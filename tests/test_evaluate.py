@@ -196,7 +196,19 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
         assert sum(sum(row.values()) for row in s["confusion"].values()) == 6
         assert set(s["confusion"]) == {"supine", "left", "right"} and sum(s["confusion"]["supine"].values()) == 0
         assert s["height_mae_m"] < 1.0 and s["mass_mae_kg"] < 200
-    assert (out / "real.png").read_bytes()[:4] == b"\x89PNG" and "posture accuracy" in (out / "real.md").read_text()
+    # The medians and the per-variant counts, recomputed from the per-frame rows.
+    for mattress, s in record["by_mattress"].items():
+        err = [f["estimated_height_m"] - f["height_m"] for f in record["per_frame"] if f["mattress"] == mattress]
+        assert s["height_median_signed_m"] == pytest.approx(float(np.median(err)), abs=1e-12)
+        assert s["height_median_abs_m"] == pytest.approx(float(np.median(np.abs(err))), abs=1e-12)
+    variants = record["by_variant"]
+    assert set(variants) == {f["variant"] for f in record["per_frame"]} and all(v[0] in "CD" for v in variants)
+    for name, v in variants.items():
+        frames = [f for f in record["per_frame"] if f["variant"] == name]
+        assert v["frames"] == len(frames) == sum(v["estimated"].values())
+        assert v["estimated"].get(v["posture"], 0) == sum(f["estimated_posture"] == f["posture"] for f in frames)
+    text = (out / "real.md").read_text()
+    assert (out / "real.png").read_bytes()[:4] == b"\x89PNG" and "posture accuracy" in text and "| C1 | right |" in text
     r = subprocess.run(
         [
             sys.executable,

@@ -98,6 +98,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "file": str(r.path.relative_to(Path(cfg.pmatdata))),
             "subject": r.subject,
             "mattress": r.mattress,
+            "variant": f"{r.group}{r.index}",
             "posture": GROUP_POSTURE[r.group],
             "estimated_posture": e,
             "roll_deg": float(a),
@@ -120,8 +121,15 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "posture_accuracy": sum(r["posture"] == r["estimated_posture"] for r in sel) / len(sel),
             "confusion": confusion,
             "height_mae_m": float(np.mean([abs(r["estimated_height_m"] - r["height_m"]) for r in sel])),
+            "height_median_abs_m": float(np.median([abs(r["estimated_height_m"] - r["height_m"]) for r in sel])),
+            "height_median_signed_m": float(np.median([r["estimated_height_m"] - r["height_m"] for r in sel])),
             "mass_mae_kg": float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in sel])),
         }
+    variants = {}
+    for r in rows:  # per posture variant (B1-B10, C1-C3, D1-D3), both mattresses
+        v = variants.setdefault(r["variant"], {"posture": r["posture"], "frames": 0, "estimated": {}})
+        v["frames"] += 1
+        v["estimated"][r["estimated_posture"]] = v["estimated"].get(r["estimated_posture"], 0) + 1
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {
         "command": "evaluate-real",
@@ -129,6 +137,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
         "frames": len(rows),
         "seconds": round(seconds, 2),
         "by_mattress": summary,
+        "by_variant": dict(sorted(variants.items(), key=lambda kv: (kv[0][0], int(kv[0][1:])))),
         "per_frame": rows,
     }
     paths = {"figure": atomic_write(cfg.out / "real.png", lambda tmp: plot_real(tmp, rows, summary))}
@@ -141,12 +150,14 @@ def _markdown(r: dict) -> str:
     lines = [
         f"# {r['config']['model']} on PmatData experiment II ({r['frames']} frames, groups {r['config']['groups']})",
         "",
-        "| mattress | frames | posture accuracy | height MAE (cm) | mass MAE (kg) |",
-        "| --- | --- | --- | --- | --- |",
+        "| mattress | frames | posture accuracy | height MAE (cm) | height error median: absolute / signed (cm) "
+        "| mass MAE (kg) |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
     for name, s in r["by_mattress"].items():
         lines.append(
             f"| {name} | {s['frames']} | {s['posture_accuracy'] * 100:.1f}% | {s['height_mae_m'] * 100:.1f} | "
+            f"{s['height_median_abs_m'] * 100:.1f} / {s['height_median_signed_m'] * 100:+.1f} | "
             f"{s['mass_mae_kg']:.1f} |"
         )
     for name, s in r["by_mattress"].items():
@@ -159,6 +170,20 @@ def _markdown(r: dict) -> str:
         ]
         for t, row in s["confusion"].items():
             lines.append(f"| {t} | " + " | ".join(str(row[e]) for e in POSTURES) + " |")
+    lines += [
+        "",
+        "Per posture variant (both mattresses; PmatData's groups: B supine variants, C right, D left)",
+        "",
+        "| variant | posture | frames | correct | " + " | ".join(f"read {e}" for e in POSTURES) + " |",
+        "| --- | --- | --- | --- |" + " --- |" * len(POSTURES),
+    ]
+    for name, v in r["by_variant"].items():
+        counts = [v["estimated"].get(e, 0) for e in POSTURES]
+        lines.append(
+            f"| {name} | {v['posture']} | {v['frames']} | {v['estimated'].get(v['posture'], 0)} | "
+            + " | ".join(map(str, counts))
+            + " |"
+        )
     lines += ["", "![real](real.png)", ""]
     return "\n".join(lines)
 
