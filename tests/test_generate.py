@@ -184,7 +184,7 @@ def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkey
     """A shard keeps exactly `count` samples: rejected primary indices are replaced by
     replacement indices, the same ones every time."""
 
-    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco"):
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0):
         rng = np.random.default_rng(seed)
         keep = [i for i in indices if i % 3 != 0]  # index 0, 3, 6, ... and some replacements rejected
         n = len(keep)
@@ -464,6 +464,26 @@ def test_the_sampling_law_is_pinned(tmp_path):
         _prepare_folder(cfg, new)  # the same law resumes
 
 
+def test_the_pillow_share_reaches_every_chunk(monkeypatch, anny64):
+    """`generate --pillow` reaches the simulation of every chunk of a shard (WorkContext.pillow)."""
+    seen = []
+
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0):
+        seen.append(pillow)
+        return (
+            fake_batch(np.array(indices, dtype=np.int64), np.random.default_rng(seed), split),
+            [""] * len(indices),
+            {},
+        )
+
+    monkeypatch.setattr(worker, "simulate_indices", fake)
+    monkeypatch.setitem(worker._MODELS, ("anny", None), anny64)
+    ctx = worker.WorkContext(seed=0, batch=4, backend="anny", smpl_dir=None, mattress={}, pillow=0.7)
+    spec = plan_shards(GenerateConfig(partition="supine", n=200, shard_size=10, pillow=0.7))[1]
+    worker.make_shard(spec, ctx)
+    assert len(seen) >= 3 and set(seen) == {0.7}
+
+
 def test_rigid_dataset_settings_leave_out_the_tissue(tmp_path, monkeypatch, anny64):
     """The rigid rest (MuJoCo + rigid sim #2) ignores soft tissue and uses the class-default bed:
     its settings stay those of datasets made before these fields existed (they resume); the
@@ -472,7 +492,7 @@ def test_rigid_dataset_settings_leave_out_the_tissue(tmp_path, monkeypatch, anny
 
     from pressurepose.sim.mattress import MattressParams
 
-    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco"):
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0):
         return (
             fake_batch(np.array(indices, dtype=np.int64), np.random.default_rng(seed), split),
             [""] * len(indices),

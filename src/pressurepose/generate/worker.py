@@ -104,7 +104,7 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
             g.split,
             ctx.sim2,
             ctx.settle,
-            ctx.pillow,
+            pillow=ctx.pillow,
         )
         chunk += 1
         sampling_rejections.update(counts)
