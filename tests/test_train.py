@@ -522,6 +522,40 @@ def test_bands_against_a_naive_reference(data32):
         TrainConfig.smoke(bands=-0.1)
 
 
+def test_texture_against_a_per_taxel_reference(data32):
+    """Uneven gain: the same draws applied taxel by taxel give the same images, the force is kept
+    (before the sensor's threshold and ceiling), the loaded outline can only shrink, and the off
+    images are untouched."""
+    from pressurepose.train.augment import REPRESS_THRESHOLD_MMHG, texture_batch
+
+    p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:6].double()
+    inputs = NetInputs(pressure_mmhg=p)
+    assert torch.equal(texture_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = texture_batch(inputs, 0.5, torch.Generator().manual_seed(5)).pressure_mmhg
+    g = torch.Generator().manual_seed(5)
+    u = torch.rand(3, 6, generator=g).double()
+    z_row = torch.randn(6, 64, 1, generator=g).double()
+    z_taxel = torch.randn(6, 64, 27, generator=g).double()
+    on = u[0] < 0.5
+    assert 0 < int(on.sum()) < 6
+    for i in range(6):
+        if not on[i]:
+            assert torch.equal(out[i], p[i])
+            continue
+        s_row, s_taxel = 0.05 + 0.30 * float(u[1, i]), 0.05 + 0.25 * float(u[2, i])
+        ref = p[i].clone()
+        for r in range(64):
+            for c in range(27):
+                ref[r, c] *= math.exp(s_row * float(z_row[i, r, 0]) + s_taxel * float(z_taxel[i, r, c]))
+        ref = ref * float(p[i].sum()) / float(ref.sum())
+        ref = torch.where(ref >= REPRESS_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
+        assert torch.allclose(out[i], ref, atol=1e-9), i
+        assert bool(((out[i] > 0) <= (p[i] > 0)).all())  # no taxel starts to read
+        assert abs(float(out[i].sum()) / float(p[i].sum()) - 1) < 0.1
+    with pytest.raises(ValueError, match="texture"):
+        TrainConfig.smoke(texture=1.5)
+
+
 def test_predict_ik_steps_only_for_the_heatmap_arch(trained_run, tmp_path, capsys):
     path = tmp_path / "one.npy"
     np.save(path, np.full((64, 27), 5.0, dtype=np.float32))

@@ -147,6 +147,27 @@ def bands_batch(inputs: NetInputs, share: float, generator: torch.Generator | No
     return _read_again(inputs, p * gain[:, :, None], u[0] < share)
 
 
+# Texture augmentation: log-normal gain sds drawn per image (docs/network.md "The sensor's texture").
+TEXTURE_ROW_SD = (0.05, 0.35)  # per row (real frames: row log-gain sd 0.16 sponge, 0.33 air)
+TEXTURE_TAXEL_SD = (0.05, 0.30)  # per taxel
+
+
+def texture_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
+    """Read a random `share` of the images through a mat of uneven gain: each row's gain
+    exp(s_r z_r) and each taxel's exp(s_t z_rc) (z standard normal, s_r ~ U(TEXTURE_ROW_SD), s_t ~
+    U(TEXTURE_TAXEL_SD)); the total kept, then the sensor's threshold and ceiling. A real mat's
+    rows and taxels differ in gain (PmatData's rows: log-gain sd 0.16-0.33 about the smoothed
+    reading); the simulation's sensor has one gain. Images not drawn are unchanged."""
+    p = inputs.pressure_mmhg
+    B, R, C = p.shape
+    u = torch.rand(3, B, generator=generator).to(p)
+    z_row = torch.randn(B, R, 1, generator=generator).to(p)
+    z_taxel = torch.randn(B, R, C, generator=generator).to(p)
+    s_row, s_taxel = _uniform(TEXTURE_ROW_SD, u[1]), _uniform(TEXTURE_TAXEL_SD, u[2])
+    gain = torch.exp(s_row[:, None, None] * z_row + s_taxel[:, None, None] * z_taxel)
+    return _read_again(inputs, p * gain, u[0] < share)
+
+
 # Pillow augmentation: ranges drawn per image (docs/network.md, "Real frames span the mat").
 PILLOW_BEYOND_HEAD_M = (0.10, 0.45)  # its far edge beyond the head joint, toward the head end
 PILLOW_PAST_NECK_M = (-0.03, 0.05)  # its near edge past the neck joint, toward the feet
@@ -203,4 +224,4 @@ def pillow_batch(inputs: NetInputs, joints: torch.Tensor, share: float, generato
     return _read_again(inputs, q, on)
 
 
-__all__ = ["bands_batch", "mirror_batch", "pillow_batch", "repress_batch", "shift_batch"]
+__all__ = ["bands_batch", "mirror_batch", "pillow_batch", "repress_batch", "shift_batch", "texture_batch"]

@@ -58,6 +58,8 @@ class TrainConfig:
             of all under side-lying people (0 = off; `train.augment.repress_batch`).
         pillow: augmentation: share of training images whose head rests on a pillow (the head's
             load spread over a broad patch reaching beyond the head; `train.augment.pillow_batch`; 0 = off).
+        texture: augmentation: share of training images read through a mat of uneven gain (random
+            per-row and per-taxel log-normal gains, the force kept; `train.augment.texture_batch`; 0 = off).
         texture_sigma: the network smooths every reading within its loaded taxels by a Gaussian of
             this many taxels before its channels, in training and in use (detail at the taxel scale
             out, the outline kept; `net.preprocess.smooth_loaded`; 0 = off).
@@ -97,6 +99,7 @@ class TrainConfig:
     repress: float = 0.0
     bands: float = 0.0
     pillow: float = 0.0
+    texture: float = 0.0
     texture_sigma: float = 0.0
     lr_gamma: float = 1.0
     init: Path | None = None
@@ -145,7 +148,7 @@ class TrainConfig:
             raise UserError(
                 f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, {self.shift_cols}"
             )
-        for name in ("mirror", "repress", "bands", "pillow"):
+        for name in ("mirror", "repress", "bands", "pillow", "texture"):
             if not 0 <= getattr(self, name) <= 1:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 <= self.dropout < 1:

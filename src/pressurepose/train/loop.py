@@ -26,7 +26,14 @@ from pressurepose.files import atomic_write
 from pressurepose.net.heatmap import localisation_loss
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
-from pressurepose.train.augment import bands_batch, mirror_batch, pillow_batch, repress_batch, shift_batch
+from pressurepose.train.augment import (
+    bands_batch,
+    mirror_batch,
+    pillow_batch,
+    repress_batch,
+    shift_batch,
+    texture_batch,
+)
 from pressurepose.train.checkpoint import (
     CHECKPOINT_FILE,
     MODEL_FILE,
@@ -81,6 +88,8 @@ def step_loss(
         inputs = pillow_batch(inputs, targets.joints, cfg.pillow, generator)
     if augment and cfg.bands > 0:
         inputs = bands_batch(inputs, cfg.bands, generator)
+    if augment and cfg.texture > 0:
+        inputs = texture_batch(inputs, cfg.texture, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
     est = ests[-1]
     scale = net.head.shape_scale()
