@@ -493,10 +493,18 @@ def test_mirror_flips_images_and_labels_as_the_physics_does(anny64):
     assert float((flipped.pressure_mmhg - there).abs().max()) < 1e-3 * float(here.max())
 
 
+def _read_as_the_sensor(ref, p):
+    """A reference image scaled to p's total, then the sensor's threshold and ceiling."""
+    from pressurepose.train.augment import REPRESS_THRESHOLD_MMHG
+
+    ref = ref * float(p.sum()) / float(ref.sum())
+    return torch.where(ref >= REPRESS_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
+
+
 def test_bands_against_a_naive_reference(data32):
     """Air-cell bands: a per-row loop gives the same images, the force is kept, rows of the same
     phase get the same gain, and the off images are untouched."""
-    from pressurepose.train.augment import REPRESS_THRESHOLD_MMHG, bands_batch
+    from pressurepose.train.augment import bands_batch
 
     p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:6].double()
     inputs = NetInputs(pressure_mmhg=p)
@@ -514,8 +522,7 @@ def test_bands_against_a_naive_reference(data32):
         ref = p[i].clone()
         for r in range(64):
             ref[r] *= max(0.0, 1 + a * math.cos(2 * math.pi * (r - phi) / T))
-        ref = ref * float(p[i].sum()) / float(ref.sum())
-        ref = torch.where(ref >= REPRESS_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
+        ref = _read_as_the_sensor(ref, p[i])
         assert torch.allclose(out[i], ref, atol=1e-9), i
         assert abs(float(out[i].sum()) / float(p[i].sum()) - 1) < 0.1
     with pytest.raises(ValueError, match="bands"):
@@ -526,7 +533,7 @@ def test_texture_against_a_per_taxel_reference(data32):
     """Uneven gain: the same draws applied taxel by taxel give the same images, the force is kept
     (before the sensor's threshold and ceiling), the loaded outline can only shrink, and the off
     images are untouched."""
-    from pressurepose.train.augment import REPRESS_THRESHOLD_MMHG, texture_batch
+    from pressurepose.train.augment import texture_batch
 
     p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:6].double()
     inputs = NetInputs(pressure_mmhg=p)
@@ -547,8 +554,7 @@ def test_texture_against_a_per_taxel_reference(data32):
         for r in range(64):
             for c in range(27):
                 ref[r, c] *= math.exp(s_row * float(z_row[i, r, 0]) + s_taxel * float(z_taxel[i, r, c]))
-        ref = ref * float(p[i].sum()) / float(ref.sum())
-        ref = torch.where(ref >= REPRESS_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
+        ref = _read_as_the_sensor(ref, p[i])
         assert torch.allclose(out[i], ref, atol=1e-9), i
         assert bool(((out[i] > 0) <= (p[i] > 0)).all())  # no taxel starts to read
         assert abs(float(out[i].sum()) / float(p[i].sum()) - 1) < 0.1

@@ -116,13 +116,14 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             t: {e: sum(1 for r in sel if r["posture"] == t and r["estimated_posture"] == e) for e in POSTURES}
             for t in ("supine", "left", "right")
         }
+        height_error = np.array([r["estimated_height_m"] - r["height_m"] for r in sel])
         summary[mattress] = {
             "frames": len(sel),
             "posture_accuracy": sum(r["posture"] == r["estimated_posture"] for r in sel) / len(sel),
             "confusion": confusion,
-            "height_mae_m": float(np.mean([abs(r["estimated_height_m"] - r["height_m"]) for r in sel])),
-            "height_median_abs_m": float(np.median([abs(r["estimated_height_m"] - r["height_m"]) for r in sel])),
-            "height_median_signed_m": float(np.median([r["estimated_height_m"] - r["height_m"] for r in sel])),
+            "height_mae_m": float(np.abs(height_error).mean()),
+            "height_median_abs_m": float(np.median(np.abs(height_error))),
+            "height_median_signed_m": float(np.median(height_error)),
             "mass_mae_kg": float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in sel])),
         }
     variants = {}

@@ -19,8 +19,6 @@ independent N(1, 0.2) factors after the sum normalisation (which would cancel th
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 
@@ -67,12 +65,7 @@ def smooth_loaded(pressure_mmhg: torch.Tensor, sigma_taxels: float) -> torch.Ten
     "The sensor's texture"). sigma 0: unchanged."""
     if sigma_taxels <= 0:
         return pressure_mmhg
-    r = max(1, int(math.ceil(3 * sigma_taxels)))
-    k = torch.arange(-r, r + 1, dtype=pressure_mmhg.dtype, device=pressure_mmhg.device)
-    k = torch.exp(-0.5 * (k / sigma_taxels) ** 2)
-    k = k / k.sum()
-    x = pressure_mmhg[:, None]
-    y = F.conv2d(F.conv2d(x, k.view(1, 1, -1, 1), padding=(r, 0)), k.view(1, 1, 1, -1), padding=(0, r))[:, 0]
+    y = gaussian_blur(pressure_mmhg, sigma_taxels)
     loaded = pressure_mmhg > 0
     y = torch.where(loaded, y, torch.zeros_like(y))
     scale = pressure_mmhg.sum((-2, -1), keepdim=True) / y.sum((-2, -1), keepdim=True).clamp(min=1e-12)

@@ -95,7 +95,10 @@ def spread_load(
 ) -> torch.Tensor:
     """What the mat reads (B, R, C) beneath the pillows: the pressure on the footprint `under`
     (B, R, C) spread by a Gaussian of sigma = spread x thickness (B,) (cell centres x (R,) and
-    y (C,), m), kept on the footprint and scaled to its force; elsewhere unchanged."""
+    y (C,), m), kept on the footprint and scaled to its force; elsewhere unchanged. Not
+    `blur.gaussian_blur`: sigma here is in metres per body on a grid of unequal pitches, and each
+    source cell's load is normalised over the whole grid, so a head at the mattress's edge keeps
+    its force rather than losing it to the zero padding."""
     on = under.to(pressure.dtype)
     load = pressure * on
     sigma = (pillow.spread * thickness).clamp(min=1e-6)[:, None, None]
