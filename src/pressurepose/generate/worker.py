@@ -154,6 +154,9 @@ def _sample(sampler, indices: list[int]):
         return (sampler.sample(ok) if ok else None), bad
 
 
+_PILLOW_STREAM = 0x9111  # keeps the pillows' draws apart from any other stream of the sample
+
+
 def pillow_thickness(config, index, share: float) -> np.ndarray:
     """Each sample's pillow (m; 0: none) for a `SamplingConfig` and sampler indices: with
     probability `share` a thickness uniform in sim.pillow.PILLOW_THICKNESS_M, a function of
@@ -167,9 +170,6 @@ def pillow_thickness(config, index, share: float) -> np.ndarray:
         u = np.random.default_rng([*key, int(i), _PILLOW_STREAM]).random(2)
         out[k] = lo + (hi - lo) * u[1] if u[0] < share else 0.0
     return out
-
-
-_PILLOW_STREAM = 0x9111  # keeps the pillows' draws apart from any other stream of the sample
 
 
 def simulate_indices(

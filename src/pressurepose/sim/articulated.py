@@ -336,8 +336,7 @@ def rest_articulated(
         else contact.penetration(*pose_in_mat(rest, final))
     )
     foundation = done.foundation.view(B, nr, nc)
-    if under is not None:  # what the mat reads beneath the pillows
-        X, Y = cell_centres(mat, cfg.sub, covered=True, dtype=dtype, device=device)
+    if under is not None:  # what the mat reads beneath the pillows (the cell centres from above)
         foundation = spread_load(foundation, under.view(B, nr, nc), cfg.pillow, pillow_m, X[:, 0], Y[0])
     force, w_max = done.force, done.max_compression
     failure = []
