@@ -1,11 +1,16 @@
 """arch=heatmap: how the IK settings move the joint error, on a run's own validation split.
 
     PYTHONPATH=src .venv/bin/python benchmarks/heatmap_ik.py --model RUN --data DIR [--n 512]
+        [--split val|test] [--grid weights|damping]
 
 Prints MPJPE (mm) of the localised joints, of the regression head's body (no IK) and of the
 body after IK for a grid of (steps, joint sigma, prior sigma, damping), and the time per batch
-of 128 for the IK. The validation split is the one `train` held out (same seed and fraction),
-so choosing the defaults here does not look at the test split.
+of 128 for the IK. With `--split val` the samples are the ones `train` held out of DIR (same
+seed and fraction); with `--split test`, DIR's test split - for a dataset the model never
+trained on (a fresh seed) and that no report evaluates, a validation set too. Either way
+choosing the defaults here does not look at the evaluation's test split. Grids: `weights`
+(steps, joint sigma, prior sigma, spread weights; damping 1), `damping` (the LM damping and the
+prior at the joint sigma and spread weights of IKConfig, 3-4 steps).
 """
 
 from __future__ import annotations
@@ -29,12 +34,18 @@ def main() -> None:
     parser.add_argument("--model", required=True)
     parser.add_argument("--data", required=True)
     parser.add_argument("--n", type=int, default=512)
+    parser.add_argument("--split", default="val", help="val: the run's held-out part of DIR; else DIR's split")
+    parser.add_argument("--grid", choices=("weights", "damping"), default="weights")
     args = parser.parse_args()
     torch.set_num_threads(1)
     net, record = load_network(args.model)
     cfg = TrainConfig.from_json(record["train"]).resolved()
-    dataset = open_dataset(args.data)
-    _, val = _split(len(dataset), cfg)
+    if args.split == "val":
+        dataset = open_dataset(args.data)
+        _, val = _split(len(dataset), cfg)
+    else:
+        dataset = open_dataset(args.data, split=args.split)
+        val = list(range(len(dataset)))
     batch = collate([dataset[i] for i in val[: args.n]])
     inputs = NetInputs(batch["pressure_mmhg"], gender=batch["gender"])
     true = batch["joints"]
@@ -44,12 +55,15 @@ def main() -> None:
         raw, loc = net.mod1(x)
         params = net.head(raw, inputs.gender if net.config.gender_input else None)
         print(
-            f"{len(val[: args.n])} validation samples: localised {err(loc.joints):.1f} mm, "
+            f"{len(val[: args.n])} samples ({args.split}): localised {err(loc.joints):.1f} mm, "
             f"head body {err(net.body.joints(params)):.1f} mm"
         )
         print("| steps | joint sigma (m) | prior sigma (rad) | damping | spread weights | MPJPE (mm) | ms per 128 |")
         print("| --- | --- | --- | --- | --- | --- | --- |")
-        grid = itertools.product((1, 3, 5), (0.03, 0.1), (0.25, 0.5, 1.0, 2.0), (1.0,), (False, True))
+        if args.grid == "weights":
+            grid = itertools.product((1, 3, 5), (0.03, 0.1), (0.25, 0.5, 1.0, 2.0), (1.0,), (False, True))
+        else:
+            grid = itertools.product((3, 4), (IKConfig.joint_sigma_m,), (2.0, 4.0, 8.0), (0.3, 0.5, 1.0), (True,))
         for steps, js, ps, d, sw in grid:
             ik = IKConfig(steps, js, ps, d, sw)
             t0 = time.perf_counter()

@@ -2,7 +2,7 @@
 at batch 1 and throughput at batch 128 (CNN + body model + mesh, what `predict` runs).
 
     .venv/bin/python benchmarks/net.py [--archs fast paper] [--batch 128] [--steps 3] [--device cpu]
-                                       [--threads N]
+                                       [--threads N] [--flip-test]
 
 Training steps use the real loop's loss (`train.loop.step_loss`) on random pressure images and
 targets of the right shapes (speed does not depend on the values); Mod2 steps include Mod1's
@@ -72,9 +72,11 @@ def train_speed(body, arch: str, module: int, B: int, steps: int, device) -> flo
     return B / wall, B / cpu
 
 
-def predict_speed(body, arch: str, module: int, B: int, steps: int, device) -> tuple[float, float]:
+def predict_speed(
+    body, arch: str, module: int, B: int, steps: int, device, flip_test: bool = False
+) -> tuple[float, float]:
     """Seconds per batch of B: network + body model + mesh (+ PMR for Mod2's input)."""
-    net = PressureNet(NetConfig(arch=arch, modules=module), body=body).to(device).eval()
+    net = PressureNet(NetConfig(arch=arch, modules=module, flip_test=flip_test), body=body).to(device).eval()
     # A new batch each call, as in `predict`: nothing computed for one batch's bodies (the
     # body model keeps the last shapes' skeleton pass) may be reused by the next.
     batches = [_batch(B, device, seed)[0] for seed in range(4)]
@@ -94,6 +96,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--flip-test", action="store_true", help="heatmap: also predict with the flip test")
     args = parser.parse_args()
     if args.threads:
         # On a machine shared with other jobs, OpenMP threads that wait for a descheduled
@@ -121,6 +124,14 @@ def main() -> None:
                 f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
                 flush=True,
             )
+            if arch == "heatmap" and args.flip_test:
+                lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, True)
+                thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, True)
+                print(
+                    f"| {arch}, flip test | {module} | - | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
+                    f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

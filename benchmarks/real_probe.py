@@ -1,6 +1,6 @@
 """What in a real frame turns a network (issue 22): PmatData frames altered and read again.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/real_probe.py --model RUN [--groups BCD] [--sim DATASET]
+    PYTHONPATH=src .venv/bin/python benchmarks/real_probe.py --model RUN [--groups BCD] [--bands] [--sim DATASET]
 
 Each variant alters every frame of the chosen groups the same way - the first k loaded rows
 (head end) zeroed or narrowed to a head's width, a share of the loaded rows zeroed at either end, the pressure made uniform on
@@ -129,6 +129,27 @@ def probe_real(net, root: Path, groups: str) -> None:
         print(f"  {name:34s} accuracy {acc:.3f}  height {height:+5.1f} cm  supine read prone {prone:3d} | {groups_txt}")
 
 
+def probe_bands(net, root: Path, groups: str, rows: int = 4) -> None:
+    """Zero one band of `rows` rows at each 5% of every frame's loaded extent and read again:
+    how many reads the band turns right (fixed) and wrong (broke) - where a network's answer on
+    real frames comes from (docs/network.md "Occlusion")."""
+    records = [r for r in load_index(root) if r.group in groups]
+    images = torch.from_numpy(load_images(records))
+    truth = [GROUP_POSTURE[r.group] for r in records]
+    ok = np.array([g == t for g, t in zip(read_bodies(net, images).postures, truth)])
+    extent = [loaded_rows(x) for x in images]
+    print(f"PmatData groups {groups}: {len(records)} frames, accuracy {ok.mean():.3f}; a {rows}-row band zeroed at")
+    for share in np.arange(0.0, 1.0, 0.05):
+        cut = images.clone()
+        for i, (a, b) in enumerate(extent):
+            start = a + int(share * (b - a))
+            cut[i, start : start + rows] = 0
+        got = np.array([g == t for g, t in zip(read_bodies(net, cut).postures, truth)])
+        print(
+            f"  {share:4.2f} of the extent: accuracy {got.mean():.3f}  fixed {int((~ok & got).sum()):3d}  broke {int((ok & ~got).sum()):3d}"
+        )
+
+
 def probe_sim(net, folder: Path) -> None:
     from pressurepose.train.data import KEYS, open_dataset, standardise
 
@@ -150,10 +171,13 @@ def main() -> None:
     ap.add_argument("--model", default="default")
     ap.add_argument("--groups", default="BCD", help="PmatData groups (B supine, C right, D left)")
     ap.add_argument("--pmatdata", default=PMATDATA, help="PmatData folder (default: the packaged copy)")
+    ap.add_argument("--bands", action="store_true", help="also the sliding-band probe (probe_bands)")
     ap.add_argument("--sim", default=None, help="a generated dataset folder: the same cuts on its supine test images")
     args = ap.parse_args()
     net, _ = load_network(Path(args.model))
     probe_real(net, resolve_pmatdata(args.pmatdata), args.groups)
+    if args.bands:
+        probe_bands(net, resolve_pmatdata(args.pmatdata), args.groups)
     if args.sim:
         probe_sim(net, Path(args.sim))
 

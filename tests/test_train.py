@@ -562,10 +562,48 @@ def test_texture_against_a_per_taxel_reference(data32):
         TrainConfig.smoke(texture=1.5)
 
 
-def test_predict_ik_steps_only_for_the_heatmap_arch(trained_run, tmp_path, capsys):
+def test_occlude_against_a_per_row_reference(data32):
+    """Occlusion: the same draws applied row by row zero the same band - k in [2, 8]
+    consecutive rows starting on a loaded row (cut by the mat's end) - and leave every other
+    taxel, the images not drawn and an empty image untouched."""
+    from pressurepose.train.augment import occlude_batch
+
+    p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:8].double()
+    p[7] = 0.0  # an empty image
+    inputs = NetInputs(pressure_mmhg=p)
+    assert torch.equal(occlude_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = occlude_batch(inputs, 0.6, torch.Generator().manual_seed(3)).pressure_mmhg
+    u = torch.rand(3, 8, generator=torch.Generator().manual_seed(3)).double()
+    drawn = 0
+    for i in range(8):
+        loaded = [r for r in range(64) if float(p[i, r].sum()) > 0]
+        if not (float(u[0, i]) < 0.6 and loaded):
+            assert torch.equal(out[i], p[i]), i
+            continue
+        drawn += 1
+        first, last = loaded[0], loaded[-1]
+        start = first + math.floor(float(u[1, i]) * (last - first + 1))
+        k = 2 + math.floor(float(u[2, i]) * 7)
+        assert first <= start <= last and 2 <= k <= 8
+        ref = p[i].clone()
+        ref[start : start + k] = 0.0
+        assert torch.equal(out[i], ref), i
+        assert float(out[i].sum()) <= float(p[i].sum())
+    assert drawn >= 2
+    with pytest.raises(ValueError, match="occlude"):
+        TrainConfig.smoke(occlude=1.5)
+
+
+def test_predict_ik_steps_and_flip_test_only_for_the_heatmap_arch(trained_run, tmp_path, capsys):
     path = tmp_path / "one.npy"
     np.save(path, np.full((64, 27), 5.0, dtype=np.float32))
+    for flags, said in ((["--ik-steps", "5"], "--ik-steps apply"), (["--flip-test"], "--flip-test apply")):
+        capsys.readouterr()
+        args = ["predict", "--model", str(trained_run), "--out", str(tmp_path / "o"), *flags, str(path)]
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert said in err and "arch heatmap" in err and "Traceback" not in err
     capsys.readouterr()
-    args = ["predict", "--model", str(trained_run), "--out", str(tmp_path / "o"), "--ik-steps", "5", str(path)]
+    args = ["evaluate", "--model", str(trained_run), "--data", str(tmp_path), "--flip-test"]
     assert main(args) == 2
-    assert "--ik-steps is for arch heatmap" in capsys.readouterr().err
+    assert "--flip-test apply to arch heatmap" in capsys.readouterr().err

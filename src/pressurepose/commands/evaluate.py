@@ -18,6 +18,7 @@ import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from pressurepose.body.params import BodyParams
+from pressurepose.commands.netopts import options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.eval import evaluation as E
@@ -49,12 +50,16 @@ class EvaluateConfig:
     """Training samples read for the baselines (mean body, nearest pressure image)."""
     failures: int = 8
     """Worst cases drawn in failures.png."""
+    ik_steps: int | None = None
+    """Arch heatmap: IK steps instead of the model's own (predict --ik-steps)."""
+    flip_test: bool = False
+    """Arch heatmap: localise on the mirror image too and average (predict --flip-test)."""
 
 
 def run_evaluate(cfg: EvaluateConfig) -> Written:
     if cfg.batch < 1:
         raise UserError(f"batch must be >= 1, got {cfg.batch}")
-    net, _ = load_network(cfg.model)
+    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
     test = E.open_split(cfg.data, cfg.split)
     n = len(test) if cfg.limit is None else min(cfg.limit, len(test))
     if n == 0:
@@ -168,7 +173,7 @@ def _cm(x: float | None) -> str:
 def _markdown(r: dict) -> str:
     has_base = bool(r["baselines_vpe_m"])
     lines = [
-        f"# Evaluation: {r['config']['model']} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
+        f"# Evaluation: {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
         "",
         "All errors unaligned except PA-MPJPE; 3DVPE as released (camera-facing vertices, two-way, "
         "area-weighted). Seed = Bodies at Rest Table 5, synthetic, best network.",

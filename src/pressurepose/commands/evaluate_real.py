@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.commands.netopts import options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index
 from pressurepose.errors import UserError
@@ -61,6 +62,10 @@ class RealEvalConfig:
     threshold: float = 20.0
     """Raw noise threshold of the frames' normalisation (data README)."""
     batch: int = 32
+    ik_steps: int | None = None
+    """Arch heatmap: IK steps instead of the model's own (predict --ik-steps)."""
+    flip_test: bool = False
+    """Arch heatmap: localise on the mirror image too and average (predict --flip-test)."""
     data: Path | None = None
     """An imported real-data .npz with point clouds (`import-pressurepose-real`): instead of
     PmatData, report 3DVPE against the clouds per participant and height / mass errors."""
@@ -85,7 +90,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     records = [r for r in load_index(cfg.pmatdata) if r.group in groups]
     if not records:
         raise UserError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
-    net, _ = load_network(cfg.model)
+    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
     images = torch.from_numpy(load_images(records, cfg.threshold))
     heights = [r.height_cm / 100 for r in records]
     masses = [r.weight_kg for r in records]
@@ -149,7 +154,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
 
 def _markdown(r: dict) -> str:
     lines = [
-        f"# {r['config']['model']} on PmatData experiment II ({r['frames']} frames, groups {r['config']['groups']})",
+        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on PmatData experiment II ({r['frames']} frames, groups {r['config']['groups']})",
         "",
         "| mattress | frames | posture accuracy | height MAE (cm) | height error median: absolute / signed (cm) "
         "| mass MAE (kg) |",
@@ -194,7 +199,7 @@ def run_evaluate_cloud(cfg) -> Written:
     arrays = load_cloud_file(cfg.data)
     images = torch.from_numpy(check_images(arrays["pressure_mmhg"], Path(cfg.data)))
     n = len(images)
-    net, _ = load_network(cfg.model)
+    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
     genders = arrays.get("gender")
     gender = torch.tensor(
         [{"female": 1.0, "male": 0.0}.get(str(g), GENDER_UNKNOWN) for g in genders]
@@ -280,7 +285,7 @@ def run_evaluate_cloud(cfg) -> Written:
 def _cloud_markdown(r: dict) -> str:
     o = r["overall"]
     lines = [
-        f"# {r['config']['model']} on {r['config']['data']} ({r['frames']} frames, {o['participants']} participants)",
+        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on {r['config']['data']} ({r['frames']} frames, {o['participants']} participants)",
         "",
         f"3DVPE against the point clouds: **{o['vpe_m'] * 100:.2f} cm** (mean of the participants' means, as "
         f"released; {o['vpe_m_over_frames'] * 100:.2f} cm over frames).",

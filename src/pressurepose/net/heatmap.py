@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pressurepose.body.joints import NUM_JOINTS
+from pressurepose.body.joints import J24_MIRROR, NUM_JOINTS
 from pressurepose.mat import MatSpec
 from pressurepose.net.heatmap_fused import fusable, fused_trunk
 from pressurepose.net.losses import JOINT_SCALE_M
@@ -107,6 +107,29 @@ def integral_joints(maps: torch.Tensor, centres: torch.Tensor) -> Localisation:
         spread_m2=spread,
         logits=logits,
         centres=centres,
+    )
+
+
+def flip_merged(loc: Localisation, width_m: float) -> Localisation:
+    """The flip test's localisation: `loc` holds 2B images, the first B as given and the last B
+    their mirror images (columns reversed). The mirrored half is mapped back - joints reflected
+    across the mat's centre line (y -> W - y, W the sensing width) with left and right swapped
+    (J24_MIRROR), the heatmaps flipped - and averaged with the first half: each joint's position,
+    height, heatmap variance and logits. The mirror image of a body's image is the image of the
+    mirrored body (the bed and the simulation are mirror symmetric), so both halves estimate
+    the same joints and their mean has less of either's error (docs/network.md "Flip test")."""
+    B = loc.joints.shape[0] // 2
+    perm = list(J24_MIRROR)
+    reflect = loc.joints.new_tensor([1.0, -1.0, 1.0]), loc.joints.new_tensor([0.0, width_m, 0.0])
+    joints = loc.joints[B:, perm] * reflect[0] + reflect[1]
+    grid = loc.grid_joints[B:, perm] * reflect[0][:2] + reflect[1][:2]
+    mean = lambda a, b: (a + b) / 2  # noqa: E731
+    return Localisation(
+        joints=mean(loc.joints[:B], joints),
+        grid_joints=mean(loc.grid_joints[:B], grid),
+        spread_m2=mean(loc.spread_m2[:B], loc.spread_m2[B:, perm]),
+        logits=mean(loc.logits[:B], loc.logits[B:, perm].flip(-1)),
+        centres=loc.centres,
     )
 
 

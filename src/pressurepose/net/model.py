@@ -23,7 +23,7 @@ from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.net.cnn import make_cnn
 from pressurepose.net.head import ParamHead
-from pressurepose.net.heatmap import HeatmapNet, Localisation
+from pressurepose.net.heatmap import HeatmapNet, Localisation, flip_merged
 from pressurepose.net.ik import IKConfig, fit_to_joints
 from pressurepose.net.pmr import reconstruct_maps
 from pressurepose.net.preprocess import (
@@ -51,6 +51,9 @@ class NetConfig:
     dropout: float = 0.1  # the seed's dropout after every tanh (paper) / in the FC head (fast)
     width: int = 1  # channel multiplier of the fast CNN (1: 1.3 M parameters)
     ik_steps: int = 3  # heatmap arch: IK steps fitting the body to the localised joints (eval only)
+    # heatmap arch, eval only: also localise on the mirror image and average (net.heatmap.flip_merged);
+    # twice the CNN's work per image.
+    flip_test: bool = False
     # Smooth the reading within its loaded taxels first (sigma in taxels; 0: off), training and
     # inference alike: detail at the taxel scale out (net.preprocess.smooth_loaded).
     texture_sigma_taxels: float = 0.0
@@ -60,6 +63,10 @@ class NetConfig:
             raise UserError(f"NetConfig.arch must be 'paper', 'fast' or 'heatmap', got {self.arch!r}")
         if self.arch == "heatmap" and self.modules != 1:
             raise UserError("NetConfig.arch 'heatmap' is one module (modules=1)")
+        if self.flip_test and self.arch != "heatmap":
+            raise UserError(
+                f"the flip test is for arch 'heatmap' (its localised joints); this network is {self.arch!r}"
+            )
         if not 0 <= self.ik_steps <= 50:
             raise UserError(f"NetConfig.ik_steps must lie in [0, 50], got {self.ik_steps}")
         if self.modules not in (1, 2):
@@ -218,7 +225,11 @@ class PressureNet(nn.Module):
     def _localise_and_fit(self, x: torch.Tensor, gender: torch.Tensor | None, mesh: bool, maps: bool) -> Estimate:
         """arch heatmap: localise the joints, regress the body, and (in eval mode) fit its
         joints to the localised ones by `ik_steps` IK steps (net/ik.py)."""
-        raw, loc = self.mod1(x)
+        if self.config.flip_test and not self.training:
+            raw, loc = self.mod1(torch.cat([x, x.flip(-1)]))
+            raw, loc = raw[: x.shape[0]], flip_merged(loc, self.mat.sensing_width_m)
+        else:
+            raw, loc = self.mod1(x)
         params = self.head(raw, gender)
         if not self.training and self.config.ik_steps > 0:
             ik = IKConfig(steps=self.config.ik_steps)

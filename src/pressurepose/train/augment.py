@@ -1,6 +1,7 @@
 """Training augmentations (`pressurepose train` flags): images moved along and across the bed,
 mirrored left-right, re-pressed into other mattresses from their depth labels, read through
-an air-cell mattress's transverse bands, and the head resting on a pillow (docs/network.md)."""
+an air-cell mattress's transverse bands, the head resting on a pillow, and bands of rows
+taken out (docs/network.md)."""
 
 from __future__ import annotations
 
@@ -224,4 +225,39 @@ def pillow_batch(inputs: NetInputs, joints: torch.Tensor, share: float, generato
     return _read_again(inputs, q, on)
 
 
-__all__ = ["bands_batch", "mirror_batch", "pillow_batch", "repress_batch", "shift_batch", "texture_batch"]
+# Occlusion augmentation: how many rows one band takes out (docs/network.md "Occlusion").
+OCCLUDE_ROWS = (2, 8)
+
+
+def occlude_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
+    """Zero one band of k ~ U{OCCLUDE_ROWS} consecutive rows in a random `share` of the images,
+    its first row drawn uniformly among the image's loaded rows (so it lies on the body: the
+    head end, the trunk or the heels alike); the labels stay. Why: a network trained without it
+    reads PmatData's frames from a few bands - zeroing any 4 loaded rows of the real frames
+    turned 9-64 of 255 posture reads (heat_tex, docs/network.md "Occlusion") - so whatever a real
+    band holds that the simulation does not (a pillow's edge, heels shaped otherwise) decides
+    its answer. Empty images and images not drawn are unchanged."""
+    p = inputs.pressure_mmhg
+    B, R, _ = p.shape
+    u = torch.rand(3, B, generator=generator).to(p)
+    rows = torch.arange(R, device=p.device)
+    loaded = p.sum(-1) > 0  # (B, R)
+    first = torch.where(loaded, rows, R).amin(1)
+    last = torch.where(loaded, rows, -1).amax(1)
+    start = first + (u[1] * (last - first + 1).clamp(min=0)).floor().long()
+    k = OCCLUDE_ROWS[0] + (u[2] * (OCCLUDE_ROWS[1] - OCCLUDE_ROWS[0] + 1)).floor().long()
+    band = (rows[None] >= start[:, None]) & (rows[None] < (start + k)[:, None])  # (B, R)
+    on = (u[0] < share) & loaded.any(1)
+    q = torch.where((on[:, None] & band)[:, :, None], torch.zeros_like(p), p)
+    return dataclasses.replace(inputs, pressure_mmhg=q)
+
+
+__all__ = [
+    "bands_batch",
+    "mirror_batch",
+    "occlude_batch",
+    "pillow_batch",
+    "repress_batch",
+    "shift_batch",
+    "texture_batch",
+]

@@ -130,6 +130,7 @@ NET_FIELDS = {
     "dropout": "number",
     "width": "int",
     "ik_steps": "int",
+    "flip_test": "bool",
     "texture_sigma_taxels": "number",
 }
 MAX_WIDTH = 16

@@ -29,6 +29,7 @@ from pressurepose.net.model import NetConfig, NetInputs, PressureNet
 from pressurepose.train.augment import (
     bands_batch,
     mirror_batch,
+    occlude_batch,
     pillow_batch,
     repress_batch,
     shift_batch,
@@ -90,6 +91,8 @@ def step_loss(
         inputs = bands_batch(inputs, cfg.bands, generator)
     if augment and cfg.texture > 0:
         inputs = texture_batch(inputs, cfg.texture, generator)
+    if augment and cfg.occlude > 0:
+        inputs = occlude_batch(inputs, cfg.occlude, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
     est = ests[-1]
     scale = net.head.shape_scale()

@@ -1,0 +1,37 @@
+"""Inference options of a loaded network, shared by `predict`, `evaluate` and `evaluate-real`:
+the heatmap arch's IK steps and its flip test (docs/network.md "Flip test")."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from pressurepose.errors import UserError
+
+
+def with_inference_options(net, ik_steps: int | None = None, flip_test: bool = False):
+    """`net` with its config's ik_steps and flip_test replaced where given (UserError when the
+    model is not arch heatmap or a value is out of range); unchanged when neither is given."""
+    changes = {}
+    if ik_steps is not None:
+        changes["ik_steps"] = ik_steps
+    if flip_test:
+        changes["flip_test"] = True
+    if not changes:
+        return net
+    if net.config.arch != "heatmap":
+        flags = " and ".join("--" + k.replace("_", "-") for k in changes)
+        raise UserError(f"{flags} apply to arch heatmap; this model is arch {net.config.arch}")
+    try:
+        net.config = dataclasses.replace(net.config, **changes)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    return net
+
+
+def options_label(ik_steps: int | None, flip_test: bool) -> str:
+    """' (flip test, 6 IK steps)' for a report's title; '' for the model's own settings."""
+    parts = (["flip test"] if flip_test else []) + ([f"{ik_steps} IK steps"] if ik_steps is not None else [])
+    return f" ({', '.join(parts)})" if parts else ""
+
+
+__all__ = ["options_label", "with_inference_options"]

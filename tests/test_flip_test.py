@@ -1,0 +1,112 @@
+"""The heatmap arch's flip test (`predict --flip-test`): the merge against a naive loop, the
+mirror symmetry it gives the localisation, bad inputs."""
+
+import pytest
+import torch
+
+from pressurepose.body.joints import J24_MIRROR, NUM_JOINTS
+from pressurepose.commands.netopts import options_label, with_inference_options
+from pressurepose.errors import UserError
+from pressurepose.mat import MatSpec
+from pressurepose.net import NetConfig, NetInputs, PressureNet
+from pressurepose.net.heatmap import Localisation, cell_centres, flip_merged
+
+W = MatSpec().sensing_width_m
+
+
+def _mirror_back(joints):
+    """Naive: the joints of a mirrored body, joint by joint, reflected and renamed."""
+    out = torch.empty_like(joints)
+    for j in range(NUM_JOINTS):
+        m = J24_MIRROR[j]
+        out[:, j, 0], out[:, j, 1], out[:, j, 2] = joints[:, m, 0], W - joints[:, m, 1], joints[:, m, 2]
+    return out
+
+
+def test_flip_merged_against_a_naive_loop():
+    g = torch.Generator().manual_seed(0)
+    B, H, Wc = 3, 32, 14
+    loc = Localisation(
+        joints=torch.rand(2 * B, NUM_JOINTS, 3, generator=g, dtype=torch.float64),
+        grid_joints=torch.rand(2 * B, NUM_JOINTS, 2, generator=g, dtype=torch.float64),
+        spread_m2=torch.rand(2 * B, NUM_JOINTS, generator=g, dtype=torch.float64),
+        logits=torch.randn(2 * B, NUM_JOINTS, H, Wc, generator=g, dtype=torch.float64),
+        centres=cell_centres(MatSpec(), H, Wc),
+    )
+    out = flip_merged(loc, W)
+    back = _mirror_back(loc.joints[B:])
+    torch.testing.assert_close(out.joints, (loc.joints[:B] + back) / 2)
+    for b in range(B):
+        for j in range(NUM_JOINTS):
+            m = J24_MIRROR[j]
+            grid = torch.stack([loc.grid_joints[B + b, m, 0], W - loc.grid_joints[B + b, m, 1]])
+            torch.testing.assert_close(out.grid_joints[b, j], (loc.grid_joints[b, j] + grid) / 2)
+            assert abs(float(out.spread_m2[b, j]) - float(loc.spread_m2[b, j] + loc.spread_m2[B + b, m]) / 2) < 1e-12
+            for c in range(Wc):  # the heatmap's column c holds the mirror image's column Wc - 1 - c
+                want = (loc.logits[b, j, :, c] + loc.logits[B + b, m, :, Wc - 1 - c]) / 2
+                torch.testing.assert_close(out.logits[b, j, :, c], want)
+    assert out.joints.shape == (B, NUM_JOINTS, 3) and out.centres is loc.centres
+
+
+@pytest.mark.parametrize("flip", [True, False])
+def test_flip_test_makes_the_localisation_mirror_symmetric(anny32, flip):
+    """With the flip test the joints localised on a mirrored image are the mirrored joints of the
+    image (exactly, up to float round-off); an untrained network without it is far from that."""
+    torch.manual_seed(0)
+    net = PressureNet(NetConfig(arch="heatmap", gender_input=False, ik_steps=1, flip_test=flip), body=anny32).eval()
+    with torch.no_grad():  # sharper heatmaps than an untrained network's near-uniform ones
+        for w in net.mod1.maps.parameters():
+            w.mul_(30.0)
+    p = torch.rand(2, 64, 27) * 40 * (torch.rand(2, 64, 27) > 0.5)
+    with torch.inference_mode():
+        a = net(NetInputs(p), mesh=False)[-1].localisation.joints
+        b = net(NetInputs(p.flip(-1)), mesh=False)[-1].localisation.joints
+    gap = float((_mirror_back(b) - a).abs().max())
+    if flip:
+        assert gap < 1e-5
+    else:
+        assert gap > 1e-3  # millimetres, against the flip test's float round-off
+
+
+def test_flip_test_bad_inputs(anny32):
+    with pytest.raises(ValueError, match="flip test is for arch 'heatmap'"):
+        NetConfig(arch="fast", flip_test=True)
+    net = PressureNet(NetConfig(arch="fast", gender_input=False), body=anny32)
+    with pytest.raises(UserError, match="--flip-test apply to arch heatmap"):
+        with_inference_options(net, flip_test=True)
+    assert with_inference_options(net) is net  # nothing asked: any arch
+    heat = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=anny32)
+    with pytest.raises(UserError, match="ik_steps"):
+        with_inference_options(heat, ik_steps=99)
+    assert with_inference_options(heat, 5, True).config.flip_test and heat.config.ik_steps == 5
+    assert options_label(None, False) == "" and options_label(6, True) == " (flip test, 6 IK steps)"
+
+
+def test_predict_and_evaluate_real_with_the_flip_test(anny32, tmp_path):
+    """`predict --flip-test` writes its outputs; `evaluate-real --flip-test` names the option in
+    its report's title (a tiny untrained heatmap model, two frames)."""
+    import json
+
+    import numpy as np
+
+    from pressurepose.cli import main
+    from pressurepose.train.checkpoint import save_model
+
+    net = PressureNet(NetConfig(arch="heatmap", gender_input=False, ik_steps=1), body=anny32).eval()
+    run = tmp_path / "run"
+    run.mkdir()
+    save_model(run, net, {"train": {}, "net": dict(net.config.__dict__)})
+    image = tmp_path / "one.npy"
+    np.save(image, (np.random.default_rng(0).random((64, 27)) * 30).astype(np.float32))
+    out = tmp_path / "pred"
+    args = ["predict", "--model", str(run), "--out", str(out), "--flip-test", "--no-figures", "--no-meshes"]
+    assert main([*args, str(image)]) == 0
+    assert len(json.loads((out / "one.json").read_text())["joints_m"]) == 24
+    real = tmp_path / "real"
+    assert main(["evaluate-real", "--model", str(run), "--groups", "B", "--flip-test", "--out", str(real)]) == 0
+    assert (
+        (real / "real.md")
+        .read_text()
+        .splitlines()[0]
+        .endswith("(flip test) on PmatData experiment II (159 frames, groups B)")
+    )
