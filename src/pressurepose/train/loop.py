@@ -45,7 +45,7 @@ from pressurepose.train.checkpoint import (
     save_model,
 )
 from pressurepose.train.config import RESUMABLE_CHANGES, TrainConfig
-from pressurepose.train.data import collate, open_dataset
+from pressurepose.train.data import collate, in_memory, open_dataset
 from pressurepose.validate import check_tensor_shapes, field, read_json_object, read_jsonl
 
 log = logging.getLogger(__name__)
@@ -203,6 +203,8 @@ def train(
         dataset = open_dataset(cfg.data)
     if len(dataset) == 0:
         raise UserError("the training dataset is empty")
+    if cfg.in_memory:
+        dataset = in_memory(dataset)
     device = pick_device(cfg.device)
     run.mkdir(parents=True, exist_ok=True)
     resuming = (run / CHECKPOINT_FILE).is_file()
