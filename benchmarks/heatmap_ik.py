@@ -34,7 +34,12 @@ def main() -> None:
     parser.add_argument("--model", required=True)
     parser.add_argument("--data", required=True)
     parser.add_argument("--n", type=int, default=512)
-    parser.add_argument("--split", default="val", help="val: the run's held-out part of DIR; else DIR's split")
+    parser.add_argument(
+        "--split",
+        choices=("val", "test"),
+        default="val",
+        help="val: the run's held-out part of DIR; test: DIR's test split",
+    )
     parser.add_argument("--grid", choices=("weights", "damping"), default="weights")
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -132,7 +132,7 @@ def probe_real(net, root: Path, groups: str) -> None:
 def probe_bands(net, root: Path, groups: str, rows: int = 4) -> None:
     """Zero one band of `rows` rows at each 5% of every frame's loaded extent and read again:
     how many reads the band turns right (fixed) and wrong (broke) - where a network's answer on
-    real frames comes from (docs/network.md "Occlusion")."""
+    real frames comes from (docs/network.md "Flip test, IK settings and occlusion")."""
     records = [r for r in load_index(root) if r.group in groups]
     images = torch.from_numpy(load_images(records))
     truth = [GROUP_POSTURE[r.group] for r in records]

@@ -393,6 +393,15 @@ def test_training_data_decoded_once_into_memory_equals_the_shards(tmp_path, monk
         for k, v in mem[i].items():
             assert torch.equal(v, one[k][0]), (i, k)
     assert in_memory(mem) is mem
+    both = torch.utils.data.ConcatDataset([mem, mem])  # e.g. a folder of .npz files: kept as it is
+    assert in_memory(both) is both
+    import pressurepose.train.data as data_module
+
+    monkeypatch.setattr(data_module, "_available_memory_bytes", lambda: 100_000)  # 100 kB free
+    with pytest.raises(ValueError, match="give --no-in-memory"):
+        in_memory(ds)
+    monkeypatch.setattr(data_module, "_available_memory_bytes", lambda: None)  # unknown: no check
+    assert len(in_memory(ds)) == 103
     weights = []
     for flag in (True, False):
         cfg = TrainConfig.smoke(

@@ -12,6 +12,7 @@ from pressurepose.net import NetConfig, NetInputs, PressureNet
 from pressurepose.net.heatmap import Localisation, cell_centres, flip_merged
 
 W = MatSpec().sensing_width_m
+f64 = torch.float64
 
 
 def _mirror_back(joints):
@@ -46,6 +47,8 @@ def test_flip_merged_against_a_naive_loop():
                 want = (loc.logits[b, j, :, c] + loc.logits[B + b, m, :, Wc - 1 - c]) / 2
                 torch.testing.assert_close(out.logits[b, j, :, c], want)
     assert out.joints.shape == (B, NUM_JOINTS, 3) and out.centres is loc.centres
+    # the geometry behind flipping the maps: column c's centre mirrors column Wc - 1 - c's
+    torch.testing.assert_close(loc.centres[:, :, 1] + loc.centres[:, :, 1].flip(-1), torch.full((H, Wc), W, dtype=f64))
 
 
 @pytest.mark.parametrize("flip", [True, False])
@@ -72,8 +75,10 @@ def test_flip_test_bad_inputs(anny32):
     with pytest.raises(ValueError, match="flip test is for arch 'heatmap'"):
         NetConfig(arch="fast", flip_test=True)
     net = PressureNet(NetConfig(arch="fast", gender_input=False), body=anny32)
-    with pytest.raises(UserError, match="--flip-test apply to arch heatmap"):
+    with pytest.raises(UserError, match="--flip-test applies to arch heatmap"):
         with_inference_options(net, flip_test=True)
+    with pytest.raises(UserError, match="--ik-steps and --flip-test apply to arch heatmap"):
+        with_inference_options(net, 4, True)
     assert with_inference_options(net) is net  # nothing asked: any arch
     heat = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=anny32)
     with pytest.raises(UserError, match="ik_steps"):

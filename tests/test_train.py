@@ -562,7 +562,7 @@ def test_texture_against_a_per_taxel_reference(data32):
         TrainConfig.smoke(texture=1.5)
 
 
-def test_occlude_against_a_per_row_reference(data32):
+def test_occlude_against_a_per_row_reference(data32, tmp_path):
     """Occlusion: the same draws applied row by row zero the same band - k in [2, 8]
     consecutive rows starting on a loaded row (cut by the mat's end) - and leave every other
     taxel, the images not drawn and an empty image untouched."""
@@ -592,12 +592,14 @@ def test_occlude_against_a_per_row_reference(data32):
     assert drawn >= 2
     with pytest.raises(ValueError, match="occlude"):
         TrainConfig.smoke(occlude=1.5)
+    with pytest.raises(ValueError, match="--occlude and --synthesis-weight do not combine"):
+        TrainConfig.smoke(occlude=0.5, module=2, mod1=tmp_path, synthesis_weight=0.1)
 
 
 def test_predict_ik_steps_and_flip_test_only_for_the_heatmap_arch(trained_run, tmp_path, capsys):
     path = tmp_path / "one.npy"
     np.save(path, np.full((64, 27), 5.0, dtype=np.float32))
-    for flags, said in ((["--ik-steps", "5"], "--ik-steps apply"), (["--flip-test"], "--flip-test apply")):
+    for flags, said in ((["--ik-steps", "5"], "--ik-steps applies"), (["--flip-test"], "--flip-test applies")):
         capsys.readouterr()
         args = ["predict", "--model", str(trained_run), "--out", str(tmp_path / "o"), *flags, str(path)]
         assert main(args) == 2
@@ -606,4 +608,4 @@ def test_predict_ik_steps_and_flip_test_only_for_the_heatmap_arch(trained_run, t
     capsys.readouterr()
     args = ["evaluate", "--model", str(trained_run), "--data", str(tmp_path), "--flip-test"]
     assert main(args) == 2
-    assert "--flip-test apply to arch heatmap" in capsys.readouterr().err
+    assert "--flip-test applies to arch heatmap" in capsys.readouterr().err

@@ -79,3 +79,12 @@ def _mirror_name(name: str) -> str:
 
 # Index of each joint's left/right counterpart (itself on the midline).
 J24_MIRROR: tuple[int, ...] = tuple(J24_NAMES.index(_mirror_name(n)) for n in J24_NAMES)
+
+
+def mirror_joints(joints, width_m: float):
+    """J24 positions (..., 24, D >= 2; mat frame, y across the bed) of the body mirrored across
+    the mat's centre line: y -> width_m - y, left and right joints swapped (J24_MIRROR). The
+    training's mirror augmentation and the flip test map joints with it."""
+    out = joints[..., list(J24_MIRROR), :].clone()
+    out[..., 1] = width_m - out[..., 1]
+    return out

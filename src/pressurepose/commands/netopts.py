@@ -1,5 +1,5 @@
 """Inference options of a loaded network, shared by `predict`, `evaluate` and `evaluate-real`:
-the heatmap arch's IK steps and its flip test (docs/network.md "Flip test")."""
+the heatmap arch's IK steps and its flip test (docs/network.md "Flip test, IK settings and occlusion")."""
 
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ def with_inference_options(net, ik_steps: int | None = None, flip_test: bool = F
         return net
     if net.config.arch != "heatmap":
         flags = " and ".join("--" + k.replace("_", "-") for k in changes)
-        raise UserError(f"{flags} apply to arch heatmap; this model is arch {net.config.arch}")
+        verb = "apply" if len(changes) > 1 else "applies"
+        raise UserError(f"{flags} {verb} to arch heatmap only; this model is arch {net.config.arch}")
     try:
         net.config = dataclasses.replace(net.config, **changes)
     except ValueError as e:

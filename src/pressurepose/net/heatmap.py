@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pressurepose.body.joints import J24_MIRROR, NUM_JOINTS
+from pressurepose.body.joints import J24_MIRROR, NUM_JOINTS, mirror_joints
 from pressurepose.mat import MatSpec
 from pressurepose.net.heatmap_fused import fusable, fused_trunk
 from pressurepose.net.losses import JOINT_SCALE_M
@@ -117,16 +117,16 @@ def flip_merged(loc: Localisation, width_m: float) -> Localisation:
     (J24_MIRROR), the heatmaps flipped - and averaged with the first half: each joint's position,
     height, heatmap variance and logits. The mirror image of a body's image is the image of the
     mirrored body (the bed and the simulation are mirror symmetric), so both halves estimate
-    the same joints and their mean has less of either's error (docs/network.md "Flip test")."""
+    the same joints and their mean has less of either's error. The heatmaps' column c is the
+    mirror image of column W_cells - 1 - c: the cell centres are symmetric about the centre line
+    and the stride-2 stem maps input column 2c to output c, so mirrored input column 26 - 2c to
+    13 - c (docs/network.md "Flip test, IK settings and occlusion")."""
     B = loc.joints.shape[0] // 2
     perm = list(J24_MIRROR)
-    reflect = loc.joints.new_tensor([1.0, -1.0, 1.0]), loc.joints.new_tensor([0.0, width_m, 0.0])
-    joints = loc.joints[B:, perm] * reflect[0] + reflect[1]
-    grid = loc.grid_joints[B:, perm] * reflect[0][:2] + reflect[1][:2]
     mean = lambda a, b: (a + b) / 2  # noqa: E731
     return Localisation(
-        joints=mean(loc.joints[:B], joints),
-        grid_joints=mean(loc.grid_joints[:B], grid),
+        joints=mean(loc.joints[:B], mirror_joints(loc.joints[B:], width_m)),
+        grid_joints=mean(loc.grid_joints[:B], mirror_joints(loc.grid_joints[B:], width_m)),
         spread_m2=mean(loc.spread_m2[:B], loc.spread_m2[B:, perm]),
         logits=mean(loc.logits[:B], loc.logits[B:, perm].flip(-1)),
         centres=loc.centres,
@@ -228,4 +228,12 @@ def localisation_loss(
     return total, {"localised": float(located.detach()), "heatmap": float(heatmap.detach())}
 
 
-__all__ = ["HeatmapNet", "Localisation", "cell_centres", "integral_joints", "localisation_loss", "soft_argmax"]
+__all__ = [
+    "HeatmapNet",
+    "Localisation",
+    "cell_centres",
+    "flip_merged",
+    "integral_joints",
+    "localisation_loss",
+    "soft_argmax",
+]

@@ -67,7 +67,7 @@ def mirror_batch(
     model is symmetric to ~1 mm, tests/test_body.py). The bed and the simulation are mirror
     symmetric (a mirrored body gives the mirrored image, tests/test_sim.py), so the mirrored
     sample is a sample of the same generator - the one of the mirrored person."""
-    from pressurepose.body.joints import J24_MIRROR
+    from pressurepose.body.joints import mirror_joints
     from pressurepose.mat import MatSpec
 
     p = inputs.pressure_mmhg
@@ -76,9 +76,7 @@ def mirror_batch(
         return inputs, targets
     flip = lambda x: None if x is None else torch.where(on[:, None, None], x.flip(-1), x)  # noqa: E731
     j = targets.joints
-    mirrored = j[:, list(J24_MIRROR)].clone()
-    mirrored[..., 1] = MatSpec().sensing_width_m - mirrored[..., 1]
-    joints = torch.where(on[:, None, None], mirrored, j)
+    joints = torch.where(on[:, None, None], mirror_joints(j, MatSpec().sensing_width_m), j)
     return (
         dataclasses.replace(inputs, pressure_mmhg=flip(p)),
         Targets(joints=joints, shape=targets.shape, depth_mm=flip(targets.depth_mm), contact=flip(targets.contact)),
@@ -225,18 +223,20 @@ def pillow_batch(inputs: NetInputs, joints: torch.Tensor, share: float, generato
     return _read_again(inputs, q, on)
 
 
-# Occlusion augmentation: how many rows one band takes out (docs/network.md "Occlusion").
+# Occlusion augmentation: how many rows one band takes out (docs/network.md "Flip test, IK
+# settings and occlusion").
 OCCLUDE_ROWS = (2, 8)
 
 
 def occlude_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
     """Zero one band of k ~ U{OCCLUDE_ROWS} consecutive rows in a random `share` of the images,
-    its first row drawn uniformly among the image's loaded rows (so it lies on the body: the
-    head end, the trunk or the heels alike); the labels stay. Why: a network trained without it
-    reads PmatData's frames from a few bands - zeroing any 4 loaded rows of the real frames
-    turned 9-64 of 255 posture reads (heat_tex, docs/network.md "Occlusion") - so whatever a real
-    band holds that the simulation does not (a pillow's edge, heels shaped otherwise) decides
-    its answer. Empty images and images not drawn are unchanged."""
+    its first row drawn uniformly from the first to the last loaded row (so it lies on the body:
+    the head end, the trunk or the heels alike; a band past the mat's end is cut short); the
+    labels stay. Why: a network trained without it reads PmatData's frames from a few bands -
+    zeroing one band of 4 loaded rows of the real frames turned 4-54 right posture reads of 255
+    wrong, depending on where (heat_tex; docs/network.md "Flip test, IK settings and
+    occlusion") - so whatever a real band holds that the simulation does not (a pillow's edge,
+    heels shaped otherwise) decides its answer. Empty images and images not drawn are unchanged."""
     p = inputs.pressure_mmhg
     B, R, _ = p.shape
     u = torch.rand(3, B, generator=generator).to(p)

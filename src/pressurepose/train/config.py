@@ -160,6 +160,11 @@ class TrainConfig:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 <= self.dropout < 1:
             raise UserError(f"dropout must lie in [0, 1), got {self.dropout}")
+        if self.occlude > 0 and self.synthesis_weight > 0:
+            raise UserError(
+                "--occlude and --synthesis-weight do not combine: the synthesis loss would fit the "
+                "body to the occluded image; give one of them"
+            )
         if not 0 <= self.texture_sigma <= 5:
             raise UserError(f"texture_sigma must lie in [0, 5] taxels, got {self.texture_sigma}")
         if not 0 < self.lr_gamma <= 1:

@@ -17,12 +17,15 @@ apart (docs/model-card.md).
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from pressurepose.errors import UserError
+
+log = logging.getLogger(__name__)
 
 KEYS = (
     "pressure_mmhg",
@@ -107,12 +110,39 @@ def in_memory(dataset: torch.utils.data.Dataset, chunk: int = 1024) -> TensorDic
     collated KEYS (what the training loop reads; item i equals collate([dataset[i]])). Read in
     order, a generated dataset decodes each Parquet row group once (~0.25 ms per sample; in the
     training's random order ~2.7 ms, as much as a training step; docs/benchmarks.md); held in
-    memory, a sample takes ~21 KB (the pressure, depth and contact maps as float32)."""
-    if isinstance(dataset, TensorDictDataset):
+    memory, a sample takes ~21 KB (the pressure, depth and contact maps as float32). Data already
+    in memory (.npz files) is returned as it is. A set that would not fit in the memory the
+    system reports available is refused with one line naming `--no-in-memory` (UserError)."""
+    parts = dataset.datasets if isinstance(dataset, torch.utils.data.ConcatDataset) else [dataset]
+    if all(isinstance(p, TensorDictDataset) for p in parts):
         return dataset
     n = len(dataset)
-    parts = [collate([dataset[i] for i in range(lo, min(lo + chunk, n))]) for lo in range(0, n, chunk)]
-    return TensorDictDataset({k: torch.cat([p[k] for p in parts]) for k in KEYS})
+    first = collate([dataset[0]])
+    need = n * sum(v.numel() * v.element_size() for v in first.values())
+    available = _available_memory_bytes()
+    if available is not None and need > 0.8 * available:
+        raise UserError(
+            f"the {n} training samples need ~{need / 1e9:.1f} GB decoded, {available / 1e9:.1f} GB of memory is "
+            "available: give --no-in-memory to read them from their files each epoch"
+        )
+    log.info("decoding %d training samples into memory (~%.2f GB)", n, need / 1e9)
+    out = {k: torch.empty((n, *v.shape[1:]), dtype=v.dtype) for k, v in first.items()}
+    for lo in range(0, n, chunk):
+        batch = collate([dataset[i] for i in range(lo, min(lo + chunk, n))])
+        for k in KEYS:
+            out[k][lo : lo + len(batch[k])] = batch[k]
+    return TensorDictDataset(out)
+
+
+def _available_memory_bytes() -> int | None:
+    """MemAvailable of /proc/meminfo (Linux), else None (no check)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 def write_npz(path: str | Path, arrays: dict[str, torch.Tensor | np.ndarray]) -> Path:

@@ -203,13 +203,13 @@ def train(
         dataset = open_dataset(cfg.data)
     if len(dataset) == 0:
         raise UserError("the training dataset is empty")
-    if cfg.in_memory:
-        dataset = in_memory(dataset)
     device = pick_device(cfg.device)
     run.mkdir(parents=True, exist_ok=True)
     resuming = (run / CHECKPOINT_FILE).is_file()
     if resuming:
         _check_resume(run, cfg)
+    if cfg.in_memory:
+        dataset = in_memory(dataset)
     net = build_network(cfg, device)
     record = {"train": cfg.to_json(), "net": {**net.config.__dict__}}
     cfg.save(run / "config.json", record["net"])
