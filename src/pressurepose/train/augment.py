@@ -233,7 +233,7 @@ def occlude_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
     its first row drawn uniformly from the first to the last loaded row (so it lies on the body:
     the head end, the trunk or the heels alike; a band past the mat's end is cut short); the
     labels stay. Why: a network trained without it reads PmatData's frames from a few bands -
-    zeroing one band of 4 loaded rows of the real frames turned 4-54 right posture reads of 255
+    zeroing one band of 4 loaded rows of the real frames turned 9-54 right posture reads of 255
     wrong, depending on where (heat_tex; docs/network.md "Flip test, IK settings and
     occlusion") - so whatever a real band holds that the simulation does not (a pillow's edge,
     heels shaped otherwise) decides its answer. Empty images and images not drawn are unchanged."""
