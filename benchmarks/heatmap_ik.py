@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import time
+from pathlib import Path
 
 import torch
 
@@ -42,6 +43,9 @@ def main() -> None:
     )
     parser.add_argument("--grid", choices=("weights", "damping"), default="weights")
     args = parser.parse_args()
+    data = Path(args.data)
+    if args.split == "test" and (data.suffix == ".npz" or any(data.glob("*.npz"))):
+        parser.error(f"--split test needs generated shards; {data} holds .npz files, which have no test split")
     torch.set_num_threads(1)
     net, record = load_network(args.model)
     cfg = TrainConfig.from_json(record["train"]).resolved()
