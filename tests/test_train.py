@@ -609,3 +609,63 @@ def test_predict_ik_steps_and_flip_test_only_for_the_heatmap_arch(trained_run, t
     args = ["evaluate", "--model", str(trained_run), "--data", str(tmp_path), "--flip-test"]
     assert main(args) == 2
     assert "--flip-test applies to arch heatmap" in capsys.readouterr().err
+
+
+def _weights(run):
+    net, _ = load_network(run)
+    return net.trainable_state()
+
+
+def test_weight_average_is_the_mean_of_the_epochs_and_resumes(data32, tmp_path):
+    """--average-from 2 over 3 epochs: model.safetensors is the mean of the weights after epochs
+    2 and 3 (batch-norm statistics included), last/ holds epoch 3's, and a run resumed in the
+    middle of the averaging ends with the same average."""
+    ds = _small(data32, n=24)  # 20 or more: a validation split
+    common = dict(batch_size=6, val_fraction=0.25, progress=False, seed=3, lr_gamma=0.7, save_every=1)
+    train(TrainConfig.smoke(out=tmp_path / "e2", epochs=2, **common), ds)
+    train(TrainConfig.smoke(out=tmp_path / "e3", epochs=3, **common), ds)
+    train(TrainConfig.smoke(out=tmp_path / "avg", epochs=3, average_from=2, **common), ds)
+    e2, e3, avg = _weights(tmp_path / "e2"), _weights(tmp_path / "e3"), _weights(tmp_path / "avg")
+    last = _weights(tmp_path / "avg" / "last")
+    moved = 0
+    for k, v in avg.items():
+        if v.is_floating_point():
+            mean = (e2[k].double() + e3[k].double()) / 2
+            assert torch.allclose(v.double(), mean, atol=1e-5, rtol=1e-4), k
+            assert torch.allclose(last[k], e3[k], atol=1e-6), k
+            moved += int(not torch.allclose(e2[k], e3[k], atol=1e-4))
+    assert moved > 10  # the epochs differ, so the mean is not one of them
+    rows = _metrics(tmp_path / "avg")
+    assert "average_val_mpjpe_mm" not in rows[0] and rows[1]["average_val_mpjpe_mm"] == pytest.approx(
+        rows[1]["val_mpjpe_mm"], rel=1e-5
+    )  # one epoch averaged: the network itself
+    assert rows[2]["average_val_mpjpe_mm"] != pytest.approx(rows[2]["val_mpjpe_mm"], rel=1e-6)
+    # Interrupted after epoch 2 (the average holds one epoch), resumed to 3.
+    train(TrainConfig.smoke(out=tmp_path / "res", epochs=2, average_from=2, **common), ds)
+    train(TrainConfig.smoke(out=tmp_path / "res", epochs=3, average_from=2, **common), ds)
+    for k, v in _weights(tmp_path / "res").items():
+        assert torch.allclose(v.float(), avg[k].float(), atol=1e-5), k
+
+
+def test_weight_average_bad_settings_and_checkpoints(data32, tmp_path):
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    ds = _small(data32)
+    common = dict(batch_size=4, val_fraction=0.0, progress=False, seed=3)
+    with pytest.raises(ValueError, match="average_from must lie in"):
+        TrainConfig.smoke(out=tmp_path / "x", epochs=2, average_from=3)
+    train(TrainConfig.smoke(out=tmp_path / "run", epochs=2, average_from=1, **common), ds)
+    with pytest.raises(ValueError, match="different settings.*average_from"):
+        train(TrainConfig.smoke(out=tmp_path / "run", epochs=3, average_from=2, **common), ds)
+    path = tmp_path / "run" / "checkpoint.safetensors"
+    with safe_open(str(path), "pt") as f:
+        meta, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    save_file({k: v for k, v in tensors.items() if not k.startswith("average")}, str(path), metadata=meta)
+    with pytest.raises(ValueError, match="weight average of 0 epochs.*needs 2"):
+        train(TrainConfig.smoke(out=tmp_path / "run", epochs=3, average_from=1, **common), ds)
+    save_file({k: v for k, v in tensors.items() if k != "average_count"}, str(path), metadata=meta)
+    with pytest.raises(ValueError, match="average_count"):
+        train(TrainConfig.smoke(out=tmp_path / "run", epochs=3, average_from=1, **common), ds)
+    assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "r2"), "--preset", "smoke",
+                 "--epochs", "2", "--average-from", "5"]) == 2  # fmt: skip

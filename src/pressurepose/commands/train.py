@@ -31,6 +31,8 @@ def train(cfg: TrainConfig) -> None:
     rows = loop.read_metrics(run)
     last = rows[-1] if rows else {}
     val = f", val MPJPE {last['val_mpjpe_mm']:.1f} mm" if "val_mpjpe_mm" in last else ""
+    if "average_val_mpjpe_mm" in last:
+        val += f" (weight average {last['average_val_mpjpe_mm']:.1f} mm, in model.safetensors)"
     print(
         f"{len(rows)} epochs -> {run}: loss {last.get('loss', float('nan')):.4f}, train MPJPE "
         f"{last.get('train_mpjpe_mm', float('nan')):.1f} mm{val}"

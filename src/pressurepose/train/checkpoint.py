@@ -2,7 +2,8 @@
 
 RUN/model.safetensors: the network's CNN weights ("model/..."), metadata {"config": the
 config.json text}. RUN/checkpoint.safetensors: the same plus Adam's moments and steps
-("optim/<i>/<name>") and the epoch reached, for resuming. `load_network(RUN)` needs nothing
+("optim/<i>/<name>"), the epoch reached and, once `--average-from` begins, the weight average
+("average/...", "average_count"), for resuming. `load_network(RUN)` needs nothing
 but the run folder: the architecture comes from the metadata, never from flags.
 """
 
@@ -17,6 +18,9 @@ import torch
 from pressurepose.errors import UserError
 from pressurepose.files import atomic_write
 from pressurepose.net.model import NetConfig, PressureNet
+from pressurepose.train.average import COUNT as AVERAGE_COUNT
+from pressurepose.train.average import PREFIX as AVERAGE_PREFIX
+from pressurepose.train.average import WeightAverage
 from pressurepose.validate import check_tensor_shapes, field
 
 MODEL_FILE = "model.safetensors"
@@ -44,25 +48,38 @@ def _load(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
         raise UserError(f"{path} is not a readable safetensors checkpoint ({exc})") from None
 
 
-def save_model(run: Path, net: PressureNet, config_record: dict) -> Path:
-    tensors = {f"model/{k}": v for k, v in net.trainable_state().items()}
+def save_model(run: Path, net: PressureNet, config_record: dict, state: dict[str, torch.Tensor] | None = None) -> Path:
+    """RUN/model.safetensors: the network's trainable state (or `state`, e.g. a weight average)."""
+    state = net.trainable_state() if state is None else state
+    tensors = {f"model/{k}": v for k, v in state.items()}
+    Path(run).mkdir(parents=True, exist_ok=True)
     return _save(Path(run) / MODEL_FILE, tensors, {"format": FORMAT, "config": json.dumps(config_record)})
 
 
 def save_checkpoint(
-    run: Path, net: PressureNet, optimizer: torch.optim.Optimizer, epoch: int, config_record: dict
+    run: Path,
+    net: PressureNet,
+    optimizer: torch.optim.Optimizer,
+    epoch: int,
+    config_record: dict,
+    average: WeightAverage | None = None,
 ) -> Path:
     tensors = {f"model/{k}": v for k, v in net.trainable_state().items()}
     for i, state in optimizer.state_dict()["state"].items():
         for name, value in state.items():
             tensors[f"optim/{i}/{name}"] = torch.as_tensor(value)
+    if average is not None and average.count:
+        tensors.update(average.tensors())
     meta = {"format": FORMAT, "config": json.dumps(config_record), "epoch": str(epoch)}
     return _save(Path(run) / CHECKPOINT_FILE, tensors, meta)
 
 
-def load_checkpoint(run: Path, net: PressureNet, optimizer: torch.optim.Optimizer) -> tuple[int, dict]:
-    """Restore weights and optimizer state; returns (epochs done, config record). Every tensor
-    is checked against the network and optimizer first (UserError naming the file)."""
+def load_checkpoint(
+    run: Path, net: PressureNet, optimizer: torch.optim.Optimizer, average: WeightAverage | None = None
+) -> tuple[int, dict]:
+    """Restore weights, optimizer state and the weight average if one was saved; returns (epochs
+    done, config record). Every tensor is checked against the network and optimizer first
+    (UserError naming the file)."""
     path = Path(run) / CHECKPOINT_FILE
     tensors, meta = _load(path)
     record = _config_record(meta, path)
@@ -88,6 +105,14 @@ def load_checkpoint(run: Path, net: PressureNet, optimizer: torch.optim.Optimize
             if tuple(value.shape) != want:
                 raise UserError(f"{path}: tensor {key!r} has shape {tuple(value.shape)}, expected {want}")
             state.setdefault(i, {})[name] = value
+    averaged = _strip(tensors, AVERAGE_PREFIX)
+    if averaged:
+        check_tensor_shapes(averaged, {k: v.shape for k, v in net.trainable_state().items()}, path)
+        count = tensors.get(AVERAGE_COUNT)
+        if count is None or count.shape != () or count.is_floating_point() or int(count) < 1:
+            raise UserError(f"{path}: the weight average lacks a whole, positive tensor {AVERAGE_COUNT!r}")
+        if average is not None:
+            average.load(tensors)
     net.load_trainable_state(weights)
     groups = optimizer.state_dict()["param_groups"]
     optimizer.load_state_dict({"state": state, "param_groups": groups})

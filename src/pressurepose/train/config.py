@@ -65,6 +65,9 @@ class TrainConfig:
         texture_sigma: the network smooths every reading within its loaded taxels by a Gaussian of
             this many taxels before its channels, in training and in use (detail at the taxel scale
             out, the outline kept; `net.preprocess.smooth_loaded`; 0 = off).
+        average_from: average the weights (batch-norm statistics included) at the end of every epoch
+            from this one on; model.safetensors then holds the average and last/model.safetensors the
+            last epoch's weights (`train.average`; 0 = off).
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.
@@ -108,6 +111,7 @@ class TrainConfig:
     occlude: float = 0.0
     texture_sigma: float = 0.0
     lr_gamma: float = 1.0
+    average_from: int = 0
     init: Path | None = None
     synthesis_weight: float = 0.0
     val_fraction: float = 0.05
@@ -167,6 +171,10 @@ class TrainConfig:
             )
         if not 0 <= self.texture_sigma <= 5:
             raise UserError(f"texture_sigma must lie in [0, 5] taxels, got {self.texture_sigma}")
+        if not 0 <= self.average_from <= self.epochs:
+            raise UserError(
+                f"average_from must lie in [0, epochs = {self.epochs}] (0 = no averaging), got {self.average_from}"
+            )
         if not 0 < self.lr_gamma <= 1:
             raise UserError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:

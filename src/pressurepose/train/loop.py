@@ -2,7 +2,8 @@
 
 Every epoch e draws its order, augmentation and dropout from generators seeded by
 (seed, e), so a run resumed from its checkpoint after epoch e equals one never interrupted.
-Writes RUN/config.json first, then after every epoch checkpoint.safetensors, model.safetensors,
+Writes RUN/config.json first, then after every epoch checkpoint.safetensors, model.safetensors
+(the weight average from --average-from on, the last epoch's weights then in last/),
 metrics.jsonl + metrics.csv (one row per epoch) - all atomically (`pressurepose train` adds
 metrics.png: `commands.train`).
 """
@@ -35,6 +36,7 @@ from pressurepose.train.augment import (
     shift_batch,
     texture_batch,
 )
+from pressurepose.train.average import WeightAverage
 from pressurepose.train.checkpoint import (
     CHECKPOINT_FILE,
     MODEL_FILE,
@@ -215,20 +217,33 @@ def train(
     cfg.save(run / "config.json", record["net"])
     params = [p for p in net.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    average = WeightAverage(net) if cfg.average_from else None
     start = 0
     if resuming:
-        start, _ = load_checkpoint(run, net, opt)
+        start, _ = load_checkpoint(run, net, opt, average)
         log.info("resuming %s after epoch %d", run, start)
+        expected = max(0, start - cfg.average_from + 1) if average is not None else 0
+        if average is not None and average.count != expected:
+            raise UserError(
+                f"{run / CHECKPOINT_FILE} holds a weight average of {average.count} epochs where "
+                f"--average-from {cfg.average_from} after epoch {start} needs {expected}; train into a new --out folder"
+            )
     history = [r for r in read_metrics(run) if r["epoch"] <= start] if resuming else []
     train_idx, val_idx = _split(len(dataset), cfg)
     for epoch in range(start + 1, cfg.epochs + 1):
         for group in opt.param_groups:  # a function of the epoch alone, so resuming keeps it
             group["lr"] = cfg.lr * cfg.lr_gamma ** (epoch - 1)
         row = _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device)
+        if average is not None and epoch >= cfg.average_from:
+            average.update()
+            if val_idx:
+                with average.swapped_in(net):
+                    scores = evaluate(net, torch.utils.data.Subset(dataset, val_idx), cfg, device)
+                row.update({f"average_{k}": v for k, v in scores.items()})
         history.append(row)
         if epoch % cfg.save_every == 0 or epoch == cfg.epochs:
-            save_checkpoint(run, net, opt, epoch, record)
-            save_model(run, net, record)
+            save_checkpoint(run, net, opt, epoch, record, average)
+            _save_models(run, net, record, average)
             _write_metrics(run, history)
             if on_save is not None:
                 on_save(run, history)
@@ -242,8 +257,18 @@ def train(
             row["images_per_s"],
         )
     if start >= cfg.epochs:
-        save_model(run, net, record)
+        _save_models(run, net, record, average)
     return run
+
+
+def _save_models(run: Path, net: PressureNet, record: dict, average: WeightAverage | None) -> None:
+    """model.safetensors: the weight average once it has begun (the last epoch's weights in
+    last/model.safetensors), else the network's own weights."""
+    if average is None or not average.count:
+        save_model(run, net, record)
+        return
+    save_model(run / "last", net, record)
+    save_model(run, net, record, average.state())
 
 
 def _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device) -> dict:
