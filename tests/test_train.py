@@ -669,3 +669,30 @@ def test_weight_average_bad_settings_and_checkpoints(data32, tmp_path):
         train(TrainConfig.smoke(out=tmp_path / "run", epochs=3, average_from=1, **common), ds)
     assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "r2"), "--preset", "smoke",
                  "--epochs", "2", "--average-from", "5"]) == 2  # fmt: skip
+
+
+def test_posture_readout_trains_jointly_and_alone(data32, tmp_path):
+    """--posture-weight: a heatmap network with a posture readout, its validation share
+    recorded; --posture-only: the readout trained on another run's frozen network (one without
+    a readout), every other weight kept to the bit."""
+    ds = _small(data32, n=24)
+    common = dict(arch="heatmap", batch_size=6, val_fraction=0.25, progress=False, seed=5, gender_input=False)
+    train(TrainConfig.smoke(out=tmp_path / "joint", epochs=2, posture_weight=0.1, **common), ds)
+    rows = _metrics(tmp_path / "joint")
+    assert all(0 <= r["val_posture_accuracy"] <= 1 and r["posture"] > 0 for r in rows)
+    joint, _ = load_network(tmp_path / "joint")
+    assert joint.config.posture_head
+    train(TrainConfig.smoke(out=tmp_path / "plain", epochs=1, **common), ds)
+    train(TrainConfig.smoke(out=tmp_path / "alone", epochs=3, lr=1e-2, posture_only=True, init=tmp_path / "plain", **common), ds)  # fmt: skip
+    plain, alone = _weights(tmp_path / "plain"), _weights(tmp_path / "alone")
+    assert set(alone) - set(plain) == {"mod1.posture.layers.1.weight", "mod1.posture.layers.1.bias"}
+    for k, v in plain.items():
+        assert torch.equal(v, alone[k]), k  # frozen: weights and batch-norm statistics
+    rows = _metrics(tmp_path / "alone")
+    assert rows[-1]["loss"] == pytest.approx(rows[-1]["posture"]) and rows[-1]["loss"] < rows[0]["loss"]
+    for bad, match in (
+        (dict(posture_only=True), "give --init"),
+        (dict(posture_weight=0.1, arch="fast"), "for --arch heatmap"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            TrainConfig.smoke(out=tmp_path / "x", **{**common, **bad})

@@ -106,13 +106,14 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "variant": f"{r.group}{r.index}",
             "posture": GROUP_POSTURE[r.group],
             "estimated_posture": e,
+            **({} if read.readout is None else {"readout_posture": read.readout[i]}),
             "roll_deg": float(a),
             "height_m": r.height_cm / 100,
             "estimated_height_m": float(h),
             "mass_kg": r.weight_kg,
             "estimated_mass_kg": float(m),
         }
-        for r, e, a, h, m in zip(records, predicted, read.roll_deg, read.height_m, read.mass_kg)
+        for i, (r, e, a, h, m) in enumerate(zip(records, predicted, read.roll_deg, read.height_m, read.mass_kg))
     ]
     summary = {}
     for mattress in sorted({r["mattress"] for r in rows}):
@@ -131,6 +132,8 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "height_median_signed_m": float(np.median(height_error)),
             "mass_mae_kg": float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in sel])),
         }
+        if read.readout is not None:
+            summary[mattress]["readout_accuracy"] = sum(r["posture"] == r["readout_posture"] for r in sel) / len(sel)
     variants = {}
     for r in rows:  # per posture variant (B1-B10, C1-C3, D1-D3), both mattresses
         v = variants.setdefault(r["variant"], {"posture": r["posture"], "frames": 0, "estimated": {}})
@@ -190,6 +193,13 @@ def _markdown(r: dict) -> str:
             + " | ".join(map(str, counts))
             + " |"
         )
+    readout = {k: s["readout_accuracy"] for k, s in r["by_mattress"].items() if "readout_accuracy" in s}
+    if readout:
+        lines += [
+            "",
+            "The network's posture readout (net.posture; the posture above is its body's): "
+            + ", ".join(f"{k} {v * 100:.1f}%" for k, v in readout.items()),
+        ]
     lines += ["", "![real](real.png)", ""]
     return "\n".join(lines)
 
@@ -325,8 +335,9 @@ def evaluate_real(cfg: RealEvalConfig) -> None:
         )
         return
     parts = [
-        f"{k}: posture {v['posture_accuracy'] * 100:.0f}%, height MAE {v['height_mae_m'] * 100:.1f} cm, "
-        f"mass MAE {v['mass_mae_kg']:.1f} kg"
+        f"{k}: posture {v['posture_accuracy'] * 100:.0f}%"
+        + (f" (readout {v['readout_accuracy'] * 100:.0f}%)" if "readout_accuracy" in v else "")
+        + f", height MAE {v['height_mae_m'] * 100:.1f} cm, mass MAE {v['mass_mae_kg']:.1f} kg"
         for k, v in record["by_mattress"].items()
     ]
     print(f"{record['frames']} frames; " + "; ".join(parts) + f" -> {written['markdown']}")

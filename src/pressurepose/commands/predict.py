@@ -2,7 +2,8 @@
 
 Every input file is read and checked first (`net.inputs`), so a bad file stops the run
 before anything is written. Images then go through the network in batches; per image
-OUT/<name>.json (parameters by name, J24 joints, height and mass of the estimated shape),
+OUT/<name>.json (parameters by name, J24 joints, height and mass of the estimated shape; the
+posture readout's probabilities for a network with one),
 OUT/<name>.ply (the mesh, mat frame, metres; or .obj / .glb with --mesh-format, written by
 trimesh) and OUT/<name>.png (the pressure image with the
 projected skeleton, top and side views of the mesh). <name> is the file's stem, with
@@ -28,6 +29,7 @@ from pressurepose.errors import UserError
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import read_pressure_file
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
+from pressurepose.net.posture import POSTURES
 from pressurepose.train.checkpoint import load_network
 from pressurepose.train.loop import pick_device
 from pressurepose.viz.prediction import plot_prediction
@@ -140,6 +142,10 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
         "height_m": float(measured.height_m[i]),
         "mass_kg": float(measured.mass_kg[i]),
     }
+    loc = est.localisation
+    if loc is not None and loc.posture_logits is not None:  # the network's posture readout
+        prob = torch.softmax(loc.posture_logits[i].detach().double(), -1).tolist()
+        record["posture_readout"] = dict(zip(POSTURES, prob))
     write_text(out / f"{name}.json", json.dumps(record, indent=1))
     faces = net.faces.cpu().numpy()
     if cfg.meshes:

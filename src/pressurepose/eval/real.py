@@ -16,8 +16,8 @@ import torch
 
 from pressurepose.body.params import root_matrix
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
+from pressurepose.net.posture import POSTURES
 
-POSTURES = ("supine", "left", "right", "prone")
 GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
 
 
@@ -39,11 +39,13 @@ def posture_of(roll: torch.Tensor) -> list[str]:
 @dataclasses.dataclass(frozen=True)
 class BodyReadings:
     """What a network says about each of N images: height (N,) m, mass (N,) kg (`body.measure`
-    of the estimated shape) and roll (N,) deg (`roll_deg` of the estimated root)."""
+    of the estimated shape), roll (N,) deg (`roll_deg` of the estimated root) and, for a network
+    with a posture readout, the posture it reads."""
 
     height_m: torch.Tensor
     mass_kg: torch.Tensor
     roll_deg: torch.Tensor
+    readout: list[str] | None = None  # the network's posture readout (net.posture), if it has one
 
     @property
     def postures(self) -> list[str]:
@@ -53,7 +55,7 @@ class BodyReadings:
 def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, batch: int = 32) -> BodyReadings:
     """Run a network (no gender given) on (N, 64, 27) mmHg images in batches; height_m and
     mass_kg (N,) are passed as inputs for networks that take them (ignored otherwise)."""
-    heights, masses, rolls = [], [], []
+    heights, masses, rolls, readout = [], [], [], []
     with torch.no_grad():
         for lo in range(0, pressure_mmhg.shape[0], batch):
             p = pressure_mmhg[lo : lo + batch]
@@ -63,12 +65,15 @@ def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, b
                 height_m=None if height_m is None else torch.as_tensor(height_m[lo : lo + batch]),
                 mass_kg=None if mass_kg is None else torch.as_tensor(mass_kg[lo : lo + batch]),
             )
-            est = net(inputs, mesh=False)[-1].params
-            meas = net.body.measure(est.shape)
+            est = net(inputs, mesh=False)[-1]
+            meas = net.body.measure(est.params.shape)
             heights.append(meas.height_m)
             masses.append(meas.mass_kg)
-            rolls.append(roll_deg(est.root_rotation.to(torch.float64)))
-    return BodyReadings(torch.cat(heights), torch.cat(masses), torch.cat(rolls))
+            rolls.append(roll_deg(est.params.root_rotation.to(torch.float64)))
+            if est.localisation is not None and est.localisation.posture_logits is not None:
+                readout += [POSTURES[i] for i in est.localisation.posture_logits.argmax(-1).tolist()]
+    readout = readout if len(readout) == pressure_mmhg.shape[0] else None
+    return BodyReadings(torch.cat(heights), torch.cat(masses), torch.cat(rolls), readout)
 
 
 __all__ = ["GROUP_POSTURE", "POSTURES", "BodyReadings", "posture_of", "read_bodies", "roll_deg"]

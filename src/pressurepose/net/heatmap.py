@@ -39,6 +39,7 @@ from pressurepose.body.joints import J24_MIRROR, NUM_JOINTS, mirror_joints
 from pressurepose.mat import MatSpec
 from pressurepose.net.heatmap_fused import fusable, fused_trunk
 from pressurepose.net.losses import JOINT_SCALE_M
+from pressurepose.net.posture import PostureHead, mirrored_logits
 
 OFFSET_SCALE_M = 0.1
 HEIGHT_SCALE_M = 0.1
@@ -57,6 +58,7 @@ class Localisation:
     spread_m2: torch.Tensor  # (B, 24) variance of the heatmap about grid_joints
     logits: torch.Tensor  # (B, 24, H, W) the heatmaps' logits
     centres: torch.Tensor  # (H, W, 2) the cells' (x, y)
+    posture_logits: torch.Tensor | None = None  # (B, 4) over net.posture.POSTURES, with a posture head
 
     @property
     def log_prob(self) -> torch.Tensor:
@@ -114,8 +116,8 @@ def flip_merged(loc: Localisation, width_m: float) -> Localisation:
     """The flip test's localisation: `loc` holds 2B images, the first B as given and the last B
     their mirror images (columns reversed). The mirrored half is mapped back - joints reflected
     across the mat's centre line (y -> W - y, W the sensing width) with left and right swapped
-    (J24_MIRROR), the heatmaps flipped - and averaged with the first half: each joint's position,
-    height, heatmap variance and logits. The mirror image of a body's image is the image of the
+    (J24_MIRROR), the heatmaps flipped, left and right postures swapped - and averaged with the
+    first half: each joint's position, height, heatmap variance and logits, the posture logits. The mirror image of a body's image is the image of the
     mirrored body (the bed and the simulation are mirror symmetric), so both halves estimate
     the same joints and their mean has less of either's error. The heatmaps' column c is the
     mirror image of column W_cells - 1 - c: the cell centres are symmetric about the centre line
@@ -130,6 +132,9 @@ def flip_merged(loc: Localisation, width_m: float) -> Localisation:
         spread_m2=mean(loc.spread_m2[:B], loc.spread_m2[B:, perm]),
         logits=mean(loc.logits[:B], loc.logits[B:, perm].flip(-1)),
         centres=loc.centres,
+        posture_logits=None
+        if loc.posture_logits is None
+        else mean(loc.posture_logits[:B], mirrored_logits(loc.posture_logits[B:])),
     )
 
 
@@ -154,7 +159,13 @@ class HeatmapNet(nn.Module):
     EVAL_CHUNK = 64  # eval batches run in pieces this size: activations stay in cache (~15% at 128)
 
     def __init__(
-        self, in_channels: int, out_features: int, mat: MatSpec | None = None, dropout: float = 0.1, width: int = 1
+        self,
+        in_channels: int,
+        out_features: int,
+        mat: MatSpec | None = None,
+        dropout: float = 0.1,
+        width: int = 1,
+        posture: bool = False,
     ) -> None:
         super().__init__()
         mat = mat or MatSpec()
@@ -178,6 +189,7 @@ class HeatmapNet(nn.Module):
         with torch.no_grad():  # the reference body at the start (as make_cnn does)
             self.fc[-1].weight.mul_(0.1)
             self.fc[-1].bias.zero_()
+        self.posture = PostureHead(2 * c[3]) if posture else None  # net/posture.py
 
     def _trunk(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The encoder-decoder by the modules: (bottleneck e3, maps (B, 4 J, H, W)); without
@@ -196,7 +208,10 @@ class HeatmapNet(nn.Module):
         if not self.training and x.shape[0] > self.EVAL_CHUNK:  # exact: batch norm uses running stats
             parts = [self.forward(c) for c in x.split(self.EVAL_CHUNK)]
             cat = lambda name: torch.cat([getattr(loc, name) for _, loc in parts])  # noqa: E731
-            loc = Localisation(cat("joints"), cat("grid_joints"), cat("spread_m2"), cat("logits"), self.centres)
+            posture = cat("posture_logits") if self.posture is not None else None
+            loc = Localisation(
+                cat("joints"), cat("grid_joints"), cat("spread_m2"), cat("logits"), self.centres, posture
+            )
             return torch.cat([raw for raw, _ in parts]), loc
         B = x.shape[0]
         fused = fused_trunk(self, x) if fusable(self, x) else None
@@ -205,6 +220,8 @@ class HeatmapNet(nn.Module):
         pooled = torch.cat([e3.mean((-2, -1)), e3.amax((-2, -1))], 1)  # (B, 192)
         rel = (loc.joints.detach() - self.joint_origin) / JOINT_SCALE_M  # (B, 24, 3)
         raw = self.fc(torch.cat([rel.flatten(1), pooled], 1))
+        if self.posture is not None:
+            loc = dataclasses.replace(loc, posture_logits=self.posture(pooled))
         return raw, loc
 
 

@@ -57,6 +57,9 @@ class NetConfig:
     # Smooth the reading within its loaded taxels first (sigma in taxels; 0: off), training and
     # inference alike: detail at the taxel scale out (net.preprocess.smooth_loaded).
     texture_sigma_taxels: float = 0.0
+    # heatmap arch: a posture readout (supine / left / right / prone) on the pooled bottleneck
+    # features (net.posture); the body's own posture is unchanged by it.
+    posture_head: bool = False
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast", "heatmap"):
@@ -67,6 +70,8 @@ class NetConfig:
             raise UserError(
                 f"the flip test is for arch 'heatmap' (its localised joints); this network is {self.arch!r}"
             )
+        if self.posture_head and self.arch != "heatmap":
+            raise UserError(f"the posture head is for arch 'heatmap'; this network is {self.arch!r}")
         if not 0 <= self.ik_steps <= 50:
             raise UserError(f"NetConfig.ik_steps must lie in [0, 50], got {self.ik_steps}")
         if self.modules not in (1, 2):
@@ -123,7 +128,7 @@ class PressureNet(nn.Module):
         self.head = ParamHead(config.backend, self.body.shape_names, self.mat)
         D = self.head.size
         self.mod1 = (
-            HeatmapNet(config.in_channels, D, self.mat, config.dropout, config.width)
+            HeatmapNet(config.in_channels, D, self.mat, config.dropout, config.width, config.posture_head)
             if config.arch == "heatmap"
             else make_cnn(config.arch, config.in_channels, D, config.dropout, config.width)
         )

@@ -68,6 +68,11 @@ class TrainConfig:
         average_from: average the weights (batch-norm statistics included) at the end of every epoch
             from this one on; model.safetensors then holds the average and last/model.safetensors the
             last epoch's weights (`train.average`; 0 = off).
+        posture_weight: arch heatmap: give the network a posture readout (supine / left / right /
+            prone from its pooled features; `net.posture`) trained with this weight on its
+            cross-entropy (0 = no readout, unless posture_only).
+        posture_only: train the posture readout alone on the frozen network of `init` (which may
+            have none yet); the loss is the posture's cross-entropy.
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.
@@ -112,6 +117,8 @@ class TrainConfig:
     texture_sigma: float = 0.0
     lr_gamma: float = 1.0
     average_from: int = 0
+    posture_weight: float = 0.0
+    posture_only: bool = False
     init: Path | None = None
     synthesis_weight: float = 0.0
     val_fraction: float = 0.05
@@ -171,6 +178,12 @@ class TrainConfig:
             )
         if not 0 <= self.texture_sigma <= 5:
             raise UserError(f"texture_sigma must lie in [0, 5] taxels, got {self.texture_sigma}")
+        if self.posture_weight < 0 or ((self.posture_weight > 0 or self.posture_only) and self.arch != "heatmap"):
+            raise UserError("the posture readout is for --arch heatmap, with posture_weight >= 0")
+        if self.posture_only and (self.init is None or self.posture_weight > 0):
+            raise UserError(
+                "--posture-only trains the readout on a trained network: give --init RUN (and no --posture-weight)"
+            )
         if not 0 <= self.average_from <= self.epochs:
             raise UserError(
                 f"average_from must lie in [0, epochs = {self.epochs}] (0 = no averaging), got {self.average_from}"

@@ -27,6 +27,7 @@ from pressurepose.files import atomic_write
 from pressurepose.net.heatmap import localisation_loss
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
+from pressurepose.net.posture import posture_loss
 from pressurepose.train.augment import (
     bands_batch,
     mirror_batch,
@@ -103,6 +104,10 @@ def step_loss(
         if est.localisation is not None:
             located, located_parts = localisation_loss(est.localisation, targets.joints, net.mat)
             loss, parts = loss + located, {**parts, **located_parts}
+        if est.localisation is not None and est.localisation.posture_logits is not None:
+            posture, posture_parts = posture_loss(est.localisation.posture_logits, targets.joints)
+            loss = posture if cfg.posture_only else loss + cfg.posture_weight * posture
+            parts = {**parts, **posture_parts}
     else:
         loss, parts = module_loss(est.joints, est.params.shape, targets, scale, est.depth_mm, est.contact)
         if cfg.synthesis_weight > 0:
@@ -125,6 +130,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         dropout=cfg.dropout,
         width=cfg.width,
         texture_sigma_taxels=cfg.texture_sigma,
+        posture_head=cfg.posture_weight > 0 or cfg.posture_only,
     )
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
@@ -148,13 +154,19 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         net.freeze_mod1()
     if cfg.init is not None:
         _load_init(net, cfg.init)
+    if cfg.posture_only:
+        net.requires_grad_(False)
+        net.mod1.posture.requires_grad_(True)
     return net.to(device)
 
 
 def _load_init(net: PressureNet, init: Path) -> None:
     """Start from the weights of another run's network (fine-tuning), which must be the same
-    network: same arch, width, modules, inputs and body model."""
+    network: same arch, width, modules, inputs and body model. A posture readout the other
+    network lacks starts from fresh weights."""
     weights, record = read_model(init)
+    fresh = {k: v for k, v in net.trainable_state().items() if k.startswith("mod1.posture.") and k not in weights}
+    weights = {**weights, **fresh}
     other = net_config_from_record(record, Path(init) / MODEL_FILE)
     fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight")
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
@@ -279,6 +291,9 @@ def _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device) -> dict:
         dataset, batch_size=cfg.batch_size, sampler=order, collate_fn=collate, num_workers=cfg.num_workers
     )
     net.train()
+    if cfg.posture_only:  # the frozen network keeps its batch statistics and drops no units
+        net.mod1.eval()
+        net.mod1.posture.train()
     totals: dict[str, float] = {}
     n_seen, err_sum, t0 = 0, 0.0, time.perf_counter()
     with _progress(cfg.progress, f"epoch {epoch}/{cfg.epochs}", len(loader)) as advance:
@@ -310,17 +325,22 @@ def _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device) -> dict:
 
 @torch.no_grad()
 def evaluate(net: PressureNet, dataset, cfg: TrainConfig, device: torch.device) -> dict[str, float]:
-    """Validation loss and MPJPE (mm) of the trained module, no augmentation."""
+    """Validation loss and MPJPE (mm) of the trained module (and the share of postures read
+    right, with a posture readout), no augmentation."""
     net.eval()
     loader = torch.utils.data.DataLoader(dataset, batch_size=cfg.batch_size, collate_fn=collate)
-    loss_sum, err_sum, n = 0.0, 0.0, 0
+    loss_sum, err_sum, right, n = 0.0, 0.0, 0.0, 0
     for batch in loader:
         inputs, targets = batch_inputs(batch, device)
-        loss, _, err = step_loss(net, inputs, targets, cfg, False, None)
+        loss, parts, err = step_loss(net, inputs, targets, cfg, False, None)
         loss_sum += float(loss) * inputs.batch_size
         err_sum += float(err.sum())
+        right += parts.get("posture_accuracy", 0.0) * inputs.batch_size
         n += inputs.batch_size
-    return {"val_loss": loss_sum / n, "val_mpjpe_mm": 1000 * err_sum / n}
+    scores = {"val_loss": loss_sum / n, "val_mpjpe_mm": 1000 * err_sum / n}
+    if net.config.posture_head:
+        scores["val_posture_accuracy"] = right / n
+    return scores
 
 
 class _progress:

@@ -1,0 +1,101 @@
+"""The posture readout (net.posture): its labels from the joints against the root-rotation
+reference of eval.real, the thresholds, mirror symmetry, the head in the heatmap network
+(flip test, chunked evaluation) and its reports (evaluate-real, predict)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pressurepose.body.joints import mirror_joints
+from pressurepose.body.params import BodyParams
+from pressurepose.cli import main
+from pressurepose.eval.real import posture_of, roll_deg
+from pressurepose.net import NetConfig, NetInputs, PressureNet
+from pressurepose.net.posture import MIRRORED, POSTURES, posture_index, roll_from_joints
+from pressurepose.sampling.poses import root_axis_angles
+from pressurepose.train.checkpoint import load_network, save_model
+
+PMAT = "../shared/data/pmatdata"
+
+
+def test_roll_from_joints_against_the_root_reference(anny32):
+    """Bodies of the model rolled about the bed's long axis and turned on the mat: the roll read
+    from their joints follows the root's (eval.real.roll_deg) and gives the same posture."""
+    rolls = [-170, -120, -95, -60, -20, 0, 25, 70, 100, 150, 178]
+    pairs = np.radians([(r, y) for r in rolls for y in (0, 30, -50)])
+    roots = torch.from_numpy(root_axis_angles(pairs[:, 0], pairs[:, 1]))
+    B = roots.shape[0]
+    p = BodyParams.zeros(B, anny32.default_shape(1).reshape(-1))
+    p = BodyParams(shape=p.shape, root_rotation=roots.to(p.shape), root_translation=p.root_translation, pose=p.pose)
+    joints = anny32.joints(p).double()
+    reference = roll_deg(roots)
+    assert reference.tolist() == pytest.approx([r for r in rolls for _ in range(3)], abs=1e-6)
+    got = roll_from_joints(joints)
+    diff = (got - reference + 180) % 360 - 180
+    assert diff.abs().max() < 4.0, diff
+    assert [POSTURES[i] for i in posture_index(got).tolist()] == posture_of(reference)
+
+
+def test_posture_index_thresholds_and_mirror():
+    roll = torch.tensor([0.0, 45.0, -45.0, 46.0, -46.0, 134.9, -134.9, 135.0, -135.0, 180.0, -90.0, 90.0])
+    names = [POSTURES[i] for i in posture_index(roll).tolist()]
+    assert names == ["supine", "supine", "supine", "right", "left", "right", "left", "prone", "prone", "prone", "left", "right"]  # fmt: skip
+    assert names == posture_of(roll)
+    # The mirrored body rolls the other way: left and right swap (MIRRORED), the rest stay.
+    g = torch.Generator().manual_seed(0)
+    joints = torch.rand(64, 24, 3, generator=g, dtype=torch.float64)
+    a = posture_index(roll_from_joints(joints))
+    b = posture_index(roll_from_joints(mirror_joints(joints, 0.9)))
+    assert torch.equal(b, torch.tensor(MIRRORED)[a])
+    assert torch.allclose(roll_from_joints(mirror_joints(joints, 0.9)), -roll_from_joints(joints), atol=1e-9)
+
+
+def _net(anny32, **kw):
+    torch.manual_seed(0)
+    net = PressureNet(NetConfig(arch="heatmap", gender_input=False, posture_head=True, **kw), body=anny32).eval()
+    with torch.no_grad():
+        net.mod1.posture.layers[-1].weight.normal_(0, 1.0)
+    return net
+
+
+def test_posture_head_in_the_network(anny32):
+    net = _net(anny32)
+    p = torch.rand(70, 64, 27) * 40  # more than EVAL_CHUNK: evaluated in pieces
+    with torch.no_grad():
+        whole = net(NetInputs(p), mesh=False)[0].localisation.posture_logits
+        pieces = torch.cat(
+            [net(NetInputs(p[i : i + 7]), mesh=False)[0].localisation.posture_logits for i in range(0, 70, 7)]
+        )
+        mirror = net(NetInputs(p.flip(-1)), mesh=False)[0].localisation.posture_logits
+    assert whole.shape == (70, 4) and torch.allclose(whole, pieces, atol=1e-4)
+    flip = PressureNet(dataclasses.replace(net.config, flip_test=True), body=anny32).eval()
+    flip.load_trainable_state(net.trainable_state())
+    with torch.no_grad():
+        merged = flip(NetInputs(p[:8]), mesh=False)[0].localisation.posture_logits
+    assert torch.allclose(merged, (whole[:8] + mirror[:8, list(MIRRORED)]) / 2, atol=1e-4)
+    with pytest.raises(ValueError, match="posture head is for arch 'heatmap'"):
+        NetConfig(arch="fast", posture_head=True)
+
+
+def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
+    net = _net(anny32)
+    save_model(tmp_path / "run", net, {"train": {}, "net": dict(net.config.__dict__)})
+    loaded, _ = load_network(tmp_path / "run", body=anny32)
+    assert loaded.config.posture_head
+    out = tmp_path / "real"
+    assert main(["evaluate-real", "--model", str(tmp_path / "run"), "--pmatdata", PMAT, "--groups", "BD", "--out", str(out)]) == 0  # fmt: skip
+    record = json.loads((out / "real.json").read_text())
+    for mattress, s in record["by_mattress"].items():
+        frames = [f for f in record["per_frame"] if f["mattress"] == mattress]
+        assert s["readout_accuracy"] == pytest.approx(
+            sum(f["readout_posture"] == f["posture"] for f in frames) / len(frames)
+        )
+    assert "posture readout" in (out / "real.md").read_text()
+    image = torch.rand(64, 27).numpy() * 40
+    np.save(tmp_path / "a.npy", image)
+    assert main(["predict", "--model", str(tmp_path / "run"), "--out", str(tmp_path / "pred"), str(tmp_path / "a.npy"), "--no-figures"]) == 0  # fmt: skip
+    readout = json.loads((tmp_path / "pred" / "a.json").read_text())["posture_readout"]
+    assert list(readout) == list(POSTURES) and sum(readout.values()) == pytest.approx(1.0)
