@@ -14,7 +14,7 @@ from pressurepose.body.params import BodyParams
 from pressurepose.cli import main
 from pressurepose.eval.real import posture_of, roll_deg
 from pressurepose.net import NetConfig, NetInputs, PressureNet
-from pressurepose.net.posture import MIRRORED, POSTURES, posture_index, roll_from_joints
+from pressurepose.net.posture import MIRRORED, POSTURES, posture_index, roll_from_joints, swapped_sides, to_swap
 from pressurepose.sampling.poses import root_axis_angles
 from pressurepose.train.checkpoint import load_network, save_model
 
@@ -99,3 +99,46 @@ def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
     assert main(["predict", "--model", str(tmp_path / "run"), "--out", str(tmp_path / "pred"), str(tmp_path / "a.npy"), "--no-figures"]) == 0  # fmt: skip
     readout = json.loads((tmp_path / "pred" / "a.json").read_text())["posture_readout"]
     assert list(readout) == list(POSTURES) and sum(readout.values()) == pytest.approx(1.0)
+
+
+def _forced(net, posture):
+    """The readout made to say `posture` whatever the image."""
+    layer = net.mod1.posture.layers[-1]
+    with torch.no_grad():
+        layer.weight.zero_()
+        layer.bias.copy_(torch.tensor([10.0 if p == posture else 0.0 for p in POSTURES]))
+    return net
+
+
+def test_posture_consistent_reads_the_body_again_with_sides_exchanged(anny32):
+    """An untrained network's bodies lie supine. Readout 'prone' (the pair's other posture):
+    the joints come back with left and right exchanged and the parameters read again from them;
+    readout 'supine' or 'left' (another pair): nothing changes."""
+    p = torch.rand(6, 64, 27) * 40
+    base = _net(anny32, ik_steps=0)
+    with torch.no_grad():
+        plain = base(NetInputs(p), mesh=False)[0]
+    assert posture_of(roll_deg(plain.params.root_rotation.double())) == ["supine"] * 6
+    for posture, swapped in (("prone", True), ("supine", False), ("left", False)):
+        net = _forced(_net(anny32, ik_steps=0), posture)
+        net.config = dataclasses.replace(net.config, posture_consistent=True)
+        with torch.no_grad():
+            est = net(NetInputs(p), mesh=False)[0]
+            again = net.mod1.read_params(swapped_sides(plain.localisation.joints), plain.localisation.features)
+        loc = est.localisation
+        if swapped:
+            assert torch.allclose(loc.joints, swapped_sides(plain.localisation.joints))
+            assert torch.allclose(loc.spread_m2, swapped_sides(plain.localisation.spread_m2))
+            assert torch.allclose(est.raw, again, atol=1e-6)
+            assert (est.raw - plain.raw).norm() > 1e-3 * plain.raw.norm()  # read again: another body
+        else:
+            assert torch.equal(loc.joints, plain.localisation.joints) and torch.equal(est.raw, plain.raw)
+    with pytest.raises(ValueError, match="posture_consistent needs a network with a posture head"):
+        NetConfig(arch="heatmap", posture_consistent=True)
+
+
+def test_to_swap_pairs():
+    roll = torch.tensor([0.0, 0.0, 0.0, 0.0, 180.0, -90.0, -90.0, 90.0])
+    read = torch.tensor([0, 3, 1, 2, 0, 2, 3, 1])
+    swap = to_swap(roll, torch.nn.functional.one_hot(read, 4).float())
+    assert swap.tolist() == [False, True, False, False, True, True, False, True]

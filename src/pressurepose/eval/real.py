@@ -14,18 +14,11 @@ import dataclasses
 
 import torch
 
-from pressurepose.body.params import root_matrix
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
 from pressurepose.net.posture import POSTURES
+from pressurepose.net.posture import roll_from_root as roll_deg
 
 GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
-
-
-def roll_deg(root_rotation: torch.Tensor) -> torch.Tensor:
-    """(B,) roll (deg) of the body about the bed's long axis from root rotations (B, 3)."""
-    R = root_matrix(root_rotation)  # body axes (x left, y head, z front) -> mat frame
-    # Heights of the body's left and front axes: sin and cos of the roll, whatever the yaw.
-    return torch.rad2deg(torch.atan2(R[:, 2, 0], R[:, 2, 2]))
 
 
 def posture_of(roll: torch.Tensor) -> list[str]:

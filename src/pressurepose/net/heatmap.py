@@ -59,6 +59,7 @@ class Localisation:
     logits: torch.Tensor  # (B, 24, H, W) the heatmaps' logits
     centres: torch.Tensor  # (H, W, 2) the cells' (x, y)
     posture_logits: torch.Tensor | None = None  # (B, 4) over net.posture.POSTURES, with a posture head
+    features: torch.Tensor | None = None  # (B, F) the pooled bottleneck the heads read
 
     @property
     def log_prob(self) -> torch.Tensor:
@@ -117,7 +118,8 @@ def flip_merged(loc: Localisation, width_m: float) -> Localisation:
     their mirror images (columns reversed). The mirrored half is mapped back - joints reflected
     across the mat's centre line (y -> W - y, W the sensing width) with left and right swapped
     (J24_MIRROR), the heatmaps flipped, left and right postures swapped - and averaged with the
-    first half: each joint's position, height, heatmap variance and logits, the posture logits. The mirror image of a body's image is the image of the
+    first half: each joint's position, height, heatmap variance and logits, the posture logits
+    (the features are the image's own, for the parameter head). The mirror image of a body's image is the image of the
     mirrored body (the bed and the simulation are mirror symmetric), so both halves estimate
     the same joints and their mean has less of either's error. The heatmaps' column c is the
     mirror image of column W_cells - 1 - c: the cell centres are symmetric about the centre line
@@ -135,6 +137,7 @@ def flip_merged(loc: Localisation, width_m: float) -> Localisation:
         posture_logits=None
         if loc.posture_logits is None
         else mean(loc.posture_logits[:B], mirrored_logits(loc.posture_logits[B:])),
+        features=None if loc.features is None else loc.features[:B],
     )
 
 
@@ -210,7 +213,13 @@ class HeatmapNet(nn.Module):
             cat = lambda name: torch.cat([getattr(loc, name) for _, loc in parts])  # noqa: E731
             posture = cat("posture_logits") if self.posture is not None else None
             loc = Localisation(
-                cat("joints"), cat("grid_joints"), cat("spread_m2"), cat("logits"), self.centres, posture
+                cat("joints"),
+                cat("grid_joints"),
+                cat("spread_m2"),
+                cat("logits"),
+                self.centres,
+                posture,
+                cat("features"),
             )
             return torch.cat([raw for raw, _ in parts]), loc
         B = x.shape[0]
@@ -218,11 +227,14 @@ class HeatmapNet(nn.Module):
         e3, maps = fused if fused is not None else self._trunk(x)
         loc = integral_joints(maps.reshape(B, NUM_JOINTS, MAPS_PER_JOINT, *maps.shape[-2:]), self.centres)
         pooled = torch.cat([e3.mean((-2, -1)), e3.amax((-2, -1))], 1)  # (B, 192)
-        rel = (loc.joints.detach() - self.joint_origin) / JOINT_SCALE_M  # (B, 24, 3)
-        raw = self.fc(torch.cat([rel.flatten(1), pooled], 1))
-        if self.posture is not None:
-            loc = dataclasses.replace(loc, posture_logits=self.posture(pooled))
-        return raw, loc
+        posture = self.posture(pooled) if self.posture is not None else None
+        loc = dataclasses.replace(loc, posture_logits=posture, features=pooled)
+        return self.read_params(loc.joints, pooled), loc
+
+    def read_params(self, joints: torch.Tensor, pooled: torch.Tensor) -> torch.Tensor:
+        """The parameter head: raw (B, D) from localised joints (B, 24, 3) and pooled features."""
+        rel = (joints.detach() - self.joint_origin) / JOINT_SCALE_M  # (B, 24, 3)
+        return self.fc(torch.cat([rel.flatten(1), pooled], 1))
 
 
 def localisation_loss(

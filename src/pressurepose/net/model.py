@@ -26,6 +26,7 @@ from pressurepose.net.head import ParamHead
 from pressurepose.net.heatmap import HeatmapNet, Localisation, flip_merged
 from pressurepose.net.ik import IKConfig, fit_to_joints
 from pressurepose.net.pmr import reconstruct_maps
+from pressurepose.net.posture import roll_from_root, swapped_sides, to_swap
 from pressurepose.net.preprocess import (
     check_pressure,
     constant_planes,
@@ -60,6 +61,10 @@ class NetConfig:
     # heatmap arch: a posture readout (supine / left / right / prone) on the pooled bottleneck
     # features (net.posture); the body's own posture is unchanged by it.
     posture_head: bool = False
+    # heatmap arch with a posture head, eval only: where the body's posture and the readout's
+    # differ by left and right alone, read the body again from its localised joints with left
+    # and right exchanged, so that the body lies as the readout says (net.posture.to_swap).
+    posture_consistent: bool = False
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast", "heatmap"):
@@ -72,6 +77,8 @@ class NetConfig:
             )
         if self.posture_head and self.arch != "heatmap":
             raise UserError(f"the posture head is for arch 'heatmap'; this network is {self.arch!r}")
+        if self.posture_consistent and not self.posture_head:
+            raise UserError("posture_consistent needs a network with a posture head (train --posture-weight)")
         if not 0 <= self.ik_steps <= 50:
             raise UserError(f"NetConfig.ik_steps must lie in [0, 50], got {self.ik_steps}")
         if self.modules not in (1, 2):
@@ -236,10 +243,29 @@ class PressureNet(nn.Module):
         else:
             raw, loc = self.mod1(x)
         params = self.head(raw, gender)
+        if not self.training and self.config.posture_consistent:
+            raw, loc, params = self._agree_with_readout(raw, loc, params, gender)
         if not self.training and self.config.ik_steps > 0:
             ik = IKConfig(steps=self.config.ik_steps)
             params = fit_to_joints(self.body, params, loc.joints, ik.weights(loc.spread_m2), ik)
         return self.estimate(raw, gender, mesh, maps, params=params, localisation=loc)
+
+    def _agree_with_readout(self, raw, loc: Localisation, params: BodyParams, gender):
+        """Where the body lies supine and the readout says prone (or the sides likewise), the
+        localised joints with left and right exchanged, the parameters read again from them."""
+        swap = to_swap(roll_from_root(params.root_rotation.double()), loc.posture_logits)
+        if not bool(swap.any()):
+            return raw, loc, params
+        pick = lambda a, b: torch.where(swap.reshape(-1, *[1] * (a.ndim - 1)), b, a)  # noqa: E731
+        loc = dataclasses.replace(
+            loc,
+            joints=pick(loc.joints, swapped_sides(loc.joints)),
+            grid_joints=pick(loc.grid_joints, swapped_sides(loc.grid_joints)),
+            spread_m2=pick(loc.spread_m2, swapped_sides(loc.spread_m2)),
+            logits=pick(loc.logits, swapped_sides(loc.logits)),
+        )
+        raw = pick(raw, self.mod1.read_params(loc.joints, loc.features))
+        return raw, loc, self.head(raw, gender)
 
     def forward(
         self,

@@ -19,10 +19,21 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pressurepose.body.joints import J24_MIRROR
+from pressurepose.body.params import root_matrix
+
 POSTURES = ("supine", "left", "right", "prone")
 MIRRORED = (0, 2, 1, 3)  # the posture of the mirrored body: left and right swapped
 LABEL_SMOOTHING = 0.1
 _PELVIS, _L_HIP, _R_HIP, _NECK, _L_SHOULDER, _R_SHOULDER = 0, 1, 2, 12, 16, 17
+
+
+def roll_from_root(root_rotation: torch.Tensor) -> torch.Tensor:
+    """(B, 3) root rotations -> (B,) roll (deg) of the body about the bed's long axis: the
+    heights of the body's left and front axes in the mat frame are its sine and cosine,
+    whatever the yaw (`eval.real` reads PmatData's postures with it)."""
+    R = root_matrix(root_rotation)  # body axes (x left, y head, z front) -> mat frame
+    return torch.rad2deg(torch.atan2(R[:, 2, 0], R[:, 2, 2]))
 
 
 def roll_from_joints(joints: torch.Tensor) -> torch.Tensor:
@@ -65,4 +76,28 @@ def mirrored_logits(logits: torch.Tensor) -> torch.Tensor:
     return logits[:, list(MIRRORED)]
 
 
-__all__ = ["POSTURES", "PostureHead", "mirrored_logits", "posture_index", "posture_loss", "roll_from_joints"]
+def to_swap(body_roll_deg: torch.Tensor, posture_logits: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: where the body's posture and the readout's differ by left and right alone
+    (supine and prone, or the two sides): the same joint positions with left and right joints
+    exchanged are a body in the readout's posture (`NetConfig.posture_consistent`)."""
+    body = posture_index(body_roll_deg)
+    read = posture_logits.argmax(-1)
+    return (body != read) & (body + read == len(POSTURES) - 1)  # supine 0 + prone 3, left 1 + right 2
+
+
+def swapped_sides(joints: torch.Tensor) -> torch.Tensor:
+    """(B, 24, ...) per-joint values with left and right joints exchanged, positions kept."""
+    return joints[:, list(J24_MIRROR)]
+
+
+__all__ = [
+    "POSTURES",
+    "PostureHead",
+    "mirrored_logits",
+    "posture_index",
+    "posture_loss",
+    "roll_from_joints",
+    "roll_from_root",
+    "swapped_sides",
+    "to_swap",
+]
