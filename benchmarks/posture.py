@@ -29,7 +29,13 @@ def read(net, batch: dict, chunk: int = 256) -> tuple[torch.Tensor, torch.Tensor
     with torch.no_grad():
         for lo in range(0, len(batch["pressure_mmhg"]), chunk):
             sl = slice(lo, lo + chunk)
-            est = net(NetInputs(batch["pressure_mmhg"][sl], gender=batch["gender"][sl]), mesh=False)[-1]
+            inputs = NetInputs(
+                batch["pressure_mmhg"][sl],
+                gender=batch["gender"][sl],
+                height_m=batch["height_m"][sl],
+                mass_kg=batch["mass_kg"][sl],
+            )
+            est = net(inputs, mesh=False)[-1]
             body.append(posture_index(roll_from_root(est.params.root_rotation.double())))
             readout.append(est.localisation.posture_logits.argmax(-1))
             err.append((est.joints - batch["joints"][sl]).norm(dim=-1).mean(-1))
@@ -51,15 +57,17 @@ def main() -> None:
     idx = torch.linspace(0, len(dataset) - 1, min(args.n, len(dataset))).round().long().unique().tolist()
     batch = collate([dataset[i] for i in idx])
     true = posture_index(roll_from_root(batch["root_rotation"].double()))
-    print(
-        f"{len(idx)} samples of {args.data} ({args.split}); true postures", torch.bincount(true, minlength=4).tolist()
-    )
+    counts = torch.bincount(true, minlength=len(POSTURES)).tolist()
+    print(f"{len(idx)} samples of {args.data} ({args.split}); true postures {dict(zip(POSTURES, counts))}")
     print("| reading | body posture | readout | " + " | ".join(f"body on {p}" for p in POSTURES) + " | MPJPE (mm) |")
     print("| --- | --- | --- |" + " --- |" * len(POSTURES) + " --- |")
     for consistent in (False, True):
         net.config = dataclasses.replace(net.config, posture_consistent=consistent)
         body, readout, err = read(net, batch)
-        per = [float((body[true == k] == k).float().mean()) if (true == k).any() else float("nan") for k in range(4)]
+        per = [
+            float((body[true == k] == k).float().mean()) if (true == k).any() else float("nan")
+            for k in range(len(POSTURES))
+        ]
         print(
             f"| {'posture_consistent' if consistent else 'as trained'} | {float((body == true).float().mean()):.3f} | "
             f"{float((readout == true).float().mean()):.3f} | "

@@ -12,7 +12,7 @@ import torch
 from pressurepose.body.joints import mirror_joints
 from pressurepose.body.params import BodyParams
 from pressurepose.cli import main
-from pressurepose.eval.real import posture_of, roll_deg
+from pressurepose.eval.real import posture_of, read_bodies, roll_deg
 from pressurepose.net import NetConfig, NetInputs, PressureNet
 from pressurepose.net.posture import MIRRORED, POSTURES, posture_index, roll_from_joints, swapped_sides, to_swap
 from pressurepose.sampling.poses import root_axis_angles
@@ -94,6 +94,11 @@ def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
             sum(f["readout_posture"] == f["posture"] for f in frames) / len(frames)
         )
     assert "posture readout" in (out / "real.md").read_text()
+    images = torch.rand(12, 64, 27) * 40
+    readout = read_bodies(loaded, images, batch=5).readout  # in batches smaller than N
+    with torch.no_grad():
+        logits = loaded(NetInputs(images), mesh=False)[0].localisation.posture_logits
+    assert readout == [POSTURES[i] for i in logits.argmax(-1).tolist()]
     image = torch.rand(64, 27).numpy() * 40
     np.save(tmp_path / "a.npy", image)
     assert main(["predict", "--model", str(tmp_path / "run"), "--out", str(tmp_path / "pred"), str(tmp_path / "a.npy"), "--no-figures"]) == 0  # fmt: skip

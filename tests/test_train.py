@@ -24,6 +24,7 @@ from pressurepose.train.data import (
     synthetic_arrays,
     write_npz,
 )
+from pressurepose.train.loop import build_network
 
 
 @pytest.fixture(scope="module")
@@ -634,6 +635,8 @@ def test_weight_average_is_the_mean_of_the_epochs_and_resumes(data32, tmp_path):
             assert torch.allclose(v.double(), mean, atol=1e-5, rtol=1e-4), k
             assert torch.allclose(last[k], e3[k], atol=1e-6), k
             moved += int(not torch.allclose(e2[k], e3[k], atol=1e-4))
+        else:  # batch norm's counters: the latest epoch's
+            assert torch.equal(v, e3[k]), k
     assert moved > 10  # the epochs differ, so the mean is not one of them
     rows = _metrics(tmp_path / "avg")
     assert "average_val_mpjpe_mm" not in rows[0] and rows[1]["average_val_mpjpe_mm"] == pytest.approx(
@@ -690,9 +693,24 @@ def test_posture_readout_trains_jointly_and_alone(data32, tmp_path):
         assert torch.equal(v, alone[k]), k  # frozen: weights and batch-norm statistics
     rows = _metrics(tmp_path / "alone")
     assert rows[-1]["loss"] == pytest.approx(rows[-1]["posture"]) and rows[-1]["loss"] < rows[0]["loss"]
+    # What the optimizer gets and which modules run in training mode.
+    net = build_network(TrainConfig.smoke(posture_only=True, init=tmp_path / "plain", **common), torch.device("cpu"))
+    trained = {n for n, p in net.named_parameters() if p.requires_grad}
+    assert trained == {"mod1.posture.layers.1.weight", "mod1.posture.layers.1.bias"}
+    net.train()
+    assert not net.mod1.training and net.mod1.posture.training and not net.mod1.enc1.training
+    # A network with a readout fine-tunes into one without (the readout left out), and a
+    # different input smoothing is refused.
+    train(TrainConfig.smoke(out=tmp_path / "ft", epochs=1, init=tmp_path / "alone", **common), ds)
+    assert not load_network(tmp_path / "ft")[0].config.posture_head
+    with pytest.raises(ValueError, match="texture_sigma_taxels"):
+        train(
+            TrainConfig.smoke(out=tmp_path / "ts", epochs=1, init=tmp_path / "plain", texture_sigma=1.0, **common), ds
+        )
     for bad, match in (
         (dict(posture_only=True), "give --init"),
-        (dict(posture_weight=0.1, arch="fast"), "for --arch heatmap"),
+        (dict(posture_weight=0.1, arch="fast"), "for --arch heatmap; this run is --arch fast"),
+        (dict(posture_weight=-1.0), "posture_weight must be >= 0"),
     ):
         with pytest.raises(ValueError, match=match):
             TrainConfig.smoke(out=tmp_path / "x", **{**common, **bad})

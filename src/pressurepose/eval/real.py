@@ -15,18 +15,14 @@ import dataclasses
 import torch
 
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
-from pressurepose.net.posture import POSTURES
+from pressurepose.net.posture import POSTURES, posture_index
 from pressurepose.net.posture import roll_from_root as roll_deg
 
 GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
 
 
 def posture_of(roll: torch.Tensor) -> list[str]:
-    out = []
-    for r in roll.tolist():
-        a = abs(r)
-        out.append("supine" if a <= 45 else "prone" if a >= 135 else ("left" if r < 0 else "right"))
-    return out
+    return [POSTURES[i] for i in posture_index(roll).tolist()]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +61,7 @@ def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, b
             rolls.append(roll_deg(est.params.root_rotation.to(torch.float64)))
             if est.localisation is not None and est.localisation.posture_logits is not None:
                 readout += [POSTURES[i] for i in est.localisation.posture_logits.argmax(-1).tolist()]
-    readout = readout if len(readout) == pressure_mmhg.shape[0] else None
+    readout = readout if net.config.posture_head else None
     return BodyReadings(torch.cat(heights), torch.cat(masses), torch.cat(rolls), readout)
 
 

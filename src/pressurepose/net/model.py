@@ -149,6 +149,7 @@ class PressureNet(nn.Module):
             with torch.no_grad():
                 last.weight.zero_()
         self.mod1_frozen = False
+        self.readout_only = False
 
     @property
     def faces(self) -> torch.Tensor:
@@ -159,10 +160,20 @@ class PressureNet(nn.Module):
         self.mod1_frozen = True
         self.mod1.requires_grad_(False)
 
+    def freeze_all_but_readout(self) -> None:
+        """Train the posture readout alone on a fixed network (`train --posture-only`)."""
+        if self.mod1.posture is None:
+            raise ValueError("this network has no posture readout (NetConfig.posture_head)")
+        self.readout_only = True
+        self.requires_grad_(False)
+        self.mod1.posture.requires_grad_(True)
+
     def train(self, mode: bool = True) -> PressureNet:
         super().train(mode)
-        if self.mod1_frozen:
+        if self.mod1_frozen or self.readout_only:
             self.mod1.eval()  # no dropout / batch-statistics updates in the frozen module
+        if self.readout_only:
+            self.mod1.posture.train(mode)
         return self
 
     def trainable_state(self) -> dict[str, torch.Tensor]:

@@ -26,12 +26,20 @@ PREFIX = "average/"
 COUNT = "average_count"
 
 
+def _equal_average(average: torch.Tensor, current: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+    """The running equal average; integer buffers (batch norm's batch counters) take the
+    latest value (torch's own multi-tensor average divides them, which CUDA refuses)."""
+    if not average.is_floating_point():
+        return current
+    return average + (current - average) / (count + 1).to(average.dtype)
+
+
 class WeightAverage:
     """The running equal average of a network's trainable state (all but `body`)."""
 
     def __init__(self, net: PressureNet) -> None:
         self.modules = nn.ModuleDict({name: m for name, m in net.named_children() if name != "body"})
-        self.average = AveragedModel(self.modules, use_buffers=True)
+        self.average = AveragedModel(self.modules, avg_fn=_equal_average, use_buffers=True)
 
     @property
     def count(self) -> int:

@@ -178,8 +178,10 @@ class TrainConfig:
             )
         if not 0 <= self.texture_sigma <= 5:
             raise UserError(f"texture_sigma must lie in [0, 5] taxels, got {self.texture_sigma}")
-        if self.posture_weight < 0 or ((self.posture_weight > 0 or self.posture_only) and self.arch != "heatmap"):
-            raise UserError("the posture readout is for --arch heatmap, with posture_weight >= 0")
+        if self.posture_weight < 0:
+            raise UserError(f"posture_weight must be >= 0, got {self.posture_weight}")
+        if (self.posture_weight > 0 or self.posture_only) and self.arch != "heatmap":
+            raise UserError(f"the posture readout is for --arch heatmap; this run is --arch {self.arch}")
         if self.posture_only and (self.init is None or self.posture_weight > 0):
             raise UserError(
                 "--posture-only trains the readout on a trained network: give --init RUN (and no --posture-weight)"

@@ -155,20 +155,21 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
     if cfg.init is not None:
         _load_init(net, cfg.init)
     if cfg.posture_only:
-        net.requires_grad_(False)
-        net.mod1.posture.requires_grad_(True)
+        net.freeze_all_but_readout()
     return net.to(device)
 
 
 def _load_init(net: PressureNet, init: Path) -> None:
     """Start from the weights of another run's network (fine-tuning), which must be the same
-    network: same arch, width, modules, inputs and body model. A posture readout the other
-    network lacks starts from fresh weights."""
+    network: same arch, width, modules, inputs, input smoothing and body model. A posture readout
+    the other network lacks starts from fresh weights; one it has that this one lacks is left out."""
     weights, record = read_model(init)
-    fresh = {k: v for k, v in net.trainable_state().items() if k.startswith("mod1.posture.") and k not in weights}
-    weights = {**weights, **fresh}
+    own = net.trainable_state()
+    readout = {k for k in own if k.startswith("mod1.posture.")}
+    weights = {k: v for k, v in weights.items() if k in readout or not k.startswith("mod1.posture.")}
+    weights.update({k: own[k] for k in readout if k not in weights})  # a readout the other lacks starts fresh
     other = net_config_from_record(record, Path(init) / MODEL_FILE)
-    fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight")
+    fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight", "texture_sigma_taxels")
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
     if mismatch:
         raise UserError(
@@ -290,10 +291,7 @@ def _epoch(net, opt, dataset, train_idx, val_idx, cfg, epoch, device) -> dict:
     loader = torch.utils.data.DataLoader(
         dataset, batch_size=cfg.batch_size, sampler=order, collate_fn=collate, num_workers=cfg.num_workers
     )
-    net.train()
-    if cfg.posture_only:  # the frozen network keeps its batch statistics and drops no units
-        net.mod1.eval()
-        net.mod1.posture.train()
+    net.train()  # with --posture-only the frozen network keeps its batch statistics, drops no units
     totals: dict[str, float] = {}
     n_seen, err_sum, t0 = 0, 0.0, time.perf_counter()
     with _progress(cfg.progress, f"epoch {epoch}/{cfg.epochs}", len(loader)) as advance:
