@@ -714,3 +714,40 @@ def test_posture_readout_trains_jointly_and_alone(data32, tmp_path):
     ):
         with pytest.raises(ValueError, match=match):
             TrainConfig.smoke(out=tmp_path / "x", **{**common, **bad})
+
+
+def test_flatten_against_a_per_taxel_reference(data32, monkeypatch):
+    """Flattened contrast: the power applied taxel by taxel gives the same images, flatter; g = 0
+    (the range's end) leaves one pressure over the same outline with the same force; the off
+    images are untouched."""
+    from pressurepose.train import augment
+    from pressurepose.train.augment import FLATTEN_GAMMA, flatten_batch
+
+    p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:8].double()
+    inputs = NetInputs(pressure_mmhg=p)
+    assert torch.equal(flatten_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = flatten_batch(inputs, 0.5, torch.Generator().manual_seed(3)).pressure_mmhg
+    u = torch.rand(2, 8, generator=torch.Generator().manual_seed(3)).double()
+    on = u[0] < 0.5
+    assert 0 < int(on.sum()) < 8
+    for i in range(8):
+        if not on[i]:
+            assert torch.equal(out[i], p[i])
+            continue
+        g = FLATTEN_GAMMA[0] + (FLATTEN_GAMMA[1] - FLATTEN_GAMMA[0]) * float(u[1, i])
+        ref = p[i].clone()
+        for r in range(64):
+            for c in range(27):
+                ref[r, c] = float(p[i, r, c]) ** g if p[i, r, c] > 0 else 0.0
+        ref = _read_as_the_sensor(ref, p[i])
+        assert torch.allclose(out[i], ref, atol=1e-9), i
+        spread = lambda a: float(a[a > 0].std() / a[a > 0].mean())  # noqa: E731
+        assert spread(out[i]) < spread(p[i])  # flatter
+    monkeypatch.setattr(augment, "FLATTEN_GAMMA", (0.0, 0.0))
+    flat = augment.flatten_batch(inputs, 1.0, torch.Generator().manual_seed(3)).pressure_mmhg
+    for i in range(8):  # one pressure over the same outline, the force kept
+        assert torch.equal(flat[i] > 0, p[i] > 0)
+        assert torch.allclose(flat[i][p[i] > 0], flat[i][p[i] > 0].mean(), rtol=1e-9)
+        assert float(flat[i].sum()) == pytest.approx(float(p[i].sum()), rel=1e-9)
+    with pytest.raises(ValueError, match="flatten"):
+        TrainConfig.smoke(flatten=2.0)

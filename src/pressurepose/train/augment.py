@@ -167,6 +167,24 @@ def texture_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
     return _read_again(inputs, p * gain, u[0] < share)
 
 
+FLATTEN_GAMMA = (0.0, 1.0)  # the exponent: 0 = one pressure over the whole loaded outline
+
+
+def flatten_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
+    """Flatten the contrast of a random `share` of the images: each loaded taxel's reading p ->
+    p^g (g ~ U(FLATTEN_GAMMA); g = 0 leaves one pressure over the loaded outline), the total
+    kept, then the sensor's threshold and ceiling; the outline is the same. Why: a network
+    reads a real supine frame made uniform on its loaded taxels as prone (`heat_line`'s epoch
+    19: 99 of 159 supine frames; `benchmarks/real_probe.py`), and real mats read far more uniform
+    pressure than the simulation - what tells supine from prone must then lie in the outline
+    rather than in how the load is shared within it. Images not drawn are unchanged."""
+    p = inputs.pressure_mmhg
+    u = torch.rand(2, p.shape[0], generator=generator).to(p)
+    g = _uniform(FLATTEN_GAMMA, u[1])[:, None, None]
+    q = torch.where(p > 0, p.clamp(min=1e-30) ** g, torch.zeros_like(p))
+    return _read_again(inputs, q, u[0] < share)
+
+
 # Pillow augmentation: ranges drawn per image (docs/network.md, "Real frames span the mat").
 PILLOW_BEYOND_HEAD_M = (0.10, 0.45)  # its far edge beyond the head joint, toward the head end
 PILLOW_PAST_NECK_M = (-0.03, 0.05)  # its near edge past the neck joint, toward the feet
@@ -254,6 +272,7 @@ def occlude_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
 
 __all__ = [
     "bands_batch",
+    "flatten_batch",
     "mirror_batch",
     "occlude_batch",
     "pillow_batch",

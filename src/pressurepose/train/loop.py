@@ -30,6 +30,7 @@ from pressurepose.net.model import NetConfig, NetInputs, PressureNet
 from pressurepose.net.posture import posture_loss
 from pressurepose.train.augment import (
     bands_batch,
+    flatten_batch,
     mirror_batch,
     occlude_batch,
     pillow_batch,
@@ -88,6 +89,8 @@ def step_loss(
         if targets.depth_mm is None:
             raise UserError("--repress needs the depth maps (depth_mm) of the training samples")
         inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
+    if augment and cfg.flatten > 0:
+        inputs = flatten_batch(inputs, cfg.flatten, generator)
     if augment and cfg.pillow > 0:
         inputs = pillow_batch(inputs, targets.joints, cfg.pillow, generator)
     if augment and cfg.bands > 0:
