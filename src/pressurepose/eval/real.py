@@ -59,10 +59,11 @@ def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, b
             heights.append(meas.height_m)
             masses.append(meas.mass_kg)
             rolls.append(roll_deg(est.params.root_rotation.to(torch.float64)))
-            if est.localisation is not None and est.localisation.posture_logits is not None:
+            if net.config.posture_head:
                 readout += [POSTURES[i] for i in est.localisation.posture_logits.argmax(-1).tolist()]
-    readout = readout if net.config.posture_head else None
-    return BodyReadings(torch.cat(heights), torch.cat(masses), torch.cat(rolls), readout)
+    return BodyReadings(
+        torch.cat(heights), torch.cat(masses), torch.cat(rolls), readout if net.config.posture_head else None
+    )
 
 
 __all__ = ["GROUP_POSTURE", "POSTURES", "BodyReadings", "posture_of", "read_bodies", "roll_deg"]
