@@ -59,6 +59,20 @@ def zero_share(lo: float, hi: float):
     return f
 
 
+def scale_share(lo: float, hi: float, gain: float):
+    """Scale the loaded rows between shares lo and hi of the loaded extent (0 = head end)."""
+
+    def f(x):
+        x = x.clone()
+        for i in range(len(x)):
+            a, b = loaded_rows(x[i])
+            n = b - a
+            x[i, a + int(lo * n) : a + int(hi * n)] *= gain
+        return x
+
+    return f
+
+
 def narrow_head_rows(k: int, width: int):
     """Keep, in the first k loaded rows, only the `width` columns about their force centroid
     (a head's width instead of a pillow's)."""
@@ -98,6 +112,9 @@ REAL_VARIANTS = {
     "uniform on the loaded taxels": lambda x: torch.where(
         x > 0, x.sum((1, 2), keepdim=True) / (x > 0).sum((1, 2), keepdim=True), 0
     ),
+    **{f"clipped at {c} mmHg": (lambda c: lambda x: x.clamp(max=c))(c) for c in (30, 40, 60)},
+    **{f"last 10% x {g}": (lambda g: scale_share(0.9, 1.0, g))(g) for g in (0.25, 0.5, 2.0)},
+    **{f"last 20% x {g}": (lambda g: scale_share(0.8, 1.0, g))(g) for g in (0.5, 2.0)},
 }
 SIM_VARIANTS = {
     "as generated": lambda x: x,

@@ -17,6 +17,22 @@ def test_coverage_by_hand():
     assert R.coverage(np.zeros((4, 4))) == 0.0
 
 
+def test_extent_and_high_pressure_by_hand():
+    img = np.zeros((10, 3))
+    img[2] = [50, 40, 10]  # 100
+    img[3] = [0, 0.1, 0]  # 0.1 < 0.2% of 200.1: not counted
+    img[6] = [0, 100, 0]  # 100
+    img[8] = [0.1, 0, 0]  # 0.1: not counted
+    # rows 2..6 hold >= 0.2%: 5 rows x 0.1 m over a 2 m subject
+    assert R.extent_of_height(img, 2.0, 0.1) == pytest.approx(0.25)
+    assert R.extent_of_height(np.zeros((4, 4)), 1.0, 0.1) == 0.0
+    # the loaded taxels 0.1, 0.1, 10, 40, 50, 100: the 99th percentile by linear interpolation
+    # lies 0.95 of the way from 50 to 100
+    assert R.high_pressure(img) == pytest.approx(97.5)
+    assert R.high_pressure(img, 0.5) == pytest.approx(25.0)
+    assert R.high_pressure(np.zeros((2, 2))) == 0.0
+
+
 def test_profile_similarity_by_hand():
     a = np.array([0.0, 0.5, 0.5, 0.0, 0.0])
     b = np.array([0.0, 0.0, 0.5, 0.5, 0.0])
@@ -61,6 +77,10 @@ def test_summarise_and_compare_by_hand():
     assert s.area_m2 == pytest.approx(np.median([2 * 0.25, 1 * 0.25]))
     assert s.mean_mmhg == pytest.approx(np.median([20.0, 20.0]))
     assert s.peak_mmhg == pytest.approx(25.0)  # median of 30 and 20
+    # 99th percentiles: frame 0 of (10, 30) 29.8, frame 1 of (20) 20
+    assert s.p99_mmhg == pytest.approx(np.median([29.8, 20.0]))
+    # lengths: frame 0 two rows, frame 1 one row, x 0.5 m over 1 m
+    assert s.extent == pytest.approx(np.median([1.0, 0.5]))
     # mean of unit-sum row profiles: frame 0 (0, .25, .75, 0), frame 1 (0, 1, 0, 0)
     np.testing.assert_allclose(s.along, [0, 0.625, 0.375, 0])
     c = R.compare(s, s)

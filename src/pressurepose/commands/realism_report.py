@@ -15,6 +15,8 @@ def set_dict(s: R.FrameSet) -> dict:
         "area_m2": round(s.area_m2, 4),
         "mean_mmhg": round(s.mean_mmhg, 2),
         "peak_mmhg": round(s.peak_mmhg, 1),
+        "p99_mmhg": round(s.p99_mmhg, 1),
+        "extent": round(s.extent, 3),
         "coverage": round(s.coverage, 3),
         "regions": {k: round(v, 3) for k, v in s.regions.items()},
     }
@@ -48,6 +50,21 @@ def markdown(record: dict) -> str:
             f"| {s['coverage']:.2f} ({re_['coverage']:.2f}) | {s['mean_mmhg']:.1f} ({re_['mean_mmhg']:.1f}) "
             f"| {s['peak_mmhg']:.0f} ({re_['peak_mmhg']:.0f}) | {r['simulated_bodies']} |"
         )
+    lines += [
+        "",
+        "High pressure (99th percentile of the loaded taxels, median over frames) and the load's length "
+        "along the bed over the subject's height (rows holding >= 0.2% of the force), simulated (real):",
+        "",
+        "| posture | mattress | p99 mmHg | length / height |",
+        "| --- | --- | --- | --- |",
+    ]
+    for r in record["rows"]:
+        s, re_ = r["simulated"], r["real"]
+        if s and "p99_mmhg" in s:
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | {s['p99_mmhg']:.0f} ({re_['p99_mmhg']:.0f}) "
+                f"| {s['extent']:.3f} ({re_['extent']:.3f}) |"
+            )
     lines += [
         "",
         "Load share per body region, simulated (real):",

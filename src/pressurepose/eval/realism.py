@@ -4,6 +4,9 @@ Pure numpy on (N, 64, 27) images in mmHg, row 0 at the head end (docs/realism.md
 - `frame_metrics`: contact area (m^2), mean contact pressure and peak (mmHg), coverage (the
   share of the rows between the first and last loaded row that carry >= 1% of the image's
   force), and load shares per body region.
+- `extent_of_height`: the length of the loaded rows (from the first to the last row carrying at
+  least `EXTENT_SHARE` of the image's force) over the subject's height; `high_pressure`: the
+  99th percentile of the loaded taxels' readings (the peak without single-taxel outliers).
 - `profile_similarity`: force profiles along (row sums) or across (column sums) the bed, the
   mean over frames of unit-sum profiles, compared by 1 - L1 / 2 (1 = identical shapes, 0 =
   disjoint), best over integer shifts so that placement on the mat is not judged.
@@ -23,6 +26,7 @@ import dataclasses
 import numpy as np
 
 COVERAGE_SHARE = 0.01
+EXTENT_SHARE = 0.002  # rows holding less of the force do not count towards the load's length
 ROW_SHIFTS = 15
 COL_SHIFTS = 8
 # Body regions along the bed: (name, start, end) as fractions of the height from the top of
@@ -67,6 +71,25 @@ def coverage(image: np.ndarray, share: float = COVERAGE_SHARE) -> float:
     return float((span >= share * total).mean())
 
 
+def extent_of_height(image: np.ndarray, height_m: float, pitch_row_m: float, share: float = EXTENT_SHARE) -> float:
+    """Length (m) from the first to the last row carrying >= `share` of the image's force, over
+    `height_m` (0 for an empty image). A real frame whose load runs off the mat's end reads
+    short."""
+    rows = np.asarray(image, dtype=np.float64).sum(1)
+    total = rows.sum()
+    if total <= 0:
+        return 0.0
+    kept = np.nonzero(rows >= share * total)[0]
+    return float((kept[-1] - kept[0] + 1) * pitch_row_m / height_m)
+
+
+def high_pressure(image: np.ndarray, q: float = 0.99) -> float:
+    """The `q` quantile of the loaded taxels' readings (0 for an empty image)."""
+    img = np.asarray(image, dtype=np.float64)
+    loaded = img[img > 0]
+    return float(np.quantile(loaded, q)) if loaded.size else 0.0
+
+
 def region_shares(image: np.ndarray, height_m: float, pitch_row_m: float, pitch_col_m: float) -> dict[str, float]:
     """Share of the image's force in each body region (`REGIONS` along the bed, `arms` beside
     the trunk; the along-bed regions exclude what is counted as arms). Sums to 1."""
@@ -104,6 +127,8 @@ class FrameSet:
     area_m2: float
     mean_mmhg: float
     peak_mmhg: float
+    p99_mmhg: float  # median over frames of `high_pressure`
+    extent: float  # median over frames of `extent_of_height`
     coverage: float
     regions: dict[str, float]  # mean share per region
     along: np.ndarray  # (rows,) mean unit-sum row profile
@@ -128,6 +153,8 @@ def summarise(images: np.ndarray, heights_m: np.ndarray, pitch_row_m: float, pit
         area_m2=float(np.median(area)),
         mean_mmhg=float(np.median(mean)),
         peak_mmhg=float(np.median(images.max((1, 2)))),
+        p99_mmhg=float(np.median([high_pressure(im) for im in images])),
+        extent=float(np.median([extent_of_height(im, h, pitch_row_m) for im, h in zip(images, heights)])),
         coverage=float(np.mean([coverage(im) for im in images])),
         regions={k: float(np.mean([r[k] for r in regions])) for k in REGION_NAMES},
         along=_mean_profile(images.sum(2)),
@@ -256,7 +283,9 @@ __all__ = [
     "band_ratios",
     "compare",
     "coverage",
+    "extent_of_height",
     "fit_bands",
+    "high_pressure",
     "profile_similarity",
     "region_shares",
     "shifted",
