@@ -4,7 +4,7 @@
 
 Each variant alters every frame of the chosen groups the same way - the first k loaded rows
 (head end) zeroed or narrowed to a head's width, a share of the loaded rows zeroed at either end, the pressure made uniform on
-the loaded taxels - and the network reads them again. Prints per variant the
+the loaded taxels, the peaks clipped, the foot end's rows scaled - and the network reads them again. Prints per variant the
 posture accuracy, the median signed height error (cm), how many supine frames read prone, and
 per PmatData group "correct / read prone". With --sim DATASET (a generated dataset folder), the
 same cuts on its test split's supine images (moved up until their first k loaded rows leave the
