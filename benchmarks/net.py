@@ -73,10 +73,11 @@ def train_speed(body, arch: str, module: int, B: int, steps: int, device) -> flo
 
 
 def predict_speed(
-    body, arch: str, module: int, B: int, steps: int, device, flip_test: bool = False
+    body, arch: str, module: int, B: int, steps: int, device, flip_test: bool = False, stature_weight: float = 0.0
 ) -> tuple[float, float]:
     """Seconds per batch of B: network + body model + mesh (+ PMR for Mod2's input)."""
-    net = PressureNet(NetConfig(arch=arch, modules=module, flip_test=flip_test), body=body).to(device).eval()
+    config = NetConfig(arch=arch, modules=module, flip_test=flip_test, stature_weight=stature_weight)
+    net = PressureNet(config, body=body).to(device).eval()
     # A new batch each call, as in `predict`: nothing computed for one batch's bodies (the
     # body model keeps the last shapes' skeleton pass) may be reused by the next.
     batches = [_batch(B, device, seed)[0] for seed in range(4)]
@@ -97,6 +98,9 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--flip-test", action="store_true", help="heatmap: also predict with the flip test")
+    parser.add_argument(
+        "--stature-weight", type=float, default=0.0, help="heatmap: also predict with this stature_weight (net.stature)"
+    )
     args = parser.parse_args()
     if args.threads:
         # On a machine shared with other jobs, OpenMP threads that wait for a descheduled
@@ -129,6 +133,15 @@ def main() -> None:
                 thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, True)
                 print(
                     f"| {arch}, flip test | {module} | - | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
+                    f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
+                    flush=True,
+                )
+            if arch == "heatmap" and args.stature_weight > 0:
+                w = args.stature_weight
+                lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, stature_weight=w)
+                thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, stature_weight=w)
+                print(
+                    f"| {arch}, stature weight {w} | {module} | - | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
                     f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
                     flush=True,
                 )

@@ -59,6 +59,17 @@ def zero_share(lo: float, hi: float):
     return f
 
 
+def power(gamma: float):
+    """Each reading raised to `gamma`, each image scaled back to its force (a sensor whose
+    readings grow as the pressure^(1 / gamma))."""
+
+    def f(x):
+        y = x.clamp(min=0) ** gamma
+        return y * x.sum((1, 2), keepdim=True) / y.sum((1, 2), keepdim=True).clamp(min=1e-12)
+
+    return f
+
+
 def scale_share(lo: float, hi: float, gain: float):
     """Scale the loaded rows between shares lo and hi of the loaded extent (0 = head end)."""
 
@@ -113,6 +124,7 @@ REAL_VARIANTS = {
         x > 0, x.sum((1, 2), keepdim=True) / (x > 0).sum((1, 2), keepdim=True), 0
     ),
     **{f"clipped at {c} mmHg": (lambda c: lambda x: x.clamp(max=c))(c) for c in (30, 40, 60)},
+    **{f"pressure^{g}, force kept": (lambda g: power(g))(g) for g in (0.7, 1.5, 2.0)},
     **{f"last 10% x {g}": (lambda g: scale_share(0.9, 1.0, g))(g) for g in (0.25, 0.5, 2.0)},
     **{f"last 20% x {g}": (lambda g: scale_share(0.8, 1.0, g))(g) for g in (0.5, 2.0)},
 }

@@ -35,6 +35,7 @@ from pressurepose.net.preprocess import (
     smooth_loaded,
     upsample2,
 )
+from pressurepose.net.stature import stature_from_joints
 
 GENDER_UNKNOWN = 0.5  # Anny's gender phenotype: 0 male, 1 female
 
@@ -65,6 +66,9 @@ class NetConfig:
     # differ by left and right alone, read the body again from its localised joints with left
     # and right exchanged, so that the body lies as the readout says (net.posture.to_swap).
     posture_consistent: bool = False
+    # heatmap arch, eval only: the body's height parameter moved this share of the way to the
+    # localised joints' bone-chain length (net.stature; 0: the regression head's height).
+    stature_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast", "heatmap"):
@@ -85,6 +89,12 @@ class NetConfig:
             raise UserError(f"NetConfig.modules must be 1 or 2, got {self.modules!r}")
         if not 0 <= self.dropout < 1:
             raise UserError(f"NetConfig.dropout must lie in [0, 1), got {self.dropout}")
+        if not 0 <= self.stature_weight <= 1:
+            raise UserError(f"NetConfig.stature_weight must lie in [0, 1], got {self.stature_weight}")
+        if self.stature_weight > 0 and (self.arch != "heatmap" or self.backend != "anny"):
+            raise UserError(
+                "NetConfig.stature_weight is for arch 'heatmap' on the Anny body model (its 'height' parameter)"
+            )
         if not 0 <= self.texture_sigma_taxels <= 5:
             raise UserError(f"NetConfig.texture_sigma_taxels must lie in [0, 5], got {self.texture_sigma_taxels}")
 
@@ -256,6 +266,9 @@ class PressureNet(nn.Module):
         params = self.head(raw, gender)
         if not self.training and self.config.posture_consistent:
             raw, loc, params = self._agree_with_readout(raw, loc, params, gender)
+        if not self.training and self.config.stature_weight > 0:
+            shape = stature_from_joints(self.body, params.shape, loc.joints, self.config.stature_weight)
+            params = params.replace(shape=shape)
         if not self.training and self.config.ik_steps > 0:
             ik = IKConfig(steps=self.config.ik_steps)
             params = fit_to_joints(self.body, params, loc.joints, ik.weights(loc.spread_m2), ik)

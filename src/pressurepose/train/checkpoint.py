@@ -159,6 +159,7 @@ NET_FIELDS = {
     "posture_consistent": "bool",
     "posture_head": "bool",
     "texture_sigma_taxels": "number",
+    "stature_weight": "number",
 }
 MAX_WIDTH = 16
 

@@ -1,0 +1,81 @@
+"""The height from the localised skeleton (net.stature; docs/network.md "Height from the
+localised skeleton"): measure the share on simulated data, and optionally write a copy of the
+model that uses it.
+
+    PYTHONPATH=src .venv/bin/python benchmarks/stature.py --model default --data DIR [--split test]
+        [--write OUT]
+
+Reads the split's images with the model's regression head and localised joints; prints the sd of
+the head's height error and of the height implied by the joints' bone chain
+(`stature_from_joints` with weight 1), their correlation, the MSE-optimal share
+(`optimal_weight`), and MPJPE and the height error with the body moved by that share (before the
+IK, as inference does). `--write OUT` saves the model with `stature_weight` set to that share in
+its config record (weights unchanged).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import torch
+
+from pressurepose.eval.evaluation import _batches, open_split
+from pressurepose.net.model import NetInputs
+from pressurepose.net.stature import optimal_weight, stature_from_joints
+from pressurepose.train.checkpoint import load_network, read_model, save_model
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", default="default")
+    ap.add_argument("--data", type=Path, required=True, help="a generated dataset the model was not trained on")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--write", type=Path, default=None, help="save the model with the measured share here")
+    args = ap.parse_args()
+    torch.set_num_threads(max(torch.get_num_threads(), 1))
+    net, record = load_network(Path(args.model))
+    net.config = dataclasses.replace(net.config, stature_weight=0.0)
+    heights = {"head": [], "joints": [], "true": []}
+    batches = []
+    with torch.no_grad():
+        for _, b in _batches(open_split(args.data, args.split), 64, None):
+            x = net.channels(NetInputs(pressure_mmhg=b["pressure_mmhg"].float()))
+            raw, loc = net.mod1(x)
+            shape = net.head(raw, None).shape
+            heights["head"].append(net.body.measure(shape).height_m)
+            heights["joints"].append(net.body.measure(stature_from_joints(net.body, shape, loc.joints, 1.0)).height_m)
+            heights["true"].append(net.body.measure(b["shape"].to(shape)).height_m)
+            batches.append(b)
+    h = {k: torch.cat(v).double() for k, v in heights.items()}
+    err_head, err_joints = h["head"] - h["true"], h["joints"] - h["true"]
+    corr = torch.corrcoef(torch.stack([err_head, err_joints]))[0, 1]
+    w = optimal_weight(err_head, err_joints)
+    print(
+        f"{args.data} ({args.split}, {len(err_head)} samples): height error sd head {err_head.std() * 100:.2f} cm, "
+        f"joints {err_joints.std() * 100:.2f} cm, correlation {corr:.2f}; optimal share {w:.3f}"
+    )
+    for share in (0.0, w):
+        net.config = dataclasses.replace(net.config, stature_weight=round(share, 3))
+        err, herr = [], []
+        with torch.no_grad():
+            for b in batches:
+                est = net(NetInputs(pressure_mmhg=b["pressure_mmhg"].float()), mesh=False, maps=False)[-1]
+                err.append((est.joints - b["joints"].to(est.joints)).norm(dim=-1).mean(-1))
+                herr.append(net.body.measure(est.params.shape).height_m - net.body.measure(b["shape"].float()).height_m)
+        e, he = torch.cat(err), torch.cat(herr)
+        print(
+            f"  share {share:.3f}: MPJPE {e.mean() * 1000:.1f} mm, height error median {he.median() * 100:+.1f} cm, "
+            f"mean absolute {he.abs().mean() * 100:.2f} cm"
+        )
+    if args.write is not None:
+        weights, rec = read_model(Path(args.model))
+        rec = dict(rec, net=dict(rec["net"], stature_weight=round(w, 3)))
+        net.config = dataclasses.replace(net.config, stature_weight=round(w, 3))
+        save_model(args.write, net, rec, state=weights)
+        print(f"  wrote {args.write} (stature_weight {round(w, 3)})")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,79 @@
+"""The body's height from the localised joints' bone lengths (heatmap arch, inference only;
+docs/network.md "Height from the localised skeleton").
+
+The regression head reads the body's shape, hence its height, from the image as a whole, and on
+real frames whose load runs longer than a simulated body's of the same height (a pillow, the
+head end of the mat; docs/realism.md) it reads the bodies 7-9 cm tall. The localised joints carry
+a second, pose-independent reading of the height: the length of the bone chain head - neck -
+spine3 - spine2 - spine1 - pelvis plus the mean of the two legs' pelvis - hip - knee - ankle
+(`chain_length`). `stature_from_joints` moves the body's 'height' shape parameter a share `weight`
+of the way from the head's answer to the value whose rest skeleton has the localised chain's
+length - the linear combination of the two readings; the share is the combination that
+minimises the height's squared error on simulated data (`optimal_weight`, measured per network:
+benchmarks/stature.py), so it is chosen without real frames.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from pressurepose.body.joints import J24_NAMES
+
+_TRUNK = ("head", "neck", "spine3", "spine2", "spine1", "pelvis")
+_LEG = ("pelvis", "{side}_hip", "{side}_knee", "{side}_ankle")
+HEIGHT_PARAMETER = "height"  # the body model's shape parameter that sets the height (Anny)
+
+
+def _path_length(joints: torch.Tensor, names: tuple[str, ...]) -> torch.Tensor:
+    idx = [J24_NAMES.index(n) for n in names]
+    return (joints[:, idx[1:]] - joints[:, idx[:-1]]).norm(dim=-1).sum(-1)
+
+
+def chain_length(joints: torch.Tensor) -> torch.Tensor:
+    """(B,) the head-to-pelvis chain plus the mean of the two legs' pelvis-to-ankle chains of
+    (B, 24, 3) joints: a length the pose does not change."""
+    legs = [_path_length(joints, tuple(n.format(side=s) for n in _LEG)) for s in ("left", "right")]
+    return _path_length(joints, _TRUNK) + 0.5 * (legs[0] + legs[1])
+
+
+def stature_from_joints(
+    body, shape: torch.Tensor, joints: torch.Tensor, weight: float, iterations: int = 2, step: float = 1e-3
+) -> torch.Tensor:
+    """(B, S) `shape` with its height parameter moved `weight` of the way to the value whose rest
+    skeleton's `chain_length` equals the localised `joints`' (secant steps on a one-sided finite
+    difference, kept within the parameter's [0, 1]); the other parameters unchanged. weight 0:
+    `shape` itself."""
+    if weight == 0:
+        return shape
+    if HEIGHT_PARAMETER not in body.shape_names:
+        raise ValueError(f"the body model has no {HEIGHT_PARAMETER!r} shape parameter")
+    k = body.shape_names.index(HEIGHT_PARAMETER)
+    target = chain_length(joints).to(shape)
+    value = shape[:, k].clone()
+    for _ in range(iterations):
+        h = torch.where(value > 0.5, -step, step)
+        probe = shape.clone()
+        probe[:, k] = value
+        pair = torch.cat([probe, probe])
+        pair[len(shape) :, k] += h
+        lengths = chain_length(body.rest_joints(pair))
+        length, moved = lengths[: len(shape)], lengths[len(shape) :]
+        slope = ((moved - length) / h).clamp(min=1e-3)  # m per unit: taller for a larger value
+        value = (value + (target - length) / slope).clamp(0.0, 1.0)
+    out = shape.clone()
+    out[:, k] = shape[:, k] + weight * (value - shape[:, k])
+    return out
+
+
+def optimal_weight(head_error: torch.Tensor, joints_error: torch.Tensor) -> float:
+    """The share w in [0, 1] minimising the mean squared error of (1 - w) a + w b for two
+    readings with errors a (the head's) and b (the joints'), (N,) each: (var a - cov) / (var a +
+    var b - 2 cov) on their centred errors."""
+    a = head_error.double() - head_error.double().mean()
+    b = joints_error.double() - joints_error.double().mean()
+    va, vb, c = (a * a).mean(), (b * b).mean(), (a * b).mean()
+    den = va + vb - 2 * c
+    return float(((va - c) / den).clamp(0.0, 1.0)) if den > 0 else 0.0
+
+
+__all__ = ["HEIGHT_PARAMETER", "chain_length", "optimal_weight", "stature_from_joints"]
