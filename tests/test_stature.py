@@ -100,3 +100,13 @@ def test_stature_weight_bad_settings():
     with pytest.raises(UserError, match="stature_weight"):
         net_config_from_record({"net": {"arch": "heatmap", "stature_weight": "high"}}, "m.safetensors")
     assert net_config_from_record({"net": {"arch": "heatmap", "stature_weight": 0.2}}).stature_weight == 0.2
+
+
+def test_rest_pose_joints_keep_the_chain(anny64):
+    """Anny's rest bone heads give the T-pose skeleton's chain within millimetres (the bones'
+    lengths; only the orientations differ)."""
+    g = torch.Generator().manual_seed(2)
+    shape = torch.rand(64, 6, generator=g, dtype=torch.float64)
+    diff = (chain_length(anny64.rest_pose_joints(shape)) - chain_length(anny64.rest_joints(shape))).abs()
+    assert float(diff.median()) < 0.005
+    assert float(diff.median()) > 0  # a different skeleton (not the same call)

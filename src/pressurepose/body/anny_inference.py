@@ -46,6 +46,18 @@ class AnnyInference:
         joints = torch.einsum("jk,bkx->bjx", self.joint_regressor[:, sk.bones], heads) @ self.c_smpl_to_anny
         return joints - joints[:, :1]
 
+    @torch.no_grad()
+    def rest_pose_joints(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B, 24, 3) the J24 joints of Anny's rest pose (the bone heads as the blendshapes place
+        them, Anny axes), without the rest orientations and T-pose corrections `rest_joints`
+        needs: the same bones' lengths for the trunk and legs within a few millimetres (sd 2.5 mm
+        over the chain of `net.stature.chain_length`), at a third of the cost. For quantities
+        the pose does not change (bone lengths); not a pose."""
+        self.check_params(BodyParams.zeros(shape.shape[0], shape))
+        m = self.anny
+        heads = m.template_bone_heads + torch.einsum("ba,akx->bkx", self._coefficients(shape), m.bone_heads_blendshapes)
+        return torch.einsum("jk,bkx->bjx", self.joint_regressor[:, self.full.bones], heads)
+
     def forward(self, params: BodyParams) -> BodyOutput:
         """As BodyModel.forward; without autograd by `_blocked_mesh`."""
         self.check_params(params)
