@@ -110,3 +110,10 @@ def test_rest_pose_joints_keep_the_chain(anny64):
     diff = (chain_length(anny64.rest_pose_joints(shape)) - chain_length(anny64.rest_joints(shape))).abs()
     assert float(diff.median()) < 0.005
     assert float(diff.median()) > 0  # a different skeleton (not the same call)
+
+
+def test_rest_pose_joints_default_is_the_t_pose(smpl64):
+    """A backend without a cheaper skeleton answers with its T-pose joints."""
+    shape = torch.zeros(2, 10, dtype=torch.float64)
+    shape[1, 0] = 1.0
+    assert torch.equal(smpl64.rest_pose_joints(shape), smpl64.rest_joints(shape))

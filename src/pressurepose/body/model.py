@@ -174,6 +174,12 @@ class BodyModel(torch.nn.Module, abc.ABC):
         _, joints = self.body_frame(params.shape, params.pose, with_vertices=False)
         return joints - joints[:, :1]
 
+    def rest_pose_joints(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B, 24, 3) joints whose bone lengths are the body's (for quantities the pose does not
+        change; `net.stature`): `rest_joints` here; a backend may answer from a cheaper rest
+        skeleton (Anny: its rest bone heads)."""
+        return self.rest_joints(shape)
+
     def rest_vertices(self, shape: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) zero-pose (T-pose) mesh in body axes, pelvis at the origin."""
         params = BodyParams.zeros(shape.shape[0], shape)

@@ -43,8 +43,8 @@ def stature_from_joints(
     skeleton's `chain_length` equals the localised `joints`' (secant steps on a one-sided finite
     difference, kept within the parameter's [0, 1]; the chain is linear in the parameter between
     Anny's anchors, so one step lands there); the other parameters unchanged. weight 0: `shape`
-    itself. The rest skeleton is the body's `rest_pose_joints` where it has them (Anny: the bone
-    lengths without the T-pose's rotations), else its `rest_joints`."""
+    itself. The rest skeleton is the body's `rest_pose_joints` (Anny: the bone lengths without
+    the T-pose's rotations, a third of `rest_joints`' cost)."""
     if weight == 0:
         return shape
     if HEIGHT_PARAMETER not in body.shape_names:
@@ -58,8 +58,7 @@ def stature_from_joints(
         probe[:, k] = value
         pair = torch.cat([probe, probe])
         pair[len(shape) :, k] += h
-        skeleton = getattr(body, "rest_pose_joints", body.rest_joints)
-        lengths = chain_length(skeleton(pair))
+        lengths = chain_length(body.rest_pose_joints(pair))
         length, moved = lengths[: len(shape)], lengths[len(shape) :]
         slope = ((moved - length) / h).clamp(min=1e-3)  # m per unit: taller for a larger value
         value = (value + (target - length) / slope).clamp(0.0, 1.0)
