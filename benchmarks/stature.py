@@ -34,8 +34,9 @@ def main() -> None:
     ap.add_argument("--split", default="test")
     ap.add_argument("--write", type=Path, default=None, help="save the model with the measured share here")
     args = ap.parse_args()
-    torch.set_num_threads(max(torch.get_num_threads(), 1))
     net, record = load_network(Path(args.model))
+    if net.config.arch != "heatmap" or net.config.backend != "anny":
+        raise SystemExit(f"{args.model}: the height from the skeleton needs an arch heatmap network on Anny")
     net.config = dataclasses.replace(net.config, stature_weight=0.0)
     heights = {"head": [], "joints": [], "true": []}
     batches = []
