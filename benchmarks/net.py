@@ -128,20 +128,15 @@ def main() -> None:
                 f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
                 flush=True,
             )
-            if arch == "heatmap" and args.flip_test:
-                lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, True)
-                thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, True)
+            # heatmap inference options, each a row of its own
+            options = [("flip test", {"flip_test": True})] if args.flip_test else []
+            if args.stature_weight > 0:
+                options.append((f"stature weight {args.stature_weight}", {"stature_weight": args.stature_weight}))
+            for label, option in options if arch == "heatmap" else []:
+                lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, **option)
+                thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, **option)
                 print(
-                    f"| {arch}, flip test | {module} | - | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
-                    f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
-                    flush=True,
-                )
-            if arch == "heatmap" and args.stature_weight > 0:
-                w = args.stature_weight
-                lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, stature_weight=w)
-                thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, stature_weight=w)
-                print(
-                    f"| {arch}, stature weight {w} | {module} | - | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
+                    f"| {arch}, {label} | {module} | - | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
                     f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
                     flush=True,
                 )

@@ -40,6 +40,8 @@ def load_split(folders: list[str], split: str) -> tuple[torch.Tensor, torch.Tens
             t = pq.read_table(f, columns=["pressure_mmhg", "root_rotation"]).to_pydict()
             images += t["pressure_mmhg"]
             roots += t["root_rotation"]
+    if not images:
+        raise SystemExit(f"no {split} shards in {', '.join(folders)} (give generated dataset folders)")
     x = torch.tensor(np.asarray(images, dtype=np.float32).reshape(-1, 1, 64, 27))
     return x, posture_index(roll_from_root(torch.tensor(roots, dtype=torch.float64)))
 

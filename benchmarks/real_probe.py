@@ -48,15 +48,7 @@ def zero_head_rows(k: int):
 def zero_share(lo: float, hi: float):
     """Zero the loaded rows between shares lo and hi of the loaded extent (0 = head end)."""
 
-    def f(x):
-        x = x.clone()
-        for i in range(len(x)):
-            a, b = loaded_rows(x[i])
-            n = b - a
-            x[i, a + int(lo * n) : a + int(hi * n)] = 0
-        return x
-
-    return f
+    return scale_share(lo, hi, 0.0)
 
 
 def power(gamma: float):

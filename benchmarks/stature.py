@@ -59,13 +59,13 @@ def main() -> None:
     )
     for share in (0.0, w):
         net.config = dataclasses.replace(net.config, stature_weight=round(share, 3))
-        err, herr = [], []
+        err, est_h = [], []
         with torch.no_grad():
             for b in batches:
                 est = net(NetInputs(pressure_mmhg=b["pressure_mmhg"].float()), mesh=False, maps=False)[-1]
                 err.append((est.joints - b["joints"].to(est.joints)).norm(dim=-1).mean(-1))
-                herr.append(net.body.measure(est.params.shape).height_m - net.body.measure(b["shape"].float()).height_m)
-        e, he = torch.cat(err), torch.cat(herr)
+                est_h.append(net.body.measure(est.params.shape).height_m)
+        e, he = torch.cat(err), torch.cat(est_h).double() - h["true"]
         print(
             f"  share {share:.3f}: MPJPE {e.mean() * 1000:.1f} mm, height error median {he.median() * 100:+.1f} cm, "
             f"mean absolute {he.abs().mean() * 100:.2f} cm"

@@ -60,7 +60,7 @@ def markdown(record: dict) -> str:
     ]
     for r in record["rows"]:
         s, re_ = r["simulated"], r["real"]
-        if s and "p99_mmhg" in s:
+        if s:
             lines.append(
                 f"| {r['posture']} | {r['mattress']} | {s['p99_mmhg']:.0f} ({re_['p99_mmhg']:.0f}) "
                 f"| {s['extent']:.3f} ({re_['extent']:.3f}) |"

@@ -24,16 +24,27 @@ _LEG = ("pelvis", "{side}_hip", "{side}_knee", "{side}_ankle")
 HEIGHT_PARAMETER = "height"  # the body model's shape parameter that sets the height (Anny)
 
 
-def _path_length(joints: torch.Tensor, names: tuple[str, ...]) -> torch.Tensor:
+def _links(names: tuple[str, ...]) -> tuple[list[int], list[int]]:
+    """The J24 indices of a chain's consecutive joints: (from, to) per link."""
     idx = [J24_NAMES.index(n) for n in names]
-    return (joints[:, idx[1:]] - joints[:, idx[:-1]]).norm(dim=-1).sum(-1)
+    return idx[:-1], idx[1:]
+
+
+# (from, to) per link: the trunk's 5, then each leg's 3 (left, right)
+_TRUNK_LINKS = _links(_TRUNK)
+_LEG_LINKS = [_links(tuple(n.format(side=s) for n in _LEG)) for s in ("left", "right")]
+
+
+def _path_length(joints: torch.Tensor, links: tuple[list[int], list[int]]) -> torch.Tensor:
+    a, b = links
+    return (joints[:, b] - joints[:, a]).norm(dim=-1).sum(-1)
 
 
 def chain_length(joints: torch.Tensor) -> torch.Tensor:
     """(B,) the head-to-pelvis chain plus the mean of the two legs' pelvis-to-ankle chains of
     (B, 24, 3) joints: a length the pose does not change."""
-    legs = [_path_length(joints, tuple(n.format(side=s) for n in _LEG)) for s in ("left", "right")]
-    return _path_length(joints, _TRUNK) + 0.5 * (legs[0] + legs[1])
+    left, right = (_path_length(joints, links) for links in _LEG_LINKS)
+    return _path_length(joints, _TRUNK_LINKS) + 0.5 * (left + right)
 
 
 def stature_from_joints(
@@ -44,7 +55,7 @@ def stature_from_joints(
     difference, kept within the parameter's [0, 1]; the chain is linear in the parameter between
     Anny's anchors, so one step lands there); the other parameters unchanged. weight 0: `shape`
     itself. The rest skeleton is the body's `rest_pose_joints` (Anny: the bone lengths without
-    the T-pose's rotations, a third of `rest_joints`' cost)."""
+    the T-pose's rotations; ~1 ms against 2.7 at batch 1)."""
     if weight == 0:
         return shape
     if HEIGHT_PARAMETER not in body.shape_names:

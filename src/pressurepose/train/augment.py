@@ -175,9 +175,11 @@ def flatten_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
     p^g (g ~ U(FLATTEN_GAMMA); g = 0 leaves one pressure over the loaded outline), the total
     kept, then the sensor's threshold and ceiling; the outline is the same. Why: a network
     reads a real supine frame made uniform on its loaded taxels as prone (`heat_line`'s epoch
-    19: 99 of 159 supine frames; `benchmarks/real_probe.py`), and real mats read far more uniform
-    pressure than the simulation - what tells supine from prone must then lie in the outline
-    rather than in how the load is shared within it. Images not drawn are unchanged."""
+    19: 99 of 159 supine frames; `benchmarks/real_probe.py`): the hypothesis was that real mats
+    read more uniform pressure than the simulation. Refuted twice: a line trained with it read
+    PmatData worse (docs/model-card.md "Session 37"), and the real frames' high pressures are
+    above the simulated ones, not below (docs/realism.md, session 38). Images not drawn are
+    unchanged."""
     p = inputs.pressure_mmhg
     u = torch.rand(2, p.shape[0], generator=generator).to(p)
     g = _uniform(FLATTEN_GAMMA, u[1])[:, None, None]
