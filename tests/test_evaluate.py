@@ -181,6 +181,30 @@ def test_posture_from_the_root_orientation():
     assert posture_of(got) == ["supine", "left", "right", "prone", "supine", "left"]
 
 
+def test_subject_interval_hand_computed_cases():
+    from pressurepose.eval.real import subject_interval
+
+    # Every subject alike: each resample gives the same accuracy, the interval collapses.
+    v, s = [1, 0, 1, 0, 1, 0], [1, 1, 2, 2, 3, 3]
+    assert subject_interval(v, s, np.mean) == pytest.approx((0.5, 0.5), abs=1e-12)
+    # Two subjects of equal size, all right and all wrong: a resample holds (1, 1), (1, 2), (2, 1)
+    # or (2, 2) - mean 1, 0.5, 0.5, 0 with probabilities 1/4, 1/2, 1/4; the 2.5% and 97.5%
+    # quantiles are 0 and 1, and the 25%..75% interval is 0.5.
+    v, s = [1, 1, 0, 0], [7, 7, 9, 9]
+    assert subject_interval(v, s, np.mean) == pytest.approx((0.0, 1.0), abs=1e-12)
+    assert subject_interval(v, s, np.mean, level=0.4) == pytest.approx((0.5, 0.5), abs=1e-12)
+    # Whole subjects are resampled, not frames: a subject's 3 frames move together, so with two
+    # subjects the means are 0, 1 or the pooled mean 3/4 (subject 1: 3 frames, subject 2: 1).
+    v, s = [1, 1, 1, 0], [1, 1, 1, 2]
+    lo, hi = subject_interval(v, s, np.mean, level=0.9)
+    assert (lo, hi) == pytest.approx((0.0, 1.0), abs=1e-12)
+    assert subject_interval(v, s, np.mean, seed=3) == subject_interval(v, s, np.mean, seed=3)
+    with pytest.raises(ValueError, match="one length"):
+        subject_interval([1.0, 2.0], [1], np.mean)
+    with pytest.raises(ValueError, match="level"):
+        subject_interval([1.0], [1], np.mean, level=1.0)
+
+
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     from pressurepose.cli import main
 
@@ -201,6 +225,11 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
         err = [f["estimated_height_m"] - f["height_m"] for f in record["per_frame"] if f["mattress"] == mattress]
         assert s["height_median_signed_m"] == pytest.approx(float(np.median(err)), abs=1e-12)
         assert s["height_median_abs_m"] == pytest.approx(float(np.median(np.abs(err))), abs=1e-12)
+        lo, hi = s["posture_accuracy_ci"]
+        assert 0.0 <= lo <= s["posture_accuracy"] <= hi <= 1.0
+        lo, hi = s["height_median_signed_ci_m"]
+        assert lo <= hi and min(err) <= lo and hi <= max(err)
+        assert s["subjects"] == len({f["subject"] for f in record["per_frame"] if f["mattress"] == mattress})
     variants = record["by_variant"]
     assert set(variants) == {f["variant"] for f in record["per_frame"]} and all(v[0] in "CD" for v in variants)
     for name, v in variants.items():

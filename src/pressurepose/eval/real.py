@@ -11,7 +11,9 @@ the roll about the bed's long axis, roll = atan2(left_z, front_z) whatever the y
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
@@ -66,4 +68,33 @@ def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, b
     )
 
 
-__all__ = ["GROUP_POSTURE", "POSTURES", "BodyReadings", "posture_of", "read_bodies", "roll_deg"]
+def subject_interval(
+    values: Sequence[float],
+    subjects: Sequence[int],
+    statistic: Callable[[np.ndarray], float],
+    level: float = 0.95,
+    draws: int = 4000,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """A `level` confidence interval of `statistic` over per-frame `values`, resampling whole
+    subjects with replacement (a cluster bootstrap: a subject's frames are not independent -
+    PmatData has 8 subjects and ~16 frames of each per mattress). Percentile interval over
+    `draws` resamples; deterministic for a given seed."""
+    values = np.asarray(values, dtype=float)
+    subjects = np.asarray(subjects)
+    if values.shape != subjects.shape or values.size == 0:
+        raise ValueError(
+            f"values and subjects must be non-empty and of one length, got {values.shape} / {subjects.shape}"
+        )
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must lie in (0, 1), got {level}")
+    ids = np.unique(subjects)
+    groups = [values[subjects == s] for s in ids]
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, len(ids), size=(draws, len(ids)))
+    stats = np.array([statistic(np.concatenate([groups[i] for i in row])) for row in picks])
+    tail = (1.0 - level) / 2
+    return float(np.quantile(stats, tail)), float(np.quantile(stats, 1.0 - tail))
+
+
+__all__ = ["GROUP_POSTURE", "POSTURES", "BodyReadings", "posture_of", "read_bodies", "roll_deg", "subject_interval"]
