@@ -716,6 +716,39 @@ def test_posture_readout_trains_jointly_and_alone(data32, tmp_path):
             TrainConfig.smoke(out=tmp_path / "x", **{**common, **bad})
 
 
+def test_spread_against_a_direct_convolution(data32):
+    """Spread: each drawn image equals a direct 2-D convolution with its own Gaussian (zero
+    padded, truncated at the batch's radius), floored at its own reading floor and scaled back to its force; the
+    spread image is wider and no higher; off images are untouched; bad shares are refused."""
+    from pressurepose.train.augment import MAX_MMHG, SPREAD_FLOOR_MMHG, SPREAD_TAXELS, spread_batch
+
+    p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:8].double()
+    inputs = NetInputs(pressure_mmhg=p)
+    assert torch.equal(spread_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = spread_batch(inputs, 0.5, torch.Generator().manual_seed(5)).pressure_mmhg
+    u = torch.rand(3, 8, generator=torch.Generator().manual_seed(5)).double()
+    on = u[0] < 0.5
+    assert 0 < int(on.sum()) < 8
+    for i in range(8):
+        if not on[i]:
+            assert torch.equal(out[i], p[i])
+            continue
+        sigma = SPREAD_TAXELS[0] + (SPREAD_TAXELS[1] - SPREAD_TAXELS[0]) * float(u[1, i])
+        floor = SPREAD_FLOOR_MMHG[0] + (SPREAD_FLOOR_MMHG[1] - SPREAD_FLOOR_MMHG[0]) * float(u[2, i])
+        # the batch's kernels share one radius, 3 x its largest sigma (blur.gaussian_blur)
+        r = math.ceil(3 * (SPREAD_TAXELS[0] + (SPREAD_TAXELS[1] - SPREAD_TAXELS[0]) * float(u[1].max())))
+        g = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float64) / sigma) ** 2)
+        kernel = (g[:, None] * g[None, :]) / g.sum() ** 2
+        ref = torch.nn.functional.conv2d(p[i][None, None], kernel[None, None], padding=r)[0, 0]
+        ref = torch.where(ref >= floor, ref, torch.zeros_like(ref))
+        ref = (ref * float(p[i].sum()) / float(ref.sum())).clamp(max=MAX_MMHG)
+        assert torch.allclose(out[i], ref, atol=1e-9), i
+        assert int((out[i] > 0).sum()) > int((p[i] > 0).sum()) and float(out[i].max()) <= float(p[i].max())
+        assert float(out[i].sum()) == pytest.approx(float(p[i].sum()), rel=1e-9)
+    with pytest.raises(ValueError, match="spread"):
+        TrainConfig.smoke(spread=1.5)
+
+
 def test_flatten_against_a_per_taxel_reference(data32, monkeypatch):
     """Flattened contrast: the power applied taxel by taxel gives the same images, flatter; g = 0
     (the range's end) leaves one pressure over the same outline with the same force; the off

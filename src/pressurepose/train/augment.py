@@ -187,6 +187,30 @@ def flatten_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
     return _read_again(inputs, q, u[0] < share)
 
 
+SPREAD_TAXELS = (0.5, 2.0)  # sigma of the mat and cover's lateral spread, taxels
+SPREAD_FLOOR_MMHG = (1.0, 4.0)  # the lowest reading a mat reports (PmatData's normalisation: ~3-4)
+
+
+def spread_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
+    """Read a random `share` of the images through a mat and cover that spread the load: a
+    Gaussian of sigma ~ U(SPREAD_TAXELS) taxels, then readings below a floor ~
+    U(SPREAD_FLOOR_MMHG) zeroed, the total kept, the ceiling. Why: a network trained on the
+    simulator reads a spread image taller (the default model on `pp8k_rib`'s test split: +1.2 cm
+    median height error as generated, +3.8 spread by 1 taxel, +5.2 by 1.5; docs/network.md
+    "Diagnostics of the real-frame reading"), and real mats spread: PmatData's supine heads are
+    8-12 taxels wide at >= 3 mmHg where the simulated ones are 5, its frames read +6 cm tall.
+    How much a mat and its cover spread is a property of the bed the network will meet, not of
+    the body. Images not drawn are unchanged."""
+    p = inputs.pressure_mmhg
+    u = torch.rand(3, p.shape[0], generator=generator).to(p)
+    q = gaussian_blur(p, _uniform(SPREAD_TAXELS, u[1]))
+    floor = _uniform(SPREAD_FLOOR_MMHG, u[2])[:, None, None]
+    q = torch.where(q >= floor, q, torch.zeros_like(q))
+    q = q * (p.sum((1, 2), keepdim=True) / q.sum((1, 2), keepdim=True).clamp(min=1e-9))
+    on = (u[0] < share) & (q.sum((1, 2)) > 0)
+    return dataclasses.replace(inputs, pressure_mmhg=torch.where(on[:, None, None], q.clamp(max=MAX_MMHG), p))
+
+
 # Pillow augmentation: ranges drawn per image (docs/network.md, "Real frames span the mat").
 PILLOW_BEYOND_HEAD_M = (0.10, 0.45)  # its far edge beyond the head joint, toward the head end
 PILLOW_PAST_NECK_M = (-0.03, 0.05)  # its near edge past the neck joint, toward the feet
@@ -275,6 +299,7 @@ def occlude_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
 __all__ = [
     "bands_batch",
     "flatten_batch",
+    "spread_batch",
     "mirror_batch",
     "occlude_batch",
     "pillow_batch",

@@ -62,6 +62,9 @@ class TrainConfig:
             per-row and per-taxel log-normal gains, the force kept; `train.augment.texture_batch`; 0 = off).
         flatten: augmentation: share of training images whose contrast is flattened (each loaded
             taxel's reading raised to a power in [0, 1], the total kept; `train.augment.flatten_batch`; 0 = off).
+        spread: augmentation: share of training images read through a mat that spreads the load
+            (a Gaussian of 0.5-2 taxels, then a reading floor of 1-4 mmHg, the force kept;
+            `train.augment.spread_batch`; 0 = off).
         occlude: augmentation: share of training images with one band of 2-8 loaded rows zeroed
             (the labels kept), so that no single band decides the answer (`train.augment.occlude_batch`; 0 = off).
         texture_sigma: the network smooths every reading within its loaded taxels by a Gaussian of
@@ -117,6 +120,7 @@ class TrainConfig:
     texture: float = 0.0
     occlude: float = 0.0
     flatten: float = 0.0
+    spread: float = 0.0
     texture_sigma: float = 0.0
     lr_gamma: float = 1.0
     average_from: int = 0
@@ -169,7 +173,7 @@ class TrainConfig:
             raise UserError(
                 f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, {self.shift_cols}"
             )
-        for name in ("mirror", "repress", "bands", "pillow", "texture", "occlude", "flatten"):
+        for name in ("mirror", "repress", "bands", "pillow", "texture", "occlude", "flatten", "spread"):
             if not 0 <= getattr(self, name) <= 1:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 <= self.dropout < 1:

@@ -36,6 +36,7 @@ from pressurepose.train.augment import (
     pillow_batch,
     repress_batch,
     shift_batch,
+    spread_batch,
     texture_batch,
 )
 from pressurepose.train.average import WeightAverage
@@ -91,6 +92,8 @@ def step_loss(
         inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
     if augment and cfg.flatten > 0:
         inputs = flatten_batch(inputs, cfg.flatten, generator)
+    if augment and cfg.spread > 0:
+        inputs = spread_batch(inputs, cfg.spread, generator)
     if augment and cfg.pillow > 0:
         inputs = pillow_batch(inputs, targets.joints, cfg.pillow, generator)
     if augment and cfg.bands > 0:
