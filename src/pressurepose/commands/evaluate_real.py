@@ -327,14 +327,7 @@ def _cloud_markdown(r: dict) -> str:
         if has_hw:
             line += f" {e['height_error_m'] * 100:+.1f} | {e['mass_error_kg']:+.1f} |"
         lines.append(line)
-    lines += [
-        "",
-        "Intervals: 95%, resampling whole subjects with replacement (a subject's frames are not "
-        "independent); a difference between two networks smaller than them is not shown by these frames.",
-        "",
-        "![real](real.png)",
-        "",
-    ]
+    lines += ["", "![real](real.png)", ""]
     return "\n".join(lines)
 
 
