@@ -3,7 +3,8 @@ neck's relaxation to PmatData experiment II through the articulated sim #2 (issu
 
 CMA-ES (the `cma` package) on log-scaled parameters; loss per posture (supine, left, right)
 on one mattress: (1 - along) + (1 - across) similarity + |log area ratio| + 0.5 |log coverage
-ratio| (docs/realism.md's measures), mean over postures. Reduced as stated in docs/realism.md:
+ratio| (docs/realism.md's measures), mean over postures; the simulated images read with the real
+set's reading floor (`eval.realism.read_with_floor`, since session 39). Reduced as stated in docs/realism.md:
 sim #1 is skipped (settle none: the report's resting poses are already lying down), so each
 evaluation is 24 articulated rests (~10-20 s on one core). Every evaluation is appended to
 <out>/evals.jsonl; the best parameters go to <out>/<mattress>.json (MattressParams file).
@@ -88,6 +89,7 @@ def main() -> None:
         help="fit the air support's P0 and kappa, the cells' depth and the tissue (unless --tissue holds it) on the preset",
     )
     ap.add_argument("--fit-travel", action="store_true", help="with --air-support: fit the tubes' travel too")
+    ap.add_argument("--eval-only", action="store_true", help="with --from-preset: the preset's loss alone, no search")
     args = ap.parse_args()
     import cma
 
@@ -96,6 +98,7 @@ def main() -> None:
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
     real, subjects = load_real(Path("pmatdata"), 20.0)
     real_sets = {p: R.summarise(real[(p, args.mattress)][0], real[(p, args.mattress)][1], *pitch) for p in POSTURES}
+    floors = {p: R.reading_floor(real[(p, args.mattress)][0]) for p in POSTURES}
     # One simulated body per real frame, where that frame's load lies (docs/realism.md).
     scenes = {}
     for k, (ids, centres, angles) in real_scenes(real, RealismConfig()).items():
@@ -141,6 +144,7 @@ def main() -> None:
             if len(imgs) < len(scenes[(p, args.mattress)][0]) // 2:
                 total += 4.0
                 continue
+            imgs = R.read_with_floor(imgs, floors[p])  # read as the real frames are (docs/realism.md)
             sim_set = R.summarise(imgs, hts, *pitch)
             c = R.compare(real_sets[p], sim_set)
             regions = sum(abs(sim_set.regions[k] - real_sets[p].regions[k]) for k in R.REGION_NAMES)
@@ -184,6 +188,11 @@ def main() -> None:
             math.log(getattr(preset, name)) if getattr(preset, name, 0) > 0 else x for (name, *_), x in zip(space, x0)
         ]
         sigma = 0.25
+    if args.eval_only:
+        if not args.from_preset:
+            raise SystemExit("--eval-only evaluates the preset: give --from-preset")
+        loss(x0)
+        return
     es = cma.CMAEvolutionStrategy(
         x0, sigma, {"popsize": args.popsize, "maxiter": args.max_iter, "seed": 1, "verbose": -9}
     )

@@ -33,6 +33,26 @@ def test_extent_and_high_pressure_by_hand():
     assert R.high_pressure(np.zeros((2, 2))) == 0.0
 
 
+def test_reading_floor_and_read_with_floor_by_hand():
+    a = np.zeros((2, 2, 3))
+    a[0] = [[1.0, 4.0, 0.0], [5.0, 0.0, 0.0]]  # lowest loaded 1
+    a[1] = [[0.0, 3.0, 6.0], [0.0, 0.0, 1.0]]  # lowest loaded 1
+    b = np.concatenate([a, np.full((1, 2, 3), 2.0)])  # a third frame, lowest 2
+    assert R.reading_floor(a) == 1.0 and R.reading_floor(b) == 1.0
+    assert R.reading_floor(b[1:]) == pytest.approx(1.5)  # the median of 1 and 2
+    assert R.reading_floor(np.zeros((1, 2, 2))) == 0.0
+    got = R.read_with_floor(a, 3.5)
+    # frame 0: 1 zeroed, 4 and 5 kept and scaled to the force 10: x 10/9
+    assert got[0] == pytest.approx(np.array([[0.0, 40 / 9, 0.0], [50 / 9, 0.0, 0.0]]))
+    # frame 1: 3 and 1 zeroed, 6 carries the force 10
+    assert got[1] == pytest.approx(np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 0.0]]))
+    assert got.sum((1, 2)) == pytest.approx(a.sum((1, 2)))
+    # a frame with nothing at or above the floor is left as it was (no division by zero)
+    low = np.full((1, 2, 2), 0.5)
+    assert R.read_with_floor(low, 3.0) == pytest.approx(low)
+    assert R.read_with_floor(a, 0.0) == pytest.approx(a)
+
+
 def test_profile_similarity_by_hand():
     a = np.array([0.0, 0.5, 0.5, 0.0, 0.0])
     b = np.array([0.0, 0.0, 0.5, 0.5, 0.0])
@@ -171,6 +191,7 @@ def test_realism_command_on_a_tiny_folder(tmp_path, capsys):
         assert r["simulated_bodies"] == r["real"]["frames"] == (2 if r["posture"] == "supine" else 6)
         assert 0 < r["comparison"]["along"] <= 1 and 0 < r["comparison"]["across"] <= 1
         assert abs(sum(r["simulated"]["regions"].values()) - 1) < 1e-2
+        assert r["floor_mmhg"] > 0  # the simulated images read with the real set's floor
     assert (tmp_path / "out" / "realism_left_sponge.png").stat().st_size > 0
     assert "Ceiling" in (tmp_path / "out" / "report.md").read_text()
 

@@ -63,6 +63,10 @@ class RealismConfig:
     pillow_m: float = 0.0
     """Every simulated head on a pillow of this free thickness (m; `sim.pillow`, the articulated
     sim #2 only); 0: none."""
+    match_floor: bool = True
+    """Read the simulated images as the real set's are: nothing below the set's lowest reading
+    (`eval.realism.reading_floor`, 3.0-3.8 mmHg for PmatData), the force kept. Off: the
+    simulated sensor's own floor (~1 mmHg), as before session 39."""
 
     def __post_init__(self) -> None:
         from pressurepose.sim.pillow import check_thickness
@@ -264,6 +268,9 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
             if p != posture:
                 continue
             images, heights, reasons, seconds = sims[(posture, mattress if scenes else None)]
+            floor = R.reading_floor(imgs) if cfg.match_floor else 0.0
+            if len(images) and floor > 0:
+                images = R.read_with_floor(images, floor)
             sim_set = R.summarise(images, heights, *pitch) if len(images) else None
             real_set = real_sets[(p, mattress)]
             row = {
@@ -273,6 +280,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
                 "simulated": set_dict(sim_set) if sim_set else None,
                 "rejected": reasons,
                 "simulated_bodies": int(len(images)),
+                "floor_mmhg": round(floor, 2),
                 "sim_seconds": round(seconds, 2),
             }
             if sim_set:

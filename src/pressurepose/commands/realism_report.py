@@ -55,15 +55,18 @@ def markdown(record: dict) -> str:
         "High pressure (99th percentile of the loaded taxels, median over frames) and the load's length "
         "along the bed over the subject's height (rows holding >= 0.2% of the force), simulated (real):",
         "",
-        "| posture | mattress | p99 mmHg | length / height |",
-        "| --- | --- | --- | --- |",
+        "| posture | mattress | p99 mmHg | length / height | simulated images read from (mmHg) |",
+        "| --- | --- | --- | --- | --- |",
     ]
     for r in record["rows"]:
         s, re_ = r["simulated"], r["real"]
         if s:
+            floor = r.get("floor_mmhg", 0.0)
             lines.append(
                 f"| {r['posture']} | {r['mattress']} | {s['p99_mmhg']:.0f} ({re_['p99_mmhg']:.0f}) "
-                f"| {s['extent']:.3f} ({re_['extent']:.3f}) |"
+                f"| {s['extent']:.3f} ({re_['extent']:.3f}) | "
+                + (f"{floor:.2f} (the real set's lowest reading)" if floor > 0 else "the sensor's own floor")
+                + " |"
             )
     lines += [
         "",

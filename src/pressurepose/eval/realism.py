@@ -90,6 +90,25 @@ def high_pressure(image: np.ndarray, q: float = 0.99) -> float:
     return float(np.quantile(loaded, q)) if loaded.size else 0.0
 
 
+def reading_floor(images: np.ndarray) -> float:
+    """The lowest reading a set of frames reports: the median over frames of each frame's lowest
+    loaded reading (PmatData's normalisation zeroes raw readings within 20 units of the empty
+    level: 3.0-3.8 mmHg per set; the simulated sensor reads down to ~1 mmHg)."""
+    imgs = _check(images)
+    lows = [float(im[im > 0].min()) for im in imgs if (im > 0).any()]
+    return float(np.median(lows)) if lows else 0.0
+
+
+def read_with_floor(images: np.ndarray, floor_mmhg: float) -> np.ndarray:
+    """Images read by a sensor that reports nothing below `floor_mmhg`: lower readings zeroed,
+    each image scaled back to its force (a mat whose readings are normalised to the subject's
+    weight, as real frames are). Compares simulated frames with real ones read that way."""
+    imgs = np.asarray(images, dtype=np.float64)
+    kept = np.where(imgs >= floor_mmhg, imgs, 0.0)
+    total, left = imgs.sum((1, 2), keepdims=True), kept.sum((1, 2), keepdims=True)
+    return np.where(left > 0, kept * total / np.where(left > 0, left, 1.0), imgs)
+
+
 def region_shares(image: np.ndarray, height_m: float, pitch_row_m: float, pitch_col_m: float) -> dict[str, float]:
     """Share of the image's force in each body region (`REGIONS` along the bed, `arms` beside
     the trunk; the along-bed regions exclude what is counted as arms). Sums to 1."""
@@ -275,6 +294,8 @@ def compare(a: FrameSet, b: FrameSet) -> Comparison:
 
 
 __all__ = [
+    "read_with_floor",
+    "reading_floor",
     "Bands",
     "Comparison",
     "FrameSet",
