@@ -89,6 +89,9 @@ def main() -> None:
         help="fit the air support's P0 and kappa, the cells' depth and the tissue (unless --tissue holds it) on the preset",
     )
     ap.add_argument("--fit-travel", action="store_true", help="with --air-support: fit the tubes' travel too")
+    ap.add_argument(
+        "--start", type=Path, default=None, help="with --from-preset: start at this MattressParams file instead"
+    )
     ap.add_argument("--eval-only", action="store_true", help="with --from-preset: the preset's loss alone, no search")
     args = ap.parse_args()
     import cma
@@ -183,7 +186,7 @@ def main() -> None:
     x0 = [math.log(s) for _, s, _, _ in space]
     sigma = 0.5
     if args.from_preset:  # start at the mattress's preset, a narrower search around it
-        preset = MattressParams.preset(args.mattress)
+        preset = MattressParams.load(args.start) if args.start else MattressParams.preset(args.mattress)
         x0 = [
             math.log(getattr(preset, name)) if getattr(preset, name, 0) > 0 else x for (name, *_), x in zip(space, x0)
         ]
