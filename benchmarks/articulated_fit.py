@@ -94,6 +94,8 @@ def main() -> None:
     )
     ap.add_argument("--eval-only", action="store_true", help="with --from-preset: the preset's loss alone, no search")
     args = ap.parse_args()
+    if (args.eval_only or args.start) and not args.from_preset:
+        raise SystemExit("--eval-only and --start work from a starting bed: give --from-preset")
     import cma
 
     torch.set_num_threads(1)
@@ -192,8 +194,6 @@ def main() -> None:
         ]
         sigma = 0.25
     if args.eval_only:
-        if not args.from_preset:
-            raise SystemExit("--eval-only evaluates the preset: give --from-preset")
         loss(x0)
         return
     es = cma.CMAEvolutionStrategy(

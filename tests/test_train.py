@@ -502,22 +502,31 @@ def _read_as_the_sensor(ref, p):
     return torch.where(ref >= REPRESS_THRESHOLD_MMHG, ref, torch.zeros_like(ref)).clamp(max=100)
 
 
+def _drawn_half(batch, p, draws, seed):
+    """Run an augmentation `batch(inputs, share, generator)` that draws `draws` uniforms per image
+    first: share 0 leaves the images as they are; at share 0.5 some images are drawn and some
+    not, and those not drawn are untouched. Returns the output, the uniforms and the drawn
+    images' indices."""
+    inputs = NetInputs(pressure_mmhg=p)
+    assert torch.equal(batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = batch(inputs, 0.5, torch.Generator().manual_seed(seed)).pressure_mmhg
+    u = torch.rand(draws, len(p), generator=torch.Generator().manual_seed(seed)).double()
+    on = u[0] < 0.5
+    assert 0 < int(on.sum()) < len(p)
+    for i in range(len(p)):
+        if not on[i]:
+            assert torch.equal(out[i], p[i])
+    return out, u, [i for i in range(len(p)) if on[i]]
+
+
 def test_bands_against_a_naive_reference(data32):
     """Air-cell bands: a per-row loop gives the same images, the force is kept, rows of the same
     phase get the same gain, and the off images are untouched."""
     from pressurepose.train.augment import bands_batch
 
     p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:6].double()
-    inputs = NetInputs(pressure_mmhg=p)
-    assert torch.equal(bands_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
-    out = bands_batch(inputs, 0.5, torch.Generator().manual_seed(4)).pressure_mmhg
-    u = torch.rand(4, 6, generator=torch.Generator().manual_seed(4)).double()
-    on = u[0] < 0.5
-    assert 0 < int(on.sum()) < 6
-    for i in range(6):
-        if not on[i]:
-            assert torch.equal(out[i], p[i])
-            continue
+    out, u, drawn = _drawn_half(bands_batch, p, 4, 4)
+    for i in drawn:
         T, a = 2 + 2 * float(u[1, i]), 0.3 + 0.7 * float(u[2, i])
         phi = T * float(u[3, i])
         ref = p[i].clone()
@@ -723,16 +732,8 @@ def test_spread_against_a_direct_convolution(data32):
     from pressurepose.train.augment import MAX_MMHG, SPREAD_FLOOR_MMHG, SPREAD_TAXELS, spread_batch
 
     p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:8].double()
-    inputs = NetInputs(pressure_mmhg=p)
-    assert torch.equal(spread_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
-    out = spread_batch(inputs, 0.5, torch.Generator().manual_seed(5)).pressure_mmhg
-    u = torch.rand(3, 8, generator=torch.Generator().manual_seed(5)).double()
-    on = u[0] < 0.5
-    assert 0 < int(on.sum()) < 8
-    for i in range(8):
-        if not on[i]:
-            assert torch.equal(out[i], p[i])
-            continue
+    out, u, drawn = _drawn_half(spread_batch, p, 3, 5)
+    for i in drawn:
         sigma = SPREAD_TAXELS[0] + (SPREAD_TAXELS[1] - SPREAD_TAXELS[0]) * float(u[1, i])
         floor = SPREAD_FLOOR_MMHG[0] + (SPREAD_FLOOR_MMHG[1] - SPREAD_FLOOR_MMHG[0]) * float(u[2, i])
         # the batch's kernels share one radius, 3 x its largest sigma (blur.gaussian_blur)
@@ -758,15 +759,8 @@ def test_flatten_against_a_per_taxel_reference(data32, monkeypatch):
 
     p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:8].double()
     inputs = NetInputs(pressure_mmhg=p)
-    assert torch.equal(flatten_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
-    out = flatten_batch(inputs, 0.5, torch.Generator().manual_seed(3)).pressure_mmhg
-    u = torch.rand(2, 8, generator=torch.Generator().manual_seed(3)).double()
-    on = u[0] < 0.5
-    assert 0 < int(on.sum()) < 8
-    for i in range(8):
-        if not on[i]:
-            assert torch.equal(out[i], p[i])
-            continue
+    out, u, drawn = _drawn_half(flatten_batch, p, 2, 3)
+    for i in drawn:
         g = FLATTEN_GAMMA[0] + (FLATTEN_GAMMA[1] - FLATTEN_GAMMA[0]) * float(u[1, i])
         ref = p[i].clone()
         for r in range(64):
