@@ -14,11 +14,16 @@ evaluation is 24 articulated rests (~10-20 s on one core). Every evaluation is a
     ... --mattress air --air-support [--tissue 98300] [--fit-travel]
         # the air support (P0, kappa), the cells' depth and the tissue (unless held); with
         # --fit-travel also the tubes' travel (thickness_m; else the preset's)
+    ... --drawn 16   # also rest 16 drawn poses of each of DRAWN_PARTITIONS on every candidate bed:
+        # the share sinking through the mattress adds SINK_WEIGHT x share to the loss (the report's
+        # home poses never reach the foam's travel; a knee or an elbow of a drawn pose does)
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
 import json
 import math
 import time
@@ -30,7 +35,7 @@ import torch
 from pressurepose.commands.realism import POSTURES, RealismConfig, load_real, real_scenes, simulate_subjects
 from pressurepose.eval import realism as R
 from pressurepose.mat import MatSpec
-from pressurepose.sim.articulated import ArticulatedConfig
+from pressurepose.sim.articulated import FAIL_BOTTOM, ArticulatedConfig, rest_articulated
 from pressurepose.sim.mattress import MattressParams
 
 # name, start, low, high (searched in log space)
@@ -52,6 +57,35 @@ AIR_SPACE = (
 )
 AIR_TRAVEL = ("thickness_m", 0.06, 0.015, 0.15)  # the tubes' travel before the base (--fit-travel)
 TISSUE = ("tissue_pa_per_m", 2.5e5, 3e4, 3e6)
+DRAWN_PARTITIONS = ("supine", "general", "lateral_straight")
+SINK_WEIGHT = 10.0  # loss per unit share of drawn bodies sinking through (one of 48 -> +0.21)
+
+
+def drawn_poses(n: int):
+    """The body model and n drawn poses (seed 1, female) per partition of DRAWN_PARTITIONS,
+    as `benchmarks/articulated_speed.py` draws them (another seed, so its figures stay a check)."""
+    from pressurepose.body import load_body_model
+    from pressurepose.sampling.partitions import SamplingConfig
+    from pressurepose.sampling.sampler import PoseSampler
+
+    model = load_body_model("anny", dtype=torch.float64)
+    poses = {
+        part: PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=1)).sample(range(n)).params
+        for part in DRAWN_PARTITIONS
+    }
+    return model, poses
+
+
+def sink_share(model, poses, mp: MattressParams) -> float:
+    """The share of the drawn bodies the articulated rest rejects as sunk through the mattress."""
+    from pressurepose.sim.run import articulated_config_for
+
+    sank = total = 0
+    for part, params in poses.items():
+        rest = rest_articulated(model, params, mattress=mp, config=articulated_config_for(part))
+        sank += sum(f == FAIL_BOTTOM for f in rest.failure)
+        total += len(rest.failure)
+    return sank / total
 
 
 def decode(x, space=SPACE):
@@ -93,7 +127,17 @@ def main() -> None:
         "--start", type=Path, default=None, help="with --from-preset: start at this MattressParams file instead"
     )
     ap.add_argument("--eval-only", action="store_true", help="with --from-preset: the preset's loss alone, no search")
+    ap.add_argument(
+        "--drawn",
+        type=int,
+        default=0,
+        help="drawn poses per partition rested on every candidate; the share sinking through adds to the loss",
+    )
+    ap.add_argument(
+        "--set", default="", help="ArticulatedConfig overrides for every rest, e.g. spine_stiffness_scale=0.5"
+    )
     args = ap.parse_args()
+    overrides = {k: ast.literal_eval(v) for k, v in (kv.split("=", 1) for kv in args.set.split(",") if kv)}
     if (args.eval_only or args.start) and not args.from_preset:
         raise SystemExit("--eval-only and --start work from a starting bed: give --from-preset")
     import cma
@@ -112,6 +156,7 @@ def main() -> None:
             scenes[k] = (ids[pick], centres[pick], angles[pick])
     args.out.mkdir(parents=True, exist_ok=True)
     log = (args.out / "evals.jsonl").open("a")
+    drawn = drawn_poses(args.drawn) if args.drawn > 0 else None
     best = (float("inf"), None)
 
     def loss(x):
@@ -136,10 +181,13 @@ def main() -> None:
             subjects,
             RealismConfig(settle="none"),
             mp,
-            ArticulatedConfig(
-                neck_stiffness_scale=v["neck"],
-                spine_stiffness_scale=v["spine"],
-                tissue_by_part=(("spine1", v["belly"]), ("spine2", v["belly"])),
+            dataclasses.replace(
+                ArticulatedConfig(
+                    neck_stiffness_scale=v["neck"],
+                    spine_stiffness_scale=v["spine"],
+                    tissue_by_part=(("spine1", v["belly"]), ("spine2", v["belly"])),
+                ),
+                **overrides,
             ),
             scenes=scenes,
         )
@@ -169,6 +217,9 @@ def main() -> None:
             }
             total += loss
         total /= len(POSTURES)
+        if drawn is not None:
+            parts["sank"] = round(sink_share(*drawn, mp), 3)
+            total += SINK_WEIGHT * parts["sank"]
         log.write(json.dumps({"loss": total, "params": v, "parts": parts, "seconds": time.perf_counter() - t0}) + "\n")
         log.flush()
         if total < best[0]:

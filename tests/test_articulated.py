@@ -314,3 +314,25 @@ def test_config_refuses_unknown_parts():
         ArticulatedConfig(tissue_depth_max=(("ribs", 0.05),))
     with pytest.raises(UserError, match="tissue_by_part: unknown part 'belly'"):
         ArticulatedConfig(tissue_by_part=(("belly", 0.15),))
+
+
+def test_spine_lateral_stiffness_follows_the_roll():
+    """`joint_stiffness` with a roll: the spine's DoF about the bed's cross axis is x (cos^2 +
+    s sin^2) of the roll - unchanged on the back, x s on a side, half way at 45 deg - and every
+    other DoF (the spine's twist, the limbs) is untouched; s = 1 changes nothing."""
+    from pressurepose.body.joints import J24_NAMES
+    from pressurepose.sim.articulation import joint_stiffness
+
+    dofs = Dofs("cpu", torch.float64)
+    mass = torch.full((4,), 70.0, dtype=torch.float64)
+    roll = torch.tensor([0.0, math.pi / 2, -math.pi / 2, math.pi / 4], dtype=torch.float64)
+    plain = joint_stiffness(mass, dofs, 0.5, 0.2, 1.1)
+    lat = joint_stiffness(mass, dofs, 0.5, 0.2, 1.1, 0.3, roll)
+    bend = torch.tensor(
+        [J24_NAMES[j].startswith("spine") and ax == (0.0, 1.0) for j, ax in zip(dofs.joint.tolist(), dofs.axis_world)]
+    )
+    assert int(bend.sum()) == 3  # spine1-3, one cross-axis DoF each
+    expected = torch.tensor([1.0, 0.3, 0.3, 0.65], dtype=torch.float64)
+    torch.testing.assert_close(lat[:, bend], plain[:, bend] * expected[:, None])
+    torch.testing.assert_close(lat[:, ~bend], plain[:, ~bend])
+    torch.testing.assert_close(joint_stiffness(mass, dofs, 0.5, 0.2, 1.1, 1.0, roll), plain)

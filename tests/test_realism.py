@@ -222,3 +222,19 @@ def test_frame_placement_by_hand():
     centre, angle = frame_placement(img, 0.1, 0.2)
     np.testing.assert_allclose(centre[0], [0.45, 0.5])
     assert angle[0] == pytest.approx(np.arctan2(0.4, 0.4))  # dx = 0.4 m, dy = 0.4 m: 45 deg
+
+
+def test_area_by_part_of_length_by_hand():
+    """Rows 5-14 of a 20 x 6 image carry the load, row r with (r - 4) loaded taxels capped at 6
+    (rows 5-10: 1-6 taxels, rows 11-14: 6); a faint row 16 below the share is outside the
+    length. Five parts of 2 rows each: (1+2, 3+4, 5+6, 6+6, 6+6). Empty image: zeros."""
+    img = np.zeros((20, 6))
+    for r in range(5, 15):
+        img[r, : min(r - 4, 6)] = 10.0
+    img[16, 0] = 1e-4  # < 0.2% of the force
+    np.testing.assert_array_equal(R.area_by_part_of_length(img, parts=5), [3, 7, 11, 12, 12])
+    # ten parts of one row each: the taxel counts themselves
+    np.testing.assert_array_equal(R.area_by_part_of_length(img), [1, 2, 3, 4, 5, 6, 6, 6, 6, 6])
+    np.testing.assert_array_equal(R.area_by_part_of_length(np.zeros((20, 6))), np.zeros(10))
+    s = R.summarise(np.stack([img, img]), np.array([1.7, 1.7]), 0.0286, 0.0286)
+    np.testing.assert_allclose(s.area_tenths, [1, 2, 3, 4, 5, 6, 6, 6, 6, 6])

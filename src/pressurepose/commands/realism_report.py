@@ -19,6 +19,7 @@ def set_dict(s: R.FrameSet) -> dict:
         "extent": round(s.extent, 3),
         "coverage": round(s.coverage, 3),
         "regions": {k: round(v, 3) for k, v in s.regions.items()},
+        "area_tenths": [round(float(v), 1) for v in s.area_tenths],
     }
 
 
@@ -82,6 +83,22 @@ def markdown(record: dict) -> str:
                 + " | ".join(
                     f"{r['simulated']['regions'][k]:.2f} ({r['real']['regions'][k]:.2f})" for k in R.REGION_NAMES
                 )
+                + " |"
+            )
+    lines += [
+        "",
+        "Where the contact lies: loaded taxels (mean over frames) in each tenth of the load's length, "
+        "head end first, simulated / real:",
+        "",
+        "| posture | mattress | " + " | ".join(str(i + 1) for i in range(10)) + " |",
+        "| --- | --- |" + " --- |" * 10,
+    ]
+    for r in record["rows"]:
+        s, re_ = r["simulated"], r["real"]
+        if s and "area_tenths" in s:
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | "
+                + " | ".join(f"{a:.0f} / {b:.0f}" for a, b in zip(s["area_tenths"], re_["area_tenths"]))
                 + " |"
             )
     lines += [

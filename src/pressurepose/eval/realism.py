@@ -83,6 +83,25 @@ def extent_of_height(image: np.ndarray, height_m: float, pitch_row_m: float, sha
     return float((kept[-1] - kept[0] + 1) * pitch_row_m / height_m)
 
 
+def area_by_part_of_length(image: np.ndarray, parts: int = 10, share: float = EXTENT_SHARE) -> np.ndarray:
+    """(parts,) loaded taxels in each of `parts` equal slices of the load's length (the rows from
+    the first to the last holding >= `share` of the force; a slice boundary falls at the nearest
+    row edge): where along the body the contact lies, whatever the body's height and place.
+    Zeros for an empty image."""
+    img = np.asarray(image, dtype=np.float64)
+    rows = img.sum(1)
+    total = rows.sum()
+    out = np.zeros(parts)
+    if total <= 0:
+        return out
+    kept = np.nonzero(rows >= share * total)[0]
+    edges = np.rint(np.linspace(kept[0], kept[-1] + 1, parts + 1)).astype(int)
+    loaded = (img > 0).sum(1)
+    for i in range(parts):
+        out[i] = loaded[edges[i] : edges[i + 1]].sum()
+    return out
+
+
 def high_pressure(image: np.ndarray, q: float = 0.99) -> float:
     """The `q` quantile of the loaded taxels' readings (0 for an empty image)."""
     img = np.asarray(image, dtype=np.float64)
@@ -150,6 +169,7 @@ class FrameSet:
     extent: float  # median over frames of `extent_of_height`
     coverage: float
     regions: dict[str, float]  # mean share per region
+    area_tenths: np.ndarray  # (10,) mean over frames of `area_by_part_of_length` (taxels)
     along: np.ndarray  # (rows,) mean unit-sum row profile
     across: np.ndarray  # (cols,)
     mean_image: np.ndarray  # (rows, cols) mean image (mmHg)
@@ -176,6 +196,7 @@ def summarise(images: np.ndarray, heights_m: np.ndarray, pitch_row_m: float, pit
         extent=float(np.median([extent_of_height(im, h, pitch_row_m) for im, h in zip(images, heights)])),
         coverage=float(np.mean([coverage(im) for im in images])),
         regions={k: float(np.mean([r[k] for r in regions])) for k in REGION_NAMES},
+        area_tenths=np.mean([area_by_part_of_length(im) for im in images], 0),
         along=_mean_profile(images.sum(2)),
         across=_mean_profile(images.sum(1)),
         mean_image=images.mean(0),

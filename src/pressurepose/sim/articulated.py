@@ -203,11 +203,19 @@ def rest_articulated(
         else torch.as_tensor(mass_kg, dtype=dtype, device=device).reshape(-1)
     )
     weight = total_mass * GRAVITY_M_S2
-    k = joint_stiffness(total_mass, dofs, cfg.stiffness_scale, cfg.neck_stiffness_scale, cfg.spine_stiffness_scale)
+    root_start = root_matrix(params.root_rotation)
+    k = joint_stiffness(
+        total_mass,
+        dofs,
+        cfg.stiffness_scale,
+        cfg.neck_stiffness_scale,
+        cfg.spine_stiffness_scale,
+        cfg.spine_lateral_scale,
+        torch.atan2(root_start[:, 2, 0], root_start[:, 2, 2]),  # roll: the heights of the left and front axes
+    )
     # The trunk's roll hold (a person's muscle tone on a side; sim #1's SettleConfig.hold_roll_m):
     # a spring on the root's roll about the bed's long axis, back to the roll it starts with.
     k[:, 1] = cfg.hold_roll_m * total_mass * GRAVITY_M_S2
-    root_start = root_matrix(params.root_rotation)
     ref_local = axis_angle_to_matrix(params.pose)
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).

@@ -24,6 +24,9 @@ class ArticulatedConfig:
     `stiffness_scale` 0.5, 0.1 x the seed's neck."""
     spine_stiffness_scale: float = 1.1
     """Extra factor on the spine's springs (spine1-3)."""
+    spine_lateral_scale: float = 1.0
+    """Extra factor on the spine's sideways bending (its DoF about the bed's cross axis on a
+    body lying on its side; blended by the body's roll, `articulation.joint_stiffness`)."""
     outer: int = 14
     """Re-posings of the mesh at most (each re-linearises the kinematics; friction's sliding
     and a side-lying body's roll need more than 10 to finish)."""

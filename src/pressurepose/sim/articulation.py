@@ -96,15 +96,25 @@ class Dofs:
 
 
 def joint_stiffness(
-    mass_kg: torch.Tensor, dofs: Dofs, scale: float = 1.0, neck_scale: float = 1.0, spine_scale: float = 1.0
+    mass_kg: torch.Tensor,
+    dofs: Dofs,
+    scale: float = 1.0,
+    neck_scale: float = 1.0,
+    spine_scale: float = 1.0,
+    spine_lateral_scale: float = 1.0,
+    roll_rad: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(B, N) spring stiffness (N m / rad) per DoF: the seed's per joint, x mass / 70.45 kg,
     x `scale` (x `neck_scale` on the neck and head, x `spine_scale` on spine1-3); 0 on the
-    root's DoFs."""
-    base = []
-    for j in dofs.joint.tolist():
+    root's DoFs. With `roll_rad` (B,), the body's roll about the bed's long axis (0 supine,
+    +-pi/2 on a side), the spine's DoF about the bed's cross axis - flexion on the back,
+    lateral bending on a side - is further x cos^2(roll) + `spine_lateral_scale` sin^2(roll):
+    the spine bends sideways under its own factor."""
+    base, lateral = [], []
+    for j, ax in zip(dofs.joint.tolist(), dofs.axis_world):
         if j == 0:
             base.append(0.0)
+            lateral.append(False)
             continue
         name = J24_NAMES[j]
         k = _STIFFNESS[name.removeprefix("left_").removeprefix("right_")] * scale
@@ -113,8 +123,15 @@ def joint_stiffness(
         if name.startswith("spine"):
             k *= spine_scale
         base.append(k)
+        lateral.append(name.startswith("spine") and ax == (0.0, 1.0))
     base_t = torch.tensor(base, dtype=mass_kg.dtype, device=mass_kg.device)
-    return base_t[None] * (mass_kg / STIFFNESS_REFERENCE_MASS_KG)[:, None]
+    k = base_t[None] * (mass_kg / STIFFNESS_REFERENCE_MASS_KG)[:, None]
+    if roll_rad is not None and spine_lateral_scale != 1.0:
+        s2 = torch.sin(roll_rad.to(k)) ** 2
+        factor = 1.0 + (spine_lateral_scale - 1.0) * s2  # cos^2 + scale sin^2
+        mask = torch.tensor(lateral, device=k.device)
+        k = torch.where(mask[None], k * factor[:, None], k)
+    return k
 
 
 def part_mass_and_com(
