@@ -57,6 +57,7 @@ AIR_SPACE = (
 )
 AIR_TRAVEL = ("thickness_m", 0.06, 0.015, 0.15)  # the tubes' travel before the base (--fit-travel)
 TISSUE = ("tissue_pa_per_m", 2.5e5, 3e4, 3e6)
+DENSIFY = ("densify_pa", 1e5, 1e4, 1e6)  # the foam's densification (--densify)
 DRAWN_PARTITIONS = ("supine", "general", "lateral_straight")
 SINK_WEIGHT = 10.0  # loss per unit share of drawn bodies sinking through (one of 48 -> +0.21)
 
@@ -136,6 +137,7 @@ def main() -> None:
     ap.add_argument(
         "--set", default="", help="ArticulatedConfig overrides for every rest, e.g. spine_stiffness_scale=0.5"
     )
+    ap.add_argument("--densify", action="store_true", help="with --bed-only: fit the foam's densification too")
     args = ap.parse_args()
     overrides = {k: ast.literal_eval(v) for k, v in (kv.split("=", 1) for kv in args.set.split(",") if kv)}
     if (args.eval_only or args.start) and not args.from_preset:
@@ -175,6 +177,7 @@ def main() -> None:
                 k3_pa_per_m3=v["k3_pa_per_m3"],
                 tissue_pa_per_m=v["tissue_pa_per_m"],
                 spread_m=v["spread_m"],
+                densify_pa=v.get("densify_pa", 0.0),
             )
         t0 = time.perf_counter()
         sims = simulate_subjects(
@@ -234,6 +237,8 @@ def main() -> None:
     space = SPACE[:4] if args.bed_only else SPACE
     if args.tissue is not None:  # the body's tissue held: the bed's foam and cover alone
         space = tuple(d for d in SPACE[:4] if d[0] != "tissue_pa_per_m")
+    if args.densify:
+        space = space + (DENSIFY,)
     if args.air_support:  # with the tissue unless it is held
         space = AIR_SPACE + ((AIR_TRAVEL,) if args.fit_travel else ()) + (() if args.tissue is not None else (TISSUE,))
     x0 = [math.log(s) for _, s, _, _ in space]

@@ -114,9 +114,12 @@ def test_mirrored_side_gives_mirrored_image(anny64):
     assert float(0.5 * (cols_a - cols_b).abs().sum()) < 0.15
 
 
-def test_series_law_derivatives():
-    mp = MattressParams()
-    w = torch.linspace(0, 0.08, 50, dtype=torch.float64)
+@pytest.mark.parametrize("densify", [0.0, 5e4], ids=["cubic", "densified"])
+def test_series_law_derivatives(densify):
+    """dp/dw and p = dE/dw by central differences; p against bisection of the split; with the
+    foam's densification (`densify_pa`), compressions up to the foam's whole thickness."""
+    mp = MattressParams(k1_pa_per_m=4e4, k3_pa_per_m3=5e6, densify_pa=densify)
+    w = torch.linspace(0, 0.16 if densify else 0.08, 50, dtype=torch.float64)
     for tissue in (None, 3e5):
         p, dp, phi = series_law(w, mp, tissue)
         eps = 1e-6  # central differences
@@ -336,3 +339,21 @@ def test_spine_lateral_stiffness_follows_the_roll():
     torch.testing.assert_close(lat[:, bend], plain[:, bend] * expected[:, None])
     torch.testing.assert_close(lat[:, ~bend], plain[:, ~bend])
     torch.testing.assert_close(joint_stiffness(mass, dofs, 0.5, 0.2, 1.1, 1.0, roll), plain)
+
+
+def test_densification_by_hand_and_in_files(tmp_path):
+    """The foam's densification adds P_d (u / T)^9: all of P_d at full compression, 2^-9 of it
+    at half; a pressure the cubic law meets beyond the foam's thickness is met within it;
+    `densify_pa` is written to and read from parameter files (left out when 0)."""
+    mp = MattressParams(k1_pa_per_m=4e4, k3_pa_per_m3=5e6, densify_pa=1e5)
+    cubic = mp.replace(densify_pa=0.0)
+    T = mp.thickness_m
+    assert mp.foundation_pressure(T) == pytest.approx(cubic.foundation_pressure(T) + 1e5, rel=1e-12)
+    assert mp.foundation_pressure(T / 2) - cubic.foundation_pressure(T / 2) == pytest.approx(1e5 / 512, rel=1e-12)
+    p = 30e3  # Pa: a knee's load the cubic law takes deeper than the foam is thick
+    u = torch.linspace(0, 2 * T, 20001, dtype=torch.float64)
+    assert float(u[cubic.foundation_pressure(u) >= p][0]) > T
+    assert float(u[mp.foundation_pressure(u) >= p][0]) < 0.95 * T
+    mp.save(tmp_path / "m.json")
+    assert MattressParams.load(tmp_path / "m.json") == mp
+    assert "densify_pa" not in cubic.to_dict()

@@ -45,6 +45,10 @@ class MattressParams:
     k3_pa_per_m3: float = 5.89e7
     spread_m: float = 0.0235
     thickness_m: float = 0.15
+    # The foam's densification (Pa): its collapsed cells add densify_pa (u / thickness)^9 to the
+    # pressure at compression u - nothing below half the thickness (< 0.2%), all of densify_pa
+    # at full compression (docs/physics.md "Densification"); 0: the cubic law alone.
+    densify_pa: float = 0.0
     mat_stiffness_pa_per_mm: float = MMHG_PA  # 1 mmHg compresses the mat layer 1 mm by default
     c0_mmhg: float = -1.0  # taxels below ~1 mmHg read 0, as a real mat's threshold does
     c1_mmhg_per_mm: float = 1.0
@@ -91,11 +95,18 @@ class MattressParams:
 
     def foundation_pressure(self, w):
         """p(w) in Pa for compression w (m, >= 0); works on floats and tensors."""
-        return self.k1_pa_per_m * w + self.k3_pa_per_m3 * w**3
+        p = self.k1_pa_per_m * w + self.k3_pa_per_m3 * w**3
+        if _scalar(self.densify_pa) > 0:
+            p = p + self.densify_pa * (w / self.thickness_m) ** DENSIFY_EXPONENT
+        return p
 
     def foundation_stiffness(self, w):
         """dp/dw (Pa/m)."""
-        return self.k1_pa_per_m + 3.0 * self.k3_pa_per_m3 * w**2
+        k = self.k1_pa_per_m + 3.0 * self.k3_pa_per_m3 * w**2
+        if _scalar(self.densify_pa) > 0:
+            n, t = DENSIFY_EXPONENT, self.thickness_m
+            k = k + n * self.densify_pa / t * (w / t) ** (n - 1)
+        return k
 
     @property
     def has_air_support(self) -> bool:
@@ -119,10 +130,11 @@ class MattressParams:
         return -0.5 * self.cell_depth_m * (1 - torch.cos(phase))
 
     def to_dict(self) -> dict:
-        """The fields as numbers; a flat top leaves out the air cells' fields and a foam bed the
-        air support's, so the files and dataset settings of such beds are those written before
-        the fields existed."""
+        """The fields as numbers; a flat top leaves out the air cells' fields, a foam bed the
+        air support's and a foam without densification `densify_pa`, so the files and dataset
+        settings of such beds are those written before the fields existed."""
         skip = (() if self.has_cells else _CELL_FIELDS) + (() if self.has_air_support else _AIR_FIELDS)
+        skip += () if _scalar(self.densify_pa) > 0 else ("densify_pa",)
         return {f.name: _scalar(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name not in skip}
 
     def save(self, path: str | os.PathLike) -> None:
@@ -168,6 +180,9 @@ class MattressParams:
                 f"{path}: unknown mattress parameters {', '.join(unknown)}; valid ones: {', '.join(sorted(known))}"
             )
         return cls(**doc["params"])
+
+
+DENSIFY_EXPONENT = 9  # `MattressParams.densify_pa`: the densification term's power of u / thickness
 
 
 # PmatData experiment II's two mattresses, fitted through the articulated sim #2 (with

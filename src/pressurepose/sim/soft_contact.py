@@ -7,7 +7,7 @@ import torch
 
 from pressurepose.maps import EMPTY_HEIGHT_M, grid_origin, grid_shape
 from pressurepose.mat import MatSpec
-from pressurepose.sim.mattress import MattressParams
+from pressurepose.sim.mattress import DENSIFY_EXPONENT, MattressParams
 
 
 def lowest_points(
@@ -49,12 +49,16 @@ class SeriesLaw:
     for a total compression w (m), the pressure p (Pa), dp/dw (Pa/m) and the stored energy per
     unit area (J/m^2). The split w = u + p / k_t has u as the root of a cubic (the function
     u + p(u)/k_t is increasing: one root, in closed form below). tissue: a number or a tensor
-    broadcasting with w (its per-cell constants are computed once here); None: the foam alone."""
+    broadcasting with w (its per-cell constants are computed once here); None: the foam alone.
+    With the foam's densification (`MattressParams.densify_pa` P_d > 0; p gains P_d (u/T)^9),
+    the cubic's root is the start of Newton's method on the convex, increasing
+    u + p(u)/k_t - w, which it approaches from above, monotonically."""
 
     coupled = False  # each cell on its own (`sim.air_law.AirLaw` couples them)
 
     def __init__(self, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
         self.k1, self.k3, self.kt = mp.k1_pa_per_m, mp.k3_pa_per_m3, tissue_pa_per_m
+        self.pd, self.thick = float(mp.densify_pa), float(mp.thickness_m)
         if tissue_pa_per_m is None:
             return
         # The foam's share u solves a u^3 + b u = w with a = k3 / k_t, b = 1 + k1 / k_t > 0: one
@@ -83,12 +87,26 @@ class SeriesLaw:
         k1, k3 = self.k1, self.k3
         if self.kt is None:
             w2 = w * w
-            return w * (k1 + k3 * w2), k1 + 3 * k3 * w2, w2 * (0.5 * k1 + 0.25 * k3 * w2)
+            p, dp, e = w * (k1 + k3 * w2), k1 + 3 * k3 * w2, w2 * (0.5 * k1 + 0.25 * k3 * w2)
+            if self.pd > 0:
+                dense = self._dense(w)
+                p, dp, e = p + dense[0], dp + dense[1], e + dense[2]
+            return p, dp, e
         u, u2, p = self._foam(w)
         kf = u2.mul(3 * k3).add_(k1)
+        if self.pd > 0:
+            kf = kf + self._dense(u)[1]
         # dp/dw = kf kt / (kf + kt); stored energy: the foam's and the tissue's p^2 / (2 kt).
         dp = kf.div_(kf.mul(self.inv_kt).add_(1))
-        return p, dp, self._stored(u2, p)
+        return p, dp, self._stored(u, u2, p)
+
+    def _dense(self, u):
+        """The densification term's pressure, stiffness and energy per unit area at foam
+        compression u."""
+        n, t = DENSIFY_EXPONENT, self.thick
+        r = u / t
+        r8 = r.pow(n - 1)
+        return self.pd * r8 * r, (n * self.pd / t) * r8, (self.pd * t / (n + 1)) * r8 * r * r
 
     def bed_share(self, w: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """The foam's compression (m) of cells at total compression w carrying pressure p (the
@@ -99,8 +117,8 @@ class SeriesLaw:
         """The stored energy per unit area alone (J/m^2), as `__call__` gives it."""
         if self.kt is None:
             return self(w)[2]
-        _, u2, p = self._foam(w)
-        return self._stored(u2, p)
+        u, u2, p = self._foam(w)
+        return self._stored(u, u2, p)
 
     def _foam(self, w):
         """The foam's compression u, u^2 and the pressure p (in-place chains: one temporary
@@ -114,11 +132,25 @@ class SeriesLaw:
             u = x2.div_(x2.add(1).sqrt_() + 1).add_(x).log1p_().div_(3).sinh_().mul_(self.two_s)
         else:
             u = w * self.inv_b
+        if self.pd > 0:  # Newton from the cubic's root, above the densified one
+            kt = self.kt
+            for _ in range(50):
+                u2 = u * u
+                p_d, k_d, _ = self._dense(u)
+                g = u2.mul(k3).add(k1).mul(u).add(p_d).add(kt * u).sub(kt * w)
+                step = g / (u2.mul(3 * k3).add(k1).add(k_d).add(kt))
+                u = (u - step).clamp(min=0)
+                if float(step.abs().max()) <= 1e-12 * self.thick:
+                    break
         u2 = u * u
-        return u, u2, u2.mul(k3).add_(k1).mul_(u)
+        p = u2.mul(k3).add_(k1).mul_(u)
+        if self.pd > 0:
+            p = p + self._dense(u)[0]
+        return u, u2, p
 
-    def _stored(self, u2, p):
-        return u2.mul(0.25 * self.k3).add_(0.5 * self.k1).mul_(u2).add_(p.mul(p).mul_(self.half_inv_kt))
+    def _stored(self, u, u2, p):
+        e = u2.mul(0.25 * self.k3).add_(0.5 * self.k1).mul_(u2).add_(p.mul(p).mul_(self.half_inv_kt))
+        return e + self._dense(u)[2] if self.pd > 0 else e
 
 
 def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
