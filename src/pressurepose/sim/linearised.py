@@ -107,7 +107,7 @@ class Linearised:
             if self._law_key != key:
                 self._law_key, self._law_cached = key, AirLaw(mp, self.tissue, self.area)
         else:
-            key = (mp.k1_pa_per_m, mp.k3_pa_per_m3)
+            key = (mp.k1_pa_per_m, mp.k3_pa_per_m3, mp.densify_pa, mp.thickness_m)
             if self._law_key != key:
                 self._law_key, self._law_cached = key, SeriesLaw(mp, self.tissue)
         return self._law_cached
