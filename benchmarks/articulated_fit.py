@@ -140,6 +140,8 @@ def main() -> None:
     ap.add_argument("--densify", action="store_true", help="with --bed-only: fit the foam's densification too")
     args = ap.parse_args()
     overrides = {k: ast.literal_eval(v) for k, v in (kv.split("=", 1) for kv in args.set.split(",") if kv)}
+    if args.densify and args.air_support:
+        raise SystemExit("--densify fits a foam's densification: not with --air-support")
     if (args.eval_only or args.start) and not args.from_preset:
         raise SystemExit("--eval-only and --start work from a starting bed: give --from-preset")
     import cma
