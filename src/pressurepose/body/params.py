@@ -127,6 +127,14 @@ def root_matrix(root_rotation: torch.Tensor) -> torch.Tensor:
     return axis_angle_to_matrix(root_rotation) @ supine_rotation(root_rotation.dtype, root_rotation.device)
 
 
+def root_roll(root_rotation: torch.Tensor) -> torch.Tensor:
+    """(B, 3) root rotations -> (B,) roll (rad) of the body about the bed's long axis: the
+    heights of its left and front axes in the mat frame are its sine and cosine, whatever the
+    yaw (0 supine, -pi/2 and pi/2 on the sides, pi prone)."""
+    R = root_matrix(root_rotation)
+    return torch.atan2(R[:, 2, 0], R[:, 2, 2])
+
+
 def place_in_mat(points_body: torch.Tensor, pelvis_body: torch.Tensor, params: BodyParams) -> torch.Tensor:
     """Body-frame points (B, N, 3) -> mat frame, pelvis (B, 3) moved to params.root_translation."""
     R = root_matrix(params.root_rotation)  # (B, 3, 3)

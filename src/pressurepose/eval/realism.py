@@ -71,16 +71,22 @@ def coverage(image: np.ndarray, share: float = COVERAGE_SHARE) -> float:
     return float((span >= share * total).mean())
 
 
+def _load_span(image: np.ndarray, share: float) -> tuple[int, int] | None:
+    """The first and last row holding >= `share` of the image's force (None for an empty image)."""
+    rows = np.asarray(image, dtype=np.float64).sum(1)
+    total = rows.sum()
+    if total <= 0:
+        return None
+    kept = np.nonzero(rows >= share * total)[0]
+    return int(kept[0]), int(kept[-1])
+
+
 def extent_of_height(image: np.ndarray, height_m: float, pitch_row_m: float, share: float = EXTENT_SHARE) -> float:
     """Length (m) from the first to the last row carrying >= `share` of the image's force, over
     `height_m` (0 for an empty image). A real frame whose load runs off the mat's end reads
     short."""
-    rows = np.asarray(image, dtype=np.float64).sum(1)
-    total = rows.sum()
-    if total <= 0:
-        return 0.0
-    kept = np.nonzero(rows >= share * total)[0]
-    return float((kept[-1] - kept[0] + 1) * pitch_row_m / height_m)
+    span = _load_span(image, share)
+    return 0.0 if span is None else float((span[1] - span[0] + 1) * pitch_row_m / height_m)
 
 
 def area_by_part_of_length(image: np.ndarray, parts: int = 10, share: float = EXTENT_SHARE) -> np.ndarray:
@@ -88,15 +94,12 @@ def area_by_part_of_length(image: np.ndarray, parts: int = 10, share: float = EX
     the first to the last holding >= `share` of the force; a slice boundary falls at the nearest
     row edge): where along the body the contact lies, whatever the body's height and place.
     Zeros for an empty image."""
-    img = np.asarray(image, dtype=np.float64)
-    rows = img.sum(1)
-    total = rows.sum()
     out = np.zeros(parts)
-    if total <= 0:
+    span = _load_span(image, share)
+    if span is None:
         return out
-    kept = np.nonzero(rows >= share * total)[0]
-    edges = np.rint(np.linspace(kept[0], kept[-1] + 1, parts + 1)).astype(int)
-    loaded = (img > 0).sum(1)
+    edges = np.rint(np.linspace(span[0], span[1] + 1, parts + 1)).astype(int)
+    loaded = (np.asarray(image) > 0).sum(1)
     for i in range(parts):
         out[i] = loaded[edges[i] : edges[i + 1]].sum()
     return out

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pressurepose.body.joints import J24_MIRROR
-from pressurepose.body.params import root_matrix
+from pressurepose.body.params import root_roll
 
 POSTURES = ("supine", "left", "right", "prone")
 MIRRORED = (0, 2, 1, 3)  # the posture of the mirrored body: left and right swapped
@@ -32,8 +32,7 @@ def roll_from_root(root_rotation: torch.Tensor) -> torch.Tensor:
     """(B, 3) root rotations -> (B,) roll (deg) of the body about the bed's long axis: the
     heights of the body's left and front axes in the mat frame are its sine and cosine,
     whatever the yaw (`eval.real` reads PmatData's postures with it)."""
-    R = root_matrix(root_rotation)  # body axes (x left, y head, z front) -> mat frame
-    return torch.rad2deg(torch.atan2(R[:, 2, 0], R[:, 2, 2]))
+    return torch.rad2deg(root_roll(root_rotation))
 
 
 def roll_from_joints(joints: torch.Tensor) -> torch.Tensor:

@@ -39,7 +39,7 @@ from pressurepose.body.capsules import fit_capsules
 from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
-from pressurepose.body.params import BodyParams, root_matrix
+from pressurepose.body.params import BodyParams, root_matrix, root_roll
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle
 from pressurepose.errors import UserError
 from pressurepose.maps import cell_centres, grid_shape, surface_points
@@ -203,7 +203,6 @@ def rest_articulated(
         else torch.as_tensor(mass_kg, dtype=dtype, device=device).reshape(-1)
     )
     weight = total_mass * GRAVITY_M_S2
-    root_start = root_matrix(params.root_rotation)
     k = joint_stiffness(
         total_mass,
         dofs,
@@ -211,11 +210,12 @@ def rest_articulated(
         cfg.neck_stiffness_scale,
         cfg.spine_stiffness_scale,
         cfg.spine_lateral_scale,
-        torch.atan2(root_start[:, 2, 0], root_start[:, 2, 2]),  # roll: the heights of the left and front axes
+        root_roll(params.root_rotation),
     )
     # The trunk's roll hold (a person's muscle tone on a side; sim #1's SettleConfig.hold_roll_m):
     # a spring on the root's roll about the bed's long axis, back to the roll it starts with.
     k[:, 1] = cfg.hold_roll_m * total_mass * GRAVITY_M_S2
+    root_start = root_matrix(params.root_rotation)
     ref_local = axis_angle_to_matrix(params.pose)
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).

@@ -11,7 +11,7 @@ import numpy as np
 from pressurepose.bed import BedShape
 from pressurepose.mat import MatSpec
 from pressurepose.sim.fixed_order import atan2_each, matvec3, sq_norm3, sum_last
-from pressurepose.sim.mattress import DENSIFY_EXPONENT, MattressParams
+from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.mjcf import cross3
 from pressurepose.sim.settle_config import (
     STICK_STIFFNESS,
@@ -33,7 +33,7 @@ class CapsuleFoundation:
         self.nr, self.nc = mat.covered_rows * sub, mat.covered_cols * sub
         self.area = self.hx * self.hy
         self.k1, self.k3 = float(params.k1_pa_per_m), float(params.k3_pa_per_m3)
-        self.pd, self.thick = float(params.densify_pa), float(params.thickness_m)  # the foam's densification
+        self.dense = params.densification if float(params.densify_pa) > 0 else None  # (p, dp/dw, energy) of w
         self.nu, self.mu = float(params.damping_s), float(params.friction)
 
     def underside(self, a: np.ndarray, b: np.ndarray, r: np.ndarray, s_range=(-math.inf, math.inf)):
@@ -205,11 +205,9 @@ class CapsuleFoundation:
         p = (self.k1 + self.k3 * w2) * w
         k = self.k1 + 3.0 * self.k3 * w2
         energy = (self.k1 / 2 + self.k3 / 4 * w2) * w2 * self.area
-        if self.pd > 0:  # MattressParams.foundation_pressure's densification term
-            n, r = DENSIFY_EXPONENT, w / self.thick
-            r8 = r ** (n - 1)
-            p, k = p + self.pd * r8 * r, k + n * self.pd / self.thick * r8
-            energy = energy + self.pd * self.thick / (n + 1) * r8 * r * r * self.area
+        if self.dense is not None:
+            p_d, k_d, e_d = self.dense(w)
+            p, k, energy = p + p_d, k + k_d, energy + e_d * self.area
         c = self.nu * k * self.area
         arm2 = sq_norm3(arm)
         c_lin = np.bincount(cap, c, minlength=C)

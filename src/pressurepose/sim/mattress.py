@@ -96,17 +96,21 @@ class MattressParams:
     def foundation_pressure(self, w):
         """p(w) in Pa for compression w (m, >= 0); works on floats and tensors."""
         p = self.k1_pa_per_m * w + self.k3_pa_per_m3 * w**3
-        if _scalar(self.densify_pa) > 0:
-            p = p + self.densify_pa * (w / self.thickness_m) ** DENSIFY_EXPONENT
-        return p
+        return p + self.densification(w)[0] if _scalar(self.densify_pa) > 0 else p
 
     def foundation_stiffness(self, w):
         """dp/dw (Pa/m)."""
         k = self.k1_pa_per_m + 3.0 * self.k3_pa_per_m3 * w**2
-        if _scalar(self.densify_pa) > 0:
-            n, t = DENSIFY_EXPONENT, self.thickness_m
-            k = k + n * self.densify_pa / t * (w / t) ** (n - 1)
-        return k
+        return k + self.densification(w)[1] if _scalar(self.densify_pa) > 0 else k
+
+    def densification(self, u):
+        """The foam's densification term at foam compression u (m; floats, arrays, tensors):
+        its pressure densify_pa (u / T)^9 (Pa), that pressure's derivative (Pa/m) and its stored
+        energy per unit area (J/m^2) - every engine's one formula."""
+        n, t = DENSIFY_EXPONENT, self.thickness_m
+        r = u / t
+        r8 = r ** (n - 1)
+        return self.densify_pa * r8 * r, n * self.densify_pa / t * r8, self.densify_pa * t / (n + 1) * r8 * r * r
 
     @property
     def has_air_support(self) -> bool:

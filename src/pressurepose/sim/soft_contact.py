@@ -7,7 +7,7 @@ import torch
 
 from pressurepose.maps import EMPTY_HEIGHT_M, grid_origin, grid_shape
 from pressurepose.mat import MatSpec
-from pressurepose.sim.mattress import DENSIFY_EXPONENT, MattressParams
+from pressurepose.sim.mattress import MattressParams
 
 
 def lowest_points(
@@ -58,7 +58,8 @@ class SeriesLaw:
 
     def __init__(self, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
         self.k1, self.k3, self.kt = mp.k1_pa_per_m, mp.k3_pa_per_m3, tissue_pa_per_m
-        self.pd, self.thick = float(mp.densify_pa), float(mp.thickness_m)
+        self.thick = float(mp.thickness_m)
+        self.dense = mp.densification if float(mp.densify_pa) > 0 else None  # (p, dp/du, energy) of u
         if tissue_pa_per_m is None:
             return
         # The foam's share u solves a u^3 + b u = w with a = k3 / k_t, b = 1 + k1 / k_t > 0: one
@@ -88,25 +89,17 @@ class SeriesLaw:
         if self.kt is None:
             w2 = w * w
             p, dp, e = w * (k1 + k3 * w2), k1 + 3 * k3 * w2, w2 * (0.5 * k1 + 0.25 * k3 * w2)
-            if self.pd > 0:
-                dense = self._dense(w)
-                p, dp, e = p + dense[0], dp + dense[1], e + dense[2]
+            if self.dense is not None:
+                p_d, k_d, e_d = self.dense(w)
+                p, dp, e = p + p_d, dp + k_d, e + e_d
             return p, dp, e
         u, u2, p = self._foam(w)
         kf = u2.mul(3 * k3).add_(k1)
-        if self.pd > 0:
-            kf = kf + self._dense(u)[1]
+        if self.dense is not None:
+            kf = kf + self.dense(u)[1]
         # dp/dw = kf kt / (kf + kt); stored energy: the foam's and the tissue's p^2 / (2 kt).
         dp = kf.div_(kf.mul(self.inv_kt).add_(1))
         return p, dp, self._stored(u, u2, p)
-
-    def _dense(self, u):
-        """The densification term's pressure, stiffness and energy per unit area at foam
-        compression u."""
-        n, t = DENSIFY_EXPONENT, self.thick
-        r = u / t
-        r8 = r.pow(n - 1)
-        return self.pd * r8 * r, (n * self.pd / t) * r8, (self.pd * t / (n + 1)) * r8 * r * r
 
     def bed_share(self, w: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """The foam's compression (m) of cells at total compression w carrying pressure p (the
@@ -132,11 +125,11 @@ class SeriesLaw:
             u = x2.div_(x2.add(1).sqrt_() + 1).add_(x).log1p_().div_(3).sinh_().mul_(self.two_s)
         else:
             u = w * self.inv_b
-        if self.pd > 0:  # Newton from the cubic's root, above the densified one
+        if self.dense is not None:  # Newton from the cubic's root, above the densified one
             kt = self.kt
             for _ in range(50):
                 u2 = u * u
-                p_d, k_d, _ = self._dense(u)
+                p_d, k_d, _ = self.dense(u)
                 g = u2.mul(k3).add(k1).mul(u).add(p_d).add(kt * u).sub(kt * w)
                 step = g / (u2.mul(3 * k3).add(k1).add(k_d).add(kt))
                 u = (u - step).clamp(min=0)
@@ -144,13 +137,13 @@ class SeriesLaw:
                     break
         u2 = u * u
         p = u2.mul(k3).add_(k1).mul_(u)
-        if self.pd > 0:
-            p = p + self._dense(u)[0]
+        if self.dense is not None:
+            p = p + self.dense(u)[0]
         return u, u2, p
 
     def _stored(self, u, u2, p):
         e = u2.mul(0.25 * self.k3).add_(0.5 * self.k1).mul_(u2).add_(p.mul(p).mul_(self.half_inv_kt))
-        return e + self._dense(u)[2] if self.pd > 0 else e
+        return e + self.dense(u)[2] if self.dense is not None else e
 
 
 def series_law(w: torch.Tensor, mp: MattressParams, tissue_pa_per_m: float | torch.Tensor | None):
