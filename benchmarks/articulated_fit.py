@@ -58,6 +58,7 @@ AIR_SPACE = (
 AIR_TRAVEL = ("thickness_m", 0.06, 0.015, 0.15)  # the tubes' travel before the base (--fit-travel)
 TISSUE = ("tissue_pa_per_m", 2.5e5, 3e4, 3e6)
 DENSIFY = ("densify_pa", 1e5, 1e4, 1e6)  # the foam's densification (--densify)
+MEMBRANE = ("membrane_m", 0.02, 0.003, 0.1)  # the mat's membrane length (--membrane)
 DRAWN_PARTITIONS = ("supine", "general", "lateral_straight")
 SINK_WEIGHT = 10.0  # loss per unit share of drawn bodies sinking through (one of 48 -> +0.21)
 
@@ -138,6 +139,7 @@ def main() -> None:
         "--set", default="", help="ArticulatedConfig overrides for every rest, e.g. spine_stiffness_scale=0.5"
     )
     ap.add_argument("--densify", action="store_true", help="with --bed-only: fit the foam's densification too")
+    ap.add_argument("--membrane", action="store_true", help="fit the mat's membrane length (sim.membrane) too")
     args = ap.parse_args()
     overrides = {k: ast.literal_eval(v) for k, v in (kv.split("=", 1) for kv in args.set.split(",") if kv)}
     if args.densify and args.air_support:
@@ -180,6 +182,7 @@ def main() -> None:
                 tissue_pa_per_m=v["tissue_pa_per_m"],
                 spread_m=v["spread_m"],
                 densify_pa=v.get("densify_pa", 0.0),
+                membrane_m=v.get("membrane_m", 0.0),
             )
         t0 = time.perf_counter()
         sims = simulate_subjects(
@@ -243,6 +246,8 @@ def main() -> None:
         space = space + (DENSIFY,)
     if args.air_support:  # with the tissue unless it is held
         space = AIR_SPACE + ((AIR_TRAVEL,) if args.fit_travel else ()) + (() if args.tissue is not None else (TISSUE,))
+    if args.membrane:
+        space = space + (MEMBRANE,)
     x0 = [math.log(s) for _, s, _, _ in space]
     sigma = 0.5
     if args.from_preset:  # start at the mattress's preset, a narrower search around it

@@ -287,6 +287,40 @@ def test_tissue_depth_by_hand():
     np.testing.assert_allclose(d[0].numpy(), [0.04, 0.045, 0.03, 0.03], atol=1e-12)
 
 
+def test_tissue_sag_by_hand():
+    """The sag grows with the depth squared (10 cm deep sags `sag_m`), is at most half the
+    depth, follows the parts' depth caps, and is None when off."""
+    from pressurepose.sim.articulation import tissue_sag
+
+    joints = torch.zeros(1, 24, 3, dtype=torch.float64)
+    joints[0, joint_index("left_hip")] = torch.tensor([0.0, 0.1, 0.0])
+    joints[0, joint_index("right_hip")] = torch.tensor([0.0, -0.1, 0.0])
+    joints[0, joint_index("spine1")] = torch.tensor([-0.1, 0.0, 0.0])
+    points = torch.tensor([[[0.0, 0.05, -0.04], [0.0, 0.05, -0.1], [0.0, 0.05, -0.02]]], dtype=torch.float64)
+    labels = torch.zeros(3, dtype=torch.long)
+    s = tissue_sag(points, labels, joints, 0.02)
+    np.testing.assert_allclose(s[0].numpy(), [0.02 * 0.16, 0.02, 0.02 * 0.04], atol=1e-12)
+    # At most half the depth: a 10 cm layer sagging 8 cm stops at 5.
+    np.testing.assert_allclose(tissue_sag(points, labels, joints, 0.08)[0, 1].item(), 0.05, atol=1e-12)
+    capped = tissue_sag(points, labels, joints, 0.02, (("pelvis", 0.05),))
+    np.testing.assert_allclose(capped[0].numpy(), [0.02 * 0.16, 0.02 * 0.25, 0.02 * 0.04], atol=1e-12)
+    assert tissue_sag(points, labels, joints, 0.0) is None
+
+
+def test_sagging_tissue_loads_more_of_the_bed(anny64):
+    """A side-lying body whose soft tissue hangs toward the bed loads its waist (spine1: the
+    flank between ribs and pelvis, bridged without the sag) and still carries its whole weight."""
+    p = _bodies(anny64, 1, roll=math.pi / 2)
+    base = ArticulatedConfig(hold_roll_m=0.5)
+    r0 = rest_articulated(anny64, p, config=base)
+    r1 = rest_articulated(anny64, p, config=dataclasses.replace(base, tissue_sag_m=0.04))
+    assert r0.failure == [""] and r1.failure == [""]
+    weight = float(anny64.measure(p.shape).mass_kg[0]) * GRAVITY_M_S2
+    np.testing.assert_allclose(float(r1.force_n[0]), weight, rtol=1e-2)
+    waist = joint_index("spine1")
+    assert float(r1.part_force_n[0, waist]) > 1.5 * float(r0.part_force_n[0, waist]), (r0.part_force_n, r1.part_force_n)
+
+
 def test_part_frames_round_trip_and_rigid_motion():
     """to_part_frames / from_part_frames against the per-point formula R^T (r - p), R l + p; a
     part's points follow its joint rigidly; unsorted labels are refused."""
@@ -315,6 +349,8 @@ def test_config_refuses_unknown_parts():
 
     with pytest.raises(UserError, match="tissue_depth_max: unknown part 'ribs'"):
         ArticulatedConfig(tissue_depth_max=(("ribs", 0.05),))
+    with pytest.raises(UserError, match="sag_depth_max: unknown part 'skull'"):
+        ArticulatedConfig(sag_depth_max=(("skull", 0.005),))
     with pytest.raises(UserError, match="tissue_by_part: unknown part 'belly'"):
         ArticulatedConfig(tissue_by_part=(("belly", 0.15),))
 

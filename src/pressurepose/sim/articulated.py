@@ -54,6 +54,7 @@ from pressurepose.sim.articulation import (
     joint_stiffness,
     part_mass_and_com,
     tissue_modulus,
+    tissue_sag,
     to_part_frames,
 )
 from pressurepose.sim.friction import Friction
@@ -108,6 +109,7 @@ class _Bodies:
     mass: torch.Tensor  # (B, 24)
     local_pts: torch.Tensor  # (B, P, 3) surface points in their parts' joint frames
     point_tissue: torch.Tensor | None  # (B, P) tissue modulus under each point
+    point_sag: torch.Tensor | None  # (B, P) how far each point's tissue hangs down (m)
     dof_lo: torch.Tensor  # (B, N) hinge limits
     dof_hi: torch.Tensor
     ref_local: torch.Tensor  # (B, 23, 3, 3) the springs' rest rotations
@@ -238,6 +240,7 @@ def rest_articulated(
         cfg.tissue_depth,
         cfg.tissue_depth_max,
     )
+    point_sag = tissue_sag(pts - drop[:, None], labels, joints, cfg.tissue_sag_m, cfg.sag_depth_max)
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     under = None
     if pillow_m is not None:
@@ -259,7 +262,7 @@ def rest_articulated(
     # on how long the others in its batch take).
     act = torch.arange(B, device=device)
     body = _Bodies(
-        cur, rest, local_com, mass, local_pts, point_tissue, dof_lo, dof_hi, ref_local, root_start, k, weight
+        cur, rest, local_com, mass, local_pts, point_tissue, point_sag, dof_lo, dof_hi, ref_local, root_start, k, weight
     )
     body.pillow_m, body.pillow_under = pillow_m, under
     moving_contact, solved = contact, None
@@ -269,9 +272,10 @@ def rest_articulated(
             rot, joints = pose_in_mat(body.rest, cur)
         com = (rot @ body.local_com[..., None])[..., 0] + joints
         body_com = (body.mass[..., None] * com).sum(1) / body.mass.sum(1)[:, None]
-        h, part, cell_tissue = lowest_points(
-            from_part_frames(body.local_pts, labels, rot, joints), labels, mat, cfg.sub, body.point_tissue
-        )
+        pts = from_part_frames(body.local_pts, labels, rot, joints)
+        if body.point_sag is not None:  # the tissue hangs toward the bed, whatever the part's turn
+            pts[..., 2] -= body.point_sag
+        h, part, cell_tissue = lowest_points(pts, labels, mat, cfg.sub, body.point_tissue)
         if top is not None:
             h = h - top  # heights above the (air cells') top, not above z = 0
         if body.pillow_under is not None:  # above the pillows' tops, through them in series

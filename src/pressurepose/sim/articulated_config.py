@@ -56,6 +56,21 @@ class ArticulatedConfig:
     all around the chest, however far the point is from the spine's axis (the depth's bone);
     without it a side-lying chest sank into 15 cm of soft "tissue" and the head carried the
     shoulder's load (docs/realism.md "The ribcage")."""
+    tissue_sag_m: float = 0.0
+    """How far soft tissue 10 cm deep over its bone hangs toward the bed under its own weight (m;
+    deeper tissue sags with the depth squared, `articulation.tissue_sag`): a side-lying waist or a
+    supine buttock reaches the sheet where the bone alone would hold it off. 0: no sag."""
+    sag_depth_max: tuple[tuple[str, float], ...] = (
+        ("head", 0.005),
+        ("spine2", 0.05),
+        ("spine3", 0.05),
+        ("left_hand", 0.01),
+        ("right_hand", 0.01),
+        ("left_foot", 0.01),
+        ("right_foot", 0.01),
+    )
+    """Largest depth (m) per J24 part for the sag: the skull, the ribcage, the hands' and feet's
+    bones lie that close under the skin (the leaf parts' depth is measured to their centroid)."""
     hold_roll_m: float = 0.0
     """Trunk roll hold: a spring on the body's roll about the bed's long axis of this many metres
     x its weight per radian (0: none; side-lying bodies need ~0.5 to stay on their side, as in
@@ -77,7 +92,7 @@ class ArticulatedConfig:
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
     def __post_init__(self) -> None:
-        for field in ("tissue_by_part", "tissue_depth_max"):
+        for field in ("tissue_by_part", "tissue_depth_max", "sag_depth_max"):
             for name, _ in getattr(self, field):
                 if name not in J24_NAMES:
                     raise UserError(

@@ -256,6 +256,21 @@ def tissue_modulus(
     return modulus
 
 
+# The sag's reference depth: `ArticulatedConfig.tissue_sag_m` is the sag of tissue this deep.
+SAG_REFERENCE_DEPTH_M = 0.10
+
+
+def tissue_sag(points, labels, joints, sag_m: float, max_depth_by_part: tuple = ()):
+    """(B, P) how far (m) each surface point's soft tissue hangs below where the bone holds it,
+    under its own weight: `sag_m` x (depth / SAG_REFERENCE_DEPTH_M)^2 (a layer of depth d and
+    shear modulus mu sags by rho g d^2 / (2 mu); `sag_m` 0.01 is mu ~ 4.9 kPa), at most half the
+    depth; the depth is `tissue_depth`'s with `max_depth_by_part`. None when sag_m is not > 0."""
+    if not float(sag_m) > 0:
+        return None
+    depth = tissue_depth(points, labels, joints, max_depth_by_part)
+    return (float(sag_m) * (depth / SAG_REFERENCE_DEPTH_M) ** 2).minimum(0.5 * depth)
+
+
 def dof_axes_pivots(dofs: Dofs, rot, joints, body_com) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, N, 3) x 2: each DoF's axis (zero for the vertical shift) and pivot in the mat frame;
     the root turns about the centre of mass."""
@@ -317,6 +332,7 @@ __all__ = [
     "joint_stiffness",
     "part_mass_and_com",
     "tissue_depth",
+    "tissue_sag",
     "tissue_modulus",
     "to_part_frames",
 ]

@@ -38,6 +38,7 @@ from pressurepose.blur import gaussian_blur
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, centroid_and_points, heights_from_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
+from pressurepose.sim.membrane import membrane_spread
 
 # Why a solve can fail (per sample). Empty string: converged.
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
@@ -75,10 +76,12 @@ class PressureResult:
 
 def taxel_pressure(foundation_pa: torch.Tensor, params: MattressParams, mat: MatSpec, sub: int) -> torch.Tensor:
     """Foundation pressure on the covered grid's cells (B, rows*sub, cols*sub) -> per covered
-    taxel (B, rows, cols) Pa: spread by the mat and cover (`spread_m`), averaged per taxel."""
+    taxel (B, rows, cols) Pa: spread by the mat and cover (`spread_m`) and read through the mat's
+    membrane (`membrane_m`, `sim.membrane`), averaged per taxel."""
     h_cell = mat.pitch_row_m / sub
     w_cell = mat.pitch_col_m / sub
     spread = gaussian_blur(foundation_pa, params.spread_m / h_cell, params.spread_m / w_cell)
+    spread = membrane_spread(spread, params.membrane_m, h_cell, w_cell)
     return F.avg_pool2d(spread[:, None], sub)[:, 0]
 
 
