@@ -140,6 +140,12 @@ def main() -> None:
     )
     ap.add_argument("--densify", action="store_true", help="with --bed-only: fit the foam's densification too")
     ap.add_argument("--membrane", action="store_true", help="fit the mat's membrane length (sim.membrane) too")
+    ap.add_argument(
+        "--bands",
+        type=float,
+        default=0.0,
+        help="weight of |log| of the transverse bands' amplitude ratio (air tubes, eval.realism.fit_bands) per posture",
+    )
     args = ap.parse_args()
     overrides = {k: ast.literal_eval(v) for k, v in (kv.split("=", 1) for kv in args.set.split(",") if kv)}
     if args.densify and args.air_support:
@@ -154,6 +160,7 @@ def main() -> None:
     real, subjects = load_real(Path("pmatdata"), 20.0)
     real_sets = {p: R.summarise(real[(p, args.mattress)][0], real[(p, args.mattress)][1], *pitch) for p in POSTURES}
     floors = {p: R.reading_floor(real[(p, args.mattress)][0]) for p in POSTURES}
+    real_bands = {p: R.fit_bands(real[(p, args.mattress)][0], pitch[0]) for p in POSTURES} if args.bands > 0 else {}
     # One simulated body per real frame, where that frame's load lies (docs/realism.md).
     scenes = {}
     for k, (ids, centres, angles) in real_scenes(real, RealismConfig()).items():
@@ -216,7 +223,11 @@ def main() -> None:
                 + 0.5 * abs(math.log(c.coverage_ratio))
                 + 0.5 * regions
             )
+            if args.bands > 0:
+                amp = R.fit_bands(imgs, pitch[0], real_bands[p].period_m).amplitude
+                loss += args.bands * abs(math.log(max(amp, 1e-3) / real_bands[p].amplitude))
             parts[p] = {
+                "bands": round(amp, 3) if args.bands > 0 else None,
                 "along": round(c.along, 3),
                 "across": round(c.across, 3),
                 "area": round(c.area_ratio, 3),
