@@ -349,6 +349,8 @@ def test_config_refuses_unknown_parts():
 
     with pytest.raises(UserError, match="tissue_depth_max: unknown part 'ribs'"):
         ArticulatedConfig(tissue_depth_max=(("ribs", 0.05),))
+    with pytest.raises(UserError, match="tissue_sag_m must be >= 0"):
+        ArticulatedConfig(tissue_sag_m=-0.01)
     with pytest.raises(UserError, match="sag_depth_max: unknown part 'skull'"):
         ArticulatedConfig(sag_depth_max=(("skull", 0.005),))
     with pytest.raises(UserError, match="tissue_by_part: unknown part 'belly'"):

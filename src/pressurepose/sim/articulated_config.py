@@ -92,6 +92,8 @@ class ArticulatedConfig:
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
     def __post_init__(self) -> None:
+        if not self.tissue_sag_m >= 0:  # also refuses NaN
+            raise UserError(f"ArticulatedConfig.tissue_sag_m must be >= 0 m (0: no sag), got {self.tissue_sag_m}")
         for field in ("tissue_by_part", "tissue_depth_max", "sag_depth_max"):
             for name, _ in getattr(self, field):
                 if name not in J24_NAMES:

@@ -31,11 +31,12 @@ def membrane_spread(pressure: torch.Tensor, length_m, h_rows_m: float, h_cols_m:
     """(B, H, W) pressure on cells h_rows_m x h_cols_m -> the same grid read through a membrane
     of screening length `length_m` (m, a number or 0-d tensor; <= 0 returns the input)."""
     lam = torch.as_tensor(length_m, dtype=pressure.dtype, device=pressure.device)
-    if not float(lam.detach()) > 0:
+    reach = float(lam.detach())
+    if not reach > 0:
         return pressure
-    B, H, W = pressure.shape
-    pad_r = math.ceil(PAD_LENGTHS * float(lam.detach()) / h_rows_m)
-    pad_c = math.ceil(PAD_LENGTHS * float(lam.detach()) / h_cols_m)
+    H, W = pressure.shape[-2:]
+    pad_r = math.ceil(PAD_LENGTHS * reach / h_rows_m)
+    pad_c = math.ceil(PAD_LENGTHS * reach / h_cols_m)
     n_r, n_c = H + 2 * pad_r, W + 2 * pad_c
     spec = torch.fft.rfft2(torch.nn.functional.pad(pressure, (pad_c, pad_c, pad_r, pad_r)))
     w_r = 2 * math.pi * torch.fft.fftfreq(n_r, dtype=pressure.dtype, device=pressure.device)
