@@ -59,6 +59,8 @@ AIR_TRAVEL = ("thickness_m", 0.06, 0.015, 0.15)  # the tubes' travel before the 
 TISSUE = ("tissue_pa_per_m", 2.5e5, 3e4, 3e6)
 DENSIFY = ("densify_pa", 1e5, 1e4, 1e6)  # the foam's densification (--densify)
 MEMBRANE = ("membrane_m", 0.02, 0.003, 0.1)  # the mat's membrane length (--membrane)
+# the tubes' stiffness under the membrane, which then bridges their seams (--seam-support, with --air-support)
+SEAM_SUPPORT = ("membrane_support_pa_per_m", 5e5, 5e4, 1e7)
 DRAWN_PARTITIONS = ("supine", "general", "lateral_straight")
 SINK_WEIGHT = 10.0  # loss per unit share of drawn bodies sinking through (one of 48 -> +0.21)
 
@@ -140,6 +142,11 @@ def main() -> None:
     )
     ap.add_argument("--densify", action="store_true", help="with --bed-only: fit the foam's densification too")
     ap.add_argument("--membrane", action="store_true", help="fit the mat's membrane length (sim.membrane) too")
+    ap.add_argument(
+        "--seam-support",
+        action="store_true",
+        help="and the tubes' stiffness under it: the membrane bridges their seams",
+    )
     ap.add_argument(
         "--bands",
         type=float,
@@ -259,6 +266,10 @@ def main() -> None:
         space = AIR_SPACE + ((AIR_TRAVEL,) if args.fit_travel else ()) + (() if args.tissue is not None else (TISSUE,))
     if args.membrane:
         space = space + (MEMBRANE,)
+    if args.seam_support:
+        if not (args.air_support and args.membrane):
+            raise SystemExit("--seam-support needs --air-support and --membrane")
+        space = space + (SEAM_SUPPORT,)
     x0 = [math.log(s) for _, s, _, _ in space]
     sigma = 0.5
     if args.from_preset:  # start at the mattress's preset, a narrower search around it

@@ -89,3 +89,83 @@ def test_mattress_file_and_sensor_pipeline(tmp_path):
     read = taxel_pressure(f, MattressParams(spread_m=0.0, membrane_m=0.03), mat, 2)
     assert float(read.sum()) == pytest.approx(float(plain.sum()), rel=1e-6)
     assert int((read > 0.01 * 4e3).sum()) > int((plain > 0).sum())
+
+
+def _corrugated(depth: float, pitch: float = 0.1024, h: float = 0.0143 / 2):
+    """The air tubes' seam depth below their crests at row index r (crest at row 0)."""
+    return lambda r: 0.5 * depth * (1 - torch.cos(2 * math.pi * r * h / pitch))
+
+
+def test_membrane_over_seams_reduces_to_flat_and_reads_nothing_unloaded():
+    """Seams of zero depth give the flat model; an unloaded mat on the crests reads nothing; a
+    foundation stiffness of 0 with seams is refused."""
+    h = 0.0143 / 2
+    p = torch.zeros(2, 80, 40, dtype=torch.float64)
+    p[:, 20:60, 10:30] = 3e3
+    flat = membrane_spread(p, 0.02, h, h)
+    np.testing.assert_allclose(membrane_spread(p, 0.02, h, h, _corrugated(0.0), 5e5).numpy(), flat.numpy(), atol=1e-6)
+    assert float(membrane_spread(torch.zeros_like(p), 0.02, h, h, _corrugated(0.004), 5e5).abs().max()) == 0
+    with pytest.raises(ValueError, match="support_pa_per_m"):
+        membrane_spread(p, 0.02, h, h, _corrugated(0.004), 0.0)
+
+
+def test_membrane_over_seams_makes_bands_that_deeper_loads_fill():
+    """A uniform load over the tubes reads more on the crests than in the seams (the mat bridges
+    them); the total force is kept to 0.5% on a grid twice the load's width (the mat carries load
+    along the crests beyond a grid's sides, where it is lost as at the real mat's edges), the
+    reading is mirror-symmetric across the bed, and a heavier load presses the mat
+    further into the seams, so its bands are weaker relative to its mean."""
+    h, pitch = 0.0143 / 2, 0.1024
+    crest, seam = 3 * round(pitch / h), 3 * round(pitch / h) + round(pitch / h / 2)  # rows 42 and 49
+    contrast = []
+    for load in (1.5e3, 3e3, 6e3):
+        p = torch.zeros(1, 128, 108, dtype=torch.float64)
+        p[0, 20:108, 39:69] = load
+        q = membrane_spread(p, 0.02, h, h, _corrugated(0.004, pitch), 5e5)
+        assert float(q.sum()) == pytest.approx(float(p.sum()), rel=0.005)
+        np.testing.assert_allclose(q.flip(-1).numpy(), q.numpy(), atol=1e-6 * load)
+        middle = q[0, :, 54]
+        assert float(middle[crest]) > 1.1 * float(middle[seam])
+        contrast.append(float(middle[crest] - middle[seam]) / load)
+    assert contrast[0] > contrast[1] > contrast[2]
+
+
+def test_membrane_over_seams_gradients(monkeypatch):
+    """Differentiable in the pressure and the length through the fixed point (a fixed number of
+    passes, so the finite differences see the same function)."""
+    import pressurepose.sim.membrane as membrane
+
+    monkeypatch.setattr(membrane, "SEAM_TOL_M", 0.0)
+    monkeypatch.setattr(membrane, "SEAM_ITERATIONS", 6)
+    h = 0.0143 / 2
+    g = torch.Generator().manual_seed(1)
+    p = (1e3 + 2e3 * torch.rand(1, 16, 8, generator=g, dtype=torch.float64)).requires_grad_()
+    lam = torch.tensor(0.02, dtype=torch.float64, requires_grad=True)
+    seams = _corrugated(0.003, pitch=0.05)
+    torch.autograd.gradcheck(lambda a, b: membrane.membrane_spread(a, b, h, h, seams, 5e5), (p, lam), atol=1e-5)
+
+
+def test_air_cells_read_bands_through_the_sensor_pipeline(tmp_path):
+    """On a bed with air cells and `membrane_support_pa_per_m`, the taxels over the crests read
+    more than those over the seams; the field round trips and is left out of files when 0."""
+    assert "membrane_support_pa_per_m" not in MattressParams(membrane_m=0.03).to_dict()
+    mat = MatSpec()
+    rows, cols = mat.covered_shape
+    bed = MattressParams(spread_m=0.0, membrane_m=0.02, cell_pitch_m=0.1024, cell_depth_m=0.004, cell_crest_m=0.0)
+    mp = bed.replace(membrane_support_pa_per_m=5e5)
+    mp.save(tmp_path / "m.json")
+    assert MattressParams.load(tmp_path / "m.json") == mp
+    f = torch.zeros(1, rows * 2, cols * 2, dtype=torch.float64)
+    f[0, 20:110, 20:40] = 3e3
+    flat = taxel_pressure(f, bed, mat, 2)[0].mean(1)
+    bands = taxel_pressure(f, mp, mat, 2)[0].mean(1)
+    assert float(bands.sum()) == pytest.approx(float(flat.sum()), rel=0.01)
+    from pressurepose.maps import cell_centres
+
+    x = cell_centres(mat, 1, covered=True, dtype=torch.float64)[0][:, 0]
+    inside = (x > x[15]) & (x < x[50])
+    on_crest = inside & (mp.top_height(x) > -0.0005)
+    in_seam = inside & (mp.top_height(x) < -0.0035)
+    assert on_crest.any() and in_seam.any()
+    assert float(bands[on_crest].mean()) > 1.2 * float(bands[in_seam].mean())
+    assert float(flat[on_crest].mean()) < 1.05 * float(flat[in_seam].mean())

@@ -77,11 +77,19 @@ class PressureResult:
 def taxel_pressure(foundation_pa: torch.Tensor, params: MattressParams, mat: MatSpec, sub: int) -> torch.Tensor:
     """Foundation pressure on the covered grid's cells (B, rows*sub, cols*sub) -> per covered
     taxel (B, rows, cols) Pa: spread by the mat and cover (`spread_m`) and read through the mat's
-    membrane (`membrane_m`, `sim.membrane`), averaged per taxel."""
+    membrane (`membrane_m`, `sim.membrane`; over air cells bridging their seams when
+    `membrane_support_pa_per_m` > 0), averaged per taxel."""
     h_cell = mat.pitch_row_m / sub
     w_cell = mat.pitch_col_m / sub
     spread = gaussian_blur(foundation_pa, params.spread_m / h_cell, params.spread_m / w_cell)
-    spread = membrane_spread(spread, params.membrane_m, h_cell, w_cell)
+    seams, support = None, params.membrane_support_pa_per_m
+    if params.has_cells and float(support) > 0:  # the mat bridges the air tubes' seams (`sim.membrane`)
+        x0 = float(cell_centres(mat, sub, covered=True, dtype=torch.float64)[0][0, 0])
+
+        def seams(rows):
+            return -params.top_height(x0 + rows * h_cell)
+
+    spread = membrane_spread(spread, params.membrane_m, h_cell, w_cell, seams, support)
     return F.avg_pool2d(spread[:, None], sub)[:, 0]
 
 

@@ -48,6 +48,10 @@ class MattressParams:
     # The mat as a tensioned membrane on the foam (m): the screening length sqrt(T / k) over which
     # it carries a contact's load beyond the contact's edge (`sim.membrane`); 0: no membrane.
     membrane_m: float = 0.0
+    # The foundation's stiffness under the membrane (Pa/m) over air cells: the mat bridges the
+    # tubes' seams and is pressed into them only where the load is deep enough (`sim.membrane`);
+    # 0: the membrane reads as over a flat top. Used only with membrane_m > 0 and air cells.
+    membrane_support_pa_per_m: float = 0.0
     # The foam's densification (Pa): its collapsed cells add densify_pa (u / thickness)^9 to the
     # pressure at compression u - nothing below half the thickness (< 0.2%), all of densify_pa
     # at full compression (docs/physics.md "Densification"); 0: the cubic law alone.
@@ -138,11 +142,13 @@ class MattressParams:
 
     def to_dict(self) -> dict:
         """The fields as numbers; a flat top leaves out the air cells' fields, a foam bed the
-        air support's, a foam without densification `densify_pa` and a mat without `membrane_m`, so the files and dataset
+        air support's, a foam without densification `densify_pa` and a mat without `membrane_m` (or
+        `membrane_support_pa_per_m`), so the files and dataset
         settings of such beds are those written before the fields existed."""
         skip = (() if self.has_cells else _CELL_FIELDS) + (() if self.has_air_support else _AIR_FIELDS)
         skip += () if _scalar(self.densify_pa) > 0 else ("densify_pa",)
         skip += () if _scalar(self.membrane_m) > 0 else ("membrane_m",)
+        skip += () if _scalar(self.membrane_support_pa_per_m) > 0 else ("membrane_support_pa_per_m",)
         return {f.name: _scalar(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name not in skip}
 
     def save(self, path: str | os.PathLike) -> None:

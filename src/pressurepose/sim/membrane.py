@@ -16,20 +16,48 @@ of the same reach) with exponential tails; it keeps the total force and the cent
 Solved exactly on the grid with the discrete Laplacian's Fourier symbol, the grid zero-padded by
 `PAD_LENGTHS` lambda each side (the load that would leave the mat's edge is lost, as the
 Gaussian spread's is).
+
+Over an air mattress's tubes the foundation is not flat: its top lies s(x) >= 0 below the crests
+(`MattressParams.top_height`), and a taut mat bridges the seams between the tubes. With the mat's
+deflection u measured down from the crests, the foundation pushes back only where the mat reaches
+it, k max(0, u - s), and
+
+    k max(0, u - s) - T laplacian(u) = p_b,   i.e.   u = S(p_b / k + min(u, s)),
+
+S the screening above. The fixed point is reached from u = 0 by repeating the right-hand side:
+each pass is one screened solve, the iterates rise monotonically to the solution (S and min are
+order-preserving), and the reading k max(0, u - s) keeps the total force (the Laplacian sums to
+zero). An unloaded mat reads nothing (u = 0 lies on the crests); a loaded one is pressed into the
+seams only where the load is deep enough, so the crests read more and the seams less - the bands
+of PmatData's air frames, which the flat model screens away. With s = 0 it is the flat model.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
 PAD_LENGTHS = 6.0  # padding, in lambdas: the kernel falls to ~e^-6 there
+SEAM_ITERATIONS = 60  # screened solves at most over a corrugated foundation
+SEAM_TOL_M = 1e-6  # ... stopping once no cell's deflection moves more than this (m; x k: < 1 Pa)
 
 
-def membrane_spread(pressure: torch.Tensor, length_m, h_rows_m: float, h_cols_m: float) -> torch.Tensor:
+def membrane_spread(
+    pressure: torch.Tensor,
+    length_m,
+    h_rows_m: float,
+    h_cols_m: float,
+    seams_m: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    support_pa_per_m: float = 0.0,
+) -> torch.Tensor:
     """(B, H, W) pressure on cells h_rows_m x h_cols_m -> the same grid read through a membrane
-    of screening length `length_m` (m, a number or 0-d tensor; <= 0 returns the input)."""
+    of screening length `length_m` (m, a number or 0-d tensor; <= 0 returns the input).
+
+    `seams_m`, if given, maps row positions (a float tensor of row indices; the padding's are < 0
+    or >= H) to the foundation's depth below its crests there (m, >= 0), and `support_pa_per_m` > 0
+    is the foundation's stiffness k under the mat: the mat bridges the seams (module doc)."""
     lam = torch.as_tensor(length_m, dtype=pressure.dtype, device=pressure.device)
     reach = float(lam.detach())
     if not reach > 0:
@@ -38,12 +66,32 @@ def membrane_spread(pressure: torch.Tensor, length_m, h_rows_m: float, h_cols_m:
     pad_r = math.ceil(PAD_LENGTHS * reach / h_rows_m)
     pad_c = math.ceil(PAD_LENGTHS * reach / h_cols_m)
     n_r, n_c = H + 2 * pad_r, W + 2 * pad_c
-    spec = torch.fft.rfft2(torch.nn.functional.pad(pressure, (pad_c, pad_c, pad_r, pad_r)))
     w_r = 2 * math.pi * torch.fft.fftfreq(n_r, dtype=pressure.dtype, device=pressure.device)
     w_c = 2 * math.pi * torch.fft.rfftfreq(n_c, dtype=pressure.dtype, device=pressure.device)
     # The 5-point Laplacian's symbol: -(4 / h^2) sin^2(w / 2) per axis.
     lap = (4 / h_rows_m**2) * torch.sin(w_r / 2)[:, None] ** 2 + (4 / h_cols_m**2) * torch.sin(w_c / 2)[None] ** 2
-    out = torch.fft.irfft2(spec / (1 + lam**2 * lap), s=(n_r, n_c))
+    symbol = 1 / (1 + lam**2 * lap)
+
+    def screen(x: torch.Tensor) -> torch.Tensor:
+        return torch.fft.irfft2(torch.fft.rfft2(x) * symbol, s=(n_r, n_c))
+
+    padded = torch.nn.functional.pad(pressure, (pad_c, pad_c, pad_r, pad_r))
+    if seams_m is None:
+        out = screen(padded)
+    else:
+        if not float(support_pa_per_m) > 0:
+            raise ValueError("a membrane over seams needs the foundation's stiffness support_pa_per_m > 0")
+        rows = torch.arange(-pad_r, H + pad_r, dtype=pressure.dtype, device=pressure.device)
+        s = seams_m(rows).clamp(min=0)[:, None].expand(n_r, n_c)
+        load = screen(padded / support_pa_per_m)  # the first pass from u = 0 (min(0, s) = 0)
+        u = load
+        for _ in range(SEAM_ITERATIONS):
+            nxt = load + screen(torch.minimum(u, s))
+            moved = float((nxt - u).detach().abs().max())
+            u = nxt
+            if moved < SEAM_TOL_M:
+                break
+        out = support_pa_per_m * (u - s).clamp(min=0)
     return out[:, pad_r : pad_r + H, pad_c : pad_c + W].clamp(min=0)
 
 
