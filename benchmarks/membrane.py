@@ -1,5 +1,7 @@
 """The mat's membrane's cost (`MattressParams.membrane_m`, `sim.membrane`): `taxel_pressure` on a
-batch of covered-grid pressure fields (2 cells per taxel, float64) with and without it.
+batch of covered-grid pressure fields (2 cells per taxel, float64) with and without it, and over
+the air preset's tubes with the mat bridging their seams (`membrane_support_pa_per_m`; its fixed
+point's passes depend on the load, so that case loads a body-sized patch, 0.5-1.5 kPa).
 
     OMP_NUM_THREADS=1 PYTHONPATH=src python benchmarks/membrane.py [--batch 32] [--repeats 20]
 """
@@ -34,6 +36,19 @@ def main() -> None:
             taxel_pressure(field * 1e3, mp, mat, 2)
         ms = (time.perf_counter() - t0) / args.repeats / args.batch * 1e3
         print(f"membrane_m {length:.3f} m: {ms:.3f} ms per image (batch {args.batch}, one thread)")
+    patch = torch.zeros_like(field)
+    patch[:, 16:112, 14:42] = 500 + 1000 * field[:, 16:112, 14:42]
+    air = MattressParams.preset("air")
+    for name, mp in (
+        ("air, flat membrane 2 cm", air.replace(membrane_m=0.02)),
+        ("air, membrane 2 cm over the seams", air.replace(membrane_m=0.02, membrane_support_pa_per_m=9e4)),
+    ):
+        taxel_pressure(patch, mp, mat, 2)
+        t0 = time.perf_counter()
+        for _ in range(args.repeats):
+            taxel_pressure(patch, mp, mat, 2)
+        ms = (time.perf_counter() - t0) / args.repeats / args.batch * 1e3
+        print(f"{name}: {ms:.3f} ms per image (batch {args.batch}, one thread)")
 
 
 if __name__ == "__main__":

@@ -135,7 +135,7 @@ def test_membrane_over_seams_gradients(monkeypatch):
     passes, so the finite differences see the same function)."""
     import pressurepose.sim.membrane as membrane
 
-    monkeypatch.setattr(membrane, "SEAM_TOL_M", 0.0)
+    monkeypatch.setattr(membrane, "SEAM_TOL_PA", 0.0)
     monkeypatch.setattr(membrane, "SEAM_ITERATIONS", 6)
     h = 0.0143 / 2
     g = torch.Generator().manual_seed(1)
