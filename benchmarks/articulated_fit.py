@@ -61,6 +61,7 @@ DENSIFY = ("densify_pa", 1e5, 1e4, 1e6)  # the foam's densification (--densify)
 MEMBRANE = ("membrane_m", 0.02, 0.003, 0.1)  # the mat's membrane length (--membrane)
 # the tubes' stiffness under the membrane, which then bridges their seams (--seam-support, with --air-support)
 SEAM_SUPPORT = ("membrane_support_pa_per_m", 5e5, 5e4, 1e7)
+WAVE = ("membrane_wave", 0.3, 0.02, 0.9)  # the tubes' stiffness wave under the mat (--wave, with --membrane)
 DRAWN_PARTITIONS = ("supine", "general", "lateral_straight")
 SINK_WEIGHT = 10.0  # loss per unit share of drawn bodies sinking through (one of 48 -> +0.21)
 
@@ -146,6 +147,11 @@ def main() -> None:
         "--seam-support",
         action="store_true",
         help="and the tubes' stiffness under it: the membrane bridges their seams",
+    )
+    ap.add_argument(
+        "--wave",
+        action="store_true",
+        help="and the tubes' stiffness wave under the mat (with --air-support --membrane)",
     )
     ap.add_argument(
         "--bands",
@@ -270,6 +276,10 @@ def main() -> None:
         if not (args.air_support and args.membrane):
             raise SystemExit("--seam-support needs --air-support and --membrane")
         space = space + (SEAM_SUPPORT,)
+    if args.wave:
+        if not (args.air_support and args.membrane) or args.seam_support:
+            raise SystemExit("--wave needs --air-support and --membrane, and not --seam-support")
+        space = space + (WAVE,)
     x0 = [math.log(s) for _, s, _, _ in space]
     sigma = 0.5
     if args.from_preset:  # start at the mattress's preset, a narrower search around it

@@ -169,3 +169,83 @@ def test_air_cells_read_bands_through_the_sensor_pipeline(tmp_path):
     assert on_crest.any() and in_seam.any()
     assert float(bands[on_crest].mean()) > 1.2 * float(bands[in_seam].mean())
     assert float(flat[on_crest].mean()) < 1.05 * float(flat[in_seam].mean())
+
+
+def test_stiffness_wave_reads_bands_of_the_same_share_in_any_load():
+    """Over tubes stiffer on their crests (k (1 + w), w = a cos): no wave gives the flat model; the
+    crests read more than the seams by the same share of the load whatever its size (the smooth
+    mat presses every row alike, the stiff rows push back harder); the total force is kept; a
+    wave reaching 1 is refused."""
+    h, pitch = 0.0143 / 2, 0.1024
+    crest, seam = 3 * round(pitch / h), 3 * round(pitch / h) + round(pitch / h / 2)
+    p = torch.zeros(2, 128, 108, dtype=torch.float64)
+    p[0, 20:108, 39:69] = 1e3
+    p[1, 20:108, 39:69] = 4e3
+    flat = membrane_spread(p, 0.02, h, h)
+    np.testing.assert_allclose(
+        membrane_spread(p, 0.02, h, h, wave=lambda r: 0 * r).numpy(), flat.numpy(), atol=1e-9 * 4e3
+    )
+    q = membrane_spread(p, 0.02, h, h, wave=lambda r: 0.4 * torch.cos(2 * math.pi * r * h / pitch))
+    np.testing.assert_allclose(q.sum((1, 2)).numpy(), p.sum((1, 2)).numpy(), rtol=1e-3)
+    np.testing.assert_allclose(q.flip(-1).numpy(), q.numpy(), atol=1e-6 * 4e3)
+    middle = q[:, :, 54]
+    share = (middle[:, crest] - middle[:, seam]) / (middle[:, crest] + middle[:, seam])
+    assert float(share[0]) > 0.1
+    assert float(share[0]) == pytest.approx(float(share[1]), rel=0.01)
+    with pytest.raises(ValueError, match="within"):
+        membrane_spread(p, 0.02, h, h, wave=lambda r: 1.0 + 0 * r)
+
+
+def test_stiffness_wave_gradients(monkeypatch):
+    """Differentiable in the pressure, the length and the wave's amplitude (gradcheck; a fixed
+    number of passes)."""
+    import pressurepose.sim.membrane as membrane
+
+    monkeypatch.setattr(membrane, "SEAM_TOL_PA", 0.0)
+    monkeypatch.setattr(membrane, "SEAM_ITERATIONS", 6)
+    h = 0.0143 / 2
+    g = torch.Generator().manual_seed(2)
+    p = (1e3 * torch.rand(1, 16, 8, generator=g, dtype=torch.float64)).requires_grad_()
+    lam = torch.tensor(0.02, dtype=torch.float64, requires_grad=True)
+    amp = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
+
+    def run(a, b, c):
+        return membrane.membrane_spread(a, b, h, h, wave=lambda r: c * torch.cos(2 * math.pi * r * h / 0.05))
+
+    torch.autograd.gradcheck(run, (p, lam, amp), atol=1e-6)
+
+
+def test_mattress_wave_field_and_pipeline(tmp_path):
+    """`membrane_wave` round trips, is left out of files when 0, refuses 1 or more; on air cells
+    the taxels over the crests read more than those over the seams, by about the same share for
+    a light and a heavy load."""
+    from pressurepose.errors import UserError
+    from pressurepose.maps import cell_centres
+
+    with pytest.raises(UserError, match="membrane_wave"):
+        MattressParams(membrane_wave=1.0)
+    with pytest.raises(UserError, match="set one of them"):
+        MattressParams(membrane_wave=0.3, membrane_support_pa_per_m=1e5)
+    assert "membrane_wave" not in MattressParams(membrane_m=0.02).to_dict()
+    mp = MattressParams(
+        spread_m=0.0, membrane_m=0.02, membrane_wave=0.4, cell_pitch_m=0.1024, cell_depth_m=0.004, cell_crest_m=0.0
+    )
+    mp.save(tmp_path / "m.json")
+    assert MattressParams.load(tmp_path / "m.json") == mp
+    mat = MatSpec()
+    rows, cols = mat.covered_shape
+    x = cell_centres(mat, 1, covered=True, dtype=torch.float64)[0][:, 0]
+    inside = (x > x[15]) & (x < x[50])
+    on_crest = inside & (mp.top_height(x) > -0.0005)
+    in_seam = inside & (mp.top_height(x) < -0.0035)
+    shares = []
+    for load in (1e3, 4e3):
+        f = torch.zeros(1, rows * 2, cols * 2, dtype=torch.float64)
+        f[0, 20:110, 20:40] = load
+        image = taxel_pressure(f, mp, mat, 2)[0]
+        plain = taxel_pressure(f, mp.replace(membrane_wave=0.0), mat, 2)[0]
+        assert float(image.sum()) == pytest.approx(float(plain.sum()), rel=0.01)
+        read = image.mean(1)
+        shares.append(float(read[on_crest].mean() / read[in_seam].mean()))
+    assert shares[0] > 1.2
+    assert shares[0] == pytest.approx(shares[1], rel=0.02)

@@ -52,6 +52,10 @@ class MattressParams:
     # tubes' seams and is pressed into them only where the load is deep enough (`sim.membrane`);
     # 0: the membrane reads as over a flat top. Used only with membrane_m > 0 and air cells.
     membrane_support_pa_per_m: float = 0.0
+    # Over air cells: the relative wave of the tubes' stiffness under the mat along the bed, k (1 +
+    # a cos(2 pi (x - crest) / pitch)) - stiffest on a tube's crest, softest at the seams; the mat
+    # smooths the load, so the crests read a times more than the mean in any load (`sim.membrane`).
+    membrane_wave: float = 0.0
     # The foam's densification (Pa): its collapsed cells add densify_pa (u / thickness)^9 to the
     # pressure at compression u - nothing below half the thickness (< 0.2%), all of densify_pa
     # at full compression (docs/physics.md "Densification"); 0: the cubic law alone.
@@ -91,6 +95,15 @@ class MattressParams:
         for name in ("k1_pa_per_m", "thickness_m", "mat_stiffness_pa_per_mm"):
             if _scalar(getattr(self, name)) <= 0:
                 raise UserError(f"MattressParams.{name} must be > 0, got {getattr(self, name)}")
+        if not _scalar(self.membrane_wave) < 1:
+            raise UserError(
+                f"MattressParams.membrane_wave must be < 1 (a share of the mean stiffness), got {self.membrane_wave}"
+            )
+        if _scalar(self.membrane_wave) > 0 and _scalar(self.membrane_support_pa_per_m) > 0:
+            raise UserError(
+                "MattressParams.membrane_wave and membrane_support_pa_per_m are two models of the tubes under "
+                "the mat (a stiffness wave, or seams the mat bridges): set one of them"
+            )
         if _scalar(self.cell_depth_m) > 0 and _scalar(self.cell_pitch_m) <= 0:
             raise UserError(
                 f"MattressParams.cell_depth_m is {_scalar(self.cell_depth_m)} but cell_pitch_m is 0: "
@@ -143,12 +156,13 @@ class MattressParams:
     def to_dict(self) -> dict:
         """The fields as numbers; a flat top leaves out the air cells' fields, a foam bed the
         air support's, a foam without densification `densify_pa` and a mat without `membrane_m` (or
-        `membrane_support_pa_per_m`), so the files and dataset
+        `membrane_support_pa_per_m`, `membrane_wave`), so the files and dataset
         settings of such beds are those written before the fields existed."""
         skip = (() if self.has_cells else _CELL_FIELDS) + (() if self.has_air_support else _AIR_FIELDS)
         skip += () if _scalar(self.densify_pa) > 0 else ("densify_pa",)
         skip += () if _scalar(self.membrane_m) > 0 else ("membrane_m",)
         skip += () if _scalar(self.membrane_support_pa_per_m) > 0 else ("membrane_support_pa_per_m",)
+        skip += () if _scalar(self.membrane_wave) > 0 else ("membrane_wave",)
         return {f.name: _scalar(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name not in skip}
 
     def save(self, path: str | os.PathLike) -> None:

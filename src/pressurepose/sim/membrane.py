@@ -52,13 +52,17 @@ def membrane_spread(
     h_cols_m: float,
     seams_m: Callable[[torch.Tensor], torch.Tensor] | None = None,
     support_pa_per_m: float = 0.0,
+    wave: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """(B, H, W) pressure on cells h_rows_m x h_cols_m -> the same grid read through a membrane
     of screening length `length_m` (m, a number or 0-d tensor; <= 0 returns the input).
 
     `seams_m`, if given, maps row positions (a float tensor of row indices; the padding's are < 0
     or >= H) to the foundation's depth below its crests there (m, >= 0), and `support_pa_per_m` > 0
-    is the foundation's stiffness k under the mat: the mat bridges the seams (module doc)."""
+    is the foundation's stiffness k under the mat: the mat bridges the seams (module doc).
+    `wave`, if given (and no seams), maps row positions to the relative change w of the
+    foundation's stiffness there, k (1 + w) with |w| < 1: the smooth mat presses the stiffer rows
+    harder (module doc)."""
     lam = torch.as_tensor(length_m, dtype=pressure.dtype, device=pressure.device)
     reach = float(lam.detach())
     if not reach > 0:
@@ -77,12 +81,24 @@ def membrane_spread(
         return torch.fft.irfft2(torch.fft.rfft2(x) * symbol, s=(n_r, n_c))
 
     padded = torch.nn.functional.pad(pressure, (pad_c, pad_c, pad_r, pad_r))
-    if seams_m is None:
+    rows = torch.arange(-pad_r, H + pad_r, dtype=pressure.dtype, device=pressure.device)
+    if seams_m is None and wave is None:
         out = screen(padded)
+    elif seams_m is None:
+        w = wave(rows)[:, None].expand(n_r, n_c)
+        if not float(w.detach().abs().max()) < 1:
+            raise ValueError("the foundation's stiffness wave must stay within (-1, 1) of its mean")
+        v = screen(padded)  # ((1 + w) - lambda^2 laplacian) v = p as v = S(p - w v): contracts by max |w|
+        for _ in range(SEAM_ITERATIONS):
+            nxt = screen(padded - w * v)
+            step = float((nxt - v).detach().abs().max())
+            v = nxt
+            if step < SEAM_TOL_PA:
+                break
+        out = (1 + w) * v
     else:
         if not float(support_pa_per_m) > 0:
             raise ValueError("a membrane over seams needs the foundation's stiffness support_pa_per_m > 0")
-        rows = torch.arange(-pad_r, H + pad_r, dtype=pressure.dtype, device=pressure.device)
         s = seams_m(rows).clamp(min=0)[:, None].expand(n_r, n_c)
         k = support_pa_per_m
         load = screen(padded / k)  # the first pass from u = 0 (min(0, s) = 0)
