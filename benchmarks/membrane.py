@@ -1,7 +1,8 @@
 """The mat's membrane's cost (`MattressParams.membrane_m`, `sim.membrane`): `taxel_pressure` on a
 batch of covered-grid pressure fields (2 cells per taxel, float64) with and without it, and over
-the air preset's tubes with the mat bridging their seams (`membrane_support_pa_per_m`; its fixed
-point's passes depend on the load, so that case loads a body-sized patch, 0.5-1.5 kPa).
+the air preset's tubes with the mat bridging their seams (`membrane_support_pa_per_m`) or on
+their stiffness wave (`membrane_wave`); the passes of those two fixed points depend on the load,
+so they load a body-sized patch, 0.5-1.5 kPa.
 
     OMP_NUM_THREADS=1 PYTHONPATH=src python benchmarks/membrane.py [--batch 32] [--repeats 20]
 """
@@ -42,6 +43,7 @@ def main() -> None:
     for name, mp in (
         ("air, flat membrane 2 cm", air.replace(membrane_m=0.02)),
         ("air, membrane 2 cm over the seams", air.replace(membrane_m=0.02, membrane_support_pa_per_m=9e4)),
+        ("air, membrane 2 cm on a stiffness wave 0.4", air.replace(membrane_m=0.02, membrane_wave=0.4)),
     ):
         taxel_pressure(patch, mp, mat, 2)
         t0 = time.perf_counter()
