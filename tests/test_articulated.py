@@ -97,9 +97,13 @@ def test_mirrored_side_gives_mirrored_image(anny64):
     mirrored images (the mesh is symmetric to ~1 mm: loose tolerance on the image)."""
     from pressurepose.commands.realism import SIDE_POSE, resting_pose
 
-    # The arms forward 1.2 rad, elbows 0.9 (not the report's current pose, whose forearms rest
-    # on each other: which lies on top is a bifurcation the mesh's asymmetry decides).
-    pose = resting_pose("left", 1, dict(SIDE_POSE, shoulder=1.2, elbow=0.9))
+    # The top arm along the flank (shoulder and elbow 0.3 rad): a pose that does not balance.
+    # The report's pose (forearms on each other: which lies on top is a bifurcation the mesh's
+    # ~1 mm asymmetry decides) and the arms forward 1.2 / 0.9 (used until session 42: the top
+    # forearm tips off what it rests on after 14-26 re-posings, earlier on one side than on the
+    # other, with the old joints too; docs/realism.md "Stiffer joints with the membrane") test the
+    # mesh's asymmetry, not the mechanics.
+    pose = resting_pose("left", 1, dict(SIDE_POSE, shoulder=0.3, elbow=0.3))
     # Without friction: with it the rest depends on the path (which part touches first), and
     # the mesh's ~1 mm asymmetry sends the two sides along slightly different paths (docs/physics.md).
     held = ArticulatedConfig(hold_roll_m=0.5, friction=False)
