@@ -97,9 +97,13 @@ def test_mirrored_side_gives_mirrored_image(anny64):
     mirrored images (the mesh is symmetric to ~1 mm: loose tolerance on the image)."""
     from pressurepose.commands.realism import SIDE_POSE, resting_pose
 
-    # The arms forward 1.2 rad, elbows 0.9 (not the report's current pose, whose forearms rest
-    # on each other: which lies on top is a bifurcation the mesh's asymmetry decides).
-    pose = resting_pose("left", 1, dict(SIDE_POSE, shoulder=1.2, elbow=0.9))
+    # The top arm along the flank (shoulder and elbow 0.3 rad): a pose that does not balance.
+    # The report's pose (forearms on each other: which lies on top is a bifurcation the mesh's
+    # ~1 mm asymmetry decides) and the arms forward 1.2 / 0.9 (used until session 42: the top
+    # forearm tips off what it rests on after 14-26 re-posings, earlier on one side than on the
+    # other, with the old joints too; docs/realism.md "Stiffer joints with the membrane") test the
+    # mesh's asymmetry, not the mechanics.
+    pose = resting_pose("left", 1, dict(SIDE_POSE, shoulder=0.3, elbow=0.3))
     # Without friction: with it the rest depends on the path (which part touches first), and
     # the mesh's ~1 mm asymmetry sends the two sides along slightly different paths (docs/physics.md).
     held = ArticulatedConfig(hold_roll_m=0.5, friction=False)
@@ -209,8 +213,7 @@ def test_part_mass_shares_are_anthropometric(anny64):
 
 def test_side_lying_body_rolls_over_unless_its_trunk_is_held(anny64):
     """On a side with bent knees and the arms forward the passive body tips towards prone
-    (reported, not kept); with the trunk's roll held it stays within 12 deg of its side (10.1
-    deg with the default relaxed joints, 0.5 x the seed's)."""
+    (reported, not kept); with the trunk's roll held it stays within 12 deg of its side."""
     from pressurepose.body.params import root_matrix
     from pressurepose.body.rotations import rotation_angle
     from pressurepose.commands.realism import resting_pose
@@ -224,13 +227,15 @@ def test_side_lying_body_rolls_over_unless_its_trunk_is_held(anny64):
     turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(held.params.root_rotation))
     assert float(turned[0]) < math.radians(12)
     # With self-contact (the top leg rests on the bottom one) and friction the free body no
-    # longer rolls over; the held one still turns less.
+    # longer rolls over: free or held, it stays within 10 deg of its side (with the default
+    # joints, 0.8 x the seed's, the free one turns 3.5 deg, the held one 5.2: friction sticks
+    # each part where it lands, so which turns more is the path's, not the hold's).
     free = rest_articulated(anny64, p, config=ArticulatedConfig(outer=20))
     held = rest_articulated(anny64, p, config=ArticulatedConfig(hold_roll_m=0.5, outer=20))
     assert free.failure == [""] and held.failure == [""]
-    turned_free = rotation_angle(root_matrix(p.root_rotation), root_matrix(free.params.root_rotation))
-    turned_held = rotation_angle(root_matrix(p.root_rotation), root_matrix(held.params.root_rotation))
-    assert float(turned_held[0]) < float(turned_free[0]) < 1.0
+    for rest in (free, held):
+        turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(rest.params.root_rotation))
+        assert float(turned[0]) < math.radians(10)
 
 
 def test_mattress_presets_load_by_name(tmp_path):

@@ -143,7 +143,10 @@ def test_simulate_writes_image_labels_and_figure(tmp_path):
         assert (p >= 0).all() and (p <= 100).all() and p.sum() > 0
         assert ((q < 0) == (c == 1)).all()
     assert (out / "simulate.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert 0.1 < record["contact_area_m2"] < 0.6
+    # Taxels reading >= 1 mmHg: the mat's membrane (the sponge preset's since session 42) reads a
+    # faint halo around the body that the real mats' floor hides (the realism report compares at
+    # the real floor, where the sponge areas agree within 5%): 0.64 m^2 for this body.
+    assert 0.1 < record["contact_area_m2"] < 0.8
     # The default engine is the generator's: the articulated rest on the sponge bed, no MuJoCo.
     from pressurepose.sim.mattress import MattressParams
 

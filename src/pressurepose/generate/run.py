@@ -44,7 +44,7 @@ TIMING = "timing.json"
 
 
 # The articulated engine's settings a dataset pins (`generate.json`), beside the mattress.
-ARTICULATED_JOINT_FIELDS = ("stiffness_scale", "neck_stiffness_scale", "spine_stiffness_scale")
+ARTICULATED_JOINT_FIELDS = ("stiffness_scale", "neck_stiffness_scale", "spine_stiffness_scale", "self_contact_sink_m")
 
 
 def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
@@ -106,7 +106,10 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
                 hint = " (drawn before face-down bodies stopped kneeling on the bed, docs/sampling.md)"
             elif not diff and settings.get("articulated_joints") != (old or {}).get("articulated_joints"):
                 what = "the articulated engine's joint springs"
-                hint = " (made before the joints were relaxed to 0.5 x the seed's, docs/realism.md)"
+                hint = (
+                    " (rested with other joints than today's: springs relaxed to 0.8 x the seed's and a 5 cm"
+                    " self-contact since session 42, 0.5 x and 2 cm before; docs/realism.md)"
+                )
             elif not diff and settings.get("articulated_engine") != (old or {}).get("articulated_engine"):
                 what = "the articulated engine's revisions"
                 hint = " (made by another revision of the engine, whose rests differ: docs/benchmarks.md)"

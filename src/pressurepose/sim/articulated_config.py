@@ -8,17 +8,17 @@ import dataclasses
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.errors import UserError
 from pressurepose.sim.pillow import Pillow
-from pressurepose.sim.self_contact import SELF_CONTACT_SINK_M
 
 
 @dataclasses.dataclass(frozen=True)
 class ArticulatedConfig:
     """Settings of the articulated rest (defaults: docs/physics.md)."""
 
-    stiffness_scale: float = 0.5
-    """Multiplies every joint's seed stiffness (1 = sim #1's springs; 0.5: a resting person's
-    relaxed limbs, docs/physics.md - side-lying contact area within 2-4% of PmatData's instead
-    of 10-14% short)."""
+    stiffness_scale: float = 0.8
+    """Multiplies every joint's seed stiffness (1 = sim #1's springs). 0.8 since session 42, with the
+    mat's membrane: the membrane gives the contact area the relaxed 0.5 had bought (the side-lying
+    area was 10-14% short with 1), and the stiffer legs carry the supine calves' and heels' share
+    (docs/realism.md "Stiffer joints and a softer self-contact")."""
     neck_stiffness_scale: float = 0.2
     """Extra factor on the neck and head springs (a relaxed neck lets the head rest): with
     `stiffness_scale` 0.5, 0.1 x the seed's neck."""
@@ -27,9 +27,11 @@ class ArticulatedConfig:
     spine_lateral_scale: float = 1.0
     """Extra factor on the spine's sideways bending (its DoF about the bed's cross axis on a
     body lying on its side; blended by the body's roll, `articulation.joint_stiffness`)."""
-    outer: int = 14
+    outer: int = 20
     """Re-posings of the mesh at most (each re-linearises the kinematics; friction's sliding
-    and a side-lying body's roll need more than 10 to finish)."""
+    and a side-lying body's roll need more than 10 to finish; 20 since session 42, 14 before:
+    on the air preset's nearly flat top the parts keep sliding a few re-posings longer). Settled
+    bodies stop early, so only the slow ones pay for it."""
     inner: int = 25
     """Newton steps of the last linearisation (the rest itself)."""
     inner_reposing: int = 6
@@ -80,8 +82,10 @@ class ArticulatedConfig:
     self_contact: bool = True
     """Keep the body's capsules from passing through each other (`sim.self_contact`): a
     forearm across the belly rests on it instead of sinking through to the foam."""
-    self_contact_sink_m: float = SELF_CONTACT_SINK_M
-    """Self-contact stiffness: the body's whole weight on one contact would press it this far in."""
+    self_contact_sink_m: float = 0.05
+    """Self-contact stiffness: the body's whole weight on one contact would press it this far in
+    (5 cm since session 42, 2 cm before: soft tissue between a resting arm and the trunk, or
+    between the knees of a side-lying body; docs/realism.md)."""
     friction: bool = True
     """Static friction per part (`sim.friction`, MattressParams.friction): a part that touched
     the sheet sticks there until pushed beyond mu x its load."""

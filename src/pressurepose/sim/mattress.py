@@ -218,21 +218,31 @@ DENSIFY_EXPONENT = 9  # `MattressParams.densify_pa`: the densification term's po
 # --from-preset (docs/realism.md). The class defaults stay the rigid sim #2's
 # fit (docs/calibration.md), which the generator's default uses.
 PRESETS: dict[str, dict[str, float]] = {
-    "sponge": {"k1_pa_per_m": 92340.0, "k3_pa_per_m3": 6800000.0, "tissue_pa_per_m": 98300.0, "spread_m": 0.002114},
+    # Session 41's refit with the mat's membrane (`membrane_m`), adopted in session 42 with the
+    # joints at 0.8 x the seed's and a 5 cm self-contact (docs/realism.md).
+    "sponge": {
+        "k1_pa_per_m": 51740.0,
+        "k3_pa_per_m3": 10710000.0,
+        "tissue_pa_per_m": 79360.0,
+        "spread_m": 0.002092,
+        "membrane_m": 0.02939,
+    },
+    # Session 42's refit with the new joints, the mat's membrane on the tubes' stiffness wave
+    # (`membrane_wave`), the rest's seams 2 mm deep (docs/realism.md). Pitch and crest measured
+    # from the transverse bands of PmatData's air frames (docs/physics.md "Air cells"); the tubes'
+    # air at one pressure ("Air support").
     "air": {
         "k1_pa_per_m": 68450.0,
         "k3_pa_per_m3": 25950000.0,
-        "tissue_pa_per_m": 172000.0,
+        "tissue_pa_per_m": 102900.0,
         "spread_m": 0.002804,
-        # The air mattress's tubes (docs/physics.md "Air cells"): pitch and crest measured from
-        # the transverse bands of PmatData's air frames; the tubes' air at one pressure ("Air
-        # support"): inflation pressure, volume stiffness, the seams' depth and the tissue fitted
-        # together (benchmarks/articulated_fit.py --mattress air --air-support, docs/realism.md).
+        "membrane_m": 0.01839,
+        "membrane_wave": 0.2991,
         "cell_pitch_m": 0.1024,
-        "cell_depth_m": 0.0088,
+        "cell_depth_m": 0.002,
         "cell_crest_m": 0.0013,
-        "air_pressure_pa": 3295.0,
-        "air_stiffness_pa_per_m3": 685600.0,
+        "air_pressure_pa": 3101.0,
+        "air_stiffness_pa_per_m3": 537100.0,
     },
 }
 
