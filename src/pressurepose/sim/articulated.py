@@ -69,8 +69,9 @@ from pressurepose.sim.soft_contact import lowest_points
 # re-posing's solve stops at 1 mrad steps (docs/benchmarks.md, branch speed4); 3: the body
 # model's rest skeleton by `body.procrustes.nearest_rotation` (roma's numbers to round-off,
 # branch pred6), which the rests amplify beyond bitwise; 4: the thorax's tissue depth at most
-# `ArticulatedConfig.tissue_depth_max` (the ribcage, docs/realism.md "The ribcage").
-ENGINE_REVISION = 4
+# `ArticulatedConfig.tissue_depth_max` (the ribcage, docs/realism.md "The ribcage"); 5: at most
+# 20 re-posings instead of 14 (`ArticulatedConfig.outer`, session 42, docs/realism.md).
+ENGINE_REVISION = 5
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"

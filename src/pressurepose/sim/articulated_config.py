@@ -18,10 +18,10 @@ class ArticulatedConfig:
     """Multiplies every joint's seed stiffness (1 = sim #1's springs). 0.8 since session 42, with the
     mat's membrane: the membrane gives the contact area the relaxed 0.5 had bought (the side-lying
     area was 10-14% short with 1), and the stiffer legs carry the supine calves' and heels' share
-    (docs/realism.md "Stiffer joints and a softer self-contact")."""
+    (docs/realism.md "Stiffer joints with the membrane")."""
     neck_stiffness_scale: float = 0.2
     """Extra factor on the neck and head springs (a relaxed neck lets the head rest): with
-    `stiffness_scale` 0.5, 0.1 x the seed's neck."""
+    `stiffness_scale` 0.8, 0.16 x the seed's neck."""
     spine_stiffness_scale: float = 1.1
     """Extra factor on the spine's springs (spine1-3)."""
     spine_lateral_scale: float = 1.0

@@ -31,6 +31,13 @@ to 0.1 Pa on a body-sized load; 2 Pa from the solution). The reading k max(0, u 
 total force (the Laplacian sums to zero). An unloaded mat reads nothing (u = 0 lies on the crests); a loaded one is pressed into the
 seams only where the load is deep enough, so the crests read more and the seams less - the bands
 of PmatData's air frames, which the flat model screens away. With s = 0 it is the flat model.
+Its contrast falls as 1 / load (a heavier load fills the seams).
+
+The other model of the tubes (`wave`; the air preset's since session 42): their stiffness under
+the mat waves along the bed, k (1 + w(x)), stiffest on the crests. The mat, smooth over lambda,
+presses every row alike and the stiffer rows push back harder: ((1 + w) - lambda^2 laplacian) v =
+p_b, the reading (1 + w) v, solved as v = S(p_b - w v) (a contraction by max |w|). Its bands are
+the same share of any load, as the real frames' are in every posture.
 """
 
 from __future__ import annotations

@@ -25,7 +25,8 @@ from pressurepose.body.capsule_geometry import segment_closest_points
 from pressurepose.body.capsules import CAPSULE_JOINTS, Capsules, collision_pairs
 
 # The whole body's weight on one capsule contact presses it this far in (a leg's ~17% of
-# it: ~3 mm). Stiffer than the tissue on the foam; soft enough for Newton.
+# it: ~3 mm). Stiffer than the tissue on the foam; soft enough for Newton. `SelfContact`'s own
+# default; the articulated rest's is `ArticulatedConfig.self_contact_sink_m` (5 cm since session 42).
 SELF_CONTACT_SINK_M = 0.02
 # Pairs farther apart than this cannot meet within one re-posing's trust region.
 _REACH_M = 0.15
