@@ -11,9 +11,9 @@ from scipy.special import k0
 
 from pressurepose.blur import gaussian_blur
 from pressurepose.mat import MatSpec
-from pressurepose.sim.foundation import taxel_pressure
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.membrane import membrane_spread
+from pressurepose.sim.reading import taxel_pressure
 
 
 def test_point_load_follows_the_continuum_kernel():

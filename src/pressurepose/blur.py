@@ -1,6 +1,6 @@
 """The one Gaussian blur: images (B, H, W), separable, zero padded, sigma per axis in pixels
 (a number, a 0-d tensor, or one per image). The mat/cover's spread of sim #2
-(`sim.foundation.taxel_pressure`) and the network's input channels and augmentations
+(`sim.reading.taxel_pressure`) and the network's input channels and augmentations
 (`net.preprocess`) both use it."""
 
 from __future__ import annotations

@@ -29,17 +29,14 @@ as a tensor. Batched over B bodies; CPU or CUDA; float32 or float64.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import torch
-import torch.nn.functional as F
 
 from pressurepose.bed import BedShape
-from pressurepose.blur import gaussian_blur
 from pressurepose.maps import EMPTY_HEIGHT_M, cell_centres, centroid_and_points, heights_from_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
-from pressurepose.sim.membrane import membrane_spread
+from pressurepose.sim.reading import taxel_pressure
 
 # Why a solve can fail (per sample). Empty string: converged.
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
@@ -73,34 +70,6 @@ class PressureResult:
     @property
     def ok(self) -> torch.Tensor:
         return torch.tensor([not f for f in self.failure], device=self.shift_m.device)
-
-
-def taxel_pressure(foundation_pa: torch.Tensor, params: MattressParams, mat: MatSpec, sub: int) -> torch.Tensor:
-    """Foundation pressure on the covered grid's cells (B, rows*sub, cols*sub) -> per covered
-    taxel (B, rows, cols) Pa: spread by the mat and cover (`spread_m`) and read through the mat's
-    membrane (`membrane_m`, `sim.membrane`; over air cells bridging their seams when
-    `membrane_support_pa_per_m` > 0, or pressing their stiffer crests harder when
-    `membrane_wave` > 0), averaged per taxel."""
-    h_cell = mat.pitch_row_m / sub
-    w_cell = mat.pitch_col_m / sub
-    spread = gaussian_blur(foundation_pa, params.spread_m / h_cell, params.spread_m / w_cell)
-    seams = wave = None
-    support = params.membrane_support_pa_per_m
-    if params.has_cells and (float(support) > 0 or float(params.membrane_wave) > 0):
-        x0 = float(cell_centres(mat, sub, covered=True, dtype=torch.float64)[0][0, 0])
-        if float(support) > 0:  # the mat bridges the air tubes' seams (`sim.membrane`)
-
-            def seams(rows):
-                return -params.top_height(x0 + rows * h_cell)
-
-        else:  # the tubes stiffer on their crests than at their seams
-
-            def wave(rows):
-                phase = (x0 + rows * h_cell - params.cell_crest_m) * (2 * math.pi / params.cell_pitch_m)
-                return params.membrane_wave * torch.cos(phase)
-
-    spread = membrane_spread(spread, params.membrane_m, h_cell, w_cell, seams, support, wave)
-    return F.avg_pool2d(spread[:, None], sub)[:, 0]
 
 
 class _Grid:
@@ -399,5 +368,4 @@ __all__ = [
     "FAIL_TILT",
     "PressureResult",
     "simulate_pressure",
-    "taxel_pressure",
 ]

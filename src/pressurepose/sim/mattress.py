@@ -150,8 +150,18 @@ class MattressParams:
 
         if not self.has_cells:
             return torch.zeros_like(x)
-        phase = (x - self.cell_crest_m) * (2 * math.pi / self.cell_pitch_m)
-        return -0.5 * self.cell_depth_m * (1 - torch.cos(phase))
+        return -0.5 * self.cell_depth_m * (1 - torch.cos(self._cell_phase(x)))
+
+    def tube_stiffness_wave(self, x):
+        """The relative change of the tubes' stiffness under the mat at x along the bed (m, mat
+        frame; a tensor): `membrane_wave` cos(phase), +a on a crest, -a in a seam (`sim.membrane`)."""
+        import torch
+
+        return self.membrane_wave * torch.cos(self._cell_phase(x))
+
+    def _cell_phase(self, x):
+        """2 pi (x - crest) / pitch: the air cells' phase at x."""
+        return (x - self.cell_crest_m) * (2 * math.pi / self.cell_pitch_m)
 
     def to_dict(self) -> dict:
         """The fields as numbers; a flat top leaves out the air cells' fields, a foam bed the

@@ -21,8 +21,9 @@ from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_ang
 from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.partitions import get_partition
-from pressurepose.sim.foundation import simulate_pressure, taxel_pressure
+from pressurepose.sim.foundation import simulate_pressure
 from pressurepose.sim.mattress import MattressParams
+from pressurepose.sim.reading import taxel_pressure
 from pressurepose.sim.sensor import label_maps, sensing_area, taxel_reading
 from pressurepose.sim.settle import as_float64
 from pressurepose.sim.settle import settle as settle_bodies
