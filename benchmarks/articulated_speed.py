@@ -5,7 +5,7 @@
 
 N initial poses per partition (seed 0, female), rested from the drawn pose on the sponge preset (`--bed`)
 in batches of B; prints CPU ms per sample (process time, so other jobs on the machine matter
-less than for wall time), rejections with their reasons and the median Newton step count. Before/after a change:
+less than for wall time), rejections with their reasons, the median Newton step and re-posing counts. Before/after a change:
 run the same command with PYTHONPATH pointing at each source tree, interleaved (docs/benchmarks.md).
 `--save DIR` writes each partition's rests (joints, foam pressure, failures) to DIR/<partition>.pt
 for `benchmarks/articulated_agreement.py`; `--jitter D` moves every drawn body by D m first (the
@@ -49,13 +49,15 @@ def main() -> None:
             poses = poses.replace(root_translation=poses.root_translation + args.jitter)
         over = {k: eval(v) for k, v in (kv.split("=") for kv in args.set.split(",") if kv)}  # noqa: S307
         config = dataclasses.replace(articulated_config_for(part), **over)
-        t0, reasons, steps = time.process_time(), Counter(), []
+        t0, reasons, steps, reposings, moving = time.process_time(), Counter(), [], [], 0
         saved = {"joints": [], "foundation_pa": [], "failure": []}
         for b0 in range(0, args.n, args.batch):
             chunk = poses.index(torch.arange(b0, min(b0 + args.batch, args.n)))
             rest = rest_articulated(model, chunk, mattress=bed, config=config)
             reasons.update(x for x in rest.failure if x)
             steps += rest.iterations.tolist()
+            reposings += rest.reposings.tolist()
+            moving += int((~rest.settled).sum())
             if args.save:
                 saved["joints"].append(rest.joints)
                 saved["foundation_pa"].append(rest.foundation_pa)
@@ -63,7 +65,8 @@ def main() -> None:
         ms = (time.process_time() - t0) / args.n * 1e3
         print(
             f"{part} B={args.batch}: {ms:.1f} CPU ms/sample, rejected {sum(reasons.values())}/{args.n} "
-            f"{dict(reasons)}, Newton steps median {sorted(steps)[len(steps) // 2]}",
+            f"{dict(reasons)}, Newton steps median {sorted(steps)[len(steps) // 2]}, re-posings median "
+            f"{sorted(reposings)[len(reposings) // 2]} (at the cap {sum(r == config.outer for r in reposings)}, still moving there {moving})",
             flush=True,
         )
         if args.save:

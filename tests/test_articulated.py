@@ -400,3 +400,12 @@ def test_densification_by_hand_and_in_files(tmp_path):
     mp.save(tmp_path / "m.json")
     assert MattressParams.load(tmp_path / "m.json") == mp
     assert "densify_pa" not in cubic.to_dict()
+
+
+def test_a_body_still_moving_when_the_reposings_run_out_is_not_settled(anny64, supine_rest):
+    """The rest reports how many re-posings each body took and whether the last one still moved
+    it (the cap, not its balance, ended it); the home-pose body settles well before the cap."""
+    p, r = supine_rest
+    assert bool(r.settled[0]) and 0 < int(r.reposings[0]) < ArticulatedConfig().outer
+    capped = rest_articulated(anny64, p, config=ArticulatedConfig(outer=1))
+    assert not bool(capped.settled[0]) and int(capped.reposings[0]) == 1

@@ -150,7 +150,11 @@ def test_simulate_writes_image_labels_and_figure(tmp_path):
     # The default engine is the generator's: the articulated rest on the sponge bed, no MuJoCo.
     from pressurepose.sim.mattress import MattressParams
 
-    assert record["settle_steps"] == 0 and record["mattress"] == MattressParams.preset("sponge").to_dict()
+    assert record["timing_ms"]["sim1"] == 0 and record["mattress"] == MattressParams.preset("sponge").to_dict()
+    # Its settling count is the articulated rest's re-posings (outer + 1: still moving at the cap).
+    from pressurepose.sim.articulated import ArticulatedConfig
+
+    assert 0 <= record["settle_steps"] <= ArticulatedConfig().outer + 1
 
 
 def test_simulate_with_mujoco_runs_sim1_on_the_rigid_rests_bed(tmp_path):

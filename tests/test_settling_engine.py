@@ -37,7 +37,8 @@ def test_every_partition_rests_without_nan(anny64, partition):
         assert torch.isfinite(getattr(sim, name)).all(), name
     kept = [i for i, r in enumerate(sim.reason) if not r]
     assert all(r.startswith("sim #2: ") for r in sim.reason if r)  # no MuJoCo on a flat bed
-    assert (sim.settle_steps == 0).all()
+    # The settling count is the articulated rest's re-posings (outer + 1: still moving at the cap).
+    assert ((sim.settle_steps >= 0) & (sim.settle_steps <= ArticulatedConfig().outer + 1)).all()
     for i in kept:
         assert float(sim.pressure_mmhg[i].max()) > 5.0
 

@@ -157,8 +157,8 @@ def simulate(cfg: SimulateConfig) -> None:
         f"{record['mean_contact_pressure_mmhg']} mmHg, peak {record['peak_pressure_mmhg']} mmHg, "
         + (
             f"sim #1 {record['timing_ms']['sim1']} ms ({record['settle_steps']} steps), "
-            if record["settle_steps"]
-            else "articulated rest, "
+            if record["timing_ms"]["sim1"]
+            else f"articulated rest ({record['settle_steps']} re-posings), "
         )
         + f"sim #2 {record['timing_ms']['sim2']} ms -> {cfg.out}"
     )

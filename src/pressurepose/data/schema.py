@@ -51,7 +51,14 @@ FIELDS: tuple[Field, ...] = (
     Field("mass_kg", (), "float64", "kg", "body mass (mesh volume x 980 kg/m^3)"),
     Field("height_m", (), "float64", "m", "standing height of the shape"),
     Field("head_angle_deg", (), "float64", "deg", "head section of the bed raised by this angle (0 = flat)"),
-    Field("settle_steps", (), "int32", "", "sim #1 steps until the body settled"),
+    Field(
+        "settle_steps",
+        (),
+        "int32",
+        "",
+        "sim #1 steps until the body settled; the articulated rest: its re-posings, or ArticulatedConfig.outer + 1"
+        " for a body still moving when they ran out",
+    ),
     Field("sink_mm", (), "float32", "mm", "sim #2 deepest mattress compression"),
 )
 FIELD_BY_NAME = {f.name: f for f in FIELDS}

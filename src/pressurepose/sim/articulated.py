@@ -70,8 +70,10 @@ from pressurepose.sim.soft_contact import lowest_points
 # model's rest skeleton by `body.procrustes.nearest_rotation` (roma's numbers to round-off,
 # branch pred6), which the rests amplify beyond bitwise; 4: the thorax's tissue depth at most
 # `ArticulatedConfig.tissue_depth_max` (the ribcage, docs/realism.md "The ribcage"); 5: at most
-# 20 re-posings instead of 14 (`ArticulatedConfig.outer`, session 42, docs/realism.md).
-ENGINE_REVISION = 5
+# 20 re-posings instead of 14 (`ArticulatedConfig.outer`, session 42, docs/realism.md); 6: the
+# rests unchanged, but the datasets' settle_steps column carries each body's re-posings (outer + 1
+# for a body still moving at the cap, `ArticulatedRest.settled`; session 43).
+ENGINE_REVISION = 6
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
@@ -95,6 +97,10 @@ class ArticulatedRest:
     part_force_n: torch.Tensor  # (B, 24) contact force carried by each J24 part
     self_penetration_m: torch.Tensor  # (B,) deepest overlap of the capsule pairs that started apart
     iterations: torch.Tensor  # (B,) Newton steps
+    reposings: torch.Tensor  # (B,) re-posings each body took (ArticulatedConfig.outer at most)
+    # (B,) False: the last re-posing still moved the body (by more than the settled_* tolerances):
+    # the cap, not its balance, ended its rest; its image is its last linearisation's balance
+    settled: torch.Tensor
     failure: list[str]
     sub: int
     pillow_m: torch.Tensor | None = None  # (B,) the pillows' free thickness (0: none), or None
@@ -135,6 +141,9 @@ class _Done:
         self.foundation, self.part_force = new(B, cells), new(B, NUM_JOINTS)
         self.force, self.max_compression = new(B), new(B)
         self.support = torch.zeros(B, dtype=torch.bool, device=params.pose.device)
+        # A body whose last allowed re-posing still moved it has not settled (`ArticulatedRest.settled`).
+        self.moving = torch.zeros(B, dtype=torch.bool, device=params.pose.device)
+        self.reposings = torch.zeros(B, dtype=torch.long, device=params.pose.device)
 
     def finish(self, idx, lin: Linearised, q, cur: BodyParams, rot, joints, body_com, mp: MattressParams) -> None:
         """Bodies `idx` rest at q of their linearisation `lin` (at the posing cur, rot, joints):
@@ -316,13 +325,16 @@ def rest_articulated(
         )
         iters[act] += it
         moved = ~((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
+        done.reposings[act] = outer
         if last or not bool(moved.any()):
             # The last re-posing, or nothing moves any more: each finishes its solve (the last
-            # re-posing's already has the rest's step count); it is the rest.
+            # re-posing's already has the rest's step count); it is the rest (not settled if the
+            # last re-posing still moved it).
             if not last:
                 q, it = minimise(lin, q, mp, body.weight, cfg, max_steps=cfg.inner)
                 iters[act] += it
             done.finish(act, lin, q, cur, rot, joints, body_com, mp)
+            done.moving[act] = moved & last
             break
         if not bool(moved.all()):
             # These have settled: their solve goes on to the rest, on their own.
@@ -377,6 +389,8 @@ def rest_articulated(
         part_force_n=done.part_force,
         self_penetration_m=penetration,
         iterations=iters,
+        reposings=done.reposings,
+        settled=~done.moving,
         failure=failure,
         sub=cfg.sub,
         pillow_m=pillow_m,
