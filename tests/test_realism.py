@@ -189,6 +189,7 @@ def test_realism_command_on_a_tiny_folder(tmp_path, capsys):
     for r in rows.values():
         # one simulated body per real frame (placement "real"): 2 supine, 3 per side and subject
         assert r["simulated_bodies"] == r["real"]["frames"] == (2 if r["posture"] == "supine" else 6)
+        assert 0 <= r["still_moving"] <= r["simulated_bodies"]  # ended by the re-posings' cap
         assert 0 < r["comparison"]["along"] <= 1 and 0 < r["comparison"]["across"] <= 1
         assert abs(sum(r["simulated"]["regions"].values()) - 1) < 1e-2
         assert r["floor_mmhg"] > 0  # the simulated images read with the real set's floor

@@ -154,7 +154,8 @@ def simulate_subjects(
 ):
     """Side-lying bodies hold their trunk's roll (sampling.partitions.HOLD_ROLL_M, in both
     simulations), as the generator's `lateral_straight` partition does. Per posture (or per
-    (posture, mattress) with `scenes`): sensor images (N, 64, 27) mmHg of the accepted bodies, their heights (N,), the rejection reasons and the seconds it took.
+    (posture, mattress) with `scenes`): sensor images (N, 64, 27) mmHg of the accepted bodies, their heights (N,), the rejection reasons, the seconds it took and how many of the
+    accepted bodies were still moving when the articulated rest's re-posings ran out.
     `scenes[(posture, mattress)] = (subject ids (N,), centres (N, 2) m, angles (N,) rad)`: one
     body per real frame, its centre of mass over the frame's centre of pressure, turned by its
     angle; without it one body per subject at the mat's centre."""
@@ -229,11 +230,15 @@ def simulate_subjects(
             pillow_m=torch.full((B,), float(cfg.pillow_m)) if cfg.pillow_m > 0 else None,
         )
         ok = [i for i, r in enumerate(sim.reason) if not r]
+        # The articulated rests the re-posings' cap ended with the body still moving (their
+        # settle_steps are outer + 1; with sim #1 the steps are MuJoCo's, none counted).
+        moving = int((sim.settle_steps[ok] > art.outer).sum()) if cfg.settle == "none" else 0
         out[(posture, mattress_name)] = (
             sim.pressure_mmhg[ok].numpy(),
             h.numpy()[idx.numpy()][ok],
             [r for r in sim.reason if r],
             time.perf_counter() - t0,
+            moving,
         )
     return out
 
@@ -267,7 +272,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
         for (p, mattress), (imgs, hts, subj) in real.items():
             if p != posture:
                 continue
-            images, heights, reasons, seconds = sims[(posture, mattress if scenes else None)]
+            images, heights, reasons, seconds, moving = sims[(posture, mattress if scenes else None)]
             floor = R.reading_floor(imgs) if cfg.match_floor else 0.0
             if len(images) and floor > 0:
                 images = R.read_with_floor(images, floor)
@@ -280,6 +285,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
                 "simulated": set_dict(sim_set) if sim_set else None,
                 "rejected": reasons,
                 "simulated_bodies": int(len(images)),
+                "still_moving": moving,
                 "floor_mmhg": round(floor, 2),
                 "sim_seconds": round(seconds, 2),
             }

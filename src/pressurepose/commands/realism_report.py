@@ -46,10 +46,11 @@ def markdown(record: dict) -> str:
                 f"| {r['posture']} | {r['mattress']} | - | - | - | - | - | - | 0 ({len(r['rejected'])} rejected) |"
             )
             continue
+        moving = f" ({r['still_moving']} still moving)" if r.get("still_moving") else ""
         lines.append(
             f"| {r['posture']} | {r['mattress']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} "
             f"| {s['coverage']:.2f} ({re_['coverage']:.2f}) | {s['mean_mmhg']:.1f} ({re_['mean_mmhg']:.1f}) "
-            f"| {s['peak_mmhg']:.0f} ({re_['peak_mmhg']:.0f}) | {r['simulated_bodies']} |"
+            f"| {s['peak_mmhg']:.0f} ({re_['peak_mmhg']:.0f}) | {r['simulated_bodies']}{moving} |"
         )
     lines += [
         "",
