@@ -154,8 +154,9 @@ def simulate_subjects(
 ):
     """Side-lying bodies hold their trunk's roll (sampling.partitions.HOLD_ROLL_M, in both
     simulations), as the generator's `lateral_straight` partition does. Per posture (or per
-    (posture, mattress) with `scenes`): sensor images (N, 64, 27) mmHg of the accepted bodies, their heights (N,), the rejection reasons, the seconds it took and how many of the
-    accepted bodies were still moving when the articulated rest's re-posings ran out.
+    (posture, mattress) with `scenes`): sensor images (N, 64, 27) mmHg of the accepted bodies,
+    their heights (N,), the rejection reasons, the seconds it took and how many of the accepted
+    bodies were still moving when the articulated rest's re-posings ran out.
     `scenes[(posture, mattress)] = (subject ids (N,), centres (N, 2) m, angles (N,) rad)`: one
     body per real frame, its centre of mass over the frame's centre of pressure, turned by its
     angle; without it one body per subject at the mat's centre."""
