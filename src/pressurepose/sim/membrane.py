@@ -67,9 +67,11 @@ def membrane_spread(
     `seams_m`, if given, maps row positions (a float tensor of row indices; the padding's are < 0
     or >= H) to the foundation's depth below its crests there (m, >= 0), and `support_pa_per_m` > 0
     is the foundation's stiffness k under the mat: the mat bridges the seams (module doc).
-    `wave`, if given (and no seams), maps row positions to the relative change w of the
+    `wave`, if given (instead of seams), maps row positions to the relative change w of the
     foundation's stiffness there, k (1 + w) with |w| < 1: the smooth mat presses the stiffer rows
     harder (module doc)."""
+    if seams_m is not None and wave is not None:
+        raise ValueError("membrane_spread takes one model of the tubes under the mat: seams_m or wave, not both")
     lam = torch.as_tensor(length_m, dtype=pressure.dtype, device=pressure.device)
     reach = float(lam.detach())
     if not reach > 0:

@@ -213,7 +213,7 @@ def _simulate_one_bed(
     mass = measured.mass_kg
     t0 = time.perf_counter()
     if sim2 == "articulated" and bed.flat:  # raised beds keep the rigid rest (docs/physics.md)
-        from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
+        from pressurepose.sim.articulated import rest_articulated
 
         art = rest_articulated(model64, rest, mass, mattress, mat, articulated, pillow_m=pillow_m)
         pressure_pa, failure2, sink = (
@@ -222,9 +222,9 @@ def _simulate_one_bed(
             art.max_compression_m,
         )
         shifted, vertices, joints = art.params, art.vertices, art.joints
-        # Its settling count: the re-posings, or outer + 1 for a body still moving at the cap.
-        outer = (articulated or ArticulatedConfig()).outer
-        steps = np.where(art.settled.numpy(), art.reposings.numpy(), outer + 1).astype(np.int64)
+        # Its settling count: the re-posings, or outer + 1 for a body still moving at the cap
+        # (such a body ran all `outer` of them).
+        steps = (art.reposings + (~art.settled).long()).numpy()
     else:
         out = model64(rest)
         pressed = simulate_pressure(out.vertices, out.faces, mass, mattress, mat, bed=bed)
