@@ -87,7 +87,9 @@ def mirror_batch(
 REPRESS_EXTRA_SINK_MM = (0.0, 40.0)  # delta: how much deeper a softer mattress lets the body in
 REPRESS_EXPONENT = (0.5, 1.5)  # gamma: pressure ~ compression^gamma
 REPRESS_SPREAD_TAXELS = (0.3, 1.0)  # sigma: the mat and cover's spread
-REPRESS_THRESHOLD_MMHG = 1.0  # the sensor reads 0 below ~1 mmHg (MattressParams.c0_mmhg)
+# The sensor reads 0 below its floor: PmatData's frames from 3.0-3.8 mmHg (the presets' floor_mmhg,
+# 3.31 on sponge); a re-pressed image read down to ~1 mmHg would carry a halo no real frame has.
+REPRESS_THRESHOLD_MMHG = 3.31
 
 
 def repress_batch(
