@@ -11,6 +11,7 @@ import torch
 
 from pressurepose.body.capsules import home_pose
 from pressurepose.body.params import BodyParams
+from pressurepose.errors import UserError
 from pressurepose.maps import EMPTY_HEIGHT_M, depth_map, mesh_centroid
 from pressurepose.mat import MatSpec
 from pressurepose.sim.foundation import FAIL_NO_SUPPORT, simulate_pressure
@@ -153,6 +154,26 @@ def test_sensor_law_saturation_and_noise():
         taxel_reading(-p - 1.0)
     with pytest.raises(ValueError, match="NaN"):
         taxel_reading(p * float("nan"))
+
+
+def test_sensor_floor_zeroes_readings_below_it_only():
+    # Readings (c0 = -1, c1 = 1): 0, 0.5, 2, 3.3, 3.4, 20 mmHg; with a 3.31 mmHg floor the first four read 0.
+    d = torch.tensor([[[0.0, 1.5, 3.0, 4.3, 4.4, 21.0]]], dtype=D)
+    p = d * MattressParams().mat_stiffness_pa_per_mm
+    plain = taxel_reading(p, MattressParams())
+    floored = taxel_reading(p, MattressParams(floor_mmhg=3.31))
+    assert torch.allclose(plain, torch.tensor([[[0.0, 0.5, 2.0, 3.3, 3.4, 20.0]]], dtype=D))
+    assert torch.equal(floored, torch.where(plain >= 3.31, plain, torch.zeros_like(plain)))
+    assert float(floored[..., 3]) == 0.0 and float(floored[..., 4]) == float(plain[..., 4])
+    # Both PmatData presets read from their mattress's floor; files without the field read as before.
+    assert MattressParams.preset("sponge").floor_mmhg == 3.31 and MattressParams.preset("air").floor_mmhg == 3.61
+    assert (
+        "floor_mmhg" not in MattressParams().to_dict()
+        and MattressParams.preset("sponge").to_dict()["floor_mmhg"] == 3.31
+    )
+    for bad in (-1.0, 60.0, float("nan")):
+        with pytest.raises(UserError, match="floor_mmhg"):
+            MattressParams(floor_mmhg=bad)
 
 
 def test_depth_and_contact_maps_of_a_capsule():

@@ -29,7 +29,9 @@ class MattressParams:
     taxels with a Gaussian of standard deviation `spread_m` (force and centre of pressure
     are preserved). Sensor: the mat layer compresses d = p / mat_stiffness (mm) and a taxel
     reads c0 + c1 d + c2 d^2 mmHg for d > 0 (the seed's quadratic taxel law), clipped to
-    [0, 100]; `noise_mmhg` adds Gaussian noise on the loaded taxels.
+    [0, 100]; `noise_mmhg` adds Gaussian noise on the loaded taxels; a taxel reading below
+    `floor_mmhg` reads 0 (the mat's detection floor: PmatData's frames report nothing below
+    3.0-3.8 mmHg, docs/realism.md "The sensor's floor").
 
     Air cells: an air mattress is a row of tubes across the bed, so its top is not flat - the
     body rests on the tubes' crests and bridges the seams between them. With `cell_pitch_m` and
@@ -65,6 +67,9 @@ class MattressParams:
     c1_mmhg_per_mm: float = 1.0
     c2_mmhg_per_mm2: float = 0.0
     noise_mmhg: float = 0.0
+    # The sensor's floor (mmHg): readings below it read 0. 0: the reading law's own threshold
+    # (c0 < 0 zeroes d < -c0 / c1) alone, which reads down to ~0 mmHg on a contact's fringe.
+    floor_mmhg: float = 0.0
     # Soft tissue in series with the foam (Pa/m of compression per unit area; 0: a rigid body
     # surface). Used by the articulated sim #2 (sim/articulated.py); the rigid rest ignores it.
     tissue_pa_per_m: float = 3.0e5
@@ -103,6 +108,11 @@ class MattressParams:
             raise UserError(
                 "MattressParams.membrane_wave and membrane_support_pa_per_m are two models of the tubes under "
                 "the mat (a stiffness wave, or seams the mat bridges): set one of them"
+            )
+        if not _scalar(self.floor_mmhg) < MAX_FLOOR_MMHG:
+            raise UserError(
+                f"MattressParams.floor_mmhg must be < {MAX_FLOOR_MMHG} mmHg (a detection floor, not a "
+                f"saturation), got {self.floor_mmhg}"
             )
         if _scalar(self.cell_depth_m) > 0 and _scalar(self.cell_pitch_m) <= 0:
             raise UserError(
@@ -166,13 +176,14 @@ class MattressParams:
     def to_dict(self) -> dict:
         """The fields as numbers; a flat top leaves out the air cells' fields, a foam bed the
         air support's, a foam without densification `densify_pa` and a mat without `membrane_m` (or
-        `membrane_support_pa_per_m`, `membrane_wave`), so the files and dataset
+        `membrane_support_pa_per_m`, `membrane_wave`) and a sensor without `floor_mmhg`, so the files and dataset
         settings of such beds are those written before the fields existed."""
         skip = (() if self.has_cells else _CELL_FIELDS) + (() if self.has_air_support else _AIR_FIELDS)
         skip += () if _scalar(self.densify_pa) > 0 else ("densify_pa",)
         skip += () if _scalar(self.membrane_m) > 0 else ("membrane_m",)
         skip += () if _scalar(self.membrane_support_pa_per_m) > 0 else ("membrane_support_pa_per_m",)
         skip += () if _scalar(self.membrane_wave) > 0 else ("membrane_wave",)
+        skip += () if _scalar(self.floor_mmhg) > 0 else ("floor_mmhg",)
         return {f.name: _scalar(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name not in skip}
 
     def save(self, path: str | os.PathLike) -> None:
@@ -236,6 +247,8 @@ PRESETS: dict[str, dict[str, float]] = {
         "tissue_pa_per_m": 79360.0,
         "spread_m": 0.002092,
         "membrane_m": 0.02939,
+        # The lowest reading of PmatData's sponge frames (`eval.realism.reading_floor`, session 44).
+        "floor_mmhg": 3.31,
     },
     # Session 42's refit with the new joints, the mat's membrane on the tubes' stiffness wave
     # (`membrane_wave`), the rest's seams 2 mm deep (docs/realism.md). Pitch and crest measured
@@ -253,10 +266,12 @@ PRESETS: dict[str, dict[str, float]] = {
         "cell_crest_m": 0.0013,
         "air_pressure_pa": 3101.0,
         "air_stiffness_pa_per_m3": 537100.0,
+        "floor_mmhg": 3.61,  # PmatData's air frames' lowest reading
     },
 }
 
 
+MAX_FLOOR_MMHG = 50.0
 _CELL_FIELDS = ("cell_pitch_m", "cell_depth_m", "cell_crest_m")
 _AIR_FIELDS = ("air_pressure_pa", "air_stiffness_pa_per_m3")
 

@@ -4,7 +4,9 @@ Sensor (seed A.4, REFERENCE.md): a taxel's mat layer compresses d = p / mat_stif
 under the pressure p that sim #2 puts on it, and reads c0 + c1 d + c2 d^2 mmHg for d > 0 (0 for
 d <= 0), clipped to [0, 100] (the BT3510 saturates at 100 mmHg). Optional Gaussian noise of
 `noise_mmhg` on the loaded taxels, drawn from an explicit generator (reproducible), applied
-before the clip, so readings stay in [0, 100] and unloaded taxels stay 0.
+before the clip, so readings stay in [0, 100] and unloaded taxels stay 0. Readings below the
+sensor's floor (`MattressParams.floor_mmhg`, after the noise) read 0, as a real mat reports nothing
+below its detection floor (docs/realism.md "The sensor's floor").
 
 Label maps: Q (depth, mm) and C (contact) are `pressurepose.maps.depth_map` and
 `contact_map` of the mesh at rest - the same functions the network's PMR calls.
@@ -41,6 +43,8 @@ def taxel_reading(
     if float(params.noise_mmhg) > 0:
         noise = torch.randn(reading.shape, generator=generator, dtype=reading.dtype, device="cpu").to(reading.device)
         reading = reading + params.noise_mmhg * noise
+    if float(params.floor_mmhg) > 0:
+        loaded = loaded & (reading >= params.floor_mmhg)
     reading = torch.where(loaded, reading, torch.zeros_like(reading))
     return reading.clamp(0.0, mat.max_pressure_mmhg)
 
