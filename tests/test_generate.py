@@ -580,6 +580,9 @@ def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
     data = read_all(out)
     assert len(data["index"]) == 3
     assert (data["pressure_mmhg"].reshape(3, -1).max(1) > 5).all()
+    # The sensor reads from the preset's floor, as PmatData's frames do: nothing in (0, floor).
+    p = data["pressure_mmhg"]
+    assert manifest["mattress"]["floor_mmhg"] == 3.31 and not ((p > 0) & (p < 3.31)).any()
     _assert_params_reproduce_joints(data)
     from pressurepose.errors import UserError
 
