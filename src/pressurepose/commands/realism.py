@@ -63,10 +63,12 @@ class RealismConfig:
     pillow_m: float = 0.0
     """Every simulated head on a pillow of this free thickness (m; `sim.pillow`, the articulated
     sim #2 only); 0: none."""
-    match_floor: bool = True
-    """Read the simulated images as the real set's are: nothing below the set's lowest reading
-    (`eval.realism.reading_floor`, 3.0-3.8 mmHg for PmatData), the force kept. Off: the
-    simulated sensor's own floor (~1 mmHg), as before session 39."""
+    match_floor: bool = False
+    """Read the simulated images again as the real set's are: nothing below the set's lowest
+    reading (`eval.realism.reading_floor`, 3.0-3.8 mmHg for PmatData), the force kept. Off (the
+    default since session 44): the images as the generator writes them, read from the sensor's
+    own floor (`MattressParams.floor_mmhg`: the presets' 3.31 / 3.61 mmHg, PmatData's), so the
+    report judges what a network trains on (docs/realism.md "The sensor's floor in the generator")."""
 
     def __post_init__(self) -> None:
         from pressurepose.sim.pillow import check_thickness
