@@ -31,7 +31,7 @@ class MattressParams:
     reads c0 + c1 d + c2 d^2 mmHg for d > 0 (the seed's quadratic taxel law), clipped to
     [0, 100]; `noise_mmhg` adds Gaussian noise on the loaded taxels; a taxel reading below
     `floor_mmhg` reads 0 (the mat's detection floor: PmatData's frames report nothing below
-    3.0-3.8 mmHg, docs/realism.md "The sensor's floor").
+    3.0-3.8 mmHg, docs/realism.md "The sensor's floor in the generator").
 
     Air cells: an air mattress is a row of tubes across the bed, so its top is not flat - the
     body rests on the tubes' crests and bridges the seams between them. With `cell_pitch_m` and

@@ -6,7 +6,7 @@ d <= 0), clipped to [0, 100] (the BT3510 saturates at 100 mmHg). Optional Gaussi
 `noise_mmhg` on the loaded taxels, drawn from an explicit generator (reproducible), applied
 before the clip, so readings stay in [0, 100] and unloaded taxels stay 0. Readings below the
 sensor's floor (`MattressParams.floor_mmhg`, after the noise) read 0, as a real mat reports nothing
-below its detection floor (docs/realism.md "The sensor's floor").
+below its detection floor (docs/realism.md "The sensor's floor in the generator").
 
 Label maps: Q (depth, mm) and C (contact) are `pressurepose.maps.depth_map` and
 `contact_map` of the mesh at rest - the same functions the network's PMR calls.
