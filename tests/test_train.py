@@ -397,6 +397,15 @@ def _blur_reference(image, sigma, radius):
     return out
 
 
+def test_augmentations_read_from_the_generators_floor():
+    """Images the augmentations re-read start where the generator's do: the default bed's sensor
+    floor (a lower threshold would give them the fringe that no real mat reads)."""
+    from pressurepose.sim.run import default_mattress
+    from pressurepose.train.augment import REPRESS_THRESHOLD_MMHG
+
+    assert REPRESS_THRESHOLD_MMHG == default_mattress("articulated").floor_mmhg > 3.0
+
+
 def test_repress_augmentation_against_a_naive_reference(data32, monkeypatch):
     """Re-pressing from the depth label: a per-image loop with a naive 2-D blur gives the same
     images; the force is kept; a deeper sink covers more taxels; the off images are untouched."""
