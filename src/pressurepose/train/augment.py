@@ -15,6 +15,7 @@ from pressurepose.body.joints import joint_index
 from pressurepose.net.losses import Targets
 from pressurepose.net.model import NetInputs
 from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
+from pressurepose.sim.mattress import PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -87,9 +88,9 @@ def mirror_batch(
 REPRESS_EXTRA_SINK_MM = (0.0, 40.0)  # delta: how much deeper a softer mattress lets the body in
 REPRESS_EXPONENT = (0.5, 1.5)  # gamma: pressure ~ compression^gamma
 REPRESS_SPREAD_TAXELS = (0.3, 1.0)  # sigma: the mat and cover's spread
-# The sensor reads 0 below its floor: PmatData's frames from 3.0-3.8 mmHg (the presets' floor_mmhg,
-# 3.31 on sponge); a re-pressed image read down to ~1 mmHg would carry a halo no real frame has.
-REPRESS_THRESHOLD_MMHG = 3.31
+# The sensor reads 0 below its floor: the generator's default bed's (the sponge preset's floor_mmhg,
+# PmatData's 3.31 mmHg); a re-pressed image read down to ~1 mmHg would carry a halo no real frame has.
+REPRESS_THRESHOLD_MMHG = PRESETS["sponge"]["floor_mmhg"]
 
 
 def repress_batch(
