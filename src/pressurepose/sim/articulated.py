@@ -40,7 +40,7 @@ from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix, root_roll
-from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_angle
+from pressurepose.body.rotations import matrix_to_axis_angle, rotation_angle
 from pressurepose.errors import UserError
 from pressurepose.maps import cell_centres, grid_shape, surface_points
 from pressurepose.mat import MatSpec
@@ -52,6 +52,7 @@ from pressurepose.sim.articulation import (
     dof_geometry,
     from_part_frames,
     joint_stiffness,
+    lying_reference,
     part_mass_and_com,
     tissue_modulus,
     tissue_sag,
@@ -228,7 +229,7 @@ def rest_articulated(
     # a spring on the root's roll about the bed's long axis, back to the roll it starts with.
     k[:, 1] = cfg.hold_roll_m * total_mass * GRAVITY_M_S2
     root_start = root_matrix(params.root_rotation)
-    ref_local = axis_angle_to_matrix(params.pose)
+    ref_local = lying_reference(params.pose, root_roll(params.root_rotation), cfg.lying_extension)
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).
     pts = surface_points(out.vertices, faces)[:, order]

@@ -22,6 +22,10 @@ class ArticulatedConfig:
     neck_stiffness_scale: float = 0.2
     """Extra factor on the neck and head springs (a relaxed neck lets the head rest): with
     `stiffness_scale` 0.8, 0.16 x the seed's neck."""
+    lying_extension: tuple[tuple[str, float], ...] = ()
+    """(J24 joint, rad): how far a body on its back extends each joint - the head let back onto
+    the bed, the back flattened (`articulation.lying_reference`): the springs' rest pose, not
+    their stiffness."""
     spine_stiffness_scale: float = 1.1
     """Extra factor on the spine's springs (spine1-3)."""
     spine_lateral_scale: float = 1.0
@@ -98,7 +102,7 @@ class ArticulatedConfig:
     def __post_init__(self) -> None:
         if not self.tissue_sag_m >= 0:  # also refuses NaN
             raise UserError(f"ArticulatedConfig.tissue_sag_m must be >= 0 m (0: no sag), got {self.tissue_sag_m}")
-        for field in ("tissue_by_part", "tissue_depth_max", "sag_depth_max"):
+        for field in ("tissue_by_part", "tissue_depth_max", "sag_depth_max", "lying_extension"):
             for name, _ in getattr(self, field):
                 if name not in J24_NAMES:
                     raise UserError(

@@ -134,6 +134,26 @@ def joint_stiffness(
     return k
 
 
+def lying_reference(pose: torch.Tensor, roll_rad: torch.Tensor, extension: tuple = ()) -> torch.Tensor:
+    """(B, 23, 3, 3) the springs' rest rotations: `pose` (B, 23, 3), each joint named in
+    `extension` ((J24 name, rad), ...) extended by its angle (about the body's left axis: the
+    head or the upper body tipping back) x max(cos roll, 0)^2 - a body on its back lets its
+    head back onto the bed and its back flatten, one on its side or front keeps the pose's.
+    Anny's and SMPL's neutral spine and neck are a standing person's, the head held forward of
+    the back (docs/realism.md "A lying neck")."""
+    ref = axis_angle_to_matrix(pose)
+    if not extension:
+        return ref
+    w = torch.clamp(torch.cos(roll_rad.to(pose)), min=0.0) ** 2
+    ref = ref.clone()
+    for name, rad in extension:
+        angle = -rad * w  # extension: negative about x (flexion is positive)
+        zero = torch.zeros_like(angle)
+        j = J24_NAMES.index(name) - 1
+        ref[:, j] = axis_angle_to_matrix(torch.stack([angle, zero, zero], -1)) @ ref[:, j]
+    return ref
+
+
 def part_mass_and_com(
     vertices: torch.Tensor, faces: torch.Tensor, face_part: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -324,6 +344,7 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
 
 
 __all__ = [
+    "lying_reference",
     "Dofs",
     "apply_motion",
     "dof_axes_pivots",
