@@ -68,6 +68,8 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
         # a remade shard would not equal the lost one).
         joints = ArticulatedConfig()
         settings["articulated_joints"] = {k: getattr(joints, k) for k in ARTICULATED_JOINT_FIELDS}
+        if joints.lying_extension:  # pinned only when set, so datasets made without it resume
+            settings["articulated_joints"]["lying_extension"] = [list(e) for e in joints.lying_extension]
         settings["articulated_engine"] = ENGINE_REVISION
     if cfg.pillow > 0:  # the pillows' size and material define the images as much as the bed
         from pressurepose.sim.pillow import PILLOW_THICKNESS_M, Pillow
