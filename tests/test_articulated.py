@@ -360,6 +360,8 @@ def test_config_refuses_unknown_parts():
         ArticulatedConfig(sag_depth_max=(("skull", 0.005),))
     with pytest.raises(UserError, match="tissue_by_part: unknown part 'belly'"):
         ArticulatedConfig(tissue_by_part=(("belly", 0.15),))
+    with pytest.raises(UserError, match="lying_extension: unknown part 'cervical'"):
+        ArticulatedConfig(lying_extension=(("cervical", 0.4),))
 
 
 def test_spine_lateral_stiffness_follows_the_roll():
@@ -409,3 +411,44 @@ def test_a_body_still_moving_when_the_reposings_run_out_is_not_settled(anny64, s
     assert bool(r.settled[0]) and 0 < int(r.reposings[0]) < ArticulatedConfig().outer
     capped = rest_articulated(anny64, p, config=ArticulatedConfig(outer=1))
     assert not bool(capped.settled[0]) and int(capped.reposings[0]) == 1
+
+
+def test_lying_reference_by_hand():
+    """The springs' rest rotations: the pose's own without an extension; on the back each named
+    joint turned by its angle about the body's left axis (x), backward (negative, flexion being
+    positive), before the pose's rotation; on a side or the front the pose's; half way (cos^2
+    45 deg) at 45 deg of roll. Unnamed joints keep the pose's rotation."""
+    from pressurepose.body.rotations import axis_angle_to_matrix
+    from pressurepose.sim.articulation import lying_reference
+
+    pose = 0.2 * torch.randn(4, 23, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    roll = torch.tensor([0.0, math.pi / 2, math.pi, math.pi / 4], dtype=torch.float64)
+    plain = axis_angle_to_matrix(pose)
+    torch.testing.assert_close(lying_reference(pose, roll), plain)
+    ref = lying_reference(pose, roll, (("neck", 0.4), ("spine3", 0.2)))
+    neck, spine3 = joint_index("neck") - 1, joint_index("spine3") - 1
+    for j, rad in ((neck, 0.4), (spine3, 0.2)):
+        for b, w in enumerate((1.0, 0.0, 0.0, 0.5)):
+            turn = axis_angle_to_matrix(torch.tensor([-rad * w, 0.0, 0.0], dtype=torch.float64))
+            torch.testing.assert_close(ref[b, j], turn @ plain[b, j])
+    others = [j for j in range(23) if j not in (neck, spine3)]
+    torch.testing.assert_close(ref[:, others], plain[:, others])
+
+
+def test_a_lying_neck_lets_the_supine_head_rest_its_weight(anny64, supine_rest):
+    """With the lying reference the supine head carries more of the weight (near its mass
+    share, ~0.07, where the standing neck leaves it ~0.03) and the upper back less; the force
+    still balances the weight, and a body on its side rests as without it."""
+    p, r = supine_rest
+    cfg = ArticulatedConfig(lying_extension=(("neck", 0.4), ("spine3", 0.2), ("spine2", 0.1)))
+    lying = rest_articulated(anny64, p, config=cfg)
+    head, spine3 = joint_index("head"), joint_index("spine3")
+    share = lambda rest, j: float(rest.part_force_n[0, j] / rest.part_force_n[0].sum())  # noqa: E731
+    assert share(lying, head) > share(r, head) + 0.02 and share(lying, head) > 0.05
+    assert share(lying, spine3) < share(r, spine3)
+    np.testing.assert_allclose(lying.force_n.numpy(), r.force_n.numpy(), rtol=1e-2)
+    side = _bodies(anny64, 1, roll=math.pi / 2)
+    cfg_held = ArticulatedConfig(hold_roll_m=0.5, outer=3)
+    a = rest_articulated(anny64, side, config=cfg_held)
+    b = rest_articulated(anny64, side, config=dataclasses.replace(cfg_held, lying_extension=cfg.lying_extension))
+    torch.testing.assert_close(a.foundation_pa, b.foundation_pa)

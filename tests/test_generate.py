@@ -588,3 +588,21 @@ def test_articulated_settling_dataset_needs_no_mujoco(tmp_path, monkeypatch):
 
     with pytest.raises(UserError, match="--sim2 rigid needs --settle mujoco"):
         GenerateConfig(out=out, settle="articulated", sim2="rigid")
+
+
+def test_a_lying_reference_posture_is_pinned_only_when_set(monkeypatch):
+    """A dataset rested with the springs' lying reference posture pins it (and so does not resume
+    into an engine without one); the default engine (none) writes the settings as before, so
+    datasets made before the option resume."""
+    import dataclasses
+
+    import pressurepose.sim.articulated as articulated
+    from pressurepose.generate.run import _settings
+
+    cfg = GenerateConfig(preset="paper")
+    assert "lying_extension" not in _settings(cfg, {})["articulated_joints"]
+    base = articulated.ArticulatedConfig
+    monkeypatch.setattr(
+        articulated, "ArticulatedConfig", lambda: dataclasses.replace(base(), lying_extension=(("neck", 0.4),))
+    )
+    assert _settings(cfg, {})["articulated_joints"]["lying_extension"] == [["neck", 0.4]]
