@@ -3,7 +3,7 @@ localised skeleton"): measure the share on simulated data, and optionally write 
 model that uses it.
 
     PYTHONPATH=src .venv/bin/python benchmarks/stature.py --model default --data DIR [--split test]
-        [--write OUT]
+        [--no-head] [--write OUT]
 
 Reads the split's images with the model's regression head and localised joints; prints the sd of
 the head's height error and of the height implied by the joints' bone chain
@@ -33,11 +33,15 @@ def main() -> None:
     ap.add_argument("--data", type=Path, required=True, help="a generated dataset the model was not trained on")
     ap.add_argument("--split", default="test")
     ap.add_argument("--write", type=Path, default=None, help="save the model with the measured share here")
+    ap.add_argument(
+        "--no-head", action="store_true", help="the chain from the neck down (NetConfig.stature_head False)"
+    )
     args = ap.parse_args()
     net, record = load_network(Path(args.model))
     if net.config.arch != "heatmap" or net.config.backend != "anny":
         raise SystemExit(f"{args.model}: the height from the skeleton needs an arch heatmap network on Anny")
-    net.config = dataclasses.replace(net.config, stature_weight=0.0)
+    head = not args.no_head
+    net.config = dataclasses.replace(net.config, stature_weight=0.0, stature_head=head)
     heights = {"head": [], "joints": [], "true": []}
     batches = []
     with torch.no_grad():
@@ -46,7 +50,9 @@ def main() -> None:
             raw, loc = net.mod1(x)
             shape = net.head(raw, None).shape
             heights["head"].append(net.body.measure(shape).height_m)
-            heights["joints"].append(net.body.measure(stature_from_joints(net.body, shape, loc.joints, 1.0)).height_m)
+            heights["joints"].append(
+                net.body.measure(stature_from_joints(net.body, shape, loc.joints, 1.0, head=head)).height_m
+            )
             heights["true"].append(net.body.measure(b["shape"].to(shape)).height_m)
             batches.append(b)
     h = {k: torch.cat(v).double() for k, v in heights.items()}
@@ -72,7 +78,7 @@ def main() -> None:
         )
     if args.write is not None:
         weights, rec = read_model(Path(args.model))
-        rec = dict(rec, net=dict(rec["net"], stature_weight=round(w, 3)))
+        rec = dict(rec, net=dict(rec["net"], stature_weight=round(w, 3), stature_head=head))
         net.config = dataclasses.replace(net.config, stature_weight=round(w, 3))
         save_model(args.write, net, rec, state=weights)
         print(f"  wrote {args.write} (stature_weight {round(w, 3)})")

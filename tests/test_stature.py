@@ -32,6 +32,12 @@ def test_chain_length_by_hand():
     put("right_knee", [0.0, -2.0, 2.0])
     put("right_ankle", [0.0, -4.0, 2.0])
     assert float(chain_length(j)) == pytest.approx(21.0)
+    # From the neck down the head - neck link (1) is left out: 14 + 6 = 20; moving the head
+    # changes only the full chain.
+    assert float(chain_length(j, head=False)) == pytest.approx(20.0)
+    put("head", [0.0, 25.0, 0.0])
+    assert float(chain_length(j)) == pytest.approx(31.0)
+    assert float(chain_length(j, head=False)) == pytest.approx(20.0)
 
 
 def test_chain_length_does_not_depend_on_the_pose(anny64):
@@ -61,6 +67,15 @@ def test_stature_from_joints_recovers_the_height_parameter(anny64):
     assert torch.equal(full[:, others], shape[:, others])
     # A skeleton twice as long is out of the model's reach: the parameter stops at its bound.
     assert torch.equal(stature_from_joints(anny64, shape, 2 * joints, 1.0)[:, k], torch.ones(2, dtype=torch.float64))
+    # From the neck down: the same answer for these joints, and one the head's place does not move.
+    neck_down = stature_from_joints(anny64, shape, joints, 1.0, iterations=4, head=False)
+    torch.testing.assert_close(neck_down[:, k], true[:, k], rtol=0, atol=2e-3)
+    far_head = joints.clone()
+    far_head[:, J24_NAMES.index("head")] += torch.tensor([0.0, 0.0, 0.15], dtype=torch.float64)
+    torch.testing.assert_close(
+        stature_from_joints(anny64, shape, far_head, 1.0, iterations=4, head=False), neck_down, rtol=0, atol=1e-12
+    )
+    assert float(stature_from_joints(anny64, shape, far_head, 1.0, iterations=4)[0, k]) > float(full[0, k]) + 0.01
 
 
 def test_optimal_weight_by_hand_and_against_a_grid():
@@ -100,6 +115,11 @@ def test_stature_weight_bad_settings():
     with pytest.raises(UserError, match="stature_weight"):
         net_config_from_record({"net": {"arch": "heatmap", "stature_weight": "high"}}, "m.safetensors")
     assert net_config_from_record({"net": {"arch": "heatmap", "stature_weight": 0.2}}).stature_weight == 0.2
+    assert net_config_from_record({"net": {"arch": "heatmap", "stature_weight": 0.2}}).stature_head
+    rec = {"net": {"arch": "heatmap", "stature_weight": 0.2, "stature_head": False}}
+    assert not net_config_from_record(rec).stature_head
+    with pytest.raises(UserError, match="stature_head"):
+        net_config_from_record({"net": {"arch": "heatmap", "stature_head": "no"}}, "m.safetensors")
 
 
 def test_rest_pose_joints_keep_the_chain(anny64):

@@ -69,6 +69,9 @@ class NetConfig:
     # heatmap arch, eval only: the body's height parameter moved this share of the way to the
     # localised joints' bone-chain length (net.stature; 0: the regression head's height).
     stature_weight: float = 0.0
+    # with stature_weight: the bone chain includes the head - neck link (False: from the neck down,
+    # so a head end cut by the mat's edge or lengthened by a pillow does not enter; net.stature).
+    stature_head: bool = True
 
     def __post_init__(self) -> None:
         if self.arch not in ("paper", "fast", "heatmap"):
@@ -267,7 +270,9 @@ class PressureNet(nn.Module):
         if not self.training and self.config.posture_consistent:
             raw, loc, params = self._agree_with_readout(raw, loc, params, gender)
         if not self.training and self.config.stature_weight > 0:
-            shape = stature_from_joints(self.body, params.shape, loc.joints, self.config.stature_weight)
+            shape = stature_from_joints(
+                self.body, params.shape, loc.joints, self.config.stature_weight, head=self.config.stature_head
+            )
             params = params.replace(shape=shape)
         if not self.training and self.config.ik_steps > 0:
             ik = IKConfig(steps=self.config.ik_steps)

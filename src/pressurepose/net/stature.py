@@ -19,7 +19,7 @@ import torch
 
 from pressurepose.body.joints import J24_NAMES
 
-_TRUNK = ("head", "neck", "spine3", "spine2", "spine1", "pelvis")
+_TRUNK = ("head", "neck", "spine3", "spine2", "spine1", "pelvis")  # the first link: head - neck
 _LEG = ("pelvis", "{side}_hip", "{side}_knee", "{side}_ankle")
 HEIGHT_PARAMETER = "height"  # the body model's shape parameter that sets the height (Anny)
 
@@ -40,28 +40,39 @@ def _path_length(joints: torch.Tensor, links: tuple[list[int], list[int]]) -> to
     return (joints[:, b] - joints[:, a]).norm(dim=-1).sum(-1)
 
 
-def chain_length(joints: torch.Tensor) -> torch.Tensor:
-    """(B,) the head-to-pelvis chain plus the mean of the two legs' pelvis-to-ankle chains of
-    (B, 24, 3) joints: a length the pose does not change."""
+_NECK_LINKS = (_TRUNK_LINKS[0][1:], _TRUNK_LINKS[1][1:])
+
+
+def chain_length(joints: torch.Tensor, head: bool = True) -> torch.Tensor:
+    """(B,) the head-to-pelvis chain (`head` False: neck-to-pelvis) plus the mean of the two legs'
+    pelvis-to-ankle chains of (B, 24, 3) joints: a length the pose does not change."""
     left, right = (_path_length(joints, links) for links in _LEG_LINKS)
-    return _path_length(joints, _TRUNK_LINKS) + 0.5 * (left + right)
+    return _path_length(joints, _TRUNK_LINKS if head else _NECK_LINKS) + 0.5 * (left + right)
 
 
 def stature_from_joints(
-    body, shape: torch.Tensor, joints: torch.Tensor, weight: float, iterations: int = 1, step: float = 1e-3
+    body,
+    shape: torch.Tensor,
+    joints: torch.Tensor,
+    weight: float,
+    iterations: int = 1,
+    step: float = 1e-3,
+    head: bool = True,
 ) -> torch.Tensor:
     """(B, S) `shape` with its height parameter moved `weight` of the way to the value whose rest
     skeleton's `chain_length` equals the localised `joints`' (secant steps on a one-sided finite
     difference, kept within the parameter's [0, 1]; the chain is linear in the parameter between
     Anny's anchors, so one step lands there); the other parameters unchanged. weight 0: `shape`
     itself. The rest skeleton is the body's `rest_pose_joints` (Anny: the bone lengths without
-    the T-pose's rotations; ~1 ms against 2.7 at batch 1)."""
+    the T-pose's rotations; ~1 ms against 2.7 at batch 1). `head` False: the chain from the neck
+    down (`chain_length`), so the head's localisation - where a real mat's edge or a pillow makes it
+    least sure - does not enter."""
     if weight == 0:
         return shape
     if HEIGHT_PARAMETER not in body.shape_names:
         raise ValueError(f"the body model has no {HEIGHT_PARAMETER!r} shape parameter")
     k = body.shape_names.index(HEIGHT_PARAMETER)
-    target = chain_length(joints).to(shape)
+    target = chain_length(joints, head).to(shape)
     value = shape[:, k].clone()
     for _ in range(iterations):
         h = torch.where(value > 0.5, -step, step)
@@ -69,7 +80,7 @@ def stature_from_joints(
         probe[:, k] = value
         pair = torch.cat([probe, probe])
         pair[len(shape) :, k] += h
-        lengths = chain_length(body.rest_pose_joints(pair))
+        lengths = chain_length(body.rest_pose_joints(pair), head)
         length, moved = lengths[: len(shape)], lengths[len(shape) :]
         slope = ((moved - length) / h).clamp(min=1e-3)  # m per unit: taller for a larger value
         value = (value + (target - length) / slope).clamp(0.0, 1.0)

@@ -160,6 +160,7 @@ NET_FIELDS = {
     "posture_head": "bool",
     "texture_sigma_taxels": "number",
     "stature_weight": "number",
+    "stature_head": "bool",
 }
 MAX_WIDTH = 16
 
