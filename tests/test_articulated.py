@@ -362,6 +362,9 @@ def test_config_refuses_unknown_parts():
         ArticulatedConfig(tissue_by_part=(("belly", 0.15),))
     with pytest.raises(UserError, match="lying_extension: unknown part 'cervical'"):
         ArticulatedConfig(lying_extension=(("cervical", 0.4),))
+    for bad in (("pelvis", 0.1), ("neck", float("nan"))):
+        with pytest.raises(UserError, match="lying_extension: .*below the pelvis"):
+            ArticulatedConfig(lying_extension=(bad,))
 
 
 def test_spine_lateral_stiffness_follows_the_roll():

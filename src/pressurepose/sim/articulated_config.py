@@ -4,6 +4,7 @@ measurements: docs/physics.md, docs/realism.md)."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.errors import UserError
@@ -108,6 +109,12 @@ class ArticulatedConfig:
                     raise UserError(
                         f"ArticulatedConfig.{field}: unknown part {name!r}; parts are J24's: {', '.join(J24_NAMES)}"
                     )
+        for name, rad in self.lying_extension:
+            if name == "pelvis" or not math.isfinite(rad):
+                raise UserError(
+                    f"ArticulatedConfig.lying_extension: ({name!r}, {rad}) must name a joint below the pelvis (the"
+                    " root has no spring) with a finite angle in rad"
+                )
 
 
 __all__ = ["ArticulatedConfig"]
