@@ -241,3 +241,24 @@ def test_area_by_part_of_length_by_hand():
     np.testing.assert_array_equal(R.area_by_part_of_length(np.zeros((20, 6))), np.zeros(10))
     s = R.summarise(np.stack([img, img]), np.array([1.7, 1.7]), 0.0286, 0.0286)
     np.testing.assert_allclose(s.area_tenths, [1, 2, 3, 4, 5, 6, 6, 6, 6, 6])
+
+
+def test_force_from_head_end_by_hand():
+    """Rows 3-6 of a 20 x 4 image carry forces 1, 1, 2, 4 (a faint row 1 below the share does not
+    start the load). With a 0.025 m pitch and a 1 m subject each 0.05 slice holds two rows: (1 + 1,
+    2 + 4) / 8; with a 2 m subject each row is 0.0125 of the height, four rows per slice: all in the
+    first. Rows past the last slice do not count (the shares then add to less than 1); an empty
+    image gives zeros; the report's set carries the mean over frames."""
+    img = np.zeros((20, 4))
+    for r, f in zip(range(3, 7), (1.0, 1.0, 2.0, 4.0)):
+        img[r, 0] = f
+    img[1, 0] = 1e-4  # < 0.2% of the force
+    total = img.sum()
+    out = R.force_from_head_end(img, 1.0, 0.025, bins=4)
+    np.testing.assert_allclose(out, np.array([2.0, 6.0, 0.0, 0.0]) / total)
+    np.testing.assert_allclose(R.force_from_head_end(img, 2.0, 0.025, bins=2), np.array([8.0, 0.0]) / total)
+    cut = R.force_from_head_end(img, 1.0, 0.025, bins=1)  # only the first slice, rows 3-4
+    np.testing.assert_allclose(cut, [2.0 / total])
+    np.testing.assert_array_equal(R.force_from_head_end(np.zeros((20, 4)), 1.0, 0.025), np.zeros(R.HEAD_END_BINS))
+    s = R.summarise(np.stack([img, img]), np.array([1.0, 1.0]), 0.025, 0.025)
+    np.testing.assert_allclose(s.head_end[:2], np.array([2.0, 6.0]) / total)

@@ -20,6 +20,7 @@ def set_dict(s: R.FrameSet) -> dict:
         "coverage": round(s.coverage, 3),
         "regions": {k: round(v, 3) for k, v in s.regions.items()},
         "area_tenths": [round(float(v), 1) for v in s.area_tenths],
+        "head_end": [round(float(v), 4) for v in s.head_end],
     }
 
 
@@ -100,6 +101,22 @@ def markdown(record: dict) -> str:
             lines.append(
                 f"| {r['posture']} | {r['mattress']} | "
                 + " | ".join(f"{a:.0f} / {b:.0f}" for a, b in zip(s["area_tenths"], re_["area_tenths"]))
+                + " |"
+            )
+    lines += [
+        "",
+        f"Where the load lies along the body: share of the force in each {R.HEAD_END_WIDTH:g} of the subject's "
+        "height, measured from the load's first row (head end), simulated / real:",
+        "",
+        "| posture | mattress | " + " | ".join(f"{i * R.HEAD_END_WIDTH:.2f}-" for i in range(R.HEAD_END_BINS)) + " |",
+        "| --- | --- |" + " --- |" * R.HEAD_END_BINS,
+    ]
+    for r in record["rows"]:
+        s, re_ = r["simulated"], r["real"]
+        if s and "head_end" in s:
+            lines.append(
+                f"| {r['posture']} | {r['mattress']} | "
+                + " | ".join(f"{a:.3f} / {b:.3f}" for a, b in zip(s["head_end"], re_["head_end"]))
                 + " |"
             )
     lines += [

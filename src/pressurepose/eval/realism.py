@@ -105,6 +105,33 @@ def area_by_part_of_length(image: np.ndarray, parts: int = 10, share: float = EX
     return out
 
 
+HEAD_END_BINS = 12  # slices of HEAD_END_WIDTH of the height: the head end to past the buttocks
+HEAD_END_WIDTH = 0.05
+
+
+def force_from_head_end(
+    image: np.ndarray,
+    height_m: float,
+    pitch_row_m: float,
+    bins: int = HEAD_END_BINS,
+    width: float = HEAD_END_WIDTH,
+    share: float = EXTENT_SHARE,
+) -> np.ndarray:
+    """(bins,) share of the image's force in each slice of `width` x the subject's height along the
+    bed, measured from the load's first row (the first holding >= `share` of the force; a row
+    belongs to the slice its centre falls in): where the shoulders and buttocks lie relative to
+    the head end's start, in fractions of the body. Zeros for an empty image."""
+    out = np.zeros(bins)
+    span = _load_span(image, share)
+    if span is None:
+        return out
+    rows = np.asarray(image, dtype=np.float64).sum(1)
+    at = (np.arange(rows.size) - span[0] + 0.5) * pitch_row_m / height_m / width  # slice coordinate
+    keep = (at >= 0) & (at < bins)
+    np.add.at(out, np.floor(at[keep]).astype(int), rows[keep])
+    return out / rows.sum()
+
+
 def high_pressure(image: np.ndarray, q: float = 0.99) -> float:
     """The `q` quantile of the loaded taxels' readings (0 for an empty image)."""
     img = np.asarray(image, dtype=np.float64)
@@ -173,6 +200,7 @@ class FrameSet:
     coverage: float
     regions: dict[str, float]  # mean share per region
     area_tenths: np.ndarray  # (10,) mean over frames of `area_by_part_of_length` (taxels)
+    head_end: np.ndarray  # (HEAD_END_BINS,) mean over frames of `force_from_head_end`
     along: np.ndarray  # (rows,) mean unit-sum row profile
     across: np.ndarray  # (cols,)
     mean_image: np.ndarray  # (rows, cols) mean image (mmHg)
@@ -200,6 +228,7 @@ def summarise(images: np.ndarray, heights_m: np.ndarray, pitch_row_m: float, pit
         coverage=float(np.mean([coverage(im) for im in images])),
         regions={k: float(np.mean([r[k] for r in regions])) for k in REGION_NAMES},
         area_tenths=np.mean([area_by_part_of_length(im) for im in images], 0),
+        head_end=np.mean([force_from_head_end(im, h, pitch_row_m) for im, h in zip(images, heights)], 0),
         along=_mean_profile(images.sum(2)),
         across=_mean_profile(images.sum(1)),
         mean_image=images.mean(0),
@@ -330,6 +359,9 @@ __all__ = [
     "coverage",
     "extent_of_height",
     "fit_bands",
+    "force_from_head_end",
+    "HEAD_END_BINS",
+    "HEAD_END_WIDTH",
     "high_pressure",
     "profile_similarity",
     "region_shares",
