@@ -108,7 +108,7 @@ def to_head_edge(pressure: torch.Tensor) -> torch.Tensor:
     rows = pressure.sum(-1)
     for i in range(len(pressure)):
         first = int((rows[i] >= EXTENT_SHARE * rows[i].sum()).nonzero()[0, 0]) if rows[i].sum() > 0 else 0
-        s = first + i % 5
+        s = min(first + i % 5, pressure.shape[1])
         out[i, : pressure.shape[1] - s] = pressure[i, s:]
     return out
 

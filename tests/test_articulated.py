@@ -365,6 +365,9 @@ def test_config_refuses_unknown_parts():
     for bad in (("pelvis", 0.1), ("neck", float("nan"))):
         with pytest.raises(UserError, match="lying_extension: .*below the pelvis"):
             ArticulatedConfig(lying_extension=(bad,))
+    for flat in (("neck", 0.4), (("neck", "0.4"),)):  # a pair not inside the tuple; a string angle
+        with pytest.raises(UserError, match=r"lying_extension: each entry is a \(J24 part, number\) pair"):
+            ArticulatedConfig(lying_extension=flat)
 
 
 def test_spine_lateral_stiffness_follows_the_roll():
@@ -436,6 +439,11 @@ def test_lying_reference_by_hand():
             torch.testing.assert_close(ref[b, j], turn @ plain[b, j])
     others = [j for j in range(23) if j not in (neck, spine3)]
     torch.testing.assert_close(ref[:, others], plain[:, others])
+    # The sign, from the geometry: on the back the extra turn swings the neck's bone (up the body,
+    # +y in the body's axes) toward the body's back (-z; +z is its front), as the head lets back.
+    extra = ref[0, neck] @ plain[0, neck].transpose(-1, -2)
+    up = extra @ torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    assert float(up[2]) == pytest.approx(-math.sin(0.4)) and float(up[1]) == pytest.approx(math.cos(0.4))
 
 
 def test_a_lying_neck_lets_the_supine_head_rest_its_weight(anny64, supine_rest):

@@ -194,9 +194,13 @@ def test_realism_command_on_a_tiny_folder(tmp_path, capsys):
         assert abs(sum(r["simulated"]["regions"].values()) - 1) < 1e-2
         # by default the images as the generator writes them (the sensor's own floor), not re-read
         assert r["floor_mmhg"] == 0.0
+        for side in ("simulated", "real"):  # the force along the body from the head end: shares
+            head_end = np.array(r[side]["head_end"])
+            assert head_end.shape == (R.HEAD_END_BINS,) and (head_end >= 0).all() and head_end.sum() <= 1 + 1e-3
     assert (tmp_path / "out" / "realism_left_sponge.png").stat().st_size > 0
     report = (tmp_path / "out" / "report.md").read_text()
     assert "Ceiling" in report and "the sensor's own floor" in report
+    assert "Where the load lies along the body" in report
 
 
 @pytest.mark.parametrize("case", ["no index", "short frame", "non-finite"])

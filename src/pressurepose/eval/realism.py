@@ -6,7 +6,9 @@ Pure numpy on (N, 64, 27) images in mmHg, row 0 at the head end (docs/realism.md
   force), and load shares per body region.
 - `extent_of_height`: the length of the loaded rows (from the first to the last row carrying at
   least `EXTENT_SHARE` of the image's force) over the subject's height; `high_pressure`: the
-  99th percentile of the loaded taxels' readings (the peak without single-taxel outliers).
+  99th percentile of the loaded taxels' readings (the peak without single-taxel outliers);
+  `force_from_head_end`: the force's share in slices of the height counted from the load's
+  first row (where the shoulders and buttocks lie relative to the head end's start).
 - `profile_similarity`: force profiles along (row sums) or across (column sums) the bed, the
   mean over frames of unit-sum profiles, compared by 1 - L1 / 2 (1 = identical shapes, 0 =
   disjoint), best over integer shifts so that placement on the mat is not judged.
@@ -212,6 +214,8 @@ def summarise(images: np.ndarray, heights_m: np.ndarray, pitch_row_m: float, pit
     heights = np.broadcast_to(np.asarray(heights_m, dtype=np.float64), (images.shape[0],))
     if images.shape[0] == 0:
         raise ValueError("no frames to summarise")
+    if not (np.isfinite(heights).all() and (heights > 0).all()):
+        raise ValueError("the subjects' heights must be finite and > 0 m")
     sums = images.sum((1, 2))
     if (sums <= 0).any():
         raise ValueError(f"{int((sums <= 0).sum())} frame(s) carry no load")

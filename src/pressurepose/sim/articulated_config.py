@@ -104,7 +104,17 @@ class ArticulatedConfig:
         if not self.tissue_sag_m >= 0:  # also refuses NaN
             raise UserError(f"ArticulatedConfig.tissue_sag_m must be >= 0 m (0: no sag), got {self.tissue_sag_m}")
         for field in ("tissue_by_part", "tissue_depth_max", "sag_depth_max", "lying_extension"):
-            for name, _ in getattr(self, field):
+            for entry in getattr(self, field):
+                if not (
+                    isinstance(entry, tuple | list)
+                    and len(entry) == 2
+                    and isinstance(entry[0], str)
+                    and isinstance(entry[1], int | float)
+                ):
+                    raise UserError(
+                        f"ArticulatedConfig.{field}: each entry is a (J24 part, number) pair, got {entry!r}"
+                    )
+                name = entry[0]
                 if name not in J24_NAMES:
                     raise UserError(
                         f"ArticulatedConfig.{field}: unknown part {name!r}; parts are J24's: {', '.join(J24_NAMES)}"

@@ -344,13 +344,13 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
 
 
 __all__ = [
-    "lying_reference",
     "Dofs",
     "apply_motion",
     "dof_axes_pivots",
     "dof_geometry",
     "from_part_frames",
     "joint_stiffness",
+    "lying_reference",
     "part_mass_and_com",
     "tissue_depth",
     "tissue_sag",
