@@ -28,6 +28,18 @@ def bands_dict(b: R.Bands) -> dict:
     return {k: round(v, 4) for k, v in dataclasses.asdict(b).items()}
 
 
+def _paired_table(record: dict, key: str, caption: str, columns: list[str], fmt: str) -> list[str]:
+    """Markdown lines of one table: per posture and mattress, `key`'s values simulated / real."""
+    lines = ["", caption, "", "| posture | mattress | " + " | ".join(columns) + " |"]
+    lines.append("| --- | --- |" + " --- |" * len(columns))
+    for r in record["rows"]:
+        s, re_ = r["simulated"], r["real"]
+        if s and key in s:
+            pairs = (f"{fmt.format(a)} / {fmt.format(b)}" for a, b in zip(s[key], re_[key]))
+            lines.append(f"| {r['posture']} | {r['mattress']} | " + " | ".join(pairs) + " |")
+    return lines
+
+
 def markdown(record: dict) -> str:
     lines = [
         "# Realism: simulated vs real pressure images",
@@ -87,38 +99,22 @@ def markdown(record: dict) -> str:
                 )
                 + " |"
             )
-    lines += [
-        "",
+    lines += _paired_table(
+        record,
+        "area_tenths",
         "Where the contact lies: loaded taxels (mean over frames) in each tenth of the load's length, "
         "head end first, simulated / real:",
-        "",
-        "| posture | mattress | " + " | ".join(str(i + 1) for i in range(10)) + " |",
-        "| --- | --- |" + " --- |" * 10,
-    ]
-    for r in record["rows"]:
-        s, re_ = r["simulated"], r["real"]
-        if s and "area_tenths" in s:
-            lines.append(
-                f"| {r['posture']} | {r['mattress']} | "
-                + " | ".join(f"{a:.0f} / {b:.0f}" for a, b in zip(s["area_tenths"], re_["area_tenths"]))
-                + " |"
-            )
-    lines += [
-        "",
+        [str(i + 1) for i in range(10)],
+        "{:.0f}",
+    )
+    lines += _paired_table(
+        record,
+        "head_end",
         f"Where the load lies along the body: share of the force in each {R.HEAD_END_WIDTH:g} of the subject's "
         "height, measured from the load's first row (head end), simulated / real:",
-        "",
-        "| posture | mattress | " + " | ".join(f"{i * R.HEAD_END_WIDTH:.2f}-" for i in range(R.HEAD_END_BINS)) + " |",
-        "| --- | --- |" + " --- |" * R.HEAD_END_BINS,
-    ]
-    for r in record["rows"]:
-        s, re_ = r["simulated"], r["real"]
-        if s and "head_end" in s:
-            lines.append(
-                f"| {r['posture']} | {r['mattress']} | "
-                + " | ".join(f"{a:.3f} / {b:.3f}" for a, b in zip(s["head_end"], re_["head_end"]))
-                + " |"
-            )
+        [f"{i * R.HEAD_END_WIDTH:.2f}-" for i in range(R.HEAD_END_BINS)],
+        "{:.3f}",
+    )
     lines += [
         "",
         "Transverse bands (air cells; row force over its 5-row average, one cosine fitted along the bed "
