@@ -227,15 +227,15 @@ def test_side_lying_body_rolls_over_unless_its_trunk_is_held(anny64):
     turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(held.params.root_rotation))
     assert float(turned[0]) < math.radians(12)
     # With self-contact (the top leg rests on the bottom one) and friction the free body no
-    # longer rolls over: free or held, it stays within 10 deg of its side (with the default
-    # joints, 0.8 x the seed's, the free one turns 3.5 deg, the held one 5.2: friction sticks
-    # each part where it lands, so which turns more is the path's, not the hold's).
+    # longer rolls over: it settles within 15 deg of its side, the held one within 10 (with the
+    # default joints and swing damping, 12.4 and 4.6 deg, both settled before the cap; without
+    # the damping the cap ended both at 4-5 deg, the free one still turning).
     free = rest_articulated(anny64, p, config=ArticulatedConfig(outer=20))
     held = rest_articulated(anny64, p, config=ArticulatedConfig(hold_roll_m=0.5, outer=20))
     assert free.failure == [""] and held.failure == [""]
-    for rest in (free, held):
+    for rest, most in ((free, 15), (held, 10)):
         turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(rest.params.root_rotation))
-        assert float(turned[0]) < math.radians(10)
+        assert float(turned[0]) < math.radians(most)
 
 
 def test_mattress_presets_load_by_name(tmp_path):

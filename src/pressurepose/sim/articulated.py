@@ -61,7 +61,7 @@ from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.pillow import footprint, in_series, spread_load
-from pressurepose.sim.rest_state import MovingBodies, RestsDone
+from pressurepose.sim.rest_state import MovingBodies, RestsDone, damp_swings
 from pressurepose.sim.self_contact import SelfContact
 from pressurepose.sim.soft_contact import lowest_points
 
@@ -73,8 +73,10 @@ from pressurepose.sim.soft_contact import lowest_points
 # `ArticulatedConfig.tissue_depth_max` (the ribcage, docs/realism.md "The ribcage"); 5: at most
 # 20 re-posings instead of 14 (`ArticulatedConfig.outer`, session 42, docs/realism.md); 6: the
 # rests unchanged, but the datasets' settle_steps column carries each body's re-posings (outer + 1
-# for a body still moving at the cap, `ArticulatedRest.settled`; session 43).
-ENGINE_REVISION = 6
+# for a body still moving at the cap, `ArticulatedRest.settled`; session 43); 7: a swinging
+# unknown takes a secant share of its re-posing's motion (`ArticulatedConfig.damp_swings`,
+# session 46).
+ENGINE_REVISION = 7
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
@@ -218,6 +220,12 @@ def rest_articulated(
         cur, rest, local_com, mass, local_pts, point_tissue, point_sag, dof_lo, dof_hi, ref_local, root_start, k, weight
     )
     body.pillow_m, body.pillow_under = pillow_m, under
+    body.last_q, body.streak = k.new_zeros(B, dofs.n), k.new_zeros(B, dofs.n)
+    body.share = torch.ones_like(body.last_q)
+    # Each unknown's trust region and settled tolerance (the vertical shift in m, the rest in rad).
+    cap = torch.full((dofs.n,), cfg.max_rotation_rad, dtype=dtype, device=device)
+    tol = torch.full((dofs.n,), cfg.settled_rotation_rad, dtype=dtype, device=device)
+    cap[0], tol[0] = cfg.max_shift_m, cfg.settled_shift_m
     moving_contact, solved = contact, None
     for outer in range(cfg.outer + 1):
         cur = body.cur
@@ -267,7 +275,12 @@ def rest_articulated(
             step_tol=0.0 if last else cfg.reposing_step_tol,
         )
         iters[act] += it
-        moved = ~((q[:, 0].abs() < cfg.settled_shift_m) & (q[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
+        # The motion the bodies take: all of it, or the swinging unknowns' share (`damp_swings`).
+        step = q
+        if cfg.damp_swings:
+            step, body.share, body.streak = damp_swings(q, body.last_q, body.share, body.streak, cap, tol)
+            body.last_q = q
+        moved = ~((step[:, 0].abs() < cfg.settled_shift_m) & (step[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
         done.reposings[act] = outer
         if last or not bool(moved.any()):
             # The last re-posing, or nothing moves any more: each finishes its solve (the last
@@ -291,11 +304,11 @@ def rest_articulated(
                 friction = friction.take(keep)
             if moving_contact is not None:
                 moving_contact = moving_contact.take(keep)
-            act, body, q = act[keep], body.take(keep), q[keep]
+            act, body, q, step = act[keep], body.take(keep), q[keep], step[keep]
             rot, joints, body_com = rot[keep], joints[keep], body_com[keep]
         elif friction is not None:
             solved = lin.contact_state(q, mp)
-        body.cur = apply_motion(body.cur, q, dofs, rot, joints, body_com)
+        body.cur = apply_motion(body.cur, step, dofs, rot, joints, body_com)
     final = done.params
     out = model(final)
     penetration = (

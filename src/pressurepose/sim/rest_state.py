@@ -36,12 +36,50 @@ class MovingBodies:
     weight: torch.Tensor  # (B,)
     pillow_m: torch.Tensor | None = None  # (B,) pillow thickness (0: none)
     pillow_under: torch.Tensor | None = None  # (B, C) cells under the pillow
+    # Swing damping (`damp_swings`): the last re-posing's motion, each unknown's share of its
+    # motion taken, and how many re-posings in a row it went on the same way undamped.
+    last_q: torch.Tensor | None = None  # (B, N)
+    share: torch.Tensor | None = None  # (B, N)
+    streak: torch.Tensor | None = None  # (B, N)
 
     def take(self, idx: torch.Tensor) -> MovingBodies:
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         return MovingBodies(
             **{n: v if v is None else v.index(idx) if n == "cur" else v[idx] for n, v in fields.items()}
         )
+
+
+# Re-posings in a row that an unknown's motion keeps its direction without shrinking before its
+# share is doubled back toward 1 (`damp_swings`): a slide after a swing regains its reach.
+_REGAIN = 3
+
+
+def damp_swings(q, last_q, share, streak, cap, tol):
+    """The part of each unknown's re-posing motion q (B, N) the bodies take (B, N), with the
+    updated `share` and `streak` (module `MovingBodies`). A re-posing moves a body to its
+    linearisation's rest; where that overshoots - an elbow or a hip whose linearisation on
+    either side of a contact's onset points to the other - the unknown swings between two
+    poses to the cap (docs/realism.md "Bodies still moving when the re-posings run out"). Per
+    unknown, a secant step on its motion: its motion reversed (q and last_q of opposite signs,
+    both beyond `tol` (N,) and within `cap` (N,)) - the rest lies between the last two poses,
+    at the share |last| / (|last| + |q|) of the last step (the root of the line through the
+    two motions); kept its direction but shrank by rho < 1 - a slow approach, the share grows
+    to share / (1 - rho) (at most 1); neither, `_REGAIN` times in a row - doubled (at most 1);
+    at its cap (a large motion, not a rest nearby) - 1 again. A swing about a smooth rest ends
+    in one step; about a kink (a contact's onset) it halves each swing (bisection)."""
+    free = (q.abs() < 0.999 * cap) & (last_q.abs() < 0.999 * cap)
+    both = (q.abs() > tol) & (last_q.abs() > tol) & free
+    reverse = both & (q * last_q < 0)
+    onward = both & ~reverse
+    rho = q.abs() / last_q.abs().clamp(min=1e-15)
+    new = torch.where(reverse, share * last_q.abs() / (last_q.abs() + q.abs()).clamp(min=1e-15), share)
+    new = torch.where(onward & (rho < 1), (share / (1 - rho).clamp(min=1e-3)).clamp(max=1.0), new)
+    streak = torch.where(onward & (rho >= 1), streak + 1, torch.zeros_like(streak))
+    regain = streak >= _REGAIN
+    new = torch.where(regain, (2 * new).clamp(max=1.0), new)
+    streak = torch.where(regain, torch.zeros_like(streak), streak)
+    new = torch.where(q.abs() >= 0.999 * cap, torch.ones_like(new), new)
+    return q * new, new, streak
 
 
 class RestsDone:
@@ -73,4 +111,4 @@ class RestsDone:
         self.support[idx] = lin.mask.any(1)
 
 
-__all__ = ["MOVED", "MovingBodies", "RestsDone"]
+__all__ = ["MOVED", "MovingBodies", "RestsDone", "damp_swings"]
