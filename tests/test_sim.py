@@ -447,11 +447,12 @@ def test_sim1_and_sim2_rest_a_half_sitting_body_on_a_raised_bed(anny64):
     rows = (sim.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
     assert int(rows.min()) < 16 < int(rows.max())  # loads on both sides of the hinge (row 16)
     assert (sim.depth_mm[0] < 0).sum() > 50 and torch.equal(sim.contact, (sim.depth_mm < 0).to(sim.contact.dtype))
-    # The articulated settling engine is flat-bed only: on a raised bed it falls back to MuJoCo
-    # and the rigid rest, the same result.
+    # The articulated settling engine rests it on the raised bed itself (no MuJoCo: its steps
+    # are its re-posings; `sim.raised`, tests/test_raised_rest.py), loading both sections too.
     again = simulate_poses(anny64, params, bed=bed, settle="articulated")
-    assert int(again.settle_steps[0]) == int(sim.settle_steps[0]) > 0
-    assert torch.allclose(again.pressure_mmhg, sim.pressure_mmhg, atol=1e-4)
+    assert again.reason == [""] and 0 < int(again.settle_steps[0]) <= 21 < int(sim.settle_steps[0])
+    rows = (again.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
+    assert int(rows.min()) < 16 < int(rows.max())
 
 
 def test_simulation_never_converts_the_callers_model(anny32):

@@ -116,12 +116,12 @@ class GenerateConfig:
     settle: Literal["articulated", "mujoco"] = "articulated"
     """How a drawn pose comes to rest: `articulated` (default): one batched quasi-static engine
     settles the mesh part by part on the soft bed (joint springs, self-contact, friction, soft
-    tissue; no MuJoCo) and gives the image (docs/physics.md; raised beds fall back to MuJoCo);
+    tissue; no MuJoCo) and gives the image, on flat and raised beds (docs/physics.md);
     `mujoco`: the seed's procedure, sim #1 (MuJoCo, capsule body) then sim #2 - the generator's
     default before 2026-11-25, so older datasets resume with it."""
     sim2: Literal["rigid", "articulated"] | None = None
     """Sim #2 after MuJoCo (`--settle mujoco`): the whole mesh at rigid rest, or every body part on
-    its own contact with compliant joints and soft tissue (raised beds keep the rigid rest).
+    its own contact with compliant joints and soft tissue.
     Default: rigid after MuJoCo; the articulated engine makes the image itself (and allows nothing
     else)."""
     pillow: float = 0.0

@@ -26,7 +26,8 @@ pose parameters (the parts riding their joints rigidly in between) and re-linear
 elbow limits are stiff one-sided springs in the energy; the last solve's field is the pressure
 (force balances the weight to solver tolerance); the mesh is skinned once at the end.
 
-Batched over B bodies, float64, CPU or CUDA; flat beds (raised beds use the rigid rest).
+Batched over B bodies, float64, CPU or CUDA; on a flat bed or one whose head section is raised
+(`sim.raised`: each section's cells in its own frame).
 """
 
 from __future__ import annotations
@@ -35,7 +36,9 @@ import dataclasses
 
 import torch
 
+from pressurepose.bed import BedShape
 from pressurepose.body.capsules import fit_capsules
+from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix, root_roll
@@ -61,6 +64,7 @@ from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.pillow import footprint, in_series, spread_load
+from pressurepose.sim.raised import RaisedBed
 from pressurepose.sim.rest_state import MovingBodies, RestsDone, damp_swings
 from pressurepose.sim.self_contact import SelfContact
 from pressurepose.sim.soft_contact import lowest_points
@@ -75,13 +79,14 @@ from pressurepose.sim.soft_contact import lowest_points
 # rests unchanged, but the datasets' settle_steps column carries each body's re-posings (outer + 1
 # for a body still moving at the cap, `ArticulatedRest.settled`; session 43); 7: a swinging
 # unknown takes a secant share of its re-posing's motion (`ArticulatedConfig.damp_swings`,
-# session 46).
-ENGINE_REVISION = 7
+# session 46); 8: raised beds rest articulated too (`sim.raised`, session 46; flat beds as in 7).
+ENGINE_REVISION = 8
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
 FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
+FAIL_SLIDES = "slides: the raised bed needs more friction than the sheet has"
 MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
 
 
@@ -107,6 +112,9 @@ class ArticulatedRest:
     failure: list[str]
     sub: int
     pillow_m: torch.Tensor | None = None  # (B,) the pillows' free thickness (0: none), or None
+    # (B,) on a raised bed: the push toward the foot of the raised section's normal forces over
+    # the total normal force - the sheet's friction ratio the rest needs (`sim.raised`); else None
+    friction_ratio: torch.Tensor | None = None
 
 
 # A hinge pushed beyond its limit meets a spring this many times its own stiffness.
@@ -121,14 +129,18 @@ def rest_articulated(
     mat: MatSpec | None = None,
     config: ArticulatedConfig | None = None,
     pillow_m: torch.Tensor | None = None,
+    bed: BedShape | None = None,
 ) -> ArticulatedRest:
     """Rest B posed bodies (BodyParams, float64 model) on the flat mattress, every part on its
     own contact with compliant joints (module doc). The bodies may start above the bed or in
     it; their horizontal placement and yaw are kept. Failures are reported per sample.
     `pillow_m` (B,): each body's head on a pillow of this free thickness (m; 0: none;
-    `ArticulatedConfig.pillow` its size and material, `sim.pillow`)."""
+    `ArticulatedConfig.pillow` its size and material, `sim.pillow`). `bed`: a raised head
+    section (`sim.raised`; default flat): pressures normal to each section, on the mat's grid in
+    surface coordinates."""
     mp = mattress or MattressParams()
     mat = mat or MatSpec()
+    raised = None if bed is None or bed.flat else RaisedBed(bed, mat, model.dtype, model.device)
     cfg = config or ArticulatedConfig()
     dtype, device = model.dtype, model.device
     B = params.batch_size
@@ -177,7 +189,7 @@ def rest_articulated(
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).
     pts = surface_points(out.vertices, faces)[:, order]
-    lowest = pts[..., 2].amin(1)
+    lowest = pts[..., 2].amin(1) if raised is None else raised.drop(pts)
     drop = torch.stack([torch.zeros_like(lowest), torch.zeros_like(lowest), lowest], -1)
     cur = params.replace(root_translation=params.root_translation - drop)
     # The parts ride their joints rigidly while the rest is found: their surface points and
@@ -204,6 +216,8 @@ def rest_articulated(
             raise UserError(f"pillow_m must hold {B} finite thicknesses >= 0 (m), got {pillow_m.tolist()}")
         if point_tissue is None:
             raise UserError("a pillow needs the soft tissue (MattressParams.tissue_pa_per_m > 0) to rest on")
+        if raised is not None:
+            raise UserError("pillows lie on flat beds only; drop pillow_m for a raised bed")
         under = footprint(cfg.pillow, joints, xy, pillow_m)
     contact = None
     if cfg.self_contact:
@@ -211,7 +225,8 @@ def rest_articulated(
     friction = Friction(B, mp.friction, dtype, device) if cfg.friction else None
     dof_parts = dofs.desc[dofs.joint]
     nr, nc = grid_shape(mat, cfg.sub, True)
-    done = RestsDone(params, nr * nc, area, dofs)
+    done = RestsDone(params, nr * nc, area, dofs, raised)
+    head_cells = None if raised is None else raised.head_cells(xy[:, 0])
     # The bodies still moving and their state; a body whose re-posing no longer moves it leaves
     # (its rest is its last linearisation's solve, finished on its own, so it does not depend
     # on how long the others in its batch take).
@@ -236,7 +251,11 @@ def rest_articulated(
         pts = from_part_frames(body.local_pts, labels, rot, joints)
         if body.point_sag is not None:  # the tissue hangs toward the bed, whatever the part's turn
             pts[..., 2] -= body.point_sag
+        if raised is not None:  # heights along each section's normal, the cells by section
+            pts = raised.to_surface(pts)
         h, part, cell_tissue = lowest_points(pts, labels, mat, cfg.sub, body.point_tissue)
+        if raised is not None:
+            part = raised.section_parts(part, head_cells)
         if top is not None:
             h = h - top  # heights above the (air cells') top, not above z = 0
         if body.pillow_under is not None:  # above the pillows' tops, through them in series
@@ -245,9 +264,10 @@ def rest_articulated(
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, body.ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ body.root_start.transpose(-1, -2))[:, 0]
         axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)
+        section_a = None if raised is None else raised.section_a(dof_a, axes, pivots)
         springs = [] if moving_contact is None else [moving_contact.linearise(rot, joints, axes, pivots, dof_parts)]
         if friction is not None and solved is not None:
-            friction.update(rot, joints, *solved)
+            friction.update(rot, joints, *_on_sheet(solved, raised))
             springs.append(friction.linearise(rot, joints, axes, pivots, dof_parts))
         lin = Linearised(
             h,
@@ -263,6 +283,7 @@ def rest_articulated(
             cell_tissue,
             (dofs.hinge_angles(cur.pose), body.dof_lo, body.dof_hi, _LIMIT_STIFFNESS_RATIO * body.k),
             springs,
+            section_a,
         )
         last = outer == cfg.outer
         q, it = minimise(
@@ -331,6 +352,8 @@ def rest_articulated(
             failure.append(FAIL_BOTTOM)
         elif abs(float(force[i]) - float(weight[i])) > 1e-3 * float(weight[i]):
             failure.append(FAIL_NOT_CONVERGED)
+        elif raised is not None and float(done.friction_ratio[i]) > float(mp.friction):
+            failure.append(FAIL_SLIDES)
         else:
             failure.append("")
     bad = torch.tensor([bool(x) for x in failure], device=device)
@@ -350,7 +373,16 @@ def rest_articulated(
         failure=failure,
         sub=cfg.sub,
         pillow_m=pillow_m,
+        friction_ratio=None if raised is None else done.friction_ratio,
     )
 
 
-__all__ = ["ENGINE_REVISION", "ArticulatedConfig", "ArticulatedRest", "rest_articulated"]
+def _on_sheet(state, raised: RaisedBed | None):
+    """`Linearised.contact_state` for `sim.friction`: the parts (0-23) and world contact points."""
+    if raised is None:
+        return state
+    part, xyz, force, stiffness = state
+    return part % NUM_JOINTS, raised.to_world(xyz), force, stiffness
+
+
+__all__ = ["ENGINE_REVISION", "FAIL_SLIDES", "ArticulatedConfig", "ArticulatedRest", "rest_articulated"]

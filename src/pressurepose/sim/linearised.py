@@ -33,8 +33,27 @@ class Linearised:
     (packed, K per body), their height h, part and (1, x, y), the DoFs' geometry, gravity's
     gradient, the springs and the limits."""
 
-    def __init__(self, h, part, xy, dof_a, mass, com, e, k, dofs: Dofs, area, tissue=None, limits=None, springs=()):
+    def __init__(
+        self,
+        h,
+        part,
+        xy,
+        dof_a,
+        mass,
+        com,
+        e,
+        k,
+        dofs: Dofs,
+        area,
+        tissue=None,
+        limits=None,
+        springs=(),
+        section_a=None,
+    ):
         # springs: sim.self_contact.LinearSprings (self-contact, friction anchors) added to the energy.
+        # section_a (B, N, S, 3): on a bed of S sections (a raised head section, `sim.raised`),
+        # each DoF's coefficients of the normal height over the section's (1, s, y); the cells
+        # of section j carry part + 24 j. None: flat (dof_a, world heights).
         self.springs = tuple(springs)
         self._law_key, self._law_cached = None, None  # `_law`: the series law of the last mattress
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
@@ -70,7 +89,13 @@ class Linearised:
         # (B, N, 24 * 3): a_n in the slots of the parts DoF n moves (zero elsewhere); the parts'
         # affine height coefficients are q G, the gradient's force term G (per-part force
         # moments), the Hessian G M G^T with M the parts' 3 x 3 stiffness moments.
-        self._G = (dof_a[:, :, None, :] * self.dof_parts[None, :, :, None]).reshape(dof_a.shape[0], dofs.n, -1)
+        if section_a is None:
+            self.n_parts, self.sectioned = NUM_JOINTS, False
+            self._G = (dof_a[:, :, None, :] * self.dof_parts[None, :, :, None]).reshape(dof_a.shape[0], dofs.n, -1)
+        else:  # (B, N, S, 24, 3): a section's coefficients in the slots of (section, part)
+            self.n_parts, self.sectioned = NUM_JOINTS * section_a.shape[2], True
+            G = section_a[:, :, :, None, :] * self.dof_parts[None, :, None, :, None]
+            self._G = G.reshape(dof_a.shape[0], dofs.n, -1)
 
     # Attributes with one row per body (`take` selects them): per cell (B, K), (B, 9, K) and
     # per DoF.
@@ -165,16 +190,17 @@ class Linearised:
         weighted = torch.empty_like(self._moments)
         torch.mul(self._moments[:, :3], f[:, None], out=weighted[:, :3])
         torch.mul(self._moments[:, 3:], c[:, None], out=weighted[:, 3:])
-        sums = q.new_zeros(B, 9, NUM_JOINTS).scatter_add_(2, self._scatter_index, weighted).transpose(1, 2)
+        P = self.n_parts
+        sums = q.new_zeros(B, 9, P).scatter_add_(2, self._scatter_index, weighted).transpose(1, 2)
         f_part = sums[..., :3]
         e_lim, g_lim, c_lim = self._limit(q)
         energy = (self.g_grav * q).sum(1) + 0.5 * (self.k * (self.e + q) ** 2).sum(1) + phi.sum(1) * self.area + e_lim
-        grad = self.g_grav + self.k * (self.e + q) + g_lim - (self.dof_a * torch.matmul(self.dof_parts, f_part)).sum(-1)
+        grad = self.g_grav + self.k * (self.e + q) + g_lim - self._force_term(f_part)
         # Hessian from the parts' stiffness moments M_s = sum c (1, x, y)(1, x, y)^T: H_nl = sum
         # over the parts s both DoFs move of a_n^T M_s a_l, i.e. G M G^T (M block-diagonal).
-        m_part = sums[..., 3:].index_select(-1, self._symmetric).view(B, NUM_JOINTS, 3, 3)  # from the six entries
+        m_part = sums[..., 3:].index_select(-1, self._symmetric).view(B, P, 3, 3)  # from the six entries
         n = self.dof_a.shape[1]
-        gm = self._G.view(B, n, NUM_JOINTS, 3).transpose(1, 2) @ m_part  # (B, 24, N, 3): a_n^T M_s
+        gm = self._G.view(B, n, P, 3).transpose(1, 2) @ m_part  # (B, P, N, 3): a_n^T M_s
         H = gm.transpose(1, 2).reshape(B, n, -1) @ self._G.transpose(1, 2)
         H = H + torch.diag_embed(self.k + c_lim)
         if law.coupled:
@@ -183,16 +209,22 @@ class Linearised:
             energy = energy + law.air_energy()
             d = law.displaced.to(q.dtype)
             d_part = (
-                q.new_zeros(B, 3, NUM_JOINTS)
+                q.new_zeros(B, 3, P)
                 .scatter_add_(2, self._scatter_index[:, :3], self._moments[:, :3] * d[:, None])
                 .transpose(1, 2)
             )
-            g = (self.dof_a * torch.matmul(self.dof_parts, d_part)).sum(-1)
+            g = self._force_term(d_part)
             H = H + law.beta[:, None, None] * (g[:, :, None] * g[:, None, :])
         for s in self.springs:
             e_s, g_s, h_s = s.gradient_hessian(q)
             energy, grad, H = energy + e_s, grad + g_s, H + h_s
         return grad, H, f, w, energy
+
+    def _force_term(self, per_part):
+        """(B, N): sum over the parts of G's rows times the parts' moments (B, P, 3) of (1, x, y)."""
+        if self.sectioned:
+            return torch.matmul(self._G, per_part.reshape(per_part.shape[0], -1, 1))[..., 0]
+        return (self.dof_a * torch.matmul(self.dof_parts, per_part)).sum(-1)
 
     def contact_state(self, q, mp: MattressParams):
         """At q: each cell's part (B, K), contact point (B, K, 3), force (B, K) N and vertical

@@ -85,9 +85,11 @@ def damp_swings(q, last_q, share, streak, cap, tol):
 class RestsDone:
     """The rests of B bodies, filled in as they finish (`rest_articulated`)."""
 
-    def __init__(self, params: BodyParams, cells: int, area: float, dofs: Dofs):
+    def __init__(self, params: BodyParams, cells: int, area: float, dofs: Dofs, raised=None):
         B = params.batch_size
         self.params, self.area, self.dofs, self.cells = params, area, dofs, cells
+        self.raised = raised  # a `sim.raised.RaisedBed`, or None (flat)
+        self.friction_ratio = params.pose.new_zeros(B)
         new = params.pose.new_zeros
         self.foundation, self.part_force = new(B, cells), new(B, NUM_JOINTS)
         self.force, self.max_compression = new(B), new(B)
@@ -106,8 +108,15 @@ class RestsDone:
             **{n: getattr(self.params, n).index_copy(0, idx, getattr(final, n)) for n in MOVED}
         )
         self.foundation[idx] = lin.unpack(f, self.cells) / self.area
-        self.part_force[idx] = f.new_zeros(len(idx), NUM_JOINTS).scatter_add_(1, lin.part, f * lin.mask)
-        self.force[idx], self.max_compression[idx] = f.sum(1), w.amax(1)
+        part = lin.part if self.raised is None else lin.part % NUM_JOINTS
+        self.part_force[idx] = f.new_zeros(len(idx), NUM_JOINTS).scatter_add_(1, part, f * lin.mask)
+        if self.raised is None:
+            self.force[idx] = f.sum(1)
+        else:  # the normal forces' vertical resultant (it balances the weight), and the push
+            fm = f * lin.mask
+            self.force[idx] = (fm * self.raised.vertical(lin.part).to(f.dtype)).sum(1)
+            self.friction_ratio[idx] = self.raised.foot_push(lin.part, fm) / fm.sum(1).clamp(min=1e-12)
+        self.max_compression[idx] = w.amax(1)
         self.support[idx] = lin.mask.any(1)
 
 

@@ -98,12 +98,12 @@ def simulate_poses(
     samples on the same bed are simulated together, results come back in input order).
     `settle_config`: sim #1's settings (default `SettleConfig()`; `settle_config_for` gives a
     partition's). `settle="none"` skips sim #1 (the poses rest as drawn); `sim2`: the whole mesh
-    at rigid rest, or every body part on its own contact (`sim.articulated`; on flat beds,
-    raised beds keep the rigid rest). `settle="articulated"`: one mechanics - the articulated
-    rest settles the drawn pose itself (joint springs, self-contact, the soft bed; no MuJoCo)
-    and its field is the image, whatever `sim2` says; raised beds fall back to MuJoCo and the
-    rigid rest. `pillow_m` (B,): a pillow of this thickness (m, 0: none) under each head in the
-    articulated rest (`sim.pillow`; the rigid rest and raised beds have none)."""
+    at rigid rest, or every body part on its own contact (`sim.articulated`, on flat and raised
+    beds, `sim.raised`). `settle="articulated"`: one mechanics - the articulated rest settles
+    the drawn pose itself (joint springs, self-contact, the soft bed; no MuJoCo) and its field
+    is the image, whatever `sim2` says. `pillow_m` (B,): a pillow of this thickness (m, 0:
+    none) under each head in the articulated rest on a flat bed (`sim.pillow`; the rigid rest
+    and raised beds have none)."""
     if settle not in ("mujoco", "articulated", "none") or sim2 not in ("rigid", "articulated"):
         raise ValueError(
             f"settle must be 'mujoco', 'articulated' or 'none' and sim2 'rigid' or 'articulated', "
@@ -198,7 +198,7 @@ def _simulate_one_bed(
     model64 = as_float64(model)
     B = params.batch_size
     if settle == "articulated":
-        settle, sim2 = ("none", "articulated") if bed.flat else ("mujoco", "rigid")
+        settle, sim2 = "none", "articulated"
     if settle == "mujoco":
         settled = settle_bodies(model64, params, mattress, mat, config=settle_config, bed=bed)
         rest, reason1, steps, settle_ms = settled.params, settled.reason, settled.steps, settled.wall_ms
@@ -212,10 +212,12 @@ def _simulate_one_bed(
     measured = model64.measure(rest.shape)
     mass = measured.mass_kg
     t0 = time.perf_counter()
-    if sim2 == "articulated" and bed.flat:  # raised beds keep the rigid rest (docs/physics.md)
+    if sim2 == "articulated":
         from pressurepose.sim.articulated import rest_articulated
 
-        art = rest_articulated(model64, rest, mass, mattress, mat, articulated, pillow_m=pillow_m)
+        art = rest_articulated(
+            model64, rest, mass, mattress, mat, articulated, pillow_m=pillow_m if bed.flat else None, bed=bed
+        )
         pressure_pa, failure2, sink = (
             taxel_pressure(art.foundation_pa, mattress, mat, art.sub),
             art.failure,
