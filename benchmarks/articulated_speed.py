@@ -45,7 +45,7 @@ def main() -> None:
     bed = MattressParams.load(args.bed)
     for part in args.partitions.split(","):
         drawn = PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=0)).sample(range(args.n))
-        poses = drawn.params
+        poses, all_beds = drawn.params, drawn.beds()
         if args.jitter:
             poses = poses.replace(root_translation=poses.root_translation + args.jitter)
         over = {k: eval(v) for k, v in (kv.split("=") for kv in args.set.split(",") if kv)}  # noqa: S307
@@ -55,7 +55,7 @@ def main() -> None:
         for b0 in range(0, args.n, args.batch):
             idx = torch.arange(b0, min(b0 + args.batch, args.n))
             chunk = poses.index(idx)
-            beds = [drawn.beds()[i] for i in idx.tolist()]
+            beds = [all_beds[i] for i in idx.tolist()]
             if len(set(beds)) > 1:  # half_sitting: each raised bed's bodies together
                 raise SystemExit("one bed per batch: use --batch 1 for half_sitting, or a flat partition")
             rest = rest_articulated(model, chunk, mattress=bed, config=config, bed=beds[0])

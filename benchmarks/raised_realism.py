@@ -1,5 +1,6 @@
 """The raised bed against PmatData group F (issue 20 item 4): the articulated rest (`sim.raised`)
-and the older MuJoCo + rigid rest, per head angle and mattress.
+and the older MuJoCo + rigid rest, per head angle and mattress (each engine on the bed `pressurepose
+realism` gives it: the articulated rest on the set's preset, the rigid rest on its own fit).
 
 For group F's subjects (their heights and weights, male Anny bodies) half-sitting in the home
 pose on the raised bed (`sampling.sitting.half_sitting_params`, hips 15 cm foot-ward of the
@@ -29,7 +30,7 @@ from pressurepose.mat import MatSpec
 from pressurepose.samples import resolve_pmatdata
 from pressurepose.sampling.sitting import half_sitting_params
 from pressurepose.sim.mattress import MattressParams
-from pressurepose.sim.run import simulate_poses
+from pressurepose.sim.run import default_mattress, simulate_poses
 
 ENGINES = {"articulated": {"settle": "articulated"}, "rigid": {"settle": "mujoco", "sim2": "rigid"}}
 
@@ -75,7 +76,10 @@ def main() -> None:
             floor = R.reading_floor(real)
             for engine in args.engines.split(","):
                 t0 = time.perf_counter()
-                sim = simulate_poses(model, params, MattressParams.preset(mattress), mat, bed=bed, **ENGINES[engine])
+                # Each engine on the bed `pressurepose realism` gives it: the articulated rest on the
+                # set's preset, the rigid rest on its own fit (the class defaults).
+                bed_params = MattressParams.preset(mattress) if engine == "articulated" else default_mattress("mujoco")
+                sim = simulate_poses(model, params, bed_params, mat, bed=bed, **ENGINES[engine])
                 ok = [i for i, r in enumerate(sim.reason) if not r]
                 if not ok:
                     print(

@@ -12,7 +12,7 @@ from test_articulated import _bodies
 from pressurepose.bed import BedShape
 from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
-from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
+from pressurepose.sim.articulated import FAIL_SLIDES, ArticulatedConfig, rest_articulated
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.raised import RaisedBed
 
@@ -47,9 +47,9 @@ def test_section_coefficients_by_finite_differences():
             assert float(dn) == pytest.approx(float(pred), abs=1e-5)
 
 
-def test_sectioned_hessian_matches_autograd(anny64):
-    """The Newton step's gradient and Hessian with the cells split between two sections (parts
-    + 24 on the raised one) against autograd on the same linearised energy."""
+def _sectioned(anny64, angle=10.0):
+    """A home-pose body dropped onto a raised bed (10 deg: both sections within reach) and its
+    linearisation: (lin, raised, the pose's params, rot, joints, body_com, labels, xy)."""
     from pressurepose.body.kinematics import forward_kinematics, rest_joints
     from pressurepose.body.params import root_matrix
     from pressurepose.body.rotations import axis_angle_to_matrix
@@ -58,19 +58,19 @@ def test_sectioned_hessian_matches_autograd(anny64):
     from pressurepose.sim.linearised import Linearised
     from pressurepose.sim.soft_contact import lowest_points
 
-    mat, mp = MatSpec(), MattressParams()
-    raised = RaisedBed(BedShape(10.0), mat, torch.float64, "cpu")  # both sections within reach
+    mat = MatSpec()
+    raised = RaisedBed(BedShape(angle), mat, torch.float64, "cpu")
     p = _bodies(anny64, 1)
     pts = surface_points(anny64(p).vertices, anny64.faces)
     p = p.replace(root_translation=p.root_translation - torch.tensor([[0.0, 0.0, float(raised.drop(pts)[0])]]))
     out = anny64(p)
     faces = anny64.faces
     face_part = anny64.part_labels[faces[:, 0]]
+    labels = torch.cat([anny64.part_labels, face_part])
     mass, com = part_mass_and_com(out.vertices, faces, face_part)
     dofs = Dofs("cpu", torch.float64)
     rot, _ = forward_kinematics(rest_joints(anny64, p.shape), p.pose, root_matrix(p.root_rotation))
-    surface = raised.to_surface(surface_points(out.vertices, faces))
-    h, part, _ = lowest_points(surface, torch.cat([anny64.part_labels, face_part]), mat, 2)
+    h, part, _ = lowest_points(raised.to_surface(surface_points(out.vertices, faces)), labels, mat, 2)
     X, Y = cell_centres(mat, 2, covered=True, dtype=torch.float64)
     xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
     part = raised.section_parts(part, raised.head_cells(xy[:, 0]))
@@ -79,19 +79,57 @@ def test_sectioned_hessian_matches_autograd(anny64):
     axes, pivots = dof_axes_pivots(dofs, rot, out.joints, body_com)
     k = joint_stiffness(mass.sum(1), dofs)
     area = mat.pitch_row_m * mat.pitch_col_m / 4
-    lin = Linearised(
-        h, part, xy, a, mass, com, e + 0.05, k, dofs, area, 3e5, None, (), raised.section_a(a, axes, pivots)
-    )
-    assert bool((lin.part[lin.mask.bool()] >= 24).any()) and bool((lin.part[lin.mask.bool()] < 24).any())
-    q = torch.zeros(1, dofs.n, dtype=torch.float64)
-    q[0, 0] = -float(lin.h[lin.mask.bool()].min()) - 0.03
-    q[0, 1:] = 0.01 * torch.sin(torch.arange(1, dofs.n, dtype=torch.float64))
-    grad, H, _, _, energy = lin.newton_step(q, mp)
+    section_a = raised.section_a(a, axes, pivots)
+    lin = Linearised(h, part, xy, a, mass, com, e + 0.05, k, dofs, area, 3e5, None, (), section_a, raised.section_cos)
+    return lin, raised, p, rot, out.joints, body_com, labels
+
+
+def test_sectioned_hessian_matches_autograd(anny64):
+    """The Newton step's gradient and Hessian with the cells split between two sections (parts
+    + 24 on the raised one) against autograd on the same linearised energy; the force holding
+    the weight is the normals' vertical resultant."""
+    lin, raised, *_ = _sectioned(anny64)
+    mp = MattressParams()
+    on = lin.mask.bool()
+    assert bool((lin.part[on] >= 24).any()) and bool((lin.part[on] < 24).any())
+    q = torch.zeros(1, lin.dofs.n, dtype=torch.float64)
+    q[0, 0] = -float(lin.h[on].min()) - 0.03
+    q[0, 1:] = 0.01 * torch.sin(torch.arange(1, lin.dofs.n, dtype=torch.float64))
+    grad, H, f, _, energy = lin.newton_step(q, mp)
     qa = q.clone().requires_grad_(True)
     g_auto = torch.autograd.grad(lin.energy(qa, mp).sum(), qa)[0]
     np.testing.assert_allclose(grad.numpy(), g_auto.numpy(), rtol=1e-6, atol=1e-6)
     H_auto = torch.autograd.functional.hessian(lambda x: lin.energy(x[None], mp).sum(), q[0])
     np.testing.assert_allclose(H[0].numpy(), H_auto.numpy(), rtol=1e-6, atol=1e-4)
+    head = lin.part >= 24
+    expected = (f * torch.where(head, torch.full_like(f, raised.cos), torch.ones_like(f))).sum(1)
+    np.testing.assert_allclose(lin.support(f).numpy(), expected.numpy(), rtol=1e-12)
+
+
+def test_sectioned_heights_follow_the_motion(anny64):
+    """The linearised normal heights of the cells on both sections against the mesh moved by a
+    small motion (`apply_motion`) and rasterised again in surface coordinates: the same to second
+    order (a wrong section or part slot in the coefficients would be first-order off)."""
+    from pressurepose.maps import surface_points
+    from pressurepose.sim.articulation import apply_motion
+    from pressurepose.sim.soft_contact import lowest_points
+
+    lin, raised, p, rot, joints, body_com, labels = _sectioned(anny64)
+    q = 2e-3 * torch.cos(torch.arange(lin.dofs.n, dtype=torch.float64))[None]
+    deep = lin.take(torch.tensor([0]))
+    deep.h = lin.h - 10.0  # every cell compressed: compression = -(h - 10 + dz)
+    dz = -deep.compression(q) - deep.h
+    moved = anny64(apply_motion(p, q, lin.dofs, rot, joints, body_com))
+    h_new, part_new, _ = lowest_points(
+        raised.to_surface(surface_points(moved.vertices, anny64.faces)), labels, MatSpec(), 2
+    )
+    h_new = h_new.gather(1, lin.index)
+    same = lin.mask.bool() & (part_new.gather(1, lin.index) == lin.part % 24)
+    for section in (lin.part < 24, lin.part >= 24):
+        sel = same & section
+        assert int(sel.sum()) > 50
+        actual, predicted = (h_new - lin.h)[sel], dz[sel]
+        assert float((actual - predicted).abs().median()) < 0.05 * float(predicted.abs().median())
 
 
 @pytest.fixture(scope="module")
@@ -151,6 +189,15 @@ def test_mirrored_bodies_give_mirrored_images_on_a_raised_bed(anny64):
     cols_a, cols_b = a.sum(0) / a.sum(), b.sum(0) / b.sum()
     assert float(0.5 * (rows_a - rows_b).abs().sum()) < 0.05
     assert float(0.5 * (cols_a - cols_b).abs().sum()) < 0.05
+
+
+def test_a_body_the_sheet_cannot_hold_slides(anny64, raised_rest):
+    """With a slippery sheet (friction 0.05) the raised section's push toward the foot needs more
+    friction than it has: the rest fails with FAIL_SLIDES and an empty image."""
+    p, r = raised_rest
+    slippery = rest_articulated(anny64, p, mattress=MattressParams(friction=0.05), bed=BedShape(30.0))
+    assert float(slippery.friction_ratio[0]) > 0.05
+    assert slippery.failure == [FAIL_SLIDES] and float(slippery.foundation_pa.abs().sum()) == 0.0
 
 
 def test_pillows_are_refused_on_a_raised_bed(anny64):

@@ -60,6 +60,7 @@ from pressurepose.sim.articulation import (
     tissue_sag,
     to_part_frames,
 )
+from pressurepose.sim.foundation import FAIL_SLIDES
 from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
@@ -86,7 +87,6 @@ FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it
 FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
 FAIL_NOT_CONVERGED = "did not converge"
 FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
-FAIL_SLIDES = "slides: the raised bed needs more friction than the sheet has"
 MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
 
 
@@ -100,13 +100,14 @@ class ArticulatedRest:
     joints: torch.Tensor  # (B, 24, 3)
     # (B, rows*sub, cols*sub) pressure per cell on the mattress top (under a pillow: at its base)
     foundation_pa: torch.Tensor
-    force_n: torch.Tensor  # (B,)
+    force_n: torch.Tensor  # (B,) the force holding the weight (on a raised bed the normals' vertical resultant)
     max_compression_m: torch.Tensor  # (B,) deepest compression of the foam
-    part_force_n: torch.Tensor  # (B, 24) contact force carried by each J24 part
+    part_force_n: torch.Tensor  # (B, 24) contact (normal) force carried by each J24 part
     self_penetration_m: torch.Tensor  # (B,) deepest overlap of the capsule pairs that started apart
     iterations: torch.Tensor  # (B,) Newton steps
     reposings: torch.Tensor  # (B,) re-posings each body took (ArticulatedConfig.outer at most)
-    # (B,) False: the last re-posing still moved the body (by more than the settled_* tolerances):
+    # (B,) False: the last re-posing still moved the body (the motion it took - swing damping's
+    # share of its linearisation's - beyond the settled_* tolerances):
     # the cap, not its balance, ended its rest; its image is its last linearisation's balance
     settled: torch.Tensor
     failure: list[str]
@@ -131,7 +132,7 @@ def rest_articulated(
     pillow_m: torch.Tensor | None = None,
     bed: BedShape | None = None,
 ) -> ArticulatedRest:
-    """Rest B posed bodies (BodyParams, float64 model) on the flat mattress, every part on its
+    """Rest B posed bodies (BodyParams, float64 model) on the mattress, every part on its
     own contact with compliant joints (module doc). The bodies may start above the bed or in
     it; their horizontal placement and yaw are kept. Failures are reported per sample.
     `pillow_m` (B,): each body's head on a pillow of this free thickness (m; 0: none;
@@ -284,6 +285,7 @@ def rest_articulated(
             (dofs.hinge_angles(cur.pose), body.dof_lo, body.dof_hi, _LIMIT_STIFFNESS_RATIO * body.k),
             springs,
             section_a,
+            None if raised is None else raised.section_cos,
         )
         last = outer == cfg.outer
         q, it = minimise(
@@ -321,14 +323,14 @@ def rest_articulated(
             iters[act[idx]] += it
             done.finish(act[idx], lin_s, q_s, cur.index(idx), rot[idx], joints[idx], body_com[idx], mp)
             if friction is not None:
-                solved = tuple(x[keep] for x in lin.contact_state(q, mp))
+                solved = tuple(x[keep] for x in lin.contact_state(step, mp))
                 friction = friction.take(keep)
             if moving_contact is not None:
                 moving_contact = moving_contact.take(keep)
             act, body, q, step = act[keep], body.take(keep), q[keep], step[keep]
             rot, joints, body_com = rot[keep], joints[keep], body_com[keep]
-        elif friction is not None:
-            solved = lin.contact_state(q, mp)
+        elif friction is not None:  # the contacts where the bodies go (their damped motion)
+            solved = lin.contact_state(step, mp)
         body.cur = apply_motion(body.cur, step, dofs, rot, joints, body_com)
     final = done.params
     out = model(final)

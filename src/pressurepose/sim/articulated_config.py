@@ -41,7 +41,7 @@ class ArticulatedConfig:
     """A re-posing whose motion reverses an unknown's last one takes only the secant share of it
     (`rest_state.damp_swings`), so an elbow or a hip swinging about a contact's onset settles
     instead of alternating to the cap (session 46: bodies still moving at the cap 23 / 31 / 31
-    -> 10 / 19 / 17 of 64, supine / general / lateral_straight, docs/realism.md). False: every
+    -> 15 / 14 / 25 of 64, supine / general / lateral_straight, docs/realism.md). False: every
     re-posing takes its whole motion (engine revision 6)."""
     inner: int = 25
     """Newton steps of the last linearisation (the rest itself)."""

@@ -49,11 +49,13 @@ class Linearised:
         limits=None,
         springs=(),
         section_a=None,
+        section_cos=None,
     ):
         # springs: sim.self_contact.LinearSprings (self-contact, friction anchors) added to the energy.
         # section_a (B, N, S, 3): on a bed of S sections (a raised head section, `sim.raised`),
         # each DoF's coefficients of the normal height over the section's (1, s, y); the cells
-        # of section j carry part + 24 j. None: flat (dof_a, world heights).
+        # of section j carry part + 24 j, and section_cos (S,) is the cosine of each section's
+        # slope (the share of a cell's normal force that holds the weight). None: flat.
         self.springs = tuple(springs)
         self._law_key, self._law_cached = None, None  # `_law`: the series law of the last mattress
         # Hinge limits as a stiff one-sided spring on the hinge angle (angle + q within
@@ -71,7 +73,7 @@ class Linearised:
         self.tissue = tissue.gather(1, self.index) if isinstance(tissue, torch.Tensor) else tissue
         self.dof_parts = dofs.desc[dofs.joint]  # (N, 24): parts each DoF moves
         # Constant within the linearisation: each cell's x, y and index into the per-part
-        # coefficients (B, 24 * 3), and its moments (1, x, y) and the six distinct entries of
+        # coefficients (B, n_parts * 3), and its moments (1, x, y) and the six distinct entries of
         # (1, x, y)(1, x, y)^T (masked), summed per part with the force or the stiffness,
         # coordinate-major (B, 9, K): the scatter along the cells' own axis is ~3x faster.
         cell_xy = xy[self.index]
@@ -86,7 +88,7 @@ class Linearised:
         sub_g = torch.einsum("js,bst->bjt", dofs.desc, gb)  # (B, 24, 3)
         self.g_grav = (dof_a * sub_g[:, dofs.joint]).sum(-1)
         self.e, self.k = e, k
-        # (B, N, 24 * 3): a_n in the slots of the parts DoF n moves (zero elsewhere); the parts'
+        # (B, N, n_parts * 3): a_n in the slots of the parts DoF n moves (zero elsewhere); the parts'
         # affine height coefficients are q G, the gradient's force term G (per-part force
         # moments), the Hessian G M G^T with M the parts' 3 x 3 stiffness moments.
         if section_a is None:
@@ -96,10 +98,12 @@ class Linearised:
             self.n_parts, self.sectioned = NUM_JOINTS * section_a.shape[2], True
             G = section_a[:, :, :, None, :] * self.dof_parts[None, :, None, :, None]
             self._G = G.reshape(dof_a.shape[0], dofs.n, -1)
+            cos = torch.as_tensor(section_cos, dtype=h.dtype, device=h.device)
+            self.vertical = cos[torch.div(self.part, NUM_JOINTS, rounding_mode="floor")]  # (B, K)
 
     # Attributes with one row per body (`take` selects them): per cell (B, K), (B, 9, K) and
     # per DoF.
-    _PER_CELL = ("h", "mask", "part", "index", "_x", "_y", "_coef", "_moments")
+    _PER_CELL = ("h", "mask", "part", "index", "_x", "_y", "_coef", "_moments", "vertical")
     _PER_DOF = ("g_grav", "e", "k", "dof_a", "_G")
 
     def take(self, idx: torch.Tensor) -> Linearised:
@@ -111,7 +115,8 @@ class Linearised:
         new.__dict__.update(self.__dict__)
         K = max(int(self.mask[idx].sum(1).max()), 1) if len(idx) else 1
         for name in self._PER_CELL:
-            setattr(new, name, getattr(self, name)[..., :K][idx])
+            if hasattr(self, name):
+                setattr(new, name, getattr(self, name)[..., :K][idx])
         for name in self._PER_DOF:
             setattr(new, name, getattr(self, name)[idx])
         new._scatter_index = new.part[:, None].expand(-1, 9, -1)
@@ -145,7 +150,7 @@ class Linearised:
     def compression(self, q):
         # The height change of a cell is affine in its (x, y) with per-part coefficients
         # A_s = sum over the DoFs that move part s of q_n a_n: no (cells x DoFs) matrix.
-        A = (q[:, None] @ self._G)[:, 0]  # (B, 24 * 3)
+        A = (q[:, None] @ self._G)[:, 0]  # (B, n_parts * 3)
         dz = A.gather(1, self._coef + 1).mul_(self._x).add_(A.gather(1, self._coef))
         dz.add_(A.gather(1, self._coef + 2).mul_(self._y))
         return dz.add_(self.h).neg_().clamp_(min=0).mul_(self.mask)  # relu(-(h + dz)), masked
@@ -220,6 +225,11 @@ class Linearised:
             energy, grad, H = energy + e_s, grad + g_s, H + h_s
         return grad, H, f, w, energy
 
+    def support(self, f):
+        """(B,) what the cells' forces f (B, K) hold of the weight: their sum, or on a sectioned
+        bed their vertical resultant."""
+        return (f * self.vertical).sum(1) if self.sectioned else f.sum(1)
+
     def _force_term(self, per_part):
         """(B, N): sum over the parts of G's rows times the parts' moments (B, P, 3) of (1, x, y)."""
         if self.sectioned:
@@ -256,7 +266,7 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int, step_tol: floa
     q = q.clone()
     act = torch.arange(B, device=q.device)  # the bodies still stepping; below, their rows only
     grad, H, f, _, e0 = lin.newton_step(q, mp)
-    force = f.sum(1)  # (B,): the cells' total force (the cells are trimmed as bodies leave)
+    force = lin.support(f)  # (B,): the force holding the weight (the cells are trimmed as bodies leave)
     qa, wa = q.clone(), weight
     for i in range(max_steps):
         scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
@@ -308,7 +318,7 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int, step_tol: floa
             energy = lin.energy(qa + t[:, None] * step, mp)
         else:
             grad, H, f, _, energy = lin.newton_step(qa + t[:, None] * step, mp)
-            force = f.sum(1)
+            force = lin.support(f)
         better = (energy <= e0) | free
         if not bool(better.all()):
             bad = (~better).nonzero()[:, 0]
@@ -324,7 +334,7 @@ def minimise(lin: Linearised, q, mp, weight, cfg, max_steps: int, step_tol: floa
             better[bad] = ok
             if not final:
                 redo = back.newton_step(qb + tb[:, None] * sb, mp)
-                grad[bad], H[bad], force[bad], energy[bad] = redo[0], redo[1], redo[2].sum(1), redo[4]
+                grad[bad], H[bad], force[bad], energy[bad] = redo[0], redo[1], back.support(redo[2]), redo[4]
         qa = qa + t[:, None] * step
         e0 = energy
         iters[act] += better.long()

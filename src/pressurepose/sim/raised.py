@@ -17,7 +17,10 @@ What it leaves out: the foam is compressed along each section's normal, and the 
 held (the rest has no horizontal DoF), so the sheet's friction holds whatever the raised
 section's normal forces push toward the foot: the rest reports the friction ratio that needs
 (`friction_ratio`) and a body needing more than the sheet's friction fails (`FAIL_SLIDES`).
-Friction's anchors (`sim.friction`) stay horizontal (world x, y) on both sections.
+Friction's anchors (`sim.friction`) stay horizontal (world x, y) on both sections: on the raised
+section they also resist a part's motion along the normal (its sin(angle) share, up to mu N)
+and hold only cos(angle) of a motion along the slope - a simplification that can move some load
+between the sections.
 """
 
 from __future__ import annotations
@@ -71,17 +74,15 @@ class RaisedBed:
         """(B, N, 2, 3): each DoF's coefficients of a point's normal height over (1, s, y) on the
         raised section (index 1) and on the flat one (index 0: `flat_a`, the world's)."""
         u = axes @ self.R  # (B, N, 3): the axes in the raised section's (t, y, n) components
-        p = (pivots - self.hinge) @ self.R
-        p = p + torch.stack(
-            [self.hinge[0].expand_as(p[..., 0]), torch.zeros_like(p[..., 0]), torch.zeros_like(p[..., 0])], -1
-        )
+        p = (pivots - self.hinge) @ self.R + self.hinge  # the pivots' (s, y, n) as if on the raised section
         a = torch.stack([u[..., 1] * p[..., 0] - u[..., 0] * p[..., 1], -u[..., 1], u[..., 0]], -1)
         a[:, 0] = torch.tensor([self.cos, 0.0, 0.0], dtype=a.dtype, device=a.device)
         return torch.stack([flat_a, a], 2)
 
-    def vertical(self, part: torch.Tensor) -> torch.Tensor:
-        """(B, K): the vertical share of each cell's normal force (cos(angle) on the raised section)."""
-        return torch.where(part >= NUM_JOINTS, self.cos, 1.0).to(torch.float64)
+    @property
+    def section_cos(self) -> tuple[float, float]:
+        """The cosine of each section's slope (flat, raised): `Linearised(section_cos=...)`."""
+        return (1.0, self.cos)
 
     def foot_push(self, part: torch.Tensor, force: torch.Tensor) -> torch.Tensor:
         """(B,) the horizontal push toward the foot of the raised section's normal forces."""

@@ -37,7 +37,7 @@ class MovingBodies:
     pillow_m: torch.Tensor | None = None  # (B,) pillow thickness (0: none)
     pillow_under: torch.Tensor | None = None  # (B, C) cells under the pillow
     # Swing damping (`damp_swings`): the last re-posing's motion, each unknown's share of its
-    # motion taken, and how many re-posings in a row it went on the same way undamped.
+    # motion taken, and how many re-posings in a row its motion kept its direction without shrinking.
     last_q: torch.Tensor | None = None  # (B, N)
     share: torch.Tensor | None = None  # (B, N)
     streak: torch.Tensor | None = None  # (B, N)
@@ -100,7 +100,9 @@ class RestsDone:
 
     def finish(self, idx, lin: Linearised, q, cur: BodyParams, rot, joints, body_com, mp: MattressParams) -> None:
         """Bodies `idx` rest at q of their linearisation `lin` (at the posing cur, rot, joints):
-        its field balances the weight; the mesh is moved by its (small) motion exactly."""
+        its field balances the weight; the mesh is moved by its motion exactly (small for a body
+        that settled; for one settled by swing damping at a kink up to a few tens of mrad,
+        docs/realism.md "Swing damping")."""
         _, _, f, w, _ = lin.newton_step(q, mp)
         w = lin.bed_compression(w, f, mp)  # the bed's share of the compression
         final = apply_motion(cur, q, self.dofs, rot, joints, body_com)
@@ -114,7 +116,7 @@ class RestsDone:
             self.force[idx] = f.sum(1)
         else:  # the normal forces' vertical resultant (it balances the weight), and the push
             fm = f * lin.mask
-            self.force[idx] = (fm * self.raised.vertical(lin.part).to(f.dtype)).sum(1)
+            self.force[idx] = lin.support(fm)
             self.friction_ratio[idx] = self.raised.foot_push(lin.part, fm) / fm.sum(1).clamp(min=1e-12)
         self.max_compression[idx] = w.amax(1)
         self.support[idx] = lin.mask.any(1)
