@@ -170,6 +170,10 @@ def test_bad_pillows_are_refused_by_the_commands(tmp_path, capsys):
             ["simulate", "--out", str(tmp_path / "s"), "--pillow-m", "0.1", "--settle", "mujoco"],
             "needs the articulated",
         ),
+        (
+            ["simulate", "--out", str(tmp_path / "s"), "--pillow-m", "0.1", "--head-angle-deg", "30"],
+            "pillows lie on flat beds only",
+        ),
         (["realism", "--out", str(tmp_path / "r"), "--pillow-m", "-0.1"], "pillow_m is a pillow's thickness"),
         (["generate", "--out", str(tmp_path / "g"), "--pillow", "1.5"], "share of the samples"),
     ):

@@ -73,6 +73,11 @@ def run_simulate(cfg: SimulateConfig) -> Written:
                 f"{bed.head_angle_deg:g} deg; leave out --head-angle-deg (or pick another index)"
             )
         bed = BedShape(cfg.head_angle_deg)
+    if cfg.pillow_m > 0 and not bed.flat:
+        raise UserError(
+            f"--pillow-m: pillows lie on flat beds only, and this sample's bed is raised {bed.head_angle_deg:g} deg;"
+            " leave out --pillow-m (or --head-angle-deg, or pick a flat partition)"
+        )
     sim = simulate_poses(
         model,
         initial.params,
