@@ -35,6 +35,12 @@ from pressurepose.sim.run import default_mattress, simulate_poses
 ENGINES = {"articulated": {"settle": "articulated"}, "rigid": {"settle": "mujoco", "sim2": "rigid"}}
 
 
+def cop_row(images: np.ndarray) -> float:
+    """The median over frames of the centre of pressure along the bed (rows, fractional)."""
+    rows = images.sum(2)
+    return float(np.median((rows * np.arange(rows.shape[1])).sum(1) / rows.sum(1).clip(min=1e-12)))
+
+
 def head_share(images: np.ndarray, hinge_row: int) -> float:
     return float(np.median(images[:, :hinge_row].sum((1, 2)) / images.sum((1, 2)).clip(min=1e-12)))
 
@@ -45,6 +51,12 @@ def main() -> None:
     ap.add_argument("--engines", default="articulated,rigid")
     ap.add_argument("--threshold", type=float, default=20.0)
     ap.add_argument("--hip-offset", type=float, default=0.15, help="hips this far foot-ward of the hinge (m)")
+    ap.add_argument(
+        "--place-cop",
+        action="store_true",
+        help="rest twice: the second time with the hips moved by what puts the images' median centre "
+        "of pressure along the bed on the real frames' (per engine, angle and mattress)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     root = resolve_pmatdata("pmatdata")
@@ -66,7 +78,6 @@ def main() -> None:
     for angle in [float(a) for a in args.angles.split(",")]:
         bed = BedShape(angle)
         hinge_row = mat.rows - bed.hinge_row_from_foot
-        params = half_sitting_params(model, shape, bed, mat, hip_offset_m=args.hip_offset)
         for mattress in ("air", "sponge"):
             rs = [r for r in recs if r.bed_incline_deg == angle and r.mattress == mattress]
             if not rs:
@@ -79,9 +90,17 @@ def main() -> None:
                 # Each engine on the bed `pressurepose realism` gives it: the articulated rest on the
                 # set's preset, the rigid rest on its own fit (the class defaults).
                 bed_params = MattressParams.preset(mattress) if engine == "articulated" else default_mattress("mujoco")
-                sim = simulate_poses(model, params, bed_params, mat, bed=bed, **ENGINES[engine])
-                ok = [i for i, r in enumerate(sim.reason) if not r]
-                if not ok:
+                offset = args.hip_offset
+                for _ in range(2 if args.place_cop else 1):
+                    used = offset
+                    params = half_sitting_params(model, shape, bed, mat, hip_offset_m=used)
+                    sim = simulate_poses(model, params, bed_params, mat, bed=bed, **ENGINES[engine])
+                    ok = [i for i, r in enumerate(sim.reason) if not r]
+                    if not ok:
+                        break
+                    drawn = R.read_with_floor(sim.pressure_mmhg[ok].numpy(), floor)
+                    offset = float(np.clip(offset + (cop_row(real) - cop_row(drawn)) * mat.pitch_row_m, 0.0, 0.5))
+                if not ok:  # noqa: SIM102
                     print(
                         f"| {angle:.0f} | {mattress} | {len(rs)} | {engine} | - | - | - | - | 0/{len(params.pose)} | |"
                     )
@@ -92,7 +111,8 @@ def main() -> None:
                 print(
                     f"| {angle:.0f} | {mattress} | {len(rs)} | {engine} | {c.along:.3f} | {c.across:.3f} | "
                     f"{c.area_ratio:.2f} | {head_share(images, hinge_row):.2f} ({head_share(real, hinge_row):.2f}) | "
-                    f"{len(ok)}/{len(sim.reason)} | {time.perf_counter() - t0:.0f} |",
+                    f"{len(ok)}/{len(sim.reason)} | {time.perf_counter() - t0:.0f} |"
+                    + (f" hips {used:.2f} m |" if args.place_cop else ""),
                     flush=True,
                 )
 
