@@ -266,3 +266,37 @@ def test_force_from_head_end_by_hand():
     np.testing.assert_array_equal(R.force_from_head_end(np.zeros((20, 4)), 1.0, 0.025), np.zeros(R.HEAD_END_BINS))
     s = R.summarise(np.stack([img, img]), np.array([1.0, 1.0]), 0.025, 0.025)
     np.testing.assert_allclose(s.head_end[:2], np.array([2.0, 6.0]) / total)
+
+
+def test_raised_rows_on_two_frames(tmp_path):
+    """The report's raised beds (`commands.realism_raised`) on two PmatData group F frames (30
+    deg, sponge): one body per frame, its hips moved to the frame's centre of pressure, the
+    measures in range, and the markdown's table."""
+    import csv
+    import shutil
+
+    from pressurepose.commands.realism import RealismConfig
+    from pressurepose.commands.realism_raised import load_raised, raised_markdown, raised_rows
+    from pressurepose.samples import pmatdata_dir
+
+    src = pmatdata_dir()
+    with (src / "index.csv").open() as fh:
+        records = list(csv.DictReader(fh))
+    keep = [r for r in records if r["group"] == "F" and r["bed_incline_deg"] == "30" and r["mattress"] == "sponge"][:2]
+    assert len(keep) == 2
+    for r in keep:
+        (tmp_path / r["file"]).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(src / r["file"], tmp_path / r["file"])
+    with (tmp_path / "index.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(records[0]))
+        w.writeheader()
+        w.writerows(keep)
+    real = load_raised(tmp_path, 20.0)
+    assert list(real) == [(30.0, "sponge")] and real[(30.0, "sponge")][0].shape == (2, 64, 27)
+    (row,) = raised_rows(real, RealismConfig(out=tmp_path / "out", real=tmp_path))
+    assert row["frames"] == row["simulated_bodies"] == 2 and not row["rejected"]
+    assert 0 < row["comparison"]["along"] <= 1 and 0 < row["comparison"]["across"] <= 1
+    assert 0 < row["raised_share"]["simulated"] < 1 and 0 < row["raised_share"]["real"] < 1
+    assert 0.0 <= row["hips_past_hinge_m"] <= 0.6
+    table = "\n".join(raised_markdown([row]))
+    assert "Raised head of the bed" in table and "| 30 | sponge |" in table and "2 of 2" in table

@@ -69,6 +69,9 @@ class RealismConfig:
     default since session 44): the images as the generator writes them, read from the sensor's
     own floor (`MattressParams.floor_mmhg`: the presets' 3.31 / 3.61 mmHg, PmatData's), so the
     report judges what a network trains on (docs/realism.md "The sensor's floor in the generator")."""
+    raised: bool = True
+    """Also the raised beds (PmatData group F, the head of the bed at 0-60 deg) against bodies
+    half-sitting on them, with the articulated sim #2 (`commands.realism_raised`; ~60 s more)."""
 
     def __post_init__(self) -> None:
         from pressurepose.sim.pillow import check_thickness
@@ -316,12 +319,18 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
         if len(mats) == 2:
             c = R.compare(real_sets[(posture, mats[0])], real_sets[(posture, mats[1])])
             ceilings.append({"posture": posture, "between": f"{mats[0]} vs {mats[1]}", **dataclasses.asdict(c)})
+    raised = []
+    if cfg.raised and cfg.sim2 == "articulated":
+        from pressurepose.commands.realism_raised import load_raised, raised_rows
+
+        raised = raised_rows(load_raised(cfg.real, cfg.threshold), cfg)
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {
         "command": "realism",
         "config": {k: str(v) for k, v in dataclasses.asdict(cfg).items()},
         "rows": rows,
         "ceilings": ceilings,
+        "raised": raised,
     }
     paths = {"json": write_text(cfg.out / "report.json", json.dumps(record, indent=1))}
     paths["markdown"] = write_text(cfg.out / "report.md", markdown(record))

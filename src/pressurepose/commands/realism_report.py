@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from pressurepose.commands.realism_raised import raised_markdown
 from pressurepose.eval import realism as R
 
 
@@ -141,6 +142,7 @@ def markdown(record: dict) -> str:
         lines.append(
             f"| {c['posture']} | {c['between']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} |"
         )
+    lines += raised_markdown(record.get("raised", []))
     return "\n".join(lines) + "\n"
 
 

@@ -172,8 +172,9 @@ def half_sitting_params(
     model, shape: torch.Tensor, bed: BedShape, mat: MatSpec | None = None, hip_offset_m: float = 0.15
 ) -> BodyParams:
     """BodyParams (float64) of B bodies in the home pose (legs straight, arms at the sides)
-    half-sitting on a raised bed: hips `hip_offset_m` foot-ward of the hinge, centred across
-    the bed, sat up and lowered onto it as the half_sitting partition does."""
+    half-sitting on a raised bed: hips `hip_offset_m` (a number or one per body, (B,)) foot-ward
+    of the hinge, centred across the bed, sat up and lowered onto it as the half_sitting
+    partition does."""
     from pressurepose.body.capsules import fit_capsules, home_pose
 
     mat = mat or MatSpec()
