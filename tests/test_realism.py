@@ -148,8 +148,8 @@ def test_fit_bands_by_hand():
         R.fit_bands(np.pad(np.ones((1, 2, 27)), ((0, 0), (0, 62), (0, 0))), pitch)  # load in rows 0-1 only
 
 
-def _tiny_folder(tmp_path, frame_text=None, rows=64):
-    """Two subjects' supine, left and right frames copied from the packaged PmatData."""
+def _copy_frames(tmp_path, select):
+    """A folder in PmatData's layout holding the packaged frames whose index rows `select` picks."""
     import csv
     import shutil
 
@@ -158,14 +158,7 @@ def _tiny_folder(tmp_path, frame_text=None, rows=64):
     src = pmatdata_dir()
     with (src / "index.csv").open() as fh:
         records = list(csv.DictReader(fh))
-    keep = [
-        r
-        for r in records
-        if r["subject"] in ("1", "5")
-        and r["mattress"] == "sponge"
-        and r["group"] in ("C", "D")
-        or (r["subject"] in ("1", "5") and r["mattress"] == "sponge" and r["group"] == "B" and r["index"] == "1")
-    ]
+    keep = [r for r in records if select(r)]
     for r in keep:
         (tmp_path / r["file"]).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(src / r["file"], tmp_path / r["file"])
@@ -173,6 +166,19 @@ def _tiny_folder(tmp_path, frame_text=None, rows=64):
         w = csv.DictWriter(fh, fieldnames=list(records[0]))
         w.writeheader()
         w.writerows(keep)
+    return keep
+
+
+def _tiny_folder(tmp_path, frame_text=None, rows=64):
+    """Two subjects' supine, left and right frames copied from the packaged PmatData."""
+    keep = _copy_frames(
+        tmp_path,
+        lambda r: (
+            r["subject"] in ("1", "5")
+            and r["mattress"] == "sponge"
+            and (r["group"] in ("C", "D") or (r["group"] == "B" and r["index"] == "1"))
+        ),
+    )
     if frame_text is not None:
         (tmp_path / keep[0]["file"]).write_text(frame_text)
     return tmp_path, keep
@@ -272,25 +278,18 @@ def test_raised_rows_on_two_frames(tmp_path):
     """The report's raised beds (`commands.realism_raised`) on two PmatData group F frames (30
     deg, sponge): one body per frame, its hips moved to the frame's centre of pressure, the
     measures in range, and the markdown's table."""
-    import csv
-    import shutil
-
     from pressurepose.commands.realism import RealismConfig
     from pressurepose.commands.realism_raised import load_raised, raised_markdown, raised_rows
-    from pressurepose.samples import pmatdata_dir
 
-    src = pmatdata_dir()
-    with (src / "index.csv").open() as fh:
-        records = list(csv.DictReader(fh))
-    keep = [r for r in records if r["group"] == "F" and r["bed_incline_deg"] == "30" and r["mattress"] == "sponge"][:2]
-    assert len(keep) == 2
-    for r in keep:
-        (tmp_path / r["file"]).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy(src / r["file"], tmp_path / r["file"])
-    with (tmp_path / "index.csv").open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(records[0]))
-        w.writeheader()
-        w.writerows(keep)
+    picked = []
+
+    def two_at_30(r):
+        if r["group"] == "F" and r["bed_incline_deg"] == "30" and r["mattress"] == "sponge" and len(picked) < 2:
+            picked.append(r)
+            return True
+        return False
+
+    assert len(_copy_frames(tmp_path, two_at_30)) == 2
     real = load_raised(tmp_path, 20.0)
     assert list(real) == [(30.0, "sponge")] and real[(30.0, "sponge")][0].shape == (2, 64, 27)
     (row,) = raised_rows(real, RealismConfig(out=tmp_path / "out", real=tmp_path))
