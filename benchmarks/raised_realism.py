@@ -24,6 +24,8 @@ import torch
 from pressurepose.bed import BedShape
 from pressurepose.body import load_body_model
 from pressurepose.body.fit_shape import shape_for_height_mass
+from pressurepose.commands.realism import frame_placement
+from pressurepose.commands.realism_raised import raised_share
 from pressurepose.data.pmatdata import load_images, load_index
 from pressurepose.eval import realism as R
 from pressurepose.mat import MatSpec
@@ -33,16 +35,6 @@ from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.run import default_mattress, simulate_poses
 
 ENGINES = {"articulated": {"settle": "articulated"}, "rigid": {"settle": "mujoco", "sim2": "rigid"}}
-
-
-def cop_row(images: np.ndarray) -> float:
-    """The median over frames of the centre of pressure along the bed (rows, fractional)."""
-    rows = images.sum(2)
-    return float(np.median((rows * np.arange(rows.shape[1])).sum(1) / rows.sum(1).clip(min=1e-12)))
-
-
-def head_share(images: np.ndarray, hinge_row: int) -> float:
-    return float(np.median(images[:, :hinge_row].sum((1, 2)) / images.sum((1, 2)).clip(min=1e-12)))
 
 
 def main() -> None:
@@ -99,7 +91,10 @@ def main() -> None:
                     if not ok:
                         break
                     drawn = R.read_with_floor(sim.pressure_mmhg[ok].numpy(), floor)
-                    offset = float(np.clip(offset + (cop_row(real) - cop_row(drawn)) * mat.pitch_row_m, 0.0, 0.5))
+                    miss = np.median(frame_placement(real, *pitch)[0][:, 0]) - np.median(
+                        frame_placement(drawn, *pitch)[0][:, 0]
+                    )
+                    offset = float(np.clip(offset + miss, 0.0, 0.5))
                 if not ok:  # noqa: SIM102
                     print(
                         f"| {angle:.0f} | {mattress} | {len(rs)} | {engine} | - | - | - | - | 0/{len(params.pose)} | |"
@@ -110,7 +105,7 @@ def main() -> None:
                 c = R.compare(real_set, sim_set)
                 print(
                     f"| {angle:.0f} | {mattress} | {len(rs)} | {engine} | {c.along:.3f} | {c.across:.3f} | "
-                    f"{c.area_ratio:.2f} | {head_share(images, hinge_row):.2f} ({head_share(real, hinge_row):.2f}) | "
+                    f"{c.area_ratio:.2f} | {raised_share(images, hinge_row):.2f} ({raised_share(real, hinge_row):.2f}) | "
                     f"{len(ok)}/{len(sim.reason)} | {time.perf_counter() - t0:.0f} |"
                     + (f" hips {used:.2f} m |" if args.place_cop else ""),
                     flush=True,

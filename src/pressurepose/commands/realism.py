@@ -154,6 +154,19 @@ def frame_placement(images: np.ndarray, pitch_row_m: float, pitch_col_m: float) 
     return np.stack([cx, cy], 1), 0.5 * np.arctan2(2 * sxy, sxx - syy)
 
 
+def set_mattress(cfg: RealismConfig, name: str | None, fixed=None):
+    """The bed a real set's simulated bodies rest on: `fixed` (the caller's or --params's
+    `MattressParams`) when given; else the articulated sim #2 on the set's mattress preset (air,
+    sponge), the rigid one on the class defaults (its own fit)."""
+    from pressurepose.sim.mattress import PRESETS, MattressParams
+
+    if fixed is not None:
+        return fixed
+    if cfg.sim2 == "articulated" and name in PRESETS:
+        return MattressParams.preset(name)
+    return MattressParams()
+
+
 def simulate_subjects(
     subjects: list[RealSubject], cfg: RealismConfig, mattress=None, articulated=None, scenes: dict | None = None
 ):
@@ -173,20 +186,11 @@ def simulate_subjects(
     from pressurepose.mat import MatSpec
     from pressurepose.sampling.partitions import HOLD_ROLL_M
     from pressurepose.sim.articulated import ArticulatedConfig
-    from pressurepose.sim.mattress import PRESETS, MattressParams
+    from pressurepose.sim.mattress import MattressParams
     from pressurepose.sim.run import simulate_poses
     from pressurepose.sim.settle_config import SettleConfig
 
     fixed = mattress or (MattressParams.load(cfg.params) if cfg.params else None)
-
-    def bed_for(name):
-        # Without --params: the articulated sim #2 rests each real set on its mattress's preset
-        # (air, sponge), the rigid one on the class defaults (its own fit).
-        if fixed is not None:
-            return fixed
-        if cfg.sim2 == "articulated" and name in PRESETS:
-            return MattressParams.preset(name)
-        return MattressParams()
 
     mat = MatSpec(covered_cols=cfg.bed_width_cols)
     model = load_body_model("anny", dtype=torch.float64)
@@ -227,7 +231,7 @@ def simulate_subjects(
         sim = simulate_poses(
             model,
             params,
-            bed_for(mattress_name),
+            set_mattress(cfg, mattress_name, fixed),
             mat,
             settle=cfg.settle,
             sim2=cfg.sim2,
@@ -359,5 +363,6 @@ __all__ = [
     "real_scenes",
     "resting_pose",
     "run_realism",
+    "set_mattress",
     "simulate_subjects",
 ]

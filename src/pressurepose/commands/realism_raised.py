@@ -42,13 +42,8 @@ def load_raised(root, threshold: float) -> dict:
     return out
 
 
-def _cop_row(images: np.ndarray) -> np.ndarray:
-    """(N,) each image's centre of pressure along the bed (fractional rows)."""
-    rows = images.sum(2)
-    return (rows * np.arange(rows.shape[1])).sum(1) / rows.sum(1).clip(min=1e-12)
-
-
-def _raised_share(images: np.ndarray, hinge_row: int) -> float:
+def raised_share(images: np.ndarray, hinge_row: int) -> float:
+    """The median over frames of the share of the force on the rows above the hinge."""
     return float(np.median(images[:, :hinge_row].sum((1, 2)) / images.sum((1, 2)).clip(min=1e-12)))
 
 
@@ -57,25 +52,21 @@ def raised_rows(real: dict, cfg) -> list[dict]:
     from pressurepose.bed import BedShape
     from pressurepose.body import load_body_model
     from pressurepose.body.fit_shape import shape_for_height_mass
+    from pressurepose.commands.realism import frame_placement, set_mattress
     from pressurepose.mat import MatSpec
     from pressurepose.sampling.sitting import half_sitting_params
-    from pressurepose.sim.mattress import PRESETS, MattressParams
+    from pressurepose.sim.mattress import MattressParams
     from pressurepose.sim.run import simulate_poses
 
     mat = MatSpec(covered_cols=cfg.bed_width_cols)
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
     model = load_body_model("anny", dtype=torch.float64)
+    fixed = MattressParams.load(cfg.params) if cfg.params else None
     rows = []
     for (angle, mattress), (imgs, heights, masses) in real.items():
         bed = BedShape(angle)
         hinge_row = mat.rows - bed.hinge_row_from_foot
-        bed_params = (
-            MattressParams.load(cfg.params)
-            if cfg.params
-            else MattressParams.preset(mattress)
-            if mattress in PRESETS
-            else MattressParams()
-        )
+        bed_params = set_mattress(cfg, mattress, fixed)
         shape, _, _ = shape_for_height_mass(
             model, torch.from_numpy(heights).double(), torch.from_numpy(masses).double(), female=0.0
         )
@@ -89,7 +80,7 @@ def raised_rows(real: dict, cfg) -> list[dict]:
                 images = R.read_with_floor(images, floor)
             ok = np.array([not r for r in sim.reason])
             if rest == 0:  # move each body's hips by its image's miss of the frame's centre of pressure
-                miss = (_cop_row(imgs) - _cop_row(images)) * mat.pitch_row_m
+                miss = frame_placement(imgs, *pitch)[0][:, 0] - frame_placement(images, *pitch)[0][:, 0]
                 offset = np.clip(np.where(ok, offset + miss, offset), *HIP_OFFSET_RANGE_M)
         row = {
             "angle_deg": angle,
@@ -98,12 +89,12 @@ def raised_rows(real: dict, cfg) -> list[dict]:
             "simulated_bodies": int(ok.sum()),
             "rejected": [r for r in sim.reason if r],
             "hips_past_hinge_m": round(float(np.median(offset[ok])), 3) if ok.any() else None,
-            "raised_share": {"real": round(_raised_share(imgs, hinge_row), 4)},
+            "raised_share": {"real": round(raised_share(imgs, hinge_row), 4)},
         }
         if ok.any():
             c = R.compare(R.summarise(imgs, heights, *pitch), R.summarise(images[ok], sim.height_m.numpy()[ok], *pitch))
             row["comparison"] = {"along": c.along, "across": c.across, "area_ratio": c.area_ratio}
-            row["raised_share"]["simulated"] = round(_raised_share(images[ok], hinge_row), 4)
+            row["raised_share"]["simulated"] = round(raised_share(images[ok], hinge_row), 4)
         rows.append(row)
     return rows
 
@@ -141,4 +132,4 @@ def raised_markdown(rows: list[dict]) -> list[str]:
     return lines
 
 
-__all__ = ["load_raised", "raised_markdown", "raised_rows"]
+__all__ = ["load_raised", "raised_markdown", "raised_rows", "raised_share"]

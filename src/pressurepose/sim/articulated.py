@@ -303,7 +303,7 @@ def rest_articulated(
         if cfg.damp_swings:
             step, body.share, body.streak = damp_swings(q, body.last_q, body.share, body.streak, cap, tol)
             body.last_q = q
-        moved = ~((step[:, 0].abs() < cfg.settled_shift_m) & (step[:, 1:].abs() < cfg.settled_rotation_rad).all(1))
+        moved = (step.abs() >= tol).any(1)
         done.reposings[act] = outer
         if last or not bool(moved.any()):
             # The last re-posing, or nothing moves any more: each finishes its solve (the last

@@ -92,10 +92,10 @@ class Linearised:
         # affine height coefficients are q G, the gradient's force term G (per-part force
         # moments), the Hessian G M G^T with M the parts' 3 x 3 stiffness moments.
         if section_a is None:
-            self.n_parts, self.sectioned = NUM_JOINTS, False
+            self.n_parts, self.vertical = NUM_JOINTS, None
             self._G = (dof_a[:, :, None, :] * self.dof_parts[None, :, :, None]).reshape(dof_a.shape[0], dofs.n, -1)
         else:  # (B, N, S, 24, 3): a section's coefficients in the slots of (section, part)
-            self.n_parts, self.sectioned = NUM_JOINTS * section_a.shape[2], True
+            self.n_parts = NUM_JOINTS * section_a.shape[2]
             G = section_a[:, :, :, None, :] * self.dof_parts[None, :, None, :, None]
             self._G = G.reshape(dof_a.shape[0], dofs.n, -1)
             cos = torch.as_tensor(section_cos, dtype=h.dtype, device=h.device)
@@ -115,8 +115,9 @@ class Linearised:
         new.__dict__.update(self.__dict__)
         K = max(int(self.mask[idx].sum(1).max()), 1) if len(idx) else 1
         for name in self._PER_CELL:
-            if hasattr(self, name):
-                setattr(new, name, getattr(self, name)[..., :K][idx])
+            value = getattr(self, name)
+            if value is not None:
+                setattr(new, name, value[..., :K][idx])
         for name in self._PER_DOF:
             setattr(new, name, getattr(self, name)[idx])
         new._scatter_index = new.part[:, None].expand(-1, 9, -1)
@@ -224,6 +225,11 @@ class Linearised:
             e_s, g_s, h_s = s.gradient_hessian(q)
             energy, grad, H = energy + e_s, grad + g_s, H + h_s
         return grad, H, f, w, energy
+
+    @property
+    def sectioned(self) -> bool:
+        """The cells lie on more than one section of the bed (a raised head section)."""
+        return self.vertical is not None
 
     def support(self, f):
         """(B,) what the cells' forces f (B, K) hold of the weight: their sum, or on a sectioned

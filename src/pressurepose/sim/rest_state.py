@@ -110,7 +110,7 @@ class RestsDone:
             **{n: getattr(self.params, n).index_copy(0, idx, getattr(final, n)) for n in MOVED}
         )
         self.foundation[idx] = lin.unpack(f, self.cells) / self.area
-        part = lin.part if self.raised is None else lin.part % NUM_JOINTS
+        part = lin.part % NUM_JOINTS  # the raised section's cells carry part + 24
         self.part_force[idx] = f.new_zeros(len(idx), NUM_JOINTS).scatter_add_(1, part, f * lin.mask)
         if self.raised is None:
             self.force[idx] = f.sum(1)
