@@ -42,7 +42,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = load_body_model("anny", dtype=torch.float64)
-    bed = MattressParams.load(args.bed)
+    mattress = MattressParams.load(args.bed)
     for part in args.partitions.split(","):
         drawn = PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=0)).sample(range(args.n))
         poses, all_beds = drawn.params, drawn.beds()
@@ -58,7 +58,7 @@ def main() -> None:
             beds = [all_beds[i] for i in idx.tolist()]
             if len(set(beds)) > 1:  # half_sitting: each raised bed's bodies together
                 raise SystemExit("one bed per batch: use --batch 1 for half_sitting, or a flat partition")
-            rest = rest_articulated(model, chunk, mattress=bed, config=config, bed=beds[0])
+            rest = rest_articulated(model, chunk, mattress=mattress, config=config, bed=beds[0])
             reasons.update(x for x in rest.failure if x)
             steps += rest.iterations.tolist()
             reposings += rest.reposings.tolist()

@@ -169,7 +169,7 @@ def _copy_frames(tmp_path, select):
     return keep
 
 
-def _tiny_folder(tmp_path, frame_text=None, rows=64):
+def _tiny_folder(tmp_path, frame_text=None):
     """Two subjects' supine, left and right frames copied from the packaged PmatData."""
     keep = _copy_frames(
         tmp_path,
