@@ -205,6 +205,24 @@ def test_subject_interval_hand_computed_cases():
         subject_interval([1.0], [1], np.mean, level=1.0)
 
 
+def test_load_ends_by_hand():
+    """Whether a frame's load reaches the mat's head row (row 0) and its foot row: rows holding
+    < 0.2% of the force do not count."""
+    from pressurepose.eval.real import load_ends
+
+    images = np.zeros((5, 8, 3))
+    images[0, 2:6, 1] = 1.0  # neither
+    images[1, 0:5, 1] = 1.0  # from the head row
+    images[2, 3:8, 1] = 1.0  # to the foot row
+    images[3, :, 1] = 1.0  # both
+    images[3, 7, 1] = 1e-4  # the last row too faint to count: the head row only
+    images[4] = 0.0  # empty
+    images[0, 7, 0] = 0.01  # 0.25% of the force: counts (neither -> foot row)
+    assert load_ends(images) == ["foot row", "head row", "foot row", "head row", ""]
+    with pytest.raises(ValueError, match=r"\(N, rows, cols\)"):
+        load_ends(np.zeros((8, 3)))
+
+
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     from pressurepose.cli import main
 
@@ -236,8 +254,24 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
         frames = [f for f in record["per_frame"] if f["variant"] == name]
         assert v["frames"] == len(frames) == sum(v["estimated"].values())
         assert v["estimated"].get(v["posture"], 0) == sum(f["estimated_posture"] == f["posture"] for f in frames)
+    # The height error by where the load lies: each frame's class recomputed from its image, the
+    # groups' counts and medians from the per-frame rows.
+    from pressurepose.data.pmatdata import load_images, load_index
+    from pressurepose.eval.real import LOAD_ENDS, load_ends
+
+    index = {str(r.path.relative_to(PMAT)): r for r in load_index(PMAT)}
+    images = load_images([index[f["file"]] for f in record["per_frame"]])
+    assert [f["load_reaches"] for f in record["per_frame"]] == load_ends(images)
+    for mattress, s in record["by_mattress"].items():
+        frames = [f for f in record["per_frame"] if f["mattress"] == mattress]
+        assert sum(g["frames"] for g in s["height_by_load_ends"].values()) == len(frames)
+        for where, g in s["height_by_load_ends"].items():
+            err = [f["estimated_height_m"] - f["height_m"] for f in frames if f["load_reaches"] == where]
+            assert where in LOAD_ENDS and g["frames"] == len(err)
+            assert g["height_median_signed_m"] == pytest.approx(float(np.median(err)), abs=1e-12)
     text = (out / "real.md").read_text()
     assert (out / "real.png").read_bytes()[:4] == b"\x89PNG" and "posture accuracy" in text and "| C1 | right |" in text
+    assert "| mattress | neither | head row | foot row | both |" in text
     r = subprocess.run(
         [
             sys.executable,

@@ -37,7 +37,7 @@ from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index
 from pressurepose.errors import UserError
 from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
-from pressurepose.eval.real import GROUP_POSTURE, POSTURES, read_bodies, subject_interval
+from pressurepose.eval.real import GROUP_POSTURE, LOAD_ENDS, POSTURES, load_ends, read_bodies, subject_interval
 from pressurepose.eval.real_cloud import load_cloud_file
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import check_images
@@ -98,6 +98,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     read = read_bodies(net, images, torch.tensor(heights), torch.tensor(masses), cfg.batch)
     seconds = time.perf_counter() - t0
     predicted = read.postures
+    ends = load_ends(images.numpy())
     rows = [
         {
             "file": str(r.path.relative_to(Path(cfg.pmatdata))),
@@ -112,6 +113,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "estimated_height_m": float(h),
             "mass_kg": r.weight_kg,
             "estimated_mass_kg": float(m),
+            "load_reaches": ends[i],
         }
         for i, (r, e, a, h, m) in enumerate(zip(records, predicted, read.roll_deg, read.height_m, read.mass_kg))
     ]
@@ -138,6 +140,12 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "height_median_signed_m": float(np.median(height_error)),
             "height_median_signed_ci_m": subject_interval(height_error, subjects, np.median),
             "mass_mae_kg": float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in sel])),
+            # The height error by whether the frame's load reaches the mat's ends (`load_ends`).
+            "height_by_load_ends": {
+                where: {"frames": int(mask.sum()), "height_median_signed_m": float(np.median(height_error[mask]))}
+                for where in LOAD_ENDS
+                if (mask := np.array([r["load_reaches"] == where for r in sel])).any()
+            },
         }
         if read.readout is not None:
             summary[mattress]["readout_accuracy"] = sum(r["posture"] == r["readout_posture"] for r in sel) / len(sel)
@@ -188,6 +196,23 @@ def _markdown(r: dict) -> str:
         ]
         for t, row in s["confusion"].items():
             lines.append(f"| {t} | " + " | ".join(str(row[e]) for e in POSTURES) + " |")
+    lines += [
+        "",
+        "Height error (median signed, cm) by where the load lies: a frame whose load (the rows holding "
+        ">= 0.2% of its force) reaches the mat's head or foot row may run on beyond the mat",
+        "",
+        "| mattress | " + " | ".join(LOAD_ENDS) + " |",
+        "| --- |" + " --- |" * len(LOAD_ENDS),
+    ]
+    for name, s in r["by_mattress"].items():
+        cells = [s["height_by_load_ends"].get(w) for w in LOAD_ENDS]
+        lines.append(
+            f"| {name} | "
+            + " | ".join(
+                "-" if c is None else f"{c['height_median_signed_m'] * 100:+.1f} ({c['frames']})" for c in cells
+            )
+            + " |"
+        )
     lines += [
         "",
         "Per posture variant (both mattresses; PmatData's groups: B supine variants, C right, D left)",

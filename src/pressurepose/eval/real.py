@@ -16,11 +16,14 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
+from pressurepose.eval.realism import EXTENT_SHARE, load_span
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
 from pressurepose.net.posture import POSTURES, posture_index
 from pressurepose.net.posture import roll_from_root as roll_deg
 
 GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
+# Where a frame's load lies on the mat (`load_ends`).
+LOAD_ENDS = ("neither", "head row", "foot row", "both")
 
 
 def posture_of(roll: torch.Tensor) -> list[str]:
@@ -68,6 +71,25 @@ def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, b
     )
 
 
+def load_ends(images: np.ndarray, share: float = EXTENT_SHARE) -> list[str]:
+    """Per (N, rows, cols) image (row 0 at the head end): whether its load - the rows from the
+    first to the last holding >= `share` of its force (`eval.realism.load_span`) - reaches the
+    mat's first row, its last, both or neither (`LOAD_ENDS`; "" for an empty image). A load that
+    reaches an end may run on beyond the mat, so its length says less of the body's."""
+    images = np.asarray(images)
+    if images.ndim != 3:
+        raise ValueError(f"images must have shape (N, rows, cols), got {images.shape}")
+    out = []
+    for image in images:
+        span = load_span(image, share)
+        if span is None:
+            out.append("")
+            continue
+        head, foot = span[0] == 0, span[1] == image.shape[0] - 1
+        out.append(LOAD_ENDS[int(head) + 2 * int(foot)])
+    return out
+
+
 def subject_interval(
     values: Sequence[float],
     subjects: Sequence[int],
@@ -97,4 +119,14 @@ def subject_interval(
     return float(np.quantile(stats, tail)), float(np.quantile(stats, 1.0 - tail))
 
 
-__all__ = ["GROUP_POSTURE", "POSTURES", "BodyReadings", "posture_of", "read_bodies", "roll_deg", "subject_interval"]
+__all__ = [
+    "GROUP_POSTURE",
+    "LOAD_ENDS",
+    "POSTURES",
+    "BodyReadings",
+    "load_ends",
+    "posture_of",
+    "read_bodies",
+    "roll_deg",
+    "subject_interval",
+]

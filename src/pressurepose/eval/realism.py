@@ -73,7 +73,7 @@ def coverage(image: np.ndarray, share: float = COVERAGE_SHARE) -> float:
     return float((span >= share * total).mean())
 
 
-def _load_span(image: np.ndarray, share: float) -> tuple[int, int] | None:
+def load_span(image: np.ndarray, share: float) -> tuple[int, int] | None:
     """The first and last row holding >= `share` of the image's force (None for an empty image)."""
     rows = np.asarray(image, dtype=np.float64).sum(1)
     total = rows.sum()
@@ -87,7 +87,7 @@ def extent_of_height(image: np.ndarray, height_m: float, pitch_row_m: float, sha
     """Length (m) from the first to the last row carrying >= `share` of the image's force, over
     `height_m` (0 for an empty image). A real frame whose load runs off the mat's end reads
     short."""
-    span = _load_span(image, share)
+    span = load_span(image, share)
     return 0.0 if span is None else float((span[1] - span[0] + 1) * pitch_row_m / height_m)
 
 
@@ -97,7 +97,7 @@ def area_by_part_of_length(image: np.ndarray, parts: int = 10, share: float = EX
     row edge): where along the body the contact lies, whatever the body's height and place.
     Zeros for an empty image."""
     out = np.zeros(parts)
-    span = _load_span(image, share)
+    span = load_span(image, share)
     if span is None:
         return out
     edges = np.rint(np.linspace(span[0], span[1] + 1, parts + 1)).astype(int)
@@ -124,7 +124,7 @@ def force_from_head_end(
     belongs to the slice its centre falls in): where the shoulders and buttocks lie relative to
     the head end's start, in fractions of the body. Zeros for an empty image."""
     out = np.zeros(bins)
-    span = _load_span(image, share)
+    span = load_span(image, share)
     if span is None:
         return out
     rows = np.asarray(image, dtype=np.float64).sum(1)
@@ -358,6 +358,7 @@ __all__ = [
     "FrameSet",
     "REGIONS",
     "REGION_NAMES",
+    "EXTENT_SHARE",
     "band_ratios",
     "compare",
     "coverage",
@@ -367,6 +368,7 @@ __all__ = [
     "HEAD_END_BINS",
     "HEAD_END_WIDTH",
     "high_pressure",
+    "load_span",
     "profile_similarity",
     "region_shares",
     "shifted",
