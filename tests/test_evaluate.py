@@ -210,15 +210,17 @@ def test_load_ends_by_hand():
     < 0.2% of the force do not count."""
     from pressurepose.eval.real import load_ends
 
-    images = np.zeros((5, 8, 3))
-    images[0, 2:6, 1] = 1.0  # neither
+    images = np.zeros((7, 8, 3))
+    images[0, 2:6, 1] = 1.0  # rows 2-5: neither end
     images[1, 0:5, 1] = 1.0  # from the head row
     images[2, 3:8, 1] = 1.0  # to the foot row
-    images[3, :, 1] = 1.0  # both
-    images[3, 7, 1] = 1e-4  # the last row too faint to count: the head row only
-    images[4] = 0.0  # empty
-    images[0, 7, 0] = 0.01  # 0.25% of the force: counts (neither -> foot row)
-    assert load_ends(images) == ["foot row", "head row", "foot row", "head row", ""]
+    images[3, :, 1] = 1.0  # every row: both
+    images[4, :, 1] = 1.0
+    images[4, 7, 1] = 1e-4  # its last row too faint to count: the head row only
+    images[5, 2:6, 1] = 1.0
+    images[5, 7, 0] = 0.01  # 0.25% of the force: counts, the foot row only
+    # images[6]: empty
+    assert load_ends(images) == ["neither", "head only", "foot only", "both", "head only", "foot only", "empty"]
     with pytest.raises(ValueError, match=r"\(N, rows, cols\)"):
         load_ends(np.zeros((8, 3)))
 
@@ -262,6 +264,13 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     index = {str(r.path.relative_to(PMAT)): r for r in load_index(PMAT)}
     images = load_images([index[f["file"]] for f in record["per_frame"]])
     assert [f["load_reaches"] for f in record["per_frame"]] == load_ends(images)
+    for f, image in zip(record["per_frame"], images):  # by hand: the rows holding >= 0.2% of the force
+        rows = np.nonzero(image.sum(1) >= 0.002 * image.sum())[0]
+        head, foot = rows[0] == 0, rows[-1] == image.shape[0] - 1
+        assert (
+            f["load_reaches"]
+            == {(0, 0): "neither", (1, 0): "head only", (0, 1): "foot only", (1, 1): "both"}[(int(head), int(foot))]
+        )
     for mattress, s in record["by_mattress"].items():
         frames = [f for f in record["per_frame"] if f["mattress"] == mattress]
         assert sum(g["frames"] for g in s["height_by_load_ends"].values()) == len(frames)
@@ -271,7 +280,17 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
             assert g["height_median_signed_m"] == pytest.approx(float(np.median(err)), abs=1e-12)
     text = (out / "real.md").read_text()
     assert (out / "real.png").read_bytes()[:4] == b"\x89PNG" and "posture accuracy" in text and "| C1 | right |" in text
-    assert "| mattress | neither | head row | foot row | both |" in text
+    assert "| mattress | neither | head only | foot only | both | empty |" in text
+    # A class a mattress lacks reads "-"; the others their median and count, as in the JSON.
+    for mattress, s in record["by_mattress"].items():
+        cells = [
+            "-"
+            if w not in s["height_by_load_ends"]
+            else f"{s['height_by_load_ends'][w]['height_median_signed_m'] * 100:+.1f} ({s['height_by_load_ends'][w]['frames']})"
+            for w in LOAD_ENDS
+        ]
+        assert f"| {mattress} | " + " | ".join(cells) + " |" in text
+        assert len(s["height_by_load_ends"]) < len(LOAD_ENDS)  # the fixture's frames leave classes out
     r = subprocess.run(
         [
             sys.executable,

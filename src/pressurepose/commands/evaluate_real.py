@@ -198,8 +198,8 @@ def _markdown(r: dict) -> str:
             lines.append(f"| {t} | " + " | ".join(str(row[e]) for e in POSTURES) + " |")
     lines += [
         "",
-        "Height error (median signed, cm) by where the load lies: a frame whose load (the rows holding "
-        ">= 0.2% of its force) reaches the mat's head or foot row may run on beyond the mat",
+        "Height error (median signed, cm; frames) by where the load lies: a frame whose load (the rows "
+        "holding >= 0.2% of its force) reaches the mat's head or foot row may run on beyond the mat",
         "",
         "| mattress | " + " | ".join(LOAD_ENDS) + " |",
         "| --- |" + " --- |" * len(LOAD_ENDS),

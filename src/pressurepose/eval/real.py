@@ -23,7 +23,7 @@ from pressurepose.net.posture import roll_from_root as roll_deg
 
 GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
 # Where a frame's load lies on the mat (`load_ends`).
-LOAD_ENDS = ("neither", "head row", "foot row", "both")
+LOAD_ENDS = ("neither", "head only", "foot only", "both", "empty")
 
 
 def posture_of(roll: torch.Tensor) -> list[str]:
@@ -74,8 +74,8 @@ def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, b
 def load_ends(images: np.ndarray, share: float = EXTENT_SHARE) -> list[str]:
     """Per (N, rows, cols) image (row 0 at the head end): whether its load - the rows from the
     first to the last holding >= `share` of its force (`eval.realism.load_span`) - reaches the
-    mat's first row, its last, both or neither (`LOAD_ENDS`; "" for an empty image). A load that
-    reaches an end may run on beyond the mat, so its length says less of the body's."""
+    mat's first row only, its last only, both or neither (`LOAD_ENDS`; "empty": no force). A load
+    that reaches an end may run on beyond the mat, so its length says less of the body's."""
     images = np.asarray(images)
     if images.ndim != 3:
         raise ValueError(f"images must have shape (N, rows, cols), got {images.shape}")
@@ -83,7 +83,7 @@ def load_ends(images: np.ndarray, share: float = EXTENT_SHARE) -> list[str]:
     for image in images:
         span = load_span(image, share)
         if span is None:
-            out.append("")
+            out.append("empty")
             continue
         head, foot = span[0] == 0, span[1] == image.shape[0] - 1
         out.append(LOAD_ENDS[int(head) + 2 * int(foot)])

@@ -351,6 +351,7 @@ def compare(a: FrameSet, b: FrameSet) -> Comparison:
 
 
 __all__ = [
+    "EXTENT_SHARE",
     "read_with_floor",
     "reading_floor",
     "Bands",
@@ -358,7 +359,6 @@ __all__ = [
     "FrameSet",
     "REGIONS",
     "REGION_NAMES",
-    "EXTENT_SHARE",
     "band_ratios",
     "compare",
     "coverage",
