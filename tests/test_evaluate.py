@@ -225,6 +225,46 @@ def test_load_ends_by_hand():
         load_ends(np.zeros((8, 3)))
 
 
+def test_a_frame_repeating_another_subjects_is_left_out(tiny, tmp_path):
+    """PmatData repeats subject 4's files as subject 8's: a frame whose file is byte for byte an
+    earlier record's is left out of evaluate-real and named in its report; the others stay."""
+    import shutil
+
+    from pressurepose.cli import main
+    from pressurepose.data.pmatdata import distinct_frames, load_index, repeated_frames
+
+    root = tmp_path / "pmat"
+    shutil.copytree(PMAT, root)
+    src = root / "experiment-ii" / "S1" / "Air_Mat" / "Matrix_Air_C1.txt"
+    copy = root / "experiment-ii" / "S9" / "Air_Mat" / "Matrix_Air_C1.txt"
+    copy.parent.mkdir(parents=True)
+    shutil.copyfile(src, copy)
+    near = root / "experiment-ii" / "S9" / "Air_Mat" / "Matrix_Air_C2.txt"  # one byte off: a frame of its own
+    text = (root / "experiment-ii" / "S1" / "Air_Mat" / "Matrix_Air_C2.txt").read_text()
+    near.write_text(text.replace(" ", "  ", 1))
+    with (root / "index.csv").open("a") as fh:
+        fh.write("experiment-ii/S9/Air_Mat/Matrix_Air_C1.txt,9,air,C,1,right,0,0,right lateral,30,180,80\n")
+        fh.write("experiment-ii/S9/Air_Mat/Matrix_Air_C2.txt,9,air,C,2,right,0,0,right lateral,30,180,80\n")
+    records = load_index(root)
+    pairs = repeated_frames(records)
+    assert [(r.subject, r.path.name, o.subject, o.path.name) for r, o in pairs] == [
+        (9, "Matrix_Air_C1.txt", 1, "Matrix_Air_C1.txt")
+    ]
+    kept = distinct_frames(records)
+    assert len(kept) == len(records) - 1 and pairs[0][0] not in kept and pairs[0][1] in kept
+    _, run = tiny
+    out = tmp_path / "real"
+    args = ["evaluate-real", "--model", str(run), "--pmatdata", str(root), "--groups", "CD", "--out", str(out)]
+    assert main(args) == 0
+    record = json.loads((out / "real.json").read_text())
+    assert record["frames"] == 13 and record["by_mattress"]["air"]["frames"] == 7
+    assert record["repeats_left_out"] == [
+        {"file": "experiment-ii/S9/Air_Mat/Matrix_Air_C1.txt", "same_as": "experiment-ii/S1/Air_Mat/Matrix_Air_C1.txt"}
+    ]
+    assert "Matrix_Air_C1.txt" not in {f["file"] for f in record["per_frame"] if f["subject"] == 9}
+    assert "1 frame(s) left out" in (out / "real.md").read_text()
+
+
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     from pressurepose.cli import main
 
@@ -235,6 +275,7 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     )
     record = json.loads((out / "real.json").read_text())
     assert record["frames"] == 12 and set(record["by_mattress"]) == {"air", "sponge"}
+    assert record["repeats_left_out"] == []  # the fixture's frames are all distinct
     for s in record["by_mattress"].values():
         assert 0.0 <= s["posture_accuracy"] <= 1.0 and s["frames"] == 6
         assert sum(sum(row.values()) for row in s["confusion"].values()) == 6

@@ -34,7 +34,7 @@ import torch
 
 from pressurepose.commands.netopts import options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
-from pressurepose.data.pmatdata import load_images, load_index
+from pressurepose.data.pmatdata import load_images, load_index, repeated_frames
 from pressurepose.errors import UserError
 from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
 from pressurepose.eval.real import GROUP_POSTURE, LOAD_ENDS, POSTURES, load_ends, read_bodies, subject_interval
@@ -90,6 +90,10 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     records = [r for r in load_index(cfg.pmatdata) if r.group in groups]
     if not records:
         raise UserError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
+    # A frame that repeats another subject's byte for byte is left out (not a new measurement).
+    repeats = repeated_frames(records)
+    left_out = {id(r) for r, _ in repeats}
+    records = [r for r in records if id(r) not in left_out]
     net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
     images = torch.from_numpy(load_images(records, cfg.threshold))
     heights = [r.height_cm / 100 for r in records]
@@ -159,6 +163,13 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
         "command": "evaluate-real",
         "config": flat_config(cfg),
         "frames": len(rows),
+        "repeats_left_out": [
+            {
+                "file": str(r.path.relative_to(Path(cfg.pmatdata))),
+                "same_as": str(o.path.relative_to(Path(cfg.pmatdata))),
+            }
+            for r, o in repeats
+        ],
         "seconds": round(seconds, 2),
         "by_mattress": summary,
         "by_variant": dict(sorted(variants.items(), key=lambda kv: (kv[0][0], int(kv[0][1:])))),
@@ -173,6 +184,9 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
 def _markdown(r: dict) -> str:
     lines = [
         f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on PmatData experiment II ({r['frames']} frames, groups {r['config']['groups']})",
+        "",
+        f"{len(r['repeats_left_out'])} frame(s) left out: each holds, byte for byte, another subject's frame "
+        "(`repeats_left_out` in real.json; docs/real_data.md)",
         "",
         "| mattress | frames (subjects) | posture accuracy [95% CI] | height MAE (cm) "
         "| height error median: absolute / signed [95% CI] (cm) | mass MAE (kg) |",

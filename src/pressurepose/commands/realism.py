@@ -93,11 +93,12 @@ def load_real(
 ) -> tuple[dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]], list[RealSubject]]:
     """Real frames of the flat bed per (posture, mattress): images (N, 64, 27) mmHg, heights
     (N,) m and subject ids (N,); and the subjects."""
-    from pressurepose.data.pmatdata import load_images, load_index
+    from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
     from pressurepose.samples import resolve_pmatdata
 
     root = resolve_pmatdata(root)
     records = [r for r in load_index(root) if r.bed_incline_deg == 0 and r.posture in POSTURES and r.group != "E"]
+    records = distinct_frames(records)  # PmatData repeats subject 4's frames as subject 8's
     if not records:
         raise UserError(
             f"{root / 'index.csv'}: no flat-bed supine, left or right frames (columns posture, "

@@ -26,11 +26,11 @@ HIP_OFFSET_RANGE_M = (0.0, 0.6)  # the second rest's hips stay within this
 def load_raised(root, threshold: float) -> dict:
     """Real frames of raised beds per (angle, mattress): images (N, 64, 27) mmHg, heights (N,) m,
     masses (N,) kg. Empty when the folder has none (PmatData: group F, 0-60 deg)."""
-    from pressurepose.data.pmatdata import load_images, load_index
+    from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
     from pressurepose.samples import resolve_pmatdata
 
     root = resolve_pmatdata(root)
-    records = [r for r in load_index(root) if r.group == "F" or r.bed_incline_deg > 0]
+    records = distinct_frames([r for r in load_index(root) if r.group == "F" or r.bed_incline_deg > 0])
     out = {}
     for key in sorted({(float(r.bed_incline_deg), r.mattress) for r in records}):
         rs = [r for r in records if (float(r.bed_incline_deg), r.mattress) == key]

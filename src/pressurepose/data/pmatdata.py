@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +98,28 @@ def load_index(root: str | Path) -> list[PmatRecord]:
                 )
             )
     return out
+
+
+def repeated_frames(records: list[PmatRecord]) -> list[tuple[PmatRecord, PmatRecord]]:
+    """(repeat, original) pairs: records whose file holds, byte for byte, the same frame as an
+    earlier record's. PmatData experiment II as published holds 52 of subject 8's 58 files as
+    copies of subject 4's (all but the supine variants B1-B3 on each mattress; docs/real_data.md):
+    a repeat is not a second subject's measurement."""
+    first: dict[str, PmatRecord] = {}
+    out = []
+    for r in records:
+        digest = hashlib.sha256(Path(r.path).read_bytes()).hexdigest()
+        if digest in first:
+            out.append((r, first[digest]))
+        else:
+            first[digest] = r
+    return out
+
+
+def distinct_frames(records: list[PmatRecord]) -> list[PmatRecord]:
+    """`records` without the repeats `repeated_frames` finds (each frame once, first come)."""
+    repeats = {id(r) for r, _ in repeated_frames(records)}
+    return [r for r in records if id(r) not in repeats]
 
 
 def load_images(records: list[PmatRecord], threshold: float = 20.0) -> np.ndarray:
