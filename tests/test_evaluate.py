@@ -262,7 +262,10 @@ def test_a_frame_repeating_another_subjects_is_left_out(tiny, tmp_path):
         {"file": "experiment-ii/S9/Air_Mat/Matrix_Air_C1.txt", "same_as": "experiment-ii/S1/Air_Mat/Matrix_Air_C1.txt"}
     ]
     assert "Matrix_Air_C1.txt" not in {f["file"] for f in record["per_frame"] if f["subject"] == 9}
-    assert "1 frame(s) left out" in (out / "real.md").read_text()
+    assert "1 frame(s) left out: each repeats another record's file" in (out / "real.md").read_text()
+    # Of a group of copies the lowest-numbered subject's is the original, wherever it is listed.
+    swapped = repeated_frames(records[::-1])
+    assert [(r.subject, o.subject) for r, o in swapped] == [(9, 1)]
 
 
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):
@@ -276,6 +279,7 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     record = json.loads((out / "real.json").read_text())
     assert record["frames"] == 12 and set(record["by_mattress"]) == {"air", "sponge"}
     assert record["repeats_left_out"] == []  # the fixture's frames are all distinct
+    assert "left out" not in (out / "real.md").read_text()
     for s in record["by_mattress"].values():
         assert 0.0 <= s["posture_accuracy"] <= 1.0 and s["frames"] == 6
         assert sum(sum(row.values()) for row in s["confusion"].values()) == 6

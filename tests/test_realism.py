@@ -274,6 +274,26 @@ def test_force_from_head_end_by_hand():
     np.testing.assert_allclose(s.head_end[:2], np.array([2.0, 6.0]) / total)
 
 
+def test_real_frames_are_read_once(tmp_path):
+    """PmatData files subject 4's frames again as subject 8's: the report's flat and raised sets
+    read each frame once (the lower-numbered subject's copy)."""
+    from pressurepose.commands.realism import load_real
+    from pressurepose.commands.realism_raised import load_raised
+
+    def s4_s8(r):
+        return r["subject"] in ("4", "8") and r["mattress"] == "sponge" and r["index"] == "1" and r["group"] in "CF"
+
+    keep = _copy_frames(tmp_path, s4_s8)
+    assert [(r["group"], r["subject"]) for r in keep] == [("C", "4"), ("F", "4"), ("C", "8"), ("F", "8")]
+    for a, b in ((0, 2), (1, 3)):  # each of subject 8's frames is subject 4's file again
+        assert (tmp_path / keep[a]["file"]).read_bytes() == (tmp_path / keep[b]["file"]).read_bytes()
+    real, _ = load_real(tmp_path, 20.0)
+    images, _, ids = real[("right", "sponge")]
+    assert images.shape == (1, 64, 27) and ids.tolist() == [4]
+    (raised,) = load_raised(tmp_path, 20.0).values()
+    assert raised[0].shape == (1, 64, 27)
+
+
 def test_raised_rows_on_two_frames(tmp_path):
     """The report's raised beds (`commands.realism_raised`) on two PmatData group F frames (30
     deg, sponge): one body per frame, its hips moved to the frame's centre of pressure, the

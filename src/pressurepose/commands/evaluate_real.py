@@ -90,7 +90,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     records = [r for r in load_index(cfg.pmatdata) if r.group in groups]
     if not records:
         raise UserError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
-    # A frame that repeats another subject's byte for byte is left out (not a new measurement).
+    # A frame that repeats another record's byte for byte is left out (not a new measurement).
     repeats = repeated_frames(records)
     left_out = {id(r) for r, _ in repeats}
     records = [r for r in records if id(r) not in left_out]
@@ -105,7 +105,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     ends = load_ends(images.numpy())
     rows = [
         {
-            "file": str(r.path.relative_to(Path(cfg.pmatdata))),
+            "file": _rel(r, cfg),
             "subject": r.subject,
             "mattress": r.mattress,
             "variant": f"{r.group}{r.index}",
@@ -163,13 +163,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
         "command": "evaluate-real",
         "config": flat_config(cfg),
         "frames": len(rows),
-        "repeats_left_out": [
-            {
-                "file": str(r.path.relative_to(Path(cfg.pmatdata))),
-                "same_as": str(o.path.relative_to(Path(cfg.pmatdata))),
-            }
-            for r, o in repeats
-        ],
+        "repeats_left_out": [{"file": _rel(r, cfg), "same_as": _rel(o, cfg)} for r, o in repeats],
         "seconds": round(seconds, 2),
         "by_mattress": summary,
         "by_variant": dict(sorted(variants.items(), key=lambda kv: (kv[0][0], int(kv[0][1:])))),
@@ -181,13 +175,17 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     return Written(paths, record)
 
 
+def _rel(record, cfg: RealEvalConfig) -> str:
+    return str(record.path.relative_to(Path(cfg.pmatdata)))
+
+
 def _markdown(r: dict) -> str:
+    left_out = len(r["repeats_left_out"])
+    note = f"{left_out} frame(s) left out: each repeats another record's file byte for byte (`repeats_left_out`)"
     lines = [
         f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on PmatData experiment II ({r['frames']} frames, groups {r['config']['groups']})",
         "",
-        f"{len(r['repeats_left_out'])} frame(s) left out: each holds, byte for byte, another subject's frame "
-        "(`repeats_left_out` in real.json; docs/real_data.md)",
-        "",
+        *([note, ""] if left_out else []),
         "| mattress | frames (subjects) | posture accuracy [95% CI] | height MAE (cm) "
         "| height error median: absolute / signed [95% CI] (cm) | mass MAE (kg) |",
         "| --- | --- | --- | --- | --- | --- |",

@@ -101,23 +101,28 @@ def load_index(root: str | Path) -> list[PmatRecord]:
 
 
 def repeated_frames(records: list[PmatRecord]) -> list[tuple[PmatRecord, PmatRecord]]:
-    """(repeat, original) pairs: records whose file holds, byte for byte, the same frame as an
-    earlier record's. PmatData experiment II as published holds 52 of subject 8's 58 files as
+    """(repeat, original) pairs, in the records' order: records whose file holds byte for byte
+    the same frame as another's; of each such group the original is the lowest-numbered subject's
+    (then the first path). PmatData experiment II as published holds 52 of subject 8's 58 files as
     copies of subject 4's (all but the supine variants B1-B3 on each mattress; docs/real_data.md):
-    a repeat is not a second subject's measurement."""
-    first: dict[str, PmatRecord] = {}
-    out = []
+    a repeat is not a second measurement."""
+    groups: dict[str, list[PmatRecord]] = {}
+    digests = []
     for r in records:
-        digest = hashlib.sha256(Path(r.path).read_bytes()).hexdigest()
-        if digest in first:
-            out.append((r, first[digest]))
-        else:
-            first[digest] = r
-    return out
+        try:
+            digest = hashlib.sha256(Path(r.path).read_bytes()).hexdigest()
+        except FileNotFoundError:
+            raise UserError(f"no PmatData frame at {r.path}") from None
+        except OSError as exc:
+            raise UserError(f"{r.path} is not a readable PmatData frame ({exc})") from None
+        groups.setdefault(digest, []).append(r)
+        digests.append(digest)
+    first = {d: min(rs, key=lambda r: (r.subject, str(r.path))) for d, rs in groups.items()}
+    return [(r, first[d]) for r, d in zip(records, digests) if first[d] is not r]
 
 
 def distinct_frames(records: list[PmatRecord]) -> list[PmatRecord]:
-    """`records` without the repeats `repeated_frames` finds (each frame once, first come)."""
+    """`records` without the repeats `repeated_frames` finds (each frame once)."""
     repeats = {id(r) for r, _ in repeated_frames(records)}
     return [r for r in records if id(r) not in repeats]
 
