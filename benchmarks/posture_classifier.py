@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pressurepose.data.pmatdata import load_images, load_index
+from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
 from pressurepose.eval.real import GROUP_POSTURE
 from pressurepose.net.posture import POSTURES, posture_index, roll_from_root
 from pressurepose.samples import PMATDATA, resolve_pmatdata
@@ -105,7 +105,9 @@ def main() -> None:
     rng = np.random.default_rng(0)
     x_train, y_train = load_split(args.data, "train")
     x_test, y_test = load_split([args.test], "test")
-    records = [r for r in load_index(resolve_pmatdata(args.pmatdata)) if r.group in "BCD" and r.bed_incline_deg == 0]
+    records = distinct_frames(
+        [r for r in load_index(resolve_pmatdata(args.pmatdata)) if r.group in "BCD" and r.bed_incline_deg == 0]
+    )
     x_real = torch.from_numpy(load_images(records))[:, None]
     y_real = torch.tensor([POSTURES.index(GROUP_POSTURE[r.group]) for r in records])
     mattress = np.array([r.mattress for r in records])

@@ -26,7 +26,7 @@ from pressurepose.body import load_body_model
 from pressurepose.body.fit_shape import shape_for_height_mass
 from pressurepose.commands.realism import frame_placement
 from pressurepose.commands.realism_raised import raised_share
-from pressurepose.data.pmatdata import load_images, load_index
+from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
 from pressurepose.eval import realism as R
 from pressurepose.mat import MatSpec
 from pressurepose.samples import resolve_pmatdata
@@ -52,7 +52,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     root = resolve_pmatdata("pmatdata")
-    recs = [r for r in load_index(root) if r.group == "F"]
+    recs = distinct_frames([r for r in load_index(root) if r.group == "F"])
     subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
     model = load_body_model("anny", dtype=torch.float64)
     shape, _, _ = shape_for_height_mass(

@@ -21,7 +21,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import torch
 
-from pressurepose.data.pmatdata import load_images, load_index
+from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
 from pressurepose.eval.real import read_bodies
 from pressurepose.mat import MatSpec
 from pressurepose.samples import resolve_pmatdata
@@ -65,7 +65,7 @@ def main() -> None:
     torch.set_num_threads(1)
     pitch = MatSpec().pitch_row_m
     sets = synthetic(args.data, args.every)
-    records = [r for r in load_index(resolve_pmatdata(args.pmatdata)) if r.group in "BCD"]
+    records = distinct_frames([r for r in load_index(resolve_pmatdata(args.pmatdata)) if r.group in "BCD"])
     real = load_images(records, 20.0)
     real_h = np.array([r.height_cm / 100 for r in records])
     for g in "BCD":

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pressurepose.data.pmatdata import load_images, load_index
+from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
 from pressurepose.eval.real import GROUP_POSTURE, posture_of, read_bodies, roll_deg
 from pressurepose.samples import PMATDATA, resolve_pmatdata
 from pressurepose.train.checkpoint import load_network
@@ -129,7 +129,7 @@ SIM_VARIANTS = {
 
 
 def probe_real(net, root: Path, groups: str) -> None:
-    records = [r for r in load_index(root) if r.group in groups]
+    records = distinct_frames([r for r in load_index(root) if r.group in groups])
     images = torch.from_numpy(load_images(records))
     heights = torch.tensor([r.height_cm / 100 for r in records])
     truth = [GROUP_POSTURE[r.group] for r in records]
@@ -154,7 +154,7 @@ def probe_bands(net, root: Path, groups: str, rows: int = 4) -> None:
     """Zero one band of `rows` rows at each 5% of every frame's loaded extent and read again:
     how many reads the band turns right (fixed) and wrong (broke) - where a network's answer on
     real frames comes from (docs/network.md "Flip test, IK settings and occlusion")."""
-    records = [r for r in load_index(root) if r.group in groups]
+    records = distinct_frames([r for r in load_index(root) if r.group in groups])
     images = torch.from_numpy(load_images(records))
     truth = [GROUP_POSTURE[r.group] for r in records]
     ok = np.array([g == t for g, t in zip(read_bodies(net, images).postures, truth)])

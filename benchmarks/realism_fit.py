@@ -62,10 +62,10 @@ def settle_subjects(out: Path, params: MattressParams, mat: MatSpec) -> Path:
     from pressurepose.body.capsules import home_pose
     from pressurepose.body.fit_shape import shape_for_height_mass
     from pressurepose.body.params import BodyParams
-    from pressurepose.data.pmatdata import load_index
+    from pressurepose.data.pmatdata import distinct_frames, load_index
     from pressurepose.sim.settle import settle
 
-    recs = [r for r in load_index(PMAT) if r.bed_incline_deg == 0]
+    recs = distinct_frames([r for r in load_index(PMAT) if r.bed_incline_deg == 0])
     subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
     model = load_body_model("anny", dtype=torch.float64)
     shape, _, _ = shape_for_height_mass(

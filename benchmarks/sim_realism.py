@@ -28,7 +28,14 @@ from pressurepose.body import load_body_model
 from pressurepose.body.capsules import home_pose
 from pressurepose.body.fit_shape import shape_for_height_mass
 from pressurepose.body.params import BodyParams
-from pressurepose.data.pmatdata import PMAT_TAXEL_AREA_M2, frame_stats, load_index, normalise, read_frame
+from pressurepose.data.pmatdata import (
+    PMAT_TAXEL_AREA_M2,
+    distinct_frames,
+    frame_stats,
+    load_index,
+    normalise,
+    read_frame,
+)
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.sitting import half_sitting_params
 from pressurepose.sim.mattress import MattressParams
@@ -40,7 +47,7 @@ PLAUSIBLE = {"area_m2": (0.30, 0.45), "mean_mmhg": (11.0, 20.0), "peak_mmhg": (6
 
 
 def real_stats(root: Path, threshold: float):
-    recs = [r for r in load_index(root) if r.bed_incline_deg == 0]
+    recs = distinct_frames([r for r in load_index(root) if r.bed_incline_deg == 0])
     out = {}
     for posture, (group, _) in POSTURES.items():
         for mattress in ("air", "sponge"):
@@ -80,7 +87,7 @@ def simulate(subjects, params: MattressParams, mat: MatSpec):
 
 def raised_bed(root: Path, threshold: float, params: MattressParams, mat: MatSpec) -> None:
     """PmatData group F (supine, head of the bed at 0-60 degrees) against half-sitting bodies."""
-    recs = [r for r in load_index(root) if r.group == "F"]
+    recs = distinct_frames([r for r in load_index(root) if r.group == "F"])
     subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
     model = load_body_model("anny", dtype=torch.float64)
     shape, _, _ = shape_for_height_mass(
