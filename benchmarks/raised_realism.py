@@ -26,7 +26,7 @@ from pressurepose.body import load_body_model
 from pressurepose.body.fit_shape import shape_for_height_mass
 from pressurepose.commands.realism import frame_placement
 from pressurepose.commands.realism_raised import raised_share
-from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
+from pressurepose.data.pmatdata import distinct_frames, load_images, load_index, subjects_of
 from pressurepose.eval import realism as R
 from pressurepose.mat import MatSpec
 from pressurepose.samples import resolve_pmatdata
@@ -53,13 +53,9 @@ def main() -> None:
     torch.set_num_threads(1)
     root = resolve_pmatdata("pmatdata")
     recs = distinct_frames([r for r in load_index(root) if r.group == "F"])
-    subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
+    subjects = subjects_of(recs)
     model = load_body_model("anny", dtype=torch.float64)
-    shape, _, _ = shape_for_height_mass(
-        model,
-        torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64),
-        torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64),
-    )
+    shape, _, _ = shape_for_height_mass(model, [s[1] for s in subjects], [s[2] for s in subjects])
     mat = MatSpec()
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
     print(f"PmatData group F: {len(recs)} frames, {len(subjects)} subjects")

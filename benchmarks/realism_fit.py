@@ -62,18 +62,13 @@ def settle_subjects(out: Path, params: MattressParams, mat: MatSpec) -> Path:
     from pressurepose.body.capsules import home_pose
     from pressurepose.body.fit_shape import shape_for_height_mass
     from pressurepose.body.params import BodyParams
-    from pressurepose.data.pmatdata import distinct_frames, load_index
+    from pressurepose.data.pmatdata import distinct_frames, load_index, subjects_of
     from pressurepose.sim.settle import settle
 
     recs = distinct_frames([r for r in load_index(PMAT) if r.bed_incline_deg == 0])
-    subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
+    subjects = subjects_of(recs)
     model = load_body_model("anny", dtype=torch.float64)
-    shape, _, _ = shape_for_height_mass(
-        model,
-        torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64),
-        torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64),
-        female=0.0,
-    )
+    shape, _, _ = shape_for_height_mass(model, [s[1] for s in subjects], [s[2] for s in subjects], female=0.0)
     B = shape.shape[0]
     arrays = {}
     for posture, (_, roll) in POSTURES.items():

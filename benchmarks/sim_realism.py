@@ -35,6 +35,7 @@ from pressurepose.data.pmatdata import (
     load_index,
     normalise,
     read_frame,
+    subjects_of,
 )
 from pressurepose.mat import MatSpec
 from pressurepose.sampling.sitting import half_sitting_params
@@ -57,13 +58,12 @@ def real_stats(root: Path, threshold: float):
                 if r.group == group and r.mattress == mattress
             ]
             out[(posture, mattress)] = frames
-    subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
-    return out, subjects
+    return out, subjects_of(recs)
 
 
 def simulate(subjects, params: MattressParams, mat: MatSpec):
     model = load_body_model("anny", dtype=torch.float64)
-    heights = torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64)
+    heights = torch.tensor([s[1] for s in subjects], dtype=torch.float64)
     masses = torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64)
     shape, h, m = shape_for_height_mass(model, heights, masses, female=0.0)
     B = shape.shape[0]
@@ -88,13 +88,9 @@ def simulate(subjects, params: MattressParams, mat: MatSpec):
 def raised_bed(root: Path, threshold: float, params: MattressParams, mat: MatSpec) -> None:
     """PmatData group F (supine, head of the bed at 0-60 degrees) against half-sitting bodies."""
     recs = distinct_frames([r for r in load_index(root) if r.group == "F"])
-    subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in recs})
+    subjects = subjects_of(recs)
     model = load_body_model("anny", dtype=torch.float64)
-    shape, _, _ = shape_for_height_mass(
-        model,
-        torch.tensor([s[1] / 100 for s in subjects], dtype=torch.float64),
-        torch.tensor([float(s[2]) for s in subjects], dtype=torch.float64),
-    )
+    shape, _, _ = shape_for_height_mass(model, [s[1] for s in subjects], [s[2] for s in subjects])
     print("\nhead of the bed raised (PmatData group F vs simulated half-sitting):")
     print("| angle | source | contact area (m^2) | mean (mmHg) | peak (mmHg) | load on head section |")
     print("| --- | --- | --- | --- | --- | --- |")

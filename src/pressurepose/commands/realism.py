@@ -93,7 +93,7 @@ def load_real(
 ) -> tuple[dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]], list[RealSubject]]:
     """Real frames of the flat bed per (posture, mattress): images (N, 64, 27) mmHg, heights
     (N,) m and subject ids (N,); and the subjects."""
-    from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
+    from pressurepose.data.pmatdata import distinct_frames, load_images, load_index, subjects_of
     from pressurepose.samples import resolve_pmatdata
 
     root = resolve_pmatdata(root)
@@ -114,8 +114,7 @@ def load_real(
                     np.array([r.height_cm / 100 for r in rs]),
                     np.array([r.subject for r in rs]),
                 )
-    subjects = sorted({(r.subject, r.height_cm, r.weight_kg) for r in records})
-    return out, [RealSubject(s, h / 100, w) for s, h, w in subjects]
+    return out, [RealSubject(*s) for s in subjects_of(records)]
 
 
 def resting_pose(posture: str, batch: int, side_pose: dict[str, float] | None = None) -> torch.Tensor:

@@ -127,6 +127,11 @@ def distinct_frames(records: list[PmatRecord]) -> list[PmatRecord]:
     return [r for r in records if id(r) not in repeats]
 
 
+def subjects_of(records: list[PmatRecord]) -> list[tuple[int, float, float]]:
+    """The records' subjects, sorted: (subject, height m, mass kg) each."""
+    return sorted({(r.subject, r.height_cm / 100, r.weight_kg) for r in records})
+
+
 def load_images(records: list[PmatRecord], threshold: float = 20.0) -> np.ndarray:
     """(N, 64, 27) float32 mmHg images of index records, row 0 at the head: normalised as the
     data README says and clipped at the sensor model's 100 mmHg."""
