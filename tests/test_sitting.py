@@ -12,7 +12,7 @@ from pressurepose.body.capsules import Capsules, capsule_clearance, collision_pa
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.kinematics import pose_in_mat
 from pressurepose.body.limits import JointLimits
-from pressurepose.body.params import BodyParams
+from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.mat import MatSpec
 from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig
@@ -24,6 +24,9 @@ from pressurepose.sampling.sitting import (
     capsule_gaps,
     fold_params,
     half_sitting_params,
+    pitch_matrix,
+    sit_up,
+    sit_up_frame,
     trunk_pitch,
 )
 
@@ -135,6 +138,75 @@ def test_trunk_pitch_rests_the_trunk_on_both_sections(caps):
     assert (pitches[0] > pitches[1]).all() and (pitches[1] > pitches[2]).all()
     # A flat bed never pitches.
     assert (trunk_pitch(caps, lying(caps), BedShape(0.0), MAT) == 0).all()
+
+
+def _bisected_pitch(caps, params, bed, iterations=40):
+    """Reference: bisection on the trunk's clearance above the two sections, each body's
+    trunk turned by `fold_params` and lowered by `bed_lift` (the slow way)."""
+    trunk = list(TRUNK_CAPSULES)
+    lo = torch.zeros(params.batch_size, dtype=D)
+    hi = torch.full_like(lo, bed.angle_rad)
+    for _ in range(iterations):
+        mid = (lo + hi) / 2
+        sat = fold_params(params, caps.rest, mid, keep_thighs=False)
+        a, b = caps.posed(sat.pose, sat.root_rotation, sat.root_translation)
+        a, b, r = a[:, trunk], b[:, trunk], caps.radius[:, trunk]
+        up = bed_lift(a, b, r, bed, MAT)[:, None, None] * torch.tensor([0.0, 0.0, 1.0], dtype=D)
+        head, foot = capsule_gaps(a + up, b + up, r, bed, MAT).amin(1).unbind(-1)
+        steeper = foot > head  # the buttocks still above the foot section: pitch more
+        lo, hi = torch.where(steeper, mid, lo), torch.where(steeper, hi, mid)
+    return (lo + hi) / 2
+
+
+@pytest.mark.parametrize("angle", [20.0, 45.0, 60.0])
+def test_trunk_pitch_agrees_with_a_bisection(caps, angle):
+    bed = BedShape(angle)
+    params = lying(caps, yaw=(0.0, 0.15))
+    hip_x = pose_in_mat(caps.rest, params)[1][:, HIPS, 0].mean(1)
+    shift = torch.tensor([0.2, 0.45], dtype=D)
+    params = params.replace(
+        root_translation=params.root_translation
+        + torch.stack([bed.hinge_x(MAT) + shift - hip_x, 0 * hip_x, 0 * hip_x], -1)
+    )
+    pitch = trunk_pitch(caps, params, bed, MAT)
+    # the grid's resolution (the angle / 64^3), plus the trunk's curvature at the touch
+    torch.testing.assert_close(pitch, _bisected_pitch(caps, params, bed), atol=1e-5, rtol=0)
+
+
+def test_sit_up_frame_maps_the_sat_up_body_onto_the_head_section(caps):
+    bed = BedShape(50.0)
+    params = lying(caps, yaw=(0.0, 0.2), x=bed.hinge_x(MAT) - 0.3)
+    # arms raised over the head, so that they lie on the head section once sat up
+    pose = params.pose.clone()
+    for side, sign in (("left", -1.0), ("right", 1.0)):
+        pose[:, J(f"{side}_shoulder") - 1] = torch.tensor([0.0, 0.0, sign * 2.6], dtype=D)
+    params = params.replace(pose=pose)
+    up = sit_up_frame(caps, params, bed, MAT)
+    pitch, row, offset = up.pitch, up.head_row, up.head_offset
+    torch.testing.assert_close(pitch, trunk_pitch(caps, params, bed, MAT), atol=1e-12, rtol=0)
+    torch.testing.assert_close(up.turn, pitch_matrix(params.root_rotation, pitch), atol=1e-12, rtol=0)
+    folded = fold_params(params, caps.rest, pitch, keep_thighs=False)
+    torch.testing.assert_close(up.pelvis, folded.root_translation, atol=1e-12, rtol=0)
+    # (the thighs kept on the foot section, as the sampler draws them; the arms ride the trunk)
+    sat, seat = sit_up(caps, params, bed, MAT, pitch=pitch)
+    assert (seat.abs() < 1e-9).all()  # the trunk carries the body: the lift is the trunk's
+    _, joints = pose_in_mat(caps.rest, sat)
+    _, lying_joints = pose_in_mat(caps.rest, params)
+    v = (lying_joints - params.root_translation[:, None]) @ root_matrix(params.root_rotation)  # body axes
+    s = bed.to_surface(joints, MAT)[..., 0]
+    on_head = joints[..., 0] < bed.hinge_x(MAT) - 0.05
+    arms = [J(f"{side}_{n}") for side in ("left", "right") for n in ("elbow", "wrist", "hand")]
+    assert on_head[:, arms].all()
+    predicted = (v * row[:, None]).sum(-1) + offset[:, None]
+    torch.testing.assert_close(predicted[on_head], s[on_head], atol=1e-9, rtol=0)
+    # A limb that props the body up lifts it further: the surface coordinate only moves toward
+    # the head end, so a head-end bound tested on the prediction never refuses a pose it holds.
+    propped = params.pose.clone()
+    propped[:, J("left_hip") - 1, 0] += 0.8  # the left leg pressed down into the foot section
+    sat2, seat2 = sit_up(caps, params.replace(pose=propped), bed, MAT, pitch=pitch)
+    assert (seat2 > 1e-3).all()
+    s2 = bed.to_surface(pose_in_mat(caps.rest, sat2)[1], MAT)[..., 0]
+    assert (s2[:, arms] < predicted[:, arms]).all()
 
 
 def test_half_sitting_params_keep_the_legs_straight_and_flat(anny64):

@@ -43,6 +43,10 @@ class SampleState:
     pitch: torch.Tensor | None = None  # (1,) rad the trunk turns up by on a raised bed
     leg_frame: torch.Tensor | None = None  # (4, 3) `frame` for the legs (turned back by the pitch)
     leg_shift: torch.Tensor | None = None  # (3,) `shift` for the legs (the pelvis once turned)
+    # `frame` and `shift` for the arms: on a raised bed their mat-x row and shift give the head
+    # section's surface coordinate once the body has sat up (`sitting.sit_up_frame`).
+    arm_frame: torch.Tensor | None = None  # (4, 3)
+    arm_shift: torch.Tensor | None = None  # (3,)
     sat: BodyParams | None = None  # the sat-up pose on a raised bed (batch of 1)
     support: dict = dataclasses.field(default_factory=dict)  # (limb, cell) -> reachable boxes (this shape)
 
@@ -62,6 +66,8 @@ class Attempt:
         self.shift = torch.stack([st.shift for st in states])  # (P, 3)
         self.leg_frame = torch.stack([st.leg_frame for st in states])  # (P, 4, 3)
         self.leg_shift = torch.stack([st.leg_shift for st in states])  # (P, 3)
+        self.arm_frame = torch.stack([st.arm_frame for st in states])  # (P, 4, 3)
+        self.arm_shift = torch.stack([st.arm_shift for st in states])  # (P, 3)
         self.lengths = torch.tensor([st.lengths for st in states], dtype=torch.float64)  # (P, 2)
         self.cells = torch.from_numpy(np.stack([st.cells for st in states]))  # (P, 4)
         self.left_ankle_x = torch.zeros(len(states), dtype=torch.float64)

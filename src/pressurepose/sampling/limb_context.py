@@ -78,8 +78,8 @@ def limb_context(batch: Attempt, limb: Limb, caps: list[int]) -> LimbContext:
     ci = {j: i for i, j in enumerate(chain)}
     # Screen (float32, loosened by the margin).
     reach_off = (offsets[:, 0], offsets[:, 1]) if leg else (offsets[:, 1], offsets[:, 2])
-    # Legs are measured against the bed as they will lie once a raised-bed body sits up.
-    frame, shift = (batch.leg_frame, batch.leg_shift) if leg else (batch.frame, batch.shift)
+    # Limbs are measured against the bed as they will lie once a raised-bed body sits up.
+    frame, shift = (batch.leg_frame, batch.leg_shift) if leg else (batch.arm_frame, batch.arm_shift)
     return LimbContext(
         o1=reach_off[0].to(f32),
         o2=reach_off[1].to(f32),

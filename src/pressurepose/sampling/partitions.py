@@ -42,8 +42,10 @@ OVER_BED_MAX_FAILURES = 5
 # over the bed OVER_BED_MAX_FAILURES attempts per shape where limbs fail often; 3: Anny's weight
 # phenotype drawn with a density rising linearly (`body.shape_ranges.ANNY_POWERS`; docs/sampling.md
 # "An adult population's body mass"); 4: half_sitting's hips 0.2-0.5 m past the hinge, not 0.05-0.3
-# (docs/sampling.md "Half-sitting on a raised bed").
-SAMPLING_LAW = 4
+# (docs/sampling.md "Half-sitting on a raised bed"); 5: half_sitting over the bed measures the arms'
+# over-bed rule on the head section as they will lie once sat up, and finds the trunk's pitch by
+# grids instead of a bisection (session 48; the other partitions' samples unchanged, bit for bit).
+SAMPLING_LAW = 5
 
 
 @dataclasses.dataclass(frozen=True)

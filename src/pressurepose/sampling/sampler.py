@@ -28,7 +28,9 @@ with its cells); with each shape and root comes the pitch at which that trunk re
 bed sections (`sampling.sitting.trunk_pitch`). Limbs are drawn in the trunk's frame as
 usual, but the legs' cells, heights and bed outline are measured in the bed's frame turned
 back by the pitch, so they hold for the legs on the flat foot section after the body is
-turned up rigidly (`sit_up`: joint angles, limits and self-collisions unchanged). The sat-up
+turned up rigidly (`sit_up`: joint angles, limits and self-collisions unchanged); over the bed
+the arms' outline test is measured on the head section as they will lie (`sit_up_frame`,
+a bound the check after sitting up implies). The sat-up
 pose is then checked for what turning can change: the over-bed rule in the bed's surface
 coordinates, and that the trunk, not a hand or a heel, rests on the bed (within
 SEAT_TOLERANCE_M); a failure counts as a failed attempt (`sit_up_rejections`).
@@ -56,7 +58,7 @@ from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
-from pressurepose.sampling.attempt import SampleState
+from pressurepose.sampling.attempt import MAT_X, SampleState
 from pressurepose.sampling.limb_draws import LimbDraws
 from pressurepose.sampling.limbs import (
     GEOMETRY_QUANTUM_M,
@@ -85,7 +87,11 @@ from pressurepose.sampling.poses import (
     sample_key,
 )
 from pressurepose.sampling.shapes import draw_shape
-from pressurepose.sampling.sitting import HIP_JOINTS, fold_params, pitch_matrix, sit_up, trunk_pitch
+from pressurepose.sampling.sitting import (
+    HIP_JOINTS,
+    sit_up,
+    sit_up_frame,
+)
 from pressurepose.sampling.support import LimbGrid
 
 # Sitting up on a raised bed: the trunk must rest on the bed, not be propped up by a hand or a
@@ -290,19 +296,27 @@ class PoseSampler(LimbDraws):
             st.frame = frame[i]
             st.shift = shift[i]
             st.leg_frame, st.leg_shift = frame[i], shift[i]
+            st.arm_frame, st.arm_shift = frame[i], shift[i]
             if self.part.raised:
                 self._pitch(st, root_aa[i : i + 1])
             st.lengths = (float(leg[i]), float(arm[i]))
 
     def _pitch(self, st: SampleState, root_aa: torch.Tensor) -> None:
-        """The pitch this trunk sits up by on its bed, and the legs' frame and pelvis turned
-        back by it (one sample at a time: never batch-dependent)."""
+        """The pitch this trunk sits up by on its bed, and the limbs' frames for it (one sample
+        at a time: never batch-dependent)."""
         caps, lying = _lying(st, root_aa, torch.zeros(1, NUM_POSE_JOINTS, 3, dtype=torch.float64))
-        st.pitch = trunk_pitch(caps, lying, BedShape(st.head_angle), self.mat)
-        # A body-axes vector v of the turned body points along Q v in the lying frame, so the
-        # bed axes f seen from the lying frame are Q^T f: rows f^T Q.
-        st.leg_frame = st.frame @ pitch_matrix(root_aa, st.pitch)[0]
-        st.leg_shift = fold_params(lying, caps.rest, st.pitch, keep_thighs=False).root_translation[0]
+        up = sit_up_frame(caps, lying, BedShape(st.head_angle), self.mat)
+        st.pitch = up.pitch
+        # The legs are measured in the bed's frame turned back by the pitch: a body-axes vector
+        # v of the turned body points along Q v in the lying frame, so the bed axes f seen from
+        # the lying frame are Q^T f: rows f^T Q.
+        st.leg_frame, st.leg_shift = st.frame @ up.turn[0], up.pelvis[0]
+        if self.config.over_bed:
+            # The arms turn up with the trunk: their over-bed rule is measured on the head
+            # section as they will lie there (their cells and heights stay the trunk's, which
+            # turning keeps; sampling law 5).
+            st.arm_frame, st.arm_shift = st.frame.clone(), st.shift.clone()
+            st.arm_frame[MAT_X], st.arm_shift[0] = up.head_row[0], up.head_offset[0]
 
     def _fit_model(self) -> BodyModel:
         """The body model in float64 on the CPU (a copy if the given one is not)."""

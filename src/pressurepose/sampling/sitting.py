@@ -9,7 +9,7 @@ section as drawn; a pose given lying flat (`half_sitting_params`) keeps its thig
 hips lie 10-40 cm foot-ward of the hinge (PmatData group F: the buttocks load rows 29-42
 counted from the foot, the mat lifts off around rows 44-48, the upper back loads rows 49-56),
 so the stiff trunk rests as a straight board on the buttocks and the upper back, less steep
-than the head section. `trunk_pitch` finds that pitch by bisection: the pitch at which the
+than the head section. `trunk_pitch` finds that pitch by a grid search: the pitch at which the
 trunk touches the foot section and the head section at once. `bed_lift` then lowers the body
 onto the bent bed exactly (the mattress is the union of the half-spaces under the two
 section planes, so a capsule clears it when both end points clear both planes).
@@ -21,11 +21,15 @@ then settles it like any other pose.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
 import torch
 
 from pressurepose.bed import BedShape
 from pressurepose.body.capsules import CAPSULES, Capsules
 from pressurepose.body.joints import J24_NAMES
+from pressurepose.body.kinematics import forward_kinematics
 from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from pressurepose.mat import MatSpec
@@ -36,7 +40,11 @@ HIP_JOINTS = (J24_NAMES.index("left_hip"), J24_NAMES.index("right_hip"))
 TRUNK_CAPSULES = tuple(
     i for i, c in enumerate(CAPSULES) if c.name in ("pelvis", "spine1", "spine2", "spine3", "neck", "head")
 )
-PITCH_ITERATIONS = 18  # bisection steps: pitch to within 60 deg / 2^18 ~ 0.0002 deg
+# The pitch's search: PITCH_ROUNDS grids of PITCH_GRID intervals, each within the last one's
+# bracketing interval - the pitch to within 60 deg / 64^3 ~ 0.0002 deg in 3 evaluations (a
+# bisection took 20; sampling law 5).
+PITCH_GRID = 64
+PITCH_ROUNDS = 3
 
 
 def fold_params(params: BodyParams, rest: torch.Tensor, pitch: torch.Tensor, keep_thighs: bool = True) -> BodyParams:
@@ -62,9 +70,16 @@ def fold_params(params: BodyParams, rest: torch.Tensor, pitch: torch.Tensor, kee
 
 def _planes(bed: BedShape, mat: MatSpec, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Unit normals (K, 3) of the bed's section planes and a point (3,) on all of them."""
+    return _planes_cached(bed, mat, like.dtype, like.device)
+
+
+@functools.lru_cache(maxsize=64)
+def _planes_cached(bed: BedShape, mat: MatSpec, dtype: torch.dtype, device: torch.device):
+    # Built once per bed: the sampler asks for them ~20 times per sample (the same numbers).
+    # The tensors are shared: callers only read them.
     normals = [R[:, 2] for R, _, _ in bed.sections(mat)]
-    hinge = torch.tensor([bed.hinge_x(mat), 0.0, 0.0], dtype=like.dtype, device=like.device)
-    return torch.tensor([list(n) for n in normals], dtype=like.dtype, device=like.device), hinge
+    hinge = torch.tensor([bed.hinge_x(mat), 0.0, 0.0], dtype=dtype, device=device)
+    return torch.tensor([list(n) for n in normals], dtype=dtype, device=device), hinge
 
 
 def capsule_gaps(
@@ -86,55 +101,122 @@ def bed_lift(start: torch.Tensor, end: torch.Tensor, radius: torch.Tensor, bed: 
     return (-gaps / normals[:, 2]).flatten(1).amax(-1)
 
 
-def trunk_pitch(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec) -> torch.Tensor:
-    """(B,) pitch (rad, 0 .. the bed's angle) at which the sat-up trunk rests on both bed
-    sections at once (bisection); the bed's angle when the trunk cannot reach the foot
-    section that steep, 0 when it does not reach the head section lying flat.
-
-    Sitting up moves the trunk capsules rigidly about the hip midpoint (what `fold_params`
-    does to them), so the search turns their lying end points and never re-poses the body."""
-    B = params.batch_size
-    if bed.flat:
-        return torch.zeros(B, dtype=params.root_translation.dtype)
-    normals, _ = _planes(bed, mat, params.root_translation)
+def _trunk(caps: Capsules, params: BodyParams):
+    """The trunk capsules' lying end points (B, 2T, 3; starts then ends, mat frame), their radii
+    (B, T), the hip midpoint c (B, 3) the body sits up about, and the root's matrix."""
     trunk = list(TRUNK_CAPSULES)
-    a, b = caps.posed(params.pose, params.root_rotation, params.root_translation)
-    ends = torch.cat([a[:, trunk], b[:, trunk]], 1)  # (B, 2T, 3) lying, mat frame
-    radius = caps.radius[:, trunk].repeat(1, 2)
     R0 = root_matrix(params.root_rotation)
+    rot, pos = forward_kinematics(caps.rest, params.pose, R0)
+    a, b = caps.place(rot, pos, params.root_translation)
     c = (R0 @ caps.rest[:, list(HIP_JOINTS)].mean(1)[..., None])[..., 0] + params.root_translation
+    return torch.cat([a[:, trunk], b[:, trunk]], 1), caps.radius[:, trunk], c, R0
+
+
+def _pitch_search(ends, radius, c, bed: BedShape, mat: MatSpec) -> torch.Tensor:
+    """`trunk_pitch` on the trunk's lying end points (`_trunk`)."""
+    B, T = radius.shape
+    if bed.flat:
+        return torch.zeros(B, dtype=ends.dtype)
+    normals, _ = _planes(bed, mat, ends)
     rel = ends - c[:, None]
-    T = len(trunk)
 
     def excess(pitch: torch.Tensor) -> torch.Tensor:
-        # > 0: the head section lies lower than the foot section under the trunk (pitch enough).
-        cs, sn = torch.cos(pitch)[:, None], torch.sin(pitch)[:, None]
-        x = c[:, None, 0] + cs * rel[..., 0] + sn * rel[..., 2]  # rotation about y, head up
-        z = c[:, None, 2] - sn * rel[..., 0] + cs * rel[..., 2]
-        pts = torch.stack([x, ends[..., 1], z], -1)
-        a_, b_ = pts[:, :T], pts[:, T:]
-        gaps = capsule_gaps(a_, b_, radius[:, :T], bed, mat).amin(1)  # (B, K): head, foot
-        return gaps[:, 0] / normals[0, 2] - gaps[:, 1]
+        # (B, N) pitches -> (B, N); > 0: the head section lies lower than the foot section
+        # under the trunk (pitch enough).
+        cs, sn = torch.cos(pitch)[..., None], torch.sin(pitch)[..., None]
+        x = c[:, None, None, 0] + cs * rel[:, None, :, 0] + sn * rel[:, None, :, 2]  # rotation about y, head up
+        z = c[:, None, None, 2] - sn * rel[:, None, :, 0] + cs * rel[:, None, :, 2]
+        pts = torch.stack([x, ends[:, None, :, 1].expand_as(x), z], -1)
+        gaps = capsule_gaps(pts[:, :, :T], pts[:, :, T:], radius[:, None], bed, mat).amin(2)  # (B, N, K)
+        return gaps[..., 0] / normals[0, 2] - gaps[..., 1]
 
+    # Each round evaluates a grid over [lo, hi] (excess < 0 at lo: the head section still in the
+    # way; >= 0 at hi) and keeps the interval where it first turns >= 0.
     lo = torch.zeros(B, dtype=rel.dtype)
     hi = torch.full((B,), bed.angle_rad, dtype=rel.dtype)
-    f_lo, f_hi = excess(lo), excess(hi)
-    for _ in range(PITCH_ITERATIONS):
-        mid = (lo + hi) / 2
-        up = excess(mid) < 0  # the head section still in the way: pitch more
-        lo, hi = torch.where(up, mid, lo), torch.where(up, hi, mid)
+    steps = torch.arange(PITCH_GRID + 1, dtype=rel.dtype) / PITCH_GRID
+    rows = torch.arange(B)
+    for r in range(PITCH_ROUNDS):
+        grid = lo[:, None] + (hi - lo)[:, None] * steps
+        f = excess(grid)
+        if r == 0:
+            f_lo, f_hi = f[:, 0], f[:, -1]
+        # the first grid point where it is >= 0 (the last one when none is: hi's bound holds)
+        first = torch.where(f[:, 1:] >= 0, steps[1:], 2.0).argmin(1) + 1
+        lo, hi = grid[rows, first - 1], grid[rows, first]
     pitch = (lo + hi) / 2
     pitch = torch.where(f_hi < 0, torch.full_like(pitch, bed.angle_rad), pitch)
     return torch.where(f_lo >= 0, torch.zeros_like(pitch), pitch)
 
 
+def trunk_pitch(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec) -> torch.Tensor:
+    """(B,) pitch (rad, 0 .. the bed's angle) at which the sat-up trunk rests on both bed
+    sections at once (grids, `PITCH_GRID`); the bed's angle when the trunk cannot reach the foot
+    section that steep, 0 when it does not reach the head section lying flat.
+
+    Sitting up moves the trunk capsules rigidly about the hip midpoint (what `fold_params`
+    does to them), so the search turns their lying end points and never re-poses the body."""
+    if bed.flat:
+        return torch.zeros(params.batch_size, dtype=params.root_translation.dtype)
+    ends, radius, c, _ = _trunk(caps, params)
+    return _pitch_search(ends, radius, c, bed, mat)
+
+
+def _about_y(pitch: torch.Tensor) -> torch.Tensor:
+    zero = torch.zeros_like(pitch)
+    return axis_angle_to_matrix(torch.stack([zero, pitch, zero], -1))
+
+
 def pitch_matrix(root_rotation: torch.Tensor, pitch: torch.Tensor) -> torch.Tensor:
     """(B, 3, 3) the sitting pitch in body axes, Q = R0^T P R0: a body-axes vector v of the
     turned body points where Q v pointed before."""
-    zero = torch.zeros_like(pitch)
-    P = axis_angle_to_matrix(torch.stack([zero, pitch, zero], -1))
     R0 = root_matrix(root_rotation)
-    return R0.transpose(1, 2) @ P @ R0
+    return R0.transpose(1, 2) @ _about_y(pitch) @ R0
+
+
+@dataclasses.dataclass(frozen=True)
+class SitUpFrame:
+    """How B bodies lying in the trunk's frame will lie once sat up (`sit_up_frame`)."""
+
+    pitch: torch.Tensor  # (B,) rad (`trunk_pitch`)
+    turn: torch.Tensor  # (B, 3, 3) the pitch in body axes (`pitch_matrix`)
+    pelvis: torch.Tensor  # (B, 3) the pelvis turned up, not yet lowered (`fold_params`' translation)
+    # A point v of the body (body axes, from the pelvis) lies at the head section's surface
+    # coordinate s = head_row . v + head_offset (`BedShape.to_surface`) once the body is lowered
+    # until its trunk touches the bed.
+    head_row: torch.Tensor  # (B, 3)
+    head_offset: torch.Tensor  # (B,)
+
+
+def sit_up_frame(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec) -> SitUpFrame:
+    """Where B bodies given lying (pose in the trunk's frame, pelvis over the bed) go when
+    `sit_up` turns them rigidly (keep_thighs False) by their `trunk_pitch`, from one forward
+    kinematics pass.
+
+    The head-section map assumes the trunk carries the body. A limb lower than the trunk lifts
+    it further (by at most the seat tolerance the sampler allows), which only moves s toward
+    the head end; over the foot section the map gives a smaller s than that section's own (its
+    x). So a bound at the foot end tested with it passes every pose the exact test passes once
+    sat up, and so does the head-end bound for every point less than (hinge - head end) /
+    sin(angle) (> 0.5 m) above the hinge's level, which no arm of a body resting its trunk
+    reaches; the sat-up pose is still checked exactly (sampler)."""
+    ends, radius, c, R0 = _trunk(caps, params)
+    pitch = _pitch_search(ends, radius, c, bed, mat)
+    P = _about_y(pitch)
+    turned = (P[:, None] @ (ends - c[:, None])[..., None])[..., 0] + c[:, None]
+    T = radius.shape[1]
+    lift = bed_lift(turned[:, :T], turned[:, T:], radius, bed, mat)
+    pelvis = c + (P @ (params.root_translation - c)[..., None])[..., 0]
+    (R_head, _, _), _ = bed.sections(mat)
+    t = torch.as_tensor(R_head[:, 0], dtype=ends.dtype)  # the head section's tangent along s
+    hinge = bed.hinge_x(mat)
+    return SitUpFrame(
+        pitch=pitch,
+        turn=R0.transpose(1, 2) @ P @ R0,
+        pelvis=pelvis,
+        head_row=(P @ R0).transpose(1, 2) @ t,
+        head_offset=hinge + (pelvis[:, 0] - hinge) * t[0] + (pelvis[:, 2] + lift) * t[2],
+    )
 
 
 def sit_up(
@@ -198,12 +280,15 @@ def half_sitting_params(
 
 
 __all__ = [
-    "PITCH_ITERATIONS",
+    "PITCH_GRID",
+    "PITCH_ROUNDS",
     "TRUNK_CAPSULES",
     "bed_lift",
     "capsule_gaps",
     "fold_params",
     "half_sitting_params",
+    "SitUpFrame",
+    "sit_up_frame",
     "pitch_matrix",
     "sit_up",
     "trunk_pitch",
