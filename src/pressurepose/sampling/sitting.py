@@ -41,8 +41,9 @@ TRUNK_CAPSULES = tuple(
     i for i, c in enumerate(CAPSULES) if c.name in ("pelvis", "spine1", "spine2", "spine3", "neck", "head")
 )
 # The pitch's search: PITCH_ROUNDS grids of PITCH_GRID intervals, each within the last one's
-# bracketing interval - the pitch to within 60 deg / 64^3 ~ 0.0002 deg in 3 evaluations (a
-# bisection took 20; sampling law 5).
+# bracketing interval - the pitch to within 60 deg / 64^3 ~ 0.0002 deg in 3 batched evaluations
+# of 65 pitches (the bisection before it: 18 steps and the 2 ends, one pitch at a time, ~6x the
+# time; sampling law 5).
 PITCH_GRID = 64
 PITCH_ROUNDS = 3
 
@@ -75,11 +76,13 @@ def _planes(bed: BedShape, mat: MatSpec, like: torch.Tensor) -> tuple[torch.Tens
 
 @functools.lru_cache(maxsize=64)
 def _planes_cached(bed: BedShape, mat: MatSpec, dtype: torch.dtype, device: torch.device):
-    # Built once per bed: the sampler asks for them ~20 times per sample (the same numbers).
-    # The tensors are shared: callers only read them.
+    # Built once per bed: the sampler asks for them several times per sample (the same
+    # numbers). The tensors are shared, so callers only read them; made outside inference mode
+    # (a first call inside it would cache tensors autograd cannot save).
     normals = [R[:, 2] for R, _, _ in bed.sections(mat)]
-    hinge = torch.tensor([bed.hinge_x(mat), 0.0, 0.0], dtype=dtype, device=device)
-    return torch.tensor([list(n) for n in normals], dtype=dtype, device=device), hinge
+    with torch.inference_mode(False):
+        hinge = torch.tensor([bed.hinge_x(mat), 0.0, 0.0], dtype=dtype, device=device)
+        return torch.tensor([list(n) for n in normals], dtype=dtype, device=device), hinge
 
 
 def capsule_gaps(
@@ -141,8 +144,10 @@ def _pitch_search(ends, radius, c, bed: BedShape, mat: MatSpec) -> torch.Tensor:
         f = excess(grid)
         if r == 0:
             f_lo, f_hi = f[:, 0], f[:, -1]
-        # the first grid point where it is >= 0 (the last one when none is: hi's bound holds)
-        first = torch.where(f[:, 1:] >= 0, steps[1:], 2.0).argmin(1) + 1
+        # the first grid point where it is >= 0; the last one when none is (only when the
+        # whole range is still "up" - then the bed's angle below - or by round-off at hi)
+        ok = f[:, 1:] >= 0
+        first = torch.where(ok.any(1), ok.to(torch.int8).argmax(1) + 1, PITCH_GRID)
         lo, hi = grid[rows, first - 1], grid[rows, first]
     pitch = (lo + hi) / 2
     pitch = torch.where(f_hi < 0, torch.full_like(pitch, bed.angle_rad), pitch)
@@ -191,16 +196,26 @@ class SitUpFrame:
 def sit_up_frame(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec) -> SitUpFrame:
     """Where B bodies given lying (pose in the trunk's frame, pelvis over the bed) go when
     `sit_up` turns them rigidly (keep_thighs False) by their `trunk_pitch`, from one forward
-    kinematics pass.
+    kinematics pass. On a flat bed: no pitch, and the map is the mat's x.
 
-    The head-section map assumes the trunk carries the body. A limb lower than the trunk lifts
-    it further (by at most the seat tolerance the sampler allows), which only moves s toward
-    the head end; over the foot section the map gives a smaller s than that section's own (its
-    x). So a bound at the foot end tested with it passes every pose the exact test passes once
-    sat up, and so does the head-end bound for every point less than (hinge - head end) /
-    sin(angle) (> 0.5 m) above the hinge's level, which no arm of a body resting its trunk
-    reaches; the sat-up pose is still checked exactly (sampler)."""
+    The head-section map is exact when the trunk carries the body. A limb lower than the trunk
+    lifts it further (by seat / cos(angle) for a seat clearance `seat`), which only moves s
+    toward the head end: a bound at the head end tested with the map passes every pose the
+    exact test passes once sat up. Over the foot section the map is not that section's s; a
+    bound at the foot end tested with it holds for arms only because they stay far (> 1 m) from
+    the foot end. Across the bed the map is exact (the turn is about the mat's y axis and the
+    lift vertical). The sat-up pose is still checked exactly (sampler)."""
     ends, radius, c, R0 = _trunk(caps, params)
+    if bed.flat:
+        B = radius.shape[0]
+        eye = torch.eye(3, dtype=ends.dtype).expand(B, 3, 3)
+        return SitUpFrame(
+            pitch=torch.zeros(B, dtype=ends.dtype),
+            turn=eye.clone(),
+            pelvis=params.root_translation.clone(),
+            head_row=R0[:, 0].clone(),  # the mat's x axis in body axes
+            head_offset=params.root_translation[:, 0].clone(),
+        )
     pitch = _pitch_search(ends, radius, c, bed, mat)
     P = _about_y(pitch)
     turned = (P[:, None] @ (ends - c[:, None])[..., None])[..., 0] + c[:, None]
