@@ -227,15 +227,18 @@ def test_side_lying_body_rolls_over_unless_its_trunk_is_held(anny64):
     turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(held.params.root_rotation))
     assert float(turned[0]) < math.radians(12)
     # With self-contact (the top leg rests on the bottom one) and friction the free body no
-    # longer rolls over: it settles within 15 deg of its side, the held one within 10 (with the
-    # default joints and swing damping, 12.4 and 4.6 deg, both settled before the cap; without
-    # the damping the cap ended both at 4-5 deg, the free one still turning).
+    # longer rolls over (57 deg): it stays within 25 deg of its side, the held one within 8 and
+    # closer than the free one. The free body's turn is the rest's round-off spread's to take:
+    # 8.6-18.1 deg between one and two torch threads and 1e-9-1e-7 m shifts of the body, the
+    # held one's 3.4-4.6 (session 48; a 15 deg bound failed with one thread).
     free = rest_articulated(anny64, p, config=ArticulatedConfig(outer=20))
     held = rest_articulated(anny64, p, config=ArticulatedConfig(hold_roll_m=0.5, outer=20))
     assert free.failure == [""] and held.failure == [""]
-    for rest, most in ((free, 15), (held, 10)):
-        turned = rotation_angle(root_matrix(p.root_rotation), root_matrix(rest.params.root_rotation))
-        assert float(turned[0]) < math.radians(most)
+    turns = [
+        float(rotation_angle(root_matrix(p.root_rotation), root_matrix(rest.params.root_rotation))[0])
+        for rest in (free, held)
+    ]
+    assert turns[0] < math.radians(25) and turns[1] < math.radians(8) and turns[1] < turns[0], turns
 
 
 def test_mattress_presets_load_by_name(tmp_path):
