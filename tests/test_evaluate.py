@@ -48,10 +48,29 @@ def test_report_end_to_end(tiny):
     assert set(record["baselines_vpe_m"]) == {"mean_body", "nearest_image"}
     assert {e["gender"] for e in record["by_gender"]} == {"female", "male"}
     assert sum(e["count"] for e in record["by_gender"]) == n
+    # each group's 95% interval for its mean 3DVPE, from the per-sample rows by hand
+    vpe, genders = np.asarray(record["per_sample"]["vpe_m"]), np.asarray(record["per_sample"]["gender"])
+    for e in record["by_gender"]:
+        v = vpe[genders == e["gender"]]
+        if len(v) < 2:
+            assert e["vpe_m_ci95"] is None
+            continue
+        half = 1.96 * np.sqrt(((v - v.mean()) ** 2).sum() / (len(v) - 1)) / np.sqrt(len(v))
+        np.testing.assert_allclose(e["vpe_m_ci95"], [v.mean() - half, v.mean() + half], rtol=1e-12, atol=0)
     text = paths["markdown"].read_text()
     assert "| gender partition |" in text and "nearest image" in text and "| arms |" in text
+    assert "3DVPE 95% interval (cm)" in text
     for name in ("cases", "failures"):
         assert paths[name].read_bytes()[:4] == b"\x89PNG"
+
+
+def test_mean_interval_by_hand():
+    from pressurepose.commands.evaluate import mean_interval
+
+    lo, hi = mean_interval(np.array([1.0, 2.0, 3.0]))  # mean 2, sample sd 1
+    assert abs(lo - (2 - 1.96 / np.sqrt(3))) < 1e-12 and abs(hi - (2 + 1.96 / np.sqrt(3))) < 1e-12
+    assert mean_interval(np.array([4.0, 4.0])) == [4.0, 4.0]
+    assert mean_interval(np.array([0.5])) is None
 
 
 def reference_vpe(est, true, faces):

@@ -109,6 +109,17 @@ def _summary(values: list[float]) -> dict[str, float]:
     return {"mean": float(a.mean()), "median": float(np.median(a)), "p90": float(np.quantile(a, 0.9))}
 
 
+def mean_interval(values: np.ndarray) -> list[float] | None:
+    """A 95% interval for the mean of per-sample values (normal approximation: the mean +- 1.96
+    standard errors, the sample standard deviation over sqrt(n)); None for fewer than 2 values.
+    Whether a partition's 3DVPE lies below the seed's is only said when the interval does."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.size < 2:
+        return None
+    half = 1.96 * values.std(ddof=1) / math.sqrt(values.size)
+    return [float(values.mean() - half), float(values.mean() + half)]
+
+
 def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
     labels = np.asarray(rows[key])
     out = []
@@ -117,6 +128,7 @@ def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
         entry = {key: g, "count": int(sel.sum())}
         for m in METRICS:
             entry[m] = float(np.asarray(rows[m])[sel].mean())
+        entry["vpe_m_ci95"] = mean_interval(np.asarray(rows["vpe_m"])[sel])
         for name, vals in base.items():
             if vals:
                 entry[f"baseline_{name}_vpe_m"] = float(np.asarray(vals)[sel].mean())
@@ -180,8 +192,11 @@ def _markdown(r: dict) -> str:
         "",
     ]
     for key, title in (("by_partition", "pose partition"), ("by_gender", "gender partition")):
-        head = f"| {title} | test ct. | 3DVPE (cm) | seed 3DVPE (cm) | v2v (cm) | MPJPE (cm) | PA-MPJPE (cm) |"
-        sep = "| --- | --- | --- | --- | --- | --- | --- |"
+        head = (
+            f"| {title} | test ct. | 3DVPE (cm) | 3DVPE 95% interval (cm) | seed 3DVPE (cm) | v2v (cm) | MPJPE (cm) "
+            "| PA-MPJPE (cm) |"
+        )
+        sep = "| --- | --- | --- | --- | --- | --- | --- | --- |"
         if has_base:
             head += " mean body (cm) | nearest image (cm) |"
             sep += " --- | --- |"
@@ -189,8 +204,10 @@ def _markdown(r: dict) -> str:
         for e in r[key]:
             name = e["partition" if key == "by_partition" else "gender"]
             seed = e["seed_synth_vpe_cm"]
+            ci = e.get("vpe_m_ci95")
             row = (
-                f"| {name} | {e['count']} | {_cm(e['vpe_m'])} | {'-' if seed is None else f'{seed:.2f}'} | "
+                f"| {name} | {e['count']} | {_cm(e['vpe_m'])} | "
+                f"{'-' if ci is None else f'{_cm(ci[0])} - {_cm(ci[1])}'} | {'-' if seed is None else f'{seed:.2f}'} | "
                 f"{_cm(e['v2v_m'])} | {_cm(e['mpjpe_m'])} | {_cm(e['pa_mpjpe_m'])} |"
             )
             if has_base:
