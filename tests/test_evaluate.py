@@ -31,6 +31,8 @@ def tiny(anny64, tmp_path_factory):
 
 
 def test_report_end_to_end(tiny):
+    from scipy.stats import t as student_t
+
     root, run = tiny
     out = root / "report"
     paths = run_evaluate(
@@ -55,11 +57,16 @@ def test_report_end_to_end(tiny):
         if len(v) < 2:
             assert e["vpe_m_ci95"] is None
             continue
-        half = 1.96 * np.sqrt(((v - v.mean()) ** 2).sum() / (len(v) - 1)) / np.sqrt(len(v))
+        half = student_t.ppf(0.975, len(v) - 1) * np.sqrt(((v - v.mean()) ** 2).sum() / (len(v) - 1)) / np.sqrt(len(v))
         np.testing.assert_allclose(e["vpe_m_ci95"], [v.mean() - half, v.mean() + half], rtol=1e-12, atol=0)
     text = paths["markdown"].read_text()
     assert "| gender partition |" in text and "nearest image" in text and "| arms |" in text
-    assert "3DVPE 95% interval (cm)" in text
+    # the table's row for each gender: count, mean, then the interval, in that order
+    for e in record["by_gender"]:
+        row = next(line for line in text.splitlines() if line.startswith(f"| {e['gender']} |"))
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        ci = "-" if e["vpe_m_ci95"] is None else f"{e['vpe_m_ci95'][0] * 100:.2f} - {e['vpe_m_ci95'][1] * 100:.2f}"
+        assert cells[1:4] == [str(e["count"]), f"{e['vpe_m'] * 100:.2f}", ci], cells
     for name in ("cases", "failures"):
         assert paths[name].read_bytes()[:4] == b"\x89PNG"
 
@@ -67,8 +74,11 @@ def test_report_end_to_end(tiny):
 def test_mean_interval_by_hand():
     from pressurepose.commands.evaluate import mean_interval
 
-    lo, hi = mean_interval(np.array([1.0, 2.0, 3.0]))  # mean 2, sample sd 1
-    assert abs(lo - (2 - 1.96 / np.sqrt(3))) < 1e-12 and abs(hi - (2 + 1.96 / np.sqrt(3))) < 1e-12
+    lo, hi = mean_interval(np.array([1.0, 2.0, 3.0]))  # mean 2, sample sd 1, t(0.975, 2) = 4.302653
+    assert abs(lo - (2 - 4.302653 / np.sqrt(3))) < 1e-6 and abs(hi - (2 + 4.302653 / np.sqrt(3))) < 1e-6
+    lo, hi = mean_interval(np.arange(1000.0))  # large n: the normal 1.96 to 0.5% (t = 1.9623)
+    half = 1.96 * np.arange(1000.0).std(ddof=1) / np.sqrt(1000)
+    assert abs((hi - lo) / 2 - half) < 5e-3 * half
     assert mean_interval(np.array([4.0, 4.0])) == [4.0, 4.0]
     assert mean_interval(np.array([0.5])) is None
 
