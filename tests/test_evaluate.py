@@ -58,7 +58,7 @@ def test_report_end_to_end(tiny):
             assert e["vpe_m_ci95"] is None
             continue
         half = student_t.ppf(0.975, len(v) - 1) * np.sqrt(((v - v.mean()) ** 2).sum() / (len(v) - 1)) / np.sqrt(len(v))
-        np.testing.assert_allclose(e["vpe_m_ci95"], [v.mean() - half, v.mean() + half], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(e["vpe_m_ci95"], [max(v.mean() - half, 0.0), v.mean() + half], rtol=1e-12, atol=0)
     text = paths["markdown"].read_text()
     assert "| gender partition |" in text and "nearest image" in text and "| arms |" in text
     # the table's row for each gender: count, mean, then the interval, in that order
@@ -81,6 +81,9 @@ def test_mean_interval_by_hand():
     assert abs((hi - lo) / 2 - half) < 5e-3 * half
     assert mean_interval(np.array([4.0, 4.0])) == [4.0, 4.0]
     assert mean_interval(np.array([0.5])) is None
+    # an error's mean cannot be below 0: the floor clips the lower end only
+    lo, hi = mean_interval(np.array([0.1, 3.0]), floor=0.0)
+    assert lo == 0.0 and hi == mean_interval(np.array([0.1, 3.0]))[1] and mean_interval(np.array([0.1, 3.0]))[0] < 0
 
 
 def reference_vpe(est, true, faces):

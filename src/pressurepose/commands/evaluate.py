@@ -109,18 +109,20 @@ def _summary(values: list[float]) -> dict[str, float]:
     return {"mean": float(a.mean()), "median": float(np.median(a)), "p90": float(np.quantile(a, 0.9))}
 
 
-def mean_interval(values: np.ndarray) -> list[float] | None:
+def mean_interval(values: np.ndarray, floor: float | None = None) -> list[float] | None:
     """A 95% interval for the mean of per-sample values: the mean +- t standard errors (the
     sample standard deviation over sqrt(n); t Student's 97.5% quantile with n - 1 degrees of
     freedom, 1.96 for large n, so the small groups of the tiny presets are not overstated);
-    None for fewer than 2 values. It covers our own sampling noise only, not the seed's."""
+    None for fewer than 2 values; `floor` clips its lower end (a mean that cannot be below it, as
+    an error's cannot be below 0). It covers our own sampling noise only, not the seed's."""
     from scipy.stats import t as student_t
 
     values = np.asarray(values, dtype=np.float64)
     if values.size < 2:
         return None
     half = float(student_t.ppf(0.975, values.size - 1)) * values.std(ddof=1) / math.sqrt(values.size)
-    return [float(values.mean() - half), float(values.mean() + half)]
+    lo = float(values.mean() - half)
+    return [lo if floor is None else max(lo, float(floor)), float(values.mean() + half)]
 
 
 def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
@@ -131,7 +133,7 @@ def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
         entry = {key: g, "count": int(sel.sum())}
         for m in METRICS:
             entry[m] = float(np.asarray(rows[m])[sel].mean())
-        entry["vpe_m_ci95"] = mean_interval(np.asarray(rows["vpe_m"])[sel])
+        entry["vpe_m_ci95"] = mean_interval(np.asarray(rows["vpe_m"])[sel], floor=0.0)
         for name, vals in base.items():
             if vals:
                 entry[f"baseline_{name}_vpe_m"] = float(np.asarray(vals)[sel].mean())
