@@ -18,7 +18,6 @@ from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.mat import MatSpec
 from pressurepose.sampling import PARTITIONS, PoseSampler, SamplingConfig
 from pressurepose.sampling.partitions import HEIGHT_TOLERANCE_M
-from pressurepose.sampling.sampler import SEAT_TOLERANCE_M
 from pressurepose.sampling.sitting import (
     TRUNK_CAPSULES,
     bed_lift,
@@ -30,6 +29,7 @@ from pressurepose.sampling.sitting import (
     sit_up_frame,
     trunk_pitch,
 )
+from pressurepose.sampling.sitting_draws import SEAT_TOLERANCE_M
 
 J = J24_NAMES.index
 MAT = MatSpec()

@@ -35,7 +35,8 @@ pose is then checked for what turning can change: the over-bed rule in the bed's
 coordinates, and that the trunk, not a hand or a heel, rests on the bed (within
 SEAT_TOLERANCE_M); a failure counts as a failed attempt (`sit_up_rejections`).
 
-Modules: `sampler` (PoseSampler: states, shapes and roots, sitting up, the result), `limb_draws`
+Modules: `sampler` (PoseSampler: states, shapes and roots, the result), `sitting_draws` (sitting
+up on a raised bed), `limb_draws`
 (the limb rounds: screen, exact tests, collisions), `limbs` (angle ranges, limb table, limb
 geometry), `attempt` (per-sample state, one attempt's tensors), `poses` (InitialPoses, seeds),
 `support` (over the bed: the angle boxes that may reach a limb's cell, drawn from after the
@@ -50,15 +51,15 @@ import numpy as np
 import torch
 
 from pressurepose.bed import BedShape
-from pressurepose.body.capsules import CAPSULES, Capsules, collision_pairs, fit_capsules
+from pressurepose.body.capsules import CAPSULES, collision_pairs, fit_capsules
 from pressurepose.body.joints import NUM_POSE_JOINTS
-from pressurepose.body.kinematics import forward_kinematics, pose_in_mat
+from pressurepose.body.kinematics import forward_kinematics
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
-from pressurepose.sampling.attempt import MAT_X, SampleState
+from pressurepose.sampling.attempt import SampleState
 from pressurepose.sampling.limb_draws import LimbDraws
 from pressurepose.sampling.limbs import (
     GEOMETRY_QUANTUM_M,
@@ -71,7 +72,6 @@ from pressurepose.sampling.limbs import (
     rotating_joints,
 )
 from pressurepose.sampling.partitions import (
-    HEIGHT_TOLERANCE_M,
     Partition,
     SamplingConfig,
     leg_cells_for_roll,
@@ -87,24 +87,17 @@ from pressurepose.sampling.poses import (
     sample_key,
 )
 from pressurepose.sampling.shapes import draw_shape
-from pressurepose.sampling.sitting import (
-    HIP_JOINTS,
-    sit_up,
-    sit_up_frame,
-)
+from pressurepose.sampling.sitting import HIP_JOINTS
+from pressurepose.sampling.sitting_draws import SittingDraws
 from pressurepose.sampling.support import LimbGrid
 
-# Sitting up on a raised bed: the trunk must rest on the bed, not be propped up by a hand or a
-# heel by more than a lying body may be (its distal joints lie up to HEIGHT_TOLERANCE_M below
-# their proximal joints); sim #1 lets it down.
-SEAT_TOLERANCE_M = HEIGHT_TOLERANCE_M
 # A limb whose cell had no solution for this many shapes gets a new cell: over the bed, a cell
 # can lie off the mattress for nearly every body (a straight arm held out sideways); the seed
 # clips such cells, the original redrew them.
 CELL_REDRAW_AFTER = 2
 
 
-class PoseSampler(LimbDraws):
+class PoseSampler(LimbDraws, SittingDraws):
     """Draws initial poses for one SamplingConfig with one body model.
 
     >>> sampler = PoseSampler(model, SamplingConfig(partition="supine", gender="male"))
@@ -301,23 +294,6 @@ class PoseSampler(LimbDraws):
                 self._pitch(st, root_aa[i : i + 1])
             st.lengths = (float(leg[i]), float(arm[i]))
 
-    def _pitch(self, st: SampleState, root_aa: torch.Tensor) -> None:
-        """The pitch this trunk sits up by on its bed, and the limbs' frames for it (one sample
-        at a time: never batch-dependent)."""
-        caps, lying = _lying(st, root_aa, torch.zeros(1, NUM_POSE_JOINTS, 3, dtype=torch.float64))
-        up = sit_up_frame(caps, lying, BedShape(st.head_angle), self.mat)
-        st.pitch = up.pitch
-        # The legs are measured in the bed's frame turned back by the pitch: a body-axes vector
-        # v of the turned body points along Q v in the lying frame, so the bed axes f seen from
-        # the lying frame are Q^T f: rows f^T Q.
-        st.leg_frame, st.leg_shift = st.frame @ up.turn[0], up.pelvis[0]
-        if self.config.over_bed:
-            # The arms turn up with the trunk: their over-bed rule is measured on the head
-            # section as they will lie there (their cells and heights stay the trunk's, which
-            # turning keeps; sampling law 5).
-            st.arm_frame, st.arm_shift = st.frame.clone(), st.shift.clone()
-            st.arm_frame[MAT_X], st.arm_shift[0] = up.head_row[0], up.head_offset[0]
-
     def _fit_model(self) -> BodyModel:
         """The body model in float64 on the CPU (a copy if the given one is not)."""
         if getattr(self, "_model64", None) is None:
@@ -339,29 +315,6 @@ class PoseSampler(LimbDraws):
             for i, j in enumerate(rotating_joints(lb)):
                 pose[:, j - 1] = aa[:, i]
         return pose
-
-    def _sit_up(self, states: list[SampleState]) -> None:
-        """Turn each fully drawn pose up onto its raised bed and check what turning changes; a
-        pose that fails loses its limbs (a failed attempt). One sample at a time: its numbers
-        then never depend on the batch."""
-        (x_lo, x_hi), (y_lo, y_hi) = self.mat.mattress_bounds_m
-        over_bed = sorted({j for lb in self.limbs.values() for j in lb.over_bed})
-        for st in states:
-            bed = BedShape(st.head_angle)
-            caps, lying = _lying(st, st.root_aa[None], self._pose([st]))
-            sat, seat = sit_up(caps, lying, bed, self.mat, pitch=st.pitch, keep_thighs=False)
-            ok = float(seat[0]) <= SEAT_TOLERANCE_M
-            if ok and self.config.over_bed:
-                _, joints = pose_in_mat(caps.rest, sat)
-                s_y = bed.to_surface(joints[0, over_bed], self.mat)
-                ok = bool(((s_y[:, 0] > x_lo) & (s_y[:, 0] < x_hi) & (s_y[:, 1] > y_lo) & (s_y[:, 1] < y_hi)).all())
-            if ok:
-                st.sat = sat
-            else:
-                st.angles = {}
-                st.sat = None
-                st.failed_limb = None
-                st.counts["sit_up_rejections"] += 1
 
     def _collect(self, states: list[SampleState]) -> InitialPoses:
         pose = self._pose(states)
@@ -395,17 +348,6 @@ class PoseSampler(LimbDraws):
             config=self.config,
             backend=self.model.name,
         )
-
-
-def _lying(st: SampleState, root_aa: torch.Tensor, pose: torch.Tensor) -> tuple[Capsules, BodyParams]:
-    """A sample's capsules and its pose lying flat (pelvis over the bed, height 0), batch of 1."""
-    caps = Capsules(st.caps[0][None], st.caps[1][None], st.caps[2][None], st.rest[None])
-    return caps, BodyParams(
-        shape=torch.from_numpy(st.shape)[None],
-        root_rotation=root_aa,
-        root_translation=st.shift[None].clone(),
-        pose=pose,
-    )
 
 
 __all__ = ["InitialPoses", "PoseSampler", "UnreachableConstraints", "root_axis_angle", "sample_key"]

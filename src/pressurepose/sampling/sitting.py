@@ -48,13 +48,17 @@ PITCH_GRID = 64
 PITCH_ROUNDS = 3
 
 
+def _about_y(pitch: torch.Tensor) -> torch.Tensor:
+    zero = torch.zeros_like(pitch)
+    return axis_angle_to_matrix(torch.stack([zero, pitch, zero], -1))
+
+
 def fold_params(params: BodyParams, rest: torch.Tensor, pitch: torch.Tensor, keep_thighs: bool = True) -> BodyParams:
     """Sit B bodies up: trunk, head and arms pitched up by `pitch` (B,) rad about the mat's y
     axis through the midpoint of the hip joints. keep_thighs: the thighs keep their
     orientation (hip rotations conjugated by the pitch); otherwise the whole body turns
     rigidly. rest: (B, 24, 3) T-pose joints, pelvis at the origin. float64."""
-    zero = torch.zeros_like(pitch)
-    P = axis_angle_to_matrix(torch.stack([zero, pitch, zero], -1))  # (B, 3, 3) head up for pitch > 0
+    P = _about_y(pitch)  # (B, 3, 3) head up for pitch > 0
     R0 = root_matrix(params.root_rotation)
     t = params.root_translation
     c = (R0 @ rest[:, list(HIP_JOINTS)].mean(1)[..., None])[..., 0] + t  # hip midpoint, mat frame
@@ -116,10 +120,8 @@ def _trunk(caps: Capsules, params: BodyParams):
 
 
 def _pitch_search(ends, radius, c, bed: BedShape, mat: MatSpec) -> torch.Tensor:
-    """`trunk_pitch` on the trunk's lying end points (`_trunk`)."""
+    """`trunk_pitch` on the trunk's lying end points (`_trunk`), for a raised bed."""
     B, T = radius.shape
-    if bed.flat:
-        return torch.zeros(B, dtype=ends.dtype)
     normals, _ = _planes(bed, mat, ends)
     rel = ends - c[:, None]
 
@@ -167,11 +169,6 @@ def trunk_pitch(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec)
     return _pitch_search(ends, radius, c, bed, mat)
 
 
-def _about_y(pitch: torch.Tensor) -> torch.Tensor:
-    zero = torch.zeros_like(pitch)
-    return axis_angle_to_matrix(torch.stack([zero, pitch, zero], -1))
-
-
 def pitch_matrix(root_rotation: torch.Tensor, pitch: torch.Tensor) -> torch.Tensor:
     """(B, 3, 3) the sitting pitch in body axes, Q = R0^T P R0: a body-axes vector v of the
     turned body points where Q v pointed before."""
@@ -205,17 +202,16 @@ def sit_up_frame(caps: Capsules, params: BodyParams, bed: BedShape, mat: MatSpec
     bound at the foot end tested with it holds for arms only because they stay far (> 1 m) from
     the foot end. Across the bed the map is exact (the turn is about the mat's y axis and the
     lift vertical). The sat-up pose is still checked exactly (sampler)."""
-    ends, radius, c, R0 = _trunk(caps, params)
     if bed.flat:
-        B = radius.shape[0]
-        eye = torch.eye(3, dtype=ends.dtype).expand(B, 3, 3)
+        B, dtype = params.batch_size, params.root_translation.dtype
         return SitUpFrame(
-            pitch=torch.zeros(B, dtype=ends.dtype),
-            turn=eye.clone(),
+            pitch=torch.zeros(B, dtype=dtype),
+            turn=torch.eye(3, dtype=dtype).expand(B, 3, 3).clone(),
             pelvis=params.root_translation.clone(),
-            head_row=R0[:, 0].clone(),  # the mat's x axis in body axes
+            head_row=root_matrix(params.root_rotation)[:, 0].clone(),  # the mat's x axis in body axes
             head_offset=params.root_translation[:, 0].clone(),
         )
+    ends, radius, c, R0 = _trunk(caps, params)
     pitch = _pitch_search(ends, radius, c, bed, mat)
     P = _about_y(pitch)
     turned = (P[:, None] @ (ends - c[:, None])[..., None])[..., 0] + c[:, None]
