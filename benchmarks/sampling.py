@@ -82,7 +82,7 @@ def bench_stages(n: int, partitions: list[str] | None) -> None:
         (sampler, "root_axis_angles", "root axis-angle"),
         (limb_draws.LimbDraws, "_draw_limbs", "limb draws (all)"),
         (support.LimbGrid, "support", "  reachable boxes"),
-        (support.LimbGrid, "propose", "  proposals in the boxes"),
+        (support.LimbGrid, "propose_rows", "  proposals in the boxes"),
         (limb_draws.LimbDraws, "_window", "  windows"),
         (limb_draws.LimbDraws, "_screen", "    screen (float32)"),
         (limb_draws.LimbDraws, "_limb_survivors", "    exact tests"),

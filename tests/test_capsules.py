@@ -258,6 +258,36 @@ def test_part_by_part_fit_equals_the_whole_mesh_fit(anny64):
     torch.testing.assert_close(grads[0], grads[1], atol=1e-9, rtol=1e-9)
 
 
+def test_the_radius_is_the_median_of_the_mid_segment_distances_with_and_without_autograd():
+    # Without autograd the distances outside the band are masked in place; with it, in a copy;
+    # either way the radius is the lower median of the in-band distances, bit for bit.
+    from pressurepose.body.capsule_fit import _fit_one
+
+    g = torch.Generator().manual_seed(4)
+    v = torch.randn(6, 3, 301, generator=g, dtype=D)
+    v[5, 0] = 5.0  # no vertex mid-segment: all of them count
+    length = torch.full((6,), 1.0, dtype=D)
+    for spec in (CAPSULES[capsule_index("left_thigh")], CAPSULES[capsule_index("pelvis")]):
+        with torch.no_grad():
+            r = _fit_one(spec, v, None if spec.crosswise else length)[2]
+        vg = v.clone().requires_grad_()
+        rg = _fit_one(spec, vg, None if spec.crosswise else length)[2]
+        rg.sum().backward()
+        assert torch.equal(r, rg.detach())
+        if spec.crosswise:
+            t = v[:, 0] - v[:, 0].mean(-1, keepdim=True)
+            dist = torch.hypot(v[:, 1] - v[:, 1].mean(-1, keepdim=True), v[:, 2] - v[:, 2].mean(-1, keepdim=True))
+            lo, hi = t.amin(1), t.amax(1)
+            lo, hi = lo + 0.25 * (hi - lo), hi - 0.25 * (hi - lo)
+        else:
+            t, dist = v[:, 0], torch.hypot(v[:, 1], v[:, 2])
+            lo, hi = torch.full((6,), 0.2, dtype=D), torch.full((6,), 0.8, dtype=D)
+        band = (t >= lo[:, None]) & (t <= hi[:, None])
+        band |= ~band.any(1, keepdim=True)
+        want = torch.stack([d[b].sort().values[(int(b.sum()) - 1) // 2] for d, b in zip(dist, band)])
+        assert torch.equal(r, want)
+
+
 def test_fitted_capsules_are_mirror_symmetric_for_a_symmetric_body(anny64, two_bodies):
     _, caps = two_bodies
     flip = torch.tensor([-1.0, 1.0, 1.0], dtype=D)

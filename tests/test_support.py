@@ -156,3 +156,28 @@ def test_the_boxes_hold_every_valid_draw_of_the_partition_conditions(name, flag)
     assert np.isin(box[ok], boxes).all()
     # the condition itself drops boxes: without it more are kept
     assert boxes.size < grid.support(offsets, root, FRAME, shift, (lo, hi), BED, over_bed).size
+
+
+@pytest.mark.parametrize("name, straight", [("left_leg", True), ("right_arm", False)])
+def test_the_component_major_tables_give_the_projections_bit_for_bit(name, straight):
+    # F^T @ (3, 3 nk) table: the same three-term sums as the (nk 3, 3) table @ F it replaced,
+    # already in (5, 3, nk) order.
+    grid = LimbGrid(LIMBS[name], straight)
+    rng = np.random.default_rng(4)
+    nk = grid.rt.shape[0] // 3
+    for tab, cols in ((grid.rt, grid._rt_cols), (getattr(grid, "rt3", None), getattr(grid, "_rt3_cols", None))):
+        if tab is None:
+            continue
+        for _ in range(5):
+            F = rng.normal(size=(3, 5))
+            old = np.ascontiguousarray((tab @ F).reshape(nk, 3, 5).transpose(2, 1, 0)).astype(np.float32)
+            assert (F.T @ cols).astype(np.float32).reshape(5, 3, nk).tobytes() == old.tobytes()
+
+
+def test_proposals_of_several_rows_at_once_are_those_row_by_row():
+    grid = LimbGrid(LIMBS["left_arm"], False)
+    rng = np.random.default_rng(5)
+    boxes = [np.sort(rng.choice(grid.boxes, size, replace=False)) for size in (1, 7, 300, grid.boxes)]
+    u = rng.random((len(boxes), 257, 5))
+    want = np.stack([grid.propose(b, row) for b, row in zip(boxes, u)])
+    assert grid.propose_rows(boxes, u).tobytes() == want.tobytes()

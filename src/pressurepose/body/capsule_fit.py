@@ -270,9 +270,11 @@ def _fit_one(spec: CapsuleSpec, v: torch.Tensor, length: torch.Tensor | None):
         band_lo, band_hi = t_lo + 0.2 * span, t_hi - 0.2 * span
     # Radius: median distance to the axis of the vertices in the middle of the segment (the
     # joint regions are shared with neighbours).
-    in_band = (t >= band_lo[:, None]) & (t <= band_hi[:, None])
-    in_band |= ~in_band.any(1, keepdim=True)  # a part with no vertex mid-segment: use them all
-    r = torch.where(in_band, dist, torch.full_like(dist, float("nan"))).nanmedian(1).values
+    out_band = (t < band_lo[:, None]).logical_or_(t > band_hi[:, None])
+    out_band &= ~out_band.all(1, keepdim=True)  # a part with no vertex mid-segment: use them all
+    # (dist is this call's own: filled in place unless autograd needs it as it is)
+    fill = dist.masked_fill if dist.requires_grad else dist.masked_fill_
+    r = fill(out_band, float("nan")).nanmedian(1).values
     if spec.crosswise:
         half = ((t_hi - t_lo) / 2 - r).clamp_min(0.0)
         mid = centre.clone()

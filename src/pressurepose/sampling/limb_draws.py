@@ -153,11 +153,15 @@ class LimbDraws:
         children = [ctx.children.get(r) for r in pending.tolist()]
         saved = [None if (one_round or ch) else st.rng.bit_generator.state for st, ch in zip(states, children)]
         u = np.empty((P, W, limb.low.shape[0]))
-        for p, (st, ch) in enumerate(zip(states, children)):
+        boxed = [p for p, ch in enumerate(children) if ch is not None]
+        for st, ch, row in zip(states, children, u):
             if ch is None:
-                st.rng.random(out=u[p])
-            else:  # uniform in the reachable boxes (sampling.support)
-                u[p] = self._grids[limb.name].propose(ch[1], ch[0].random((W, 5)))
+                st.rng.random(out=row)
+        if boxed:  # uniform in the reachable boxes (sampling.support), the rows' numbers at once
+            v = np.empty((len(boxed), W, 5))
+            for p, row in zip(boxed, v):
+                children[p][0].random(out=row)
+            u[boxed] = self._grids[limb.name].propose_rows([children[p][1] for p in boxed], v)
         u = torch.from_numpy(u)
         avail = (ctx.budget[pending] - start).clamp(0, W)  # draws of the budget in this window
         # 1. Screen every draw (float32, conservative).

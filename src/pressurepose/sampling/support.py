@@ -46,6 +46,11 @@ SUPPORT_MARGIN_M = 1e-5  # every bound loosened by this (the float32 tests round
 DIMS = 4  # drawn angles per limb: rotation vector (3) and hinge
 
 
+def _component_major(R: np.ndarray) -> np.ndarray:
+    """(3, 3 nk) from (nk, 3, 3) rotations: column c nk + i is row c of R_i^T (column c of R_i)."""
+    return np.ascontiguousarray(R.transpose(1, 2, 0)).reshape(3, -1)
+
+
 class LimbGrid:
     """A fixed grid over one limb's angle box and the rotation matrices of its box centres."""
 
@@ -61,9 +66,11 @@ class LimbGrid:
         # Rows of R_i^T, stacked: (n^3 * 3, 3) @ F (3, f) gives R_i^T f for every box.
         R = axis_angle_to_matrix(torch.from_numpy(k)).numpy()
         self.rt = np.ascontiguousarray(R.transpose(0, 2, 1)).reshape(-1, 3)
+        self._rt_cols = _component_major(R)
         if not self.leg:  # the collar's third of the rotation
             R3 = axis_angle_to_matrix(torch.from_numpy(k / 3)).numpy()
             self.rt3 = np.ascontiguousarray(R3.transpose(0, 2, 1)).reshape(-1, 3)
+            self._rt3_cols = _component_major(R3)
         phi = np.zeros(1) if straight else centre[3]
         self.cos, self.sin = np.cos(phi), np.sin(phi)
         self.h_rot = 0.5 * math.sqrt(float(((span[:3] / n) ** 2).sum()))  # half diagonal of a box
@@ -121,9 +128,11 @@ class LimbGrid:
         # Projections onto the frame's up, along, mat x, mat y and the body's x axis.
         F = np.stack([frame[UP], frame[ALONG], frame[MAT_X], frame[MAT_Y], np.eye(3)[0]], 1)  # (3, 5)
         proj = {}  # table -> (5, 3, nk): R_i^T f for every f and box, component-major
-        for tab in (self.rt, getattr(self, "rt3", None)):
+        for tab, tab_cols in ((self.rt, self._rt_cols), (getattr(self, "rt3", None), getattr(self, "_rt3_cols", None))):
             if tab is not None:
-                proj[id(tab)] = np.ascontiguousarray((tab @ F).reshape(nk, 3, 5).transpose(2, 1, 0)).astype(f32)
+                # F^T (5, 3) @ (3, 3 nk): the same three-term sums as (tab @ F), already in
+                # (5, 3, nk) order (no transposed copy per call).
+                proj[id(tab)] = (F.T @ tab_cols).astype(f32).reshape(5, 3, nk)
         a = proj[id(self.rt)]
         hinged = [self.hinge(v).astype(f32) for v in bent]  # (3, nphi) each
         first_bent = len(steps) - len(bent)
@@ -174,3 +183,12 @@ class LimbGrid:
         a box drawn uniformly among `boxes` (u[:, 0] picks the box, u[:, 1:] the point in it)."""
         pick = boxes[np.minimum((u[:, 0] * boxes.shape[0]).astype(np.int64), boxes.shape[0] - 1)]
         return (self.corner[pick] + u[:, 1:]) / self.n
+
+    def propose_rows(self, boxes: list[np.ndarray], u: np.ndarray) -> np.ndarray:
+        """`propose` for several rows at once: u (R, W, 5) with row r's boxes `boxes[r]` ->
+        (R, W, 4); the same numbers as row by row (element-wise operations only)."""
+        sizes = np.array([b.shape[0] for b in boxes], dtype=np.int64)
+        first = np.cumsum(sizes) - sizes
+        k = np.minimum((u[..., 0] * sizes[:, None]).astype(np.int64), sizes[:, None] - 1)
+        pick = np.concatenate(boxes)[first[:, None] + k]
+        return (self.corner[pick] + u[..., 1:]) / self.n
