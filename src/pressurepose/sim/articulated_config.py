@@ -90,6 +90,13 @@ class ArticulatedConfig:
     sim #1's `lateral_straight`)."""
     sub: int = 2
     """Grid cells per taxel side."""
+    coarse_sub: int = 1
+    """The re-posings before the last `fine_reposings` find their contacts on a coarse grid of
+    this many cells per taxel side with the mesh's vertices only (a third of the surface
+    points); the last ones and the rest itself on the image's grid (`sub`) with every point.
+    0: the image's grid throughout (engine revision 8)."""
+    fine_reposings: int = 8
+    """Re-posings on the image's grid at least (all of them if `outer` is not larger)."""
     self_contact: bool = True
     """Keep the body's capsules from passing through each other (`sim.self_contact`): a
     forearm across the belly rests on it instead of sinking through to the foam."""
@@ -107,6 +114,11 @@ class ArticulatedConfig:
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
     def __post_init__(self) -> None:
+        if self.coarse_sub < 0 or self.fine_reposings < 0:
+            raise UserError(
+                f"ArticulatedConfig: coarse_sub ({self.coarse_sub}; 0: no coarse grid) and fine_reposings"
+                f" ({self.fine_reposings}) must be >= 0"
+            )
         if not self.tissue_sag_m >= 0:  # also refuses NaN
             raise UserError(f"ArticulatedConfig.tissue_sag_m must be >= 0 m (0: no sag), got {self.tissue_sag_m}")
         for field in ("tissue_by_part", "tissue_depth_max", "sag_depth_max", "lying_extension"):

@@ -41,6 +41,19 @@ class MovingBodies:
     last_q: torch.Tensor | None = None  # (B, N)
     share: torch.Tensor | None = None  # (B, N)
     streak: torch.Tensor | None = None  # (B, N)
+    # The coarse grid's points (`coarse_points`), their tissue, sag and pillow cells.
+    c_pts: torch.Tensor | None = None
+    c_tissue: torch.Tensor | None = None
+    c_sag: torch.Tensor | None = None
+    c_under: torch.Tensor | None = None
+
+    def coarse_points(self, keep: torch.Tensor, under: torch.Tensor | None) -> None:
+        """Keep the surface points `keep` (P,) bool for the coarse grid (coordinate-major, as
+        `articulation.to_part_frames` lays them out); `under` (B, C'): its pillow cells."""
+        self.c_pts = self.local_pts[:, keep].transpose(1, 2).contiguous().transpose(1, 2)
+        self.c_tissue = None if self.point_tissue is None else self.point_tissue[:, keep].contiguous()
+        self.c_sag = None if self.point_sag is None else self.point_sag[:, keep].contiguous()
+        self.c_under = under
 
     def take(self, idx: torch.Tensor) -> MovingBodies:
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
