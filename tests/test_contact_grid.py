@@ -76,6 +76,6 @@ def test_no_coarse_grid_when_the_fine_reposings_take_them_all(anny64):
 
 
 def test_the_coarse_grid_config_is_checked():
-    for bad in ({"coarse_sub": -1}, {"fine_reposings": -1}):
+    for bad in ({"coarse_sub": -1}, {"fine_reposings": -1}, {"coarse_inner": 0}):
         with pytest.raises(UserError):
             dataclasses.replace(ArticulatedConfig(), **bad)

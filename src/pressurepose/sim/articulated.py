@@ -295,7 +295,7 @@ def rest_articulated(
             mp,
             body.weight,
             cfg,
-            max_steps=cfg.inner if last else cfg.inner_reposing,
+            max_steps=cfg.inner if last else cfg.coarse_inner if in_coarse else cfg.inner_reposing,
             step_tol=0.0 if last else cfg.reposing_step_tol,
         )
         iters[act] += it

@@ -97,6 +97,10 @@ class ArticulatedConfig:
     0: the image's grid throughout (engine revision 8)."""
     fine_reposings: int = 8
     """Re-posings on the image's grid at least (all of them if `outer` is not larger)."""
+    coarse_inner: int = 3
+    """Newton steps of a coarse re-posing's solve (`inner_reposing` on the image's grid): it
+    only brings the body nearer its rest (6: 7-10% more CPU, more bodies still moving at the cap;
+    docs/benchmarks.md "Session 49")."""
     self_contact: bool = True
     """Keep the body's capsules from passing through each other (`sim.self_contact`): a
     forearm across the belly rests on it instead of sinking through to the foam."""
@@ -114,10 +118,10 @@ class ArticulatedConfig:
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
     def __post_init__(self) -> None:
-        if self.coarse_sub < 0 or self.fine_reposings < 0:
+        if self.coarse_sub < 0 or self.fine_reposings < 0 or self.coarse_inner < 1:
             raise UserError(
                 f"ArticulatedConfig: coarse_sub ({self.coarse_sub}; 0: no coarse grid) and fine_reposings"
-                f" ({self.fine_reposings}) must be >= 0"
+                f" ({self.fine_reposings}) must be >= 0, coarse_inner ({self.coarse_inner}) >= 1"
             )
         if not self.tissue_sag_m >= 0:  # also refuses NaN
             raise UserError(f"ArticulatedConfig.tissue_sag_m must be >= 0 m (0: no sag), got {self.tissue_sag_m}")
