@@ -84,7 +84,8 @@ from pressurepose.sim.self_contact import SelfContact
 # unknown takes a secant share of its re-posing's motion (`ArticulatedConfig.damp_swings`,
 # session 46); 8: raised beds rest articulated too (`sim.raised`, session 46; flat beds as in 7);
 # 9: the re-posings before the last 8 find their contacts on a taxel-sized grid with the mesh's
-# vertices only (`ArticulatedConfig.coarse_sub`, session 49, docs/benchmarks.md).
+# vertices only, 3 Newton steps each, and 24 re-posings at most (`ArticulatedConfig.coarse_sub`,
+# session 49, docs/physics.md "Two grids").
 ENGINE_REVISION = 9
 
 FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"

@@ -32,11 +32,12 @@ class ArticulatedConfig:
     spine_lateral_scale: float = 1.0
     """Extra factor on the spine's sideways bending (its DoF about the bed's cross axis on a
     body lying on its side; blended by the body's roll, `articulation.joint_stiffness`)."""
-    outer: int = 20
+    outer: int = 24
     """Re-posings of the mesh at most (each re-linearises the kinematics; friction's sliding
     and a side-lying body's roll need more than 10 to finish; 20 since session 42, 14 before:
-    on the air preset's nearly flat top the parts keep sliding a few re-posings longer). Settled
-    bodies stop early, so only the slow ones pay for it."""
+    on the air preset's nearly flat top the parts keep sliding a few re-posings longer; 24 since
+    session 49: 16 on the coarse grid and 8 on the image's, as many bodies settle as with 20 on the
+    image's grid alone). Settled bodies stop early, so only the slow ones pay for it."""
     damp_swings: bool = True
     """A re-posing whose motion reverses an unknown's last one takes only the secant share of it
     (`rest_state.damp_swings`), so an elbow or a hip swinging about a contact's onset settles
