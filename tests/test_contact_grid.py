@@ -37,8 +37,8 @@ def test_coarse_cells_hold_the_fine_cells_lowest_vertex(anny64):
     local, labels, vert, rot, joints = _points(anny64, p)
     fine = ContactGrid.build(mat, mp, 2, None, torch.float64, "cpu")
     coarse = ContactGrid.build(mat, mp, 1, None, torch.float64, "cpu")
-    h_f, _, _ = fine.heights(local, labels, None, None, None, rot, joints, None, None, None)
-    h_c, part_c, _ = coarse.heights(local[:, vert], labels[vert], None, None, None, rot, joints, None, None, None)
+    h_f, _, _ = fine.heights(local, labels, rot, joints)
+    h_c, part_c, _ = coarse.heights(local[:, vert], labels[vert], rot, joints)
     assert h_f.shape == (1, fine.nr * fine.nc) and h_c.shape == (1, coarse.nr * coarse.nc)
     # The four image cells of each coarse cell (the grids share their origin).
     lowest4 = h_f.view(coarse.nr, 2, coarse.nc, 2).amin((1, 3)).reshape(1, -1)
@@ -63,19 +63,85 @@ def test_two_grid_rest_of_a_settling_body_is_the_image_grid_rest(anny64):
     torch.testing.assert_close(two.force_n, one.force_n, rtol=2e-3, atol=0)
 
 
+def test_heights_use_their_own_grids_top_sections_pillow_and_tissue():
+    """`ContactGrid.heights` on each grid against a cell-by-cell reference: the air preset's top,
+    the raised section's cells, the pillow's cells and the tissue in series, the points' sag."""
+    from test_articulated_batch import _lowest_reference
+
+    from pressurepose.bed import BedShape
+    from pressurepose.sim.pillow import Pillow, in_series
+    from pressurepose.sim.raised import RaisedBed
+
+    mat, mp = MatSpec(), MattressParams.preset("air")
+    g = torch.Generator().manual_seed(3)
+    B, P = 2, 2500
+    pts = torch.stack(
+        [
+            torch.rand(B, P, generator=g, dtype=torch.float64) * 2.0,
+            torch.rand(B, P, generator=g, dtype=torch.float64) * 0.9,
+            torch.rand(B, P, generator=g, dtype=torch.float64) * 0.1,
+        ],
+        -1,
+    )
+    labels = torch.sort(torch.randint(0, 24, (P,), generator=g)).values
+    tissue = 1e5 + 1e5 * torch.rand(B, P, generator=g, dtype=torch.float64)
+    sag = 0.01 * torch.rand(B, P, generator=g, dtype=torch.float64)
+    rot = torch.eye(3, dtype=torch.float64).expand(B, 24, 3, 3)  # part frames = the mat's
+    joints = torch.zeros(B, 24, 3, dtype=torch.float64)
+    raised = RaisedBed(BedShape(30.0), mat, torch.float64, "cpu")
+    pillow, thick = Pillow(), torch.tensor([0.05, 0.0], dtype=torch.float64)
+    for sub in (1, 2):
+        grid = ContactGrid.build(mat, mp, sub, raised, torch.float64, "cpu")
+        under = (grid.xy[None, :, 0] < 0.4).expand(B, -1) & (thick[:, None] > 0)
+        h, part, cell_tissue = grid.heights(
+            pts, labels, rot, joints, sag=sag, tissue=tissue, raised=raised, pillow=(thick, under, pillow)
+        )
+        down = pts.clone()
+        down[..., 2] -= sag
+        want_h, want_part, want_t = _lowest_reference(raised.to_surface(down), labels, mat, sub, tissue)
+        head = grid.xy[:, 0] < raised.hinge_x
+        assert bool(head.any()) and not bool(head.all())
+        torch.testing.assert_close(
+            h, want_h - mp.top_height(grid.xy[:, 0]) - thick[:, None] * under, rtol=0, atol=1e-12
+        )
+        assert torch.equal(part, want_part + 24 * head.long())
+        torch.testing.assert_close(cell_tissue, in_series(want_t, pillow, thick, under), rtol=1e-12, atol=0)
+
+
+def test_the_coarse_reposings_come_first_and_the_rest_is_on_the_image_grid(anny64, monkeypatch):
+    """With `outer` 6 and `fine_reposings` 3, the first 3 re-posings find their contacts on the
+    coarse grid, every later one and the rest on the image's."""
+    from pressurepose.sim import articulated
+
+    subs, finished = [], []
+    heights, finish = ContactGrid.heights, articulated.RestsDone.finish
+
+    def spy_heights(self, *args, **kwargs):
+        subs.append(self.sub)
+        return heights(self, *args, **kwargs)
+
+    def spy_finish(self, *args, **kwargs):
+        finished.append(subs[-1])
+        return finish(self, *args, **kwargs)
+
+    monkeypatch.setattr(ContactGrid, "heights", spy_heights)
+    monkeypatch.setattr(articulated.RestsDone, "finish", spy_finish)
+    r = rest_articulated(anny64, _bodies(anny64, 1), config=ArticulatedConfig(outer=6, fine_reposings=3))
+    assert subs[:3] == [1, 1, 1] and set(subs[3:]) == {2} and len(subs) == int(r.reposings[0]) + 1
+    assert finished == [2] and r.failure == [""]
+    assert r.foundation_pa.shape[1:] == (MatSpec().covered_rows * 2, MatSpec().covered_cols * 2)
+
+
 def test_no_coarse_grid_when_the_fine_reposings_take_them_all(anny64):
     """`fine_reposings` >= `outer`: every re-posing on the image grid, the rest bit for bit that of
     `coarse_sub=0` (the same code path)."""
     p = _bodies(anny64, 1)
     a = rest_articulated(anny64, p, config=ArticulatedConfig(outer=4, fine_reposings=4))
     b = rest_articulated(anny64, p, config=ArticulatedConfig(outer=4, coarse_sub=0))
-    c = rest_articulated(anny64, p, config=ArticulatedConfig(outer=4, fine_reposings=2))
     assert torch.equal(a.joints, b.joints) and torch.equal(a.foundation_pa, b.foundation_pa)
-    assert not torch.equal(a.joints, c.joints)  # two coarse re-posings change the path
-    assert c.failure == [""] and c.foundation_pa.shape == a.foundation_pa.shape
 
 
 def test_the_coarse_grid_config_is_checked():
-    for bad in ({"coarse_sub": -1}, {"fine_reposings": -1}, {"coarse_inner": 0}):
-        with pytest.raises(UserError):
+    for bad in ({"coarse_sub": -1}, {"coarse_sub": 2}, {"fine_reposings": 0}, {"coarse_inner": 0}):
+        with pytest.raises(UserError, match="coarse_sub"):
             dataclasses.replace(ArticulatedConfig(), **bad)

@@ -45,7 +45,7 @@ from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix, root_roll
-from pressurepose.body.rotations import matrix_to_axis_angle, rotation_angle
+from pressurepose.body.rotations import matrix_to_axis_angle
 from pressurepose.errors import UserError
 from pressurepose.maps import surface_points
 from pressurepose.mat import MatSpec
@@ -63,13 +63,12 @@ from pressurepose.sim.articulation import (
     to_part_frames,
 )
 from pressurepose.sim.contact_grid import ContactGrid
-from pressurepose.sim.foundation import FAIL_SLIDES
 from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.pillow import footprint, spread_load
 from pressurepose.sim.raised import RaisedBed
-from pressurepose.sim.rest_state import MovingBodies, RestsDone, damp_swings
+from pressurepose.sim.rest_state import FAIL_BOTTOM, FAIL_SLIDES, FAIL_TILT, MovingBodies, RestsDone, damp_swings
 from pressurepose.sim.self_contact import SelfContact
 
 # The revision of the engine's numerics: raised whenever a change alters its rests beyond
@@ -87,12 +86,6 @@ from pressurepose.sim.self_contact import SelfContact
 # vertices only, 3 Newton steps each, and 24 re-posings at most (`ArticulatedConfig.coarse_sub`,
 # session 49, docs/physics.md "Two grids").
 ENGINE_REVISION = 9
-
-FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
-FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
-FAIL_NOT_CONVERGED = "did not converge"
-FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
-MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
 
 
 @dataclasses.dataclass
@@ -242,8 +235,9 @@ def rest_articulated(
         cur, rest, local_com, mass, local_pts, point_tissue, point_sag, dof_lo, dof_hi, ref_local, root_start, k, weight
     )
     body.pillow_m, body.pillow_under = pillow_m, under
+    vertex = order < labels_v.shape[0]  # the coarse grid's points: the mesh's vertices
     if coarse is not None:
-        body.coarse_points(order < labels_v.shape[0], under_c)  # the mesh's vertices
+        body.coarse_points(vertex, under_c)
     body.last_q, body.streak = k.new_zeros(B, dofs.n), k.new_zeros(B, dofs.n)
     body.share = torch.ones_like(body.last_q)
     # Each unknown's trust region and settled tolerance (the vertical shift in m, the rest in rad).
@@ -251,7 +245,7 @@ def rest_articulated(
     tol = torch.full((dofs.n,), cfg.settled_rotation_rad, dtype=dtype, device=device)
     cap[0], tol[0] = cfg.max_shift_m, cfg.settled_shift_m
     moving_contact, solved = contact, None
-    labels_c = None if coarse is None else labels[order < labels_v.shape[0]]
+    labels_c = labels[vertex]
     in_coarse = coarse is not None
     for outer in range(cfg.outer + 1):
         cur = body.cur
@@ -260,10 +254,13 @@ def rest_articulated(
         com = (rot @ body.local_com[..., None])[..., 0] + joints
         body_com = (body.mass[..., None] * com).sum(1) / body.mass.sum(1)[:, None]
         if in_coarse:
-            g, pts_of = coarse, (body.c_pts, labels_c, body.c_sag, body.c_tissue, body.c_under)
+            g, pts, lab, sag, tissue, pill = coarse, body.c_pts, labels_c, body.c_sag, body.c_tissue, body.c_under
         else:
-            g, pts_of = fine, (body.local_pts, labels, body.point_sag, body.point_tissue, body.pillow_under)
-        h, part, cell_tissue = g.heights(*pts_of, rot, joints, raised, body.pillow_m, cfg.pillow)
+            g, pts, lab, sag, tissue = fine, body.local_pts, labels, body.point_sag, body.point_tissue
+            pill = body.pillow_under
+        h, part, cell_tissue = g.heights(
+            pts, lab, rot, joints, sag=sag, tissue=tissue, raised=raised, pillow=(body.pillow_m, pill, cfg.pillow)
+        )
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, body.ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ body.root_start.transpose(-1, -2))[:, 0]
         axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)
@@ -307,10 +304,12 @@ def rest_articulated(
             body.last_q = q
         moved = (step.abs() >= tol).any(1)
         done.reposings[act] = outer
-        if in_coarse:  # no body finishes on the coarse grid: each goes on on the image's
-            if outer + 1 >= n_coarse or not bool(moved.any()):
+        if in_coarse:  # no body finishes on the coarse grid, and each takes all its re-posings
+            # there (a body's path does not depend on its batch); then the image's grid
+            if outer + 1 >= n_coarse:
                 in_coarse = False  # (and its swing damping starts again there)
                 body.last_q.zero_(), body.share.fill_(1.0), body.streak.zero_()
+                body.coarse_points(None, None)
             if friction is not None:
                 solved = lin.contact_state(step, mp)
             body.cur = apply_motion(body.cur, step, dofs, rot, joints, body_com)
@@ -353,21 +352,7 @@ def rest_articulated(
     if under is not None:  # what the mat reads beneath the pillows (the cell centres from above)
         foundation = spread_load(foundation, under.view(B, nr, nc), cfg.pillow, pillow_m, X[:, 0], Y[0])
     force, w_max = done.force, done.max_compression
-    failure = []
-    turned = rotation_angle(root_matrix(params.root_rotation), root_matrix(final.root_rotation))
-    for i in range(B):
-        if not bool(done.support[i]) or float(force[i]) <= 0:
-            failure.append(FAIL_NO_SUPPORT)
-        elif float(turned[i]) > MAX_ROLL_RAD:
-            failure.append(FAIL_TILT)
-        elif float(w_max[i]) > float(mp.thickness_m):  # (on air the travel ends on a base: never)
-            failure.append(FAIL_BOTTOM)
-        elif abs(float(force[i]) - float(weight[i])) > 1e-3 * float(weight[i]):
-            failure.append(FAIL_NOT_CONVERGED)
-        elif raised is not None and float(done.friction_ratio[i]) > float(mp.friction):
-            failure.append(FAIL_SLIDES)
-        else:
-            failure.append("")
+    failure = done.failures(params.root_rotation, weight, mp)
     bad = torch.tensor([bool(x) for x in failure], device=device)
     foundation = torch.where(bad[:, None, None], torch.zeros_like(foundation), foundation)
     return ArticulatedRest(
@@ -397,4 +382,12 @@ def _on_sheet(state, raised: RaisedBed | None):
     return part % NUM_JOINTS, raised.to_world(xyz), force, stiffness
 
 
-__all__ = ["ENGINE_REVISION", "FAIL_SLIDES", "ArticulatedConfig", "ArticulatedRest", "rest_articulated"]
+__all__ = [
+    "ENGINE_REVISION",
+    "FAIL_BOTTOM",
+    "FAIL_SLIDES",
+    "FAIL_TILT",
+    "ArticulatedConfig",
+    "ArticulatedRest",
+    "rest_articulated",
+]

@@ -17,6 +17,8 @@ from pressurepose.sim.soft_contact import lowest_points
 
 @dataclasses.dataclass
 class ContactGrid:
+    """One grid of the articulated rest's contacts (`build`) and the lowest points on it (`heights`)."""
+
     sub: int  # cells per taxel side
     X: torch.Tensor  # (nr, nc) cell centres along the bed (m)
     Y: torch.Tensor  # (nr, nc) across
@@ -28,12 +30,25 @@ class ContactGrid:
     nc: int
     mat: MatSpec
 
-    def heights(self, local, labels, sag, tissue, pillow_under, rot, joints, raised, pillow_m, pillow):
-        """The lowest surface point per cell at a posing (rot, joints (B, 24, ...)): its height
-        (B, C) above the mattress top (through a pillow's top where `pillow_under` (B, C)), its
-        part (B, C; on a raised bed + 24 on the head section) and the tissue modulus in series
-        (B, C) or None; `local` (B, P, 3) the points in their parts' frames, `labels` (P,) their
-        parts, `sag` and `tissue` (B, P) or None (`sim.articulated`)."""
+    def heights(
+        self,
+        local: torch.Tensor,
+        labels: torch.Tensor,
+        rot: torch.Tensor,
+        joints: torch.Tensor,
+        *,
+        sag: torch.Tensor | None = None,
+        tissue: torch.Tensor | None = None,
+        raised=None,
+        pillow: tuple | None = None,
+    ):
+        """The lowest surface point per cell at a posing (rot (B, 24, 3, 3), joints (B, 24, 3)):
+        its height (B, C) above the mattress top, its part (B, C; on a raised bed + 24 on the
+        head section, `raised` a `sim.raised.RaisedBed`) and the tissue modulus in series (B, C)
+        or None. `local` (B, P, 3): the points in their parts' frames, `labels` (P,) their parts
+        (sorted), `sag` and `tissue` (B, P) or None; `pillow` (thickness (B,), cells under it
+        (B, C) or None, `sim.pillow.Pillow`): heights above the pillows' tops, through them in
+        series (`sim.articulated`)."""
         pts = from_part_frames(local, labels, rot, joints)
         if sag is not None:  # the tissue hangs toward the bed, whatever the part's turn
             pts[..., 2] -= sag
@@ -44,13 +59,17 @@ class ContactGrid:
             part = raised.section_parts(part, self.head_cells)
         if self.top is not None:
             h = h - self.top  # heights above the (air cells') top, not above z = 0
-        if pillow_under is not None:  # above the pillows' tops, through them in series
-            h = h - pillow_m[:, None] * pillow_under
-            cell_tissue = in_series(cell_tissue, pillow, pillow_m, pillow_under)
+        if pillow is not None and pillow[1] is not None:
+            thickness, under, spec = pillow
+            h = h - thickness[:, None] * under
+            cell_tissue = in_series(cell_tissue, spec, thickness, under)
         return h, part, cell_tissue
 
     @classmethod
-    def build(cls, mat: MatSpec, mp: MattressParams, sub: int, raised, dtype, device) -> ContactGrid:
+    def build(
+        cls, mat: MatSpec, mp: MattressParams, sub: int, raised, dtype: torch.dtype, device: torch.device | str | None
+    ) -> ContactGrid:
+        """The covered grid of `sub` cells per taxel side; `raised` a `sim.raised.RaisedBed` or None."""
         X, Y = cell_centres(mat, sub, covered=True, dtype=dtype, device=device)
         xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
         nr, nc = grid_shape(mat, sub, True)
