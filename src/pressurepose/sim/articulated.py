@@ -24,7 +24,10 @@ the contact stiffness (sum c (1, x, y)(1, x, y)^T) summed over subtrees, so a st
 pass over the cells and a (N x N) solve, N = 45. Re-posings apply the motion exactly to the
 pose parameters (the parts riding their joints rigidly in between) and re-linearise; knee and
 elbow limits are stiff one-sided springs in the energy; the last solve's field is the pressure
-(force balances the weight to solver tolerance); the mesh is skinned once at the end.
+(force balances the weight to solver tolerance); the mesh is skinned once at the end. The early
+re-posings only bring the body near its rest: they find the contacts on a coarse grid (one cell
+per taxel, the mesh's vertices only, `sim.contact_grid`), the last ones and the rest on the
+image's grid with every surface point.
 
 Batched over B bodies, float64, CPU or CUDA; on a flat bed or one whose head section is raised
 (`sim.raised`: each section's cells in its own frame).
@@ -42,9 +45,9 @@ from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix, root_roll
-from pressurepose.body.rotations import matrix_to_axis_angle, rotation_angle
+from pressurepose.body.rotations import matrix_to_axis_angle
 from pressurepose.errors import UserError
-from pressurepose.maps import cell_centres, grid_shape, surface_points
+from pressurepose.maps import surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated_config import ArticulatedConfig
 from pressurepose.sim.articulation import (
@@ -52,7 +55,6 @@ from pressurepose.sim.articulation import (
     apply_motion,
     dof_axes_pivots,
     dof_geometry,
-    from_part_frames,
     joint_stiffness,
     lying_reference,
     part_mass_and_com,
@@ -60,15 +62,14 @@ from pressurepose.sim.articulation import (
     tissue_sag,
     to_part_frames,
 )
-from pressurepose.sim.foundation import FAIL_SLIDES
+from pressurepose.sim.contact_grid import ContactGrid
 from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
-from pressurepose.sim.pillow import footprint, in_series, spread_load
+from pressurepose.sim.pillow import footprint, spread_load
 from pressurepose.sim.raised import RaisedBed
-from pressurepose.sim.rest_state import MovingBodies, RestsDone, damp_swings
+from pressurepose.sim.rest_state import FAIL_BOTTOM, FAIL_SLIDES, FAIL_TILT, MovingBodies, RestsDone, damp_swings
 from pressurepose.sim.self_contact import SelfContact
-from pressurepose.sim.soft_contact import lowest_points
 
 # The revision of the engine's numerics: raised whenever a change alters its rests beyond
 # bitwise (datasets pin it, `generate.run`). 2: stalled solves leave, trimmed cells, a
@@ -80,14 +81,11 @@ from pressurepose.sim.soft_contact import lowest_points
 # rests unchanged, but the datasets' settle_steps column carries each body's re-posings (outer + 1
 # for a body still moving at the cap, `ArticulatedRest.settled`; session 43); 7: a swinging
 # unknown takes a secant share of its re-posing's motion (`ArticulatedConfig.damp_swings`,
-# session 46); 8: raised beds rest articulated too (`sim.raised`, session 46; flat beds as in 7).
-ENGINE_REVISION = 8
-
-FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
-FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
-FAIL_NOT_CONVERGED = "did not converge"
-FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
-MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
+# session 46); 8: raised beds rest articulated too (`sim.raised`, session 46; flat beds as in 7);
+# 9: the re-posings before the last 8 find their contacts on a taxel-sized grid with the mesh's
+# vertices only, 3 Newton steps each, and 24 re-posings at most (`ArticulatedConfig.coarse_sub`,
+# session 49, docs/physics.md "Two grids").
+ENGINE_REVISION = 9
 
 
 @dataclasses.dataclass
@@ -154,11 +152,12 @@ def rest_articulated(
     labels_all = torch.cat([labels_v, face_part])
     order = torch.argsort(labels_all, stable=True)
     labels = labels_all[order]
-    X, Y = cell_centres(mat, cfg.sub, covered=True, dtype=dtype, device=device)
-    xy = torch.stack([X.reshape(-1), Y.reshape(-1)], -1)
-    area = mat.pitch_row_m * mat.pitch_col_m / cfg.sub**2
-    # The mattress top under each cell (air cells; None: flat, heights used as they are).
-    top = mp.top_height(xy[:, 0]) if mp.has_cells else None
+    fine = ContactGrid.build(mat, mp, cfg.sub, raised, dtype, device)
+    coarse = None
+    n_coarse = max(cfg.outer - cfg.fine_reposings, 0) if cfg.coarse_sub else 0
+    if n_coarse:
+        coarse = ContactGrid.build(mat, mp, cfg.coarse_sub, raised, dtype, device)
+    X, Y, xy, area = fine.X, fine.Y, fine.xy, fine.area
     # A pose may start beyond a limit (the sampler's ranges are not the limits'): the limit
     # then sits where the joint starts, so the spring stops it going further, never pushes.
     dof_lo, dof_hi = dofs.limits(dtype, device)
@@ -210,7 +209,7 @@ def rest_articulated(
     )
     point_sag = tissue_sag(pts - drop[:, None], labels, joints, cfg.tissue_sag_m, cfg.sag_depth_max)
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
-    under = None
+    under = under_c = None
     if pillow_m is not None:
         pillow_m = torch.as_tensor(pillow_m, dtype=dtype, device=device).reshape(-1)
         if pillow_m.shape[0] != B or not bool(torch.isfinite(pillow_m).all()) or bool((pillow_m < 0).any()):
@@ -220,14 +219,14 @@ def rest_articulated(
         if raised is not None:
             raise UserError("pillows lie on flat beds only; drop pillow_m for a raised bed")
         under = footprint(cfg.pillow, joints, xy, pillow_m)
+        under_c = None if coarse is None else footprint(cfg.pillow, joints, coarse.xy, pillow_m)
     contact = None
     if cfg.self_contact:
         contact = SelfContact(fit_capsules(model, params.shape), rot, joints, weight, cfg.self_contact_sink_m)
     friction = Friction(B, mp.friction, dtype, device) if cfg.friction else None
     dof_parts = dofs.desc[dofs.joint]
-    nr, nc = grid_shape(mat, cfg.sub, True)
+    nr, nc = fine.nr, fine.nc
     done = RestsDone(params, nr * nc, area, dofs, raised)
-    head_cells = None if raised is None else raised.head_cells(xy[:, 0])
     # The bodies still moving and their state; a body whose re-posing no longer moves it leaves
     # (its rest is its last linearisation's solve, finished on its own, so it does not depend
     # on how long the others in its batch take).
@@ -236,6 +235,9 @@ def rest_articulated(
         cur, rest, local_com, mass, local_pts, point_tissue, point_sag, dof_lo, dof_hi, ref_local, root_start, k, weight
     )
     body.pillow_m, body.pillow_under = pillow_m, under
+    vertex = order < labels_v.shape[0]  # the coarse grid's points: the mesh's vertices
+    if coarse is not None:
+        body.coarse_points(vertex, under_c)
     body.last_q, body.streak = k.new_zeros(B, dofs.n), k.new_zeros(B, dofs.n)
     body.share = torch.ones_like(body.last_q)
     # Each unknown's trust region and settled tolerance (the vertical shift in m, the rest in rad).
@@ -243,25 +245,22 @@ def rest_articulated(
     tol = torch.full((dofs.n,), cfg.settled_rotation_rad, dtype=dtype, device=device)
     cap[0], tol[0] = cfg.max_shift_m, cfg.settled_shift_m
     moving_contact, solved = contact, None
+    labels_c = labels[vertex]
+    in_coarse = coarse is not None
     for outer in range(cfg.outer + 1):
         cur = body.cur
         if outer > 0:
             rot, joints = pose_in_mat(body.rest, cur)
         com = (rot @ body.local_com[..., None])[..., 0] + joints
         body_com = (body.mass[..., None] * com).sum(1) / body.mass.sum(1)[:, None]
-        pts = from_part_frames(body.local_pts, labels, rot, joints)
-        if body.point_sag is not None:  # the tissue hangs toward the bed, whatever the part's turn
-            pts[..., 2] -= body.point_sag
-        if raised is not None:  # heights along each section's normal, the cells by section
-            pts = raised.to_surface(pts)
-        h, part, cell_tissue = lowest_points(pts, labels, mat, cfg.sub, body.point_tissue)
-        if raised is not None:
-            part = raised.section_parts(part, head_cells)
-        if top is not None:
-            h = h - top  # heights above the (air cells') top, not above z = 0
-        if body.pillow_under is not None:  # above the pillows' tops, through them in series
-            h = h - body.pillow_m[:, None] * body.pillow_under
-            cell_tissue = in_series(cell_tissue, cfg.pillow, body.pillow_m, body.pillow_under)
+        if in_coarse:
+            g, pts, lab, sag, tissue, pill = coarse, body.c_pts, labels_c, body.c_sag, body.c_tissue, body.c_under
+        else:
+            g, pts, lab, sag, tissue = fine, body.local_pts, labels, body.point_sag, body.point_tissue
+            pill = body.pillow_under
+        h, part, cell_tissue = g.heights(
+            pts, lab, rot, joints, sag=sag, tissue=tissue, raised=raised, pillow=(body.pillow_m, pill, cfg.pillow)
+        )
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, body.ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ body.root_start.transpose(-1, -2))[:, 0]
         axes, pivots = dof_axes_pivots(dofs, rot, joints, body_com)
@@ -273,14 +272,14 @@ def rest_articulated(
         lin = Linearised(
             h,
             part,
-            xy,
+            g.xy,
             dof_a,
             body.mass,
             com,
             e,
             body.k,
             dofs,
-            area,
+            g.area,
             cell_tissue,
             (dofs.hinge_angles(cur.pose), body.dof_lo, body.dof_hi, _LIMIT_STIFFNESS_RATIO * body.k),
             springs,
@@ -294,7 +293,7 @@ def rest_articulated(
             mp,
             body.weight,
             cfg,
-            max_steps=cfg.inner if last else cfg.inner_reposing,
+            max_steps=cfg.inner if last else cfg.coarse_inner if in_coarse else cfg.inner_reposing,
             step_tol=0.0 if last else cfg.reposing_step_tol,
         )
         iters[act] += it
@@ -305,6 +304,16 @@ def rest_articulated(
             body.last_q = q
         moved = (step.abs() >= tol).any(1)
         done.reposings[act] = outer
+        if in_coarse:  # no body finishes on the coarse grid, and each takes all its re-posings
+            # there (a body's path does not depend on its batch); then the image's grid
+            if outer + 1 >= n_coarse:
+                in_coarse = False  # (and its swing damping starts again there)
+                body.last_q.zero_(), body.share.fill_(1.0), body.streak.zero_()
+                body.coarse_points(None, None)
+            if friction is not None:
+                solved = lin.contact_state(step, mp)
+            body.cur = apply_motion(body.cur, step, dofs, rot, joints, body_com)
+            continue
         if last or not bool(moved.any()):
             # The last re-posing, or nothing moves any more: each finishes its solve (the last
             # re-posing's already has the rest's step count); it is the rest (not settled if the
@@ -343,21 +352,7 @@ def rest_articulated(
     if under is not None:  # what the mat reads beneath the pillows (the cell centres from above)
         foundation = spread_load(foundation, under.view(B, nr, nc), cfg.pillow, pillow_m, X[:, 0], Y[0])
     force, w_max = done.force, done.max_compression
-    failure = []
-    turned = rotation_angle(root_matrix(params.root_rotation), root_matrix(final.root_rotation))
-    for i in range(B):
-        if not bool(done.support[i]) or float(force[i]) <= 0:
-            failure.append(FAIL_NO_SUPPORT)
-        elif float(turned[i]) > MAX_ROLL_RAD:
-            failure.append(FAIL_TILT)
-        elif float(w_max[i]) > float(mp.thickness_m):  # (on air the travel ends on a base: never)
-            failure.append(FAIL_BOTTOM)
-        elif abs(float(force[i]) - float(weight[i])) > 1e-3 * float(weight[i]):
-            failure.append(FAIL_NOT_CONVERGED)
-        elif raised is not None and float(done.friction_ratio[i]) > float(mp.friction):
-            failure.append(FAIL_SLIDES)
-        else:
-            failure.append("")
+    failure = done.failures(params.root_rotation, weight, mp)
     bad = torch.tensor([bool(x) for x in failure], device=device)
     foundation = torch.where(bad[:, None, None], torch.zeros_like(foundation), foundation)
     return ArticulatedRest(
@@ -387,4 +382,12 @@ def _on_sheet(state, raised: RaisedBed | None):
     return part % NUM_JOINTS, raised.to_world(xyz), force, stiffness
 
 
-__all__ = ["ENGINE_REVISION", "FAIL_SLIDES", "ArticulatedConfig", "ArticulatedRest", "rest_articulated"]
+__all__ = [
+    "ENGINE_REVISION",
+    "FAIL_BOTTOM",
+    "FAIL_SLIDES",
+    "FAIL_TILT",
+    "ArticulatedConfig",
+    "ArticulatedRest",
+    "rest_articulated",
+]

@@ -32,11 +32,14 @@ class ArticulatedConfig:
     spine_lateral_scale: float = 1.0
     """Extra factor on the spine's sideways bending (its DoF about the bed's cross axis on a
     body lying on its side; blended by the body's roll, `articulation.joint_stiffness`)."""
-    outer: int = 20
+    outer: int = 24
     """Re-posings of the mesh at most (each re-linearises the kinematics; friction's sliding
     and a side-lying body's roll need more than 10 to finish; 20 since session 42, 14 before:
-    on the air preset's nearly flat top the parts keep sliding a few re-posings longer). Settled
-    bodies stop early, so only the slow ones pay for it."""
+    on the air preset's nearly flat top the parts keep sliding a few re-posings longer; 24 since
+    session 49: 16 on the coarse grid and 8 on the image's; on the paper mix 0.224 of the samples
+    end at the cap against the one-grid engine's 0.266 with 20, though straight limbs 0.12 against
+    0.07). Every body takes all the coarse ones; on the image's grid a settled body stops early,
+    so only the slow ones pay for the rest."""
     damp_swings: bool = True
     """A re-posing whose motion reverses an unknown's last one takes only the secant share of it
     (`rest_state.damp_swings`), so an elbow or a hip swinging about a contact's onset settles
@@ -90,6 +93,17 @@ class ArticulatedConfig:
     sim #1's `lateral_straight`)."""
     sub: int = 2
     """Grid cells per taxel side."""
+    coarse_sub: int = 1
+    """The re-posings before the last `fine_reposings` find their contacts on a coarse grid of
+    this many cells per taxel side with the mesh's vertices only (a third of the surface
+    points); the last ones and the rest itself on the image's grid (`sub`) with every point.
+    0: the image's grid throughout (with `outer` 20: engine revision 8)."""
+    fine_reposings: int = 8
+    """Re-posings on the image's grid at least (all of them if `outer` is not larger)."""
+    coarse_inner: int = 3
+    """Newton steps of a coarse re-posing's solve (`inner_reposing` on the image's grid): it
+    only brings the body nearer its rest (6: 7-10% more CPU, more bodies still moving at the cap;
+    docs/benchmarks.md "Session 49: two grids")."""
     self_contact: bool = True
     """Keep the body's capsules from passing through each other (`sim.self_contact`): a
     forearm across the belly rests on it instead of sinking through to the foam."""
@@ -107,6 +121,11 @@ class ArticulatedConfig:
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
     def __post_init__(self) -> None:
+        if not (0 <= self.coarse_sub < self.sub) or self.fine_reposings < 1 or self.coarse_inner < 1:
+            raise UserError(
+                f"ArticulatedConfig: coarse_sub ({self.coarse_sub}) must be 0 (no coarse grid) or below sub"
+                f" ({self.sub}), fine_reposings ({self.fine_reposings}) and coarse_inner ({self.coarse_inner}) >= 1"
+            )
         if not self.tissue_sag_m >= 0:  # also refuses NaN
             raise UserError(f"ArticulatedConfig.tissue_sag_m must be >= 0 m (0: no sag), got {self.tissue_sag_m}")
         for field in ("tissue_by_part", "tissue_depth_max", "sag_depth_max", "lying_extension"):

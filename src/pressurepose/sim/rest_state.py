@@ -8,13 +8,21 @@ import dataclasses
 import torch
 
 from pressurepose.body.joints import NUM_JOINTS
-from pressurepose.body.params import BodyParams
+from pressurepose.body.params import BodyParams, root_matrix
+from pressurepose.body.rotations import rotation_angle
 from pressurepose.sim.articulation import Dofs, apply_motion
+from pressurepose.sim.foundation import FAIL_SLIDES
 from pressurepose.sim.linearised import Linearised
 from pressurepose.sim.mattress import MattressParams
 
 # The pose parameters the articulated rest changes.
 MOVED = ("pose", "root_rotation", "root_translation")
+
+FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
+FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
+FAIL_NOT_CONVERGED = "did not converge"
+FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
+MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
 
 
 @dataclasses.dataclass
@@ -41,6 +49,23 @@ class MovingBodies:
     last_q: torch.Tensor | None = None  # (B, N)
     share: torch.Tensor | None = None  # (B, N)
     streak: torch.Tensor | None = None  # (B, N)
+    # The coarse grid's points (`coarse_points`), their tissue, sag and pillow cells.
+    c_pts: torch.Tensor | None = None
+    c_tissue: torch.Tensor | None = None
+    c_sag: torch.Tensor | None = None
+    c_under: torch.Tensor | None = None
+
+    def coarse_points(self, keep: torch.Tensor | None, under: torch.Tensor | None) -> None:
+        """Keep the surface points `keep` (P,) bool for the coarse grid (coordinate-major, as
+        `articulation.to_part_frames` lays them out); `under` (B, C'): its pillow cells. None:
+        drop them (the coarse re-posings are over)."""
+        if keep is None:
+            self.c_pts = self.c_tissue = self.c_sag = self.c_under = None
+            return
+        self.c_pts = self.local_pts[:, keep].transpose(1, 2).contiguous().transpose(1, 2)
+        self.c_tissue = None if self.point_tissue is None else self.point_tissue[:, keep].contiguous()
+        self.c_sag = None if self.point_sag is None else self.point_sag[:, keep].contiguous()
+        self.c_under = under
 
     def take(self, idx: torch.Tensor) -> MovingBodies:
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -121,5 +146,38 @@ class RestsDone:
         self.max_compression[idx] = w.amax(1)
         self.support[idx] = lin.mask.any(1)
 
+    def failures(self, start_root: torch.Tensor, weight: torch.Tensor, mp: MattressParams) -> list[str]:
+        """Per body, why its rest is rejected ("" if it is not): no contact, rolled over (its root
+        turned beyond MAX_ROLL_RAD from `start_root` (B, 3)), through the foam, force not
+        balancing the weight (B,) N, or (raised) more friction than the sheet holds."""
+        turned = rotation_angle(root_matrix(start_root), root_matrix(self.params.root_rotation))
+        out = []
+        for i in range(len(weight)):
+            force, w = float(self.force[i]), float(weight[i])
+            if not bool(self.support[i]) or force <= 0:
+                out.append(FAIL_NO_SUPPORT)
+            elif float(turned[i]) > MAX_ROLL_RAD:
+                out.append(FAIL_TILT)
+            elif float(self.max_compression[i]) > float(mp.thickness_m):  # (on air the travel ends on a base)
+                out.append(FAIL_BOTTOM)
+            elif abs(force - w) > 1e-3 * w:
+                out.append(FAIL_NOT_CONVERGED)
+            elif self.raised is not None and float(self.friction_ratio[i]) > float(mp.friction):
+                out.append(FAIL_SLIDES)
+            else:
+                out.append("")
+        return out
 
-__all__ = ["MOVED", "MovingBodies", "RestsDone", "damp_swings"]
+
+__all__ = [
+    "FAIL_BOTTOM",
+    "FAIL_NOT_CONVERGED",
+    "FAIL_NO_SUPPORT",
+    "FAIL_SLIDES",
+    "FAIL_TILT",
+    "MAX_ROLL_RAD",
+    "MOVED",
+    "MovingBodies",
+    "RestsDone",
+    "damp_swings",
+]
