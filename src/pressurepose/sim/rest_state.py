@@ -11,16 +11,14 @@ from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import rotation_angle
 from pressurepose.sim.articulation import Dofs, apply_motion
-from pressurepose.sim.foundation import FAIL_SLIDES
+from pressurepose.sim.foundation import FAIL_BOTTOM, FAIL_NO_SUPPORT, FAIL_NOT_CONVERGED, FAIL_SLIDES
 from pressurepose.sim.linearised import Linearised
 from pressurepose.sim.mattress import MattressParams
 
 # The pose parameters the articulated rest changes.
 MOVED = ("pose", "root_rotation", "root_translation")
 
-FAIL_NO_SUPPORT = "no support: the body does not reach the mattress or is off it"
-FAIL_BOTTOM = "sank through the mattress (compression beyond its thickness)"
-FAIL_NOT_CONVERGED = "did not converge"
+# (no support, through the foam, not converged, sliding: the rigid rest's reasons, `sim.foundation`)
 FAIL_TILT = "unstable: the body rolls over (its centre of mass leaves its support)"
 MAX_ROLL_RAD = 1.0  # ~57 deg: a body on its side has rolled onto its front or back
 
