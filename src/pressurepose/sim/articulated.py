@@ -63,12 +63,13 @@ from pressurepose.sim.articulation import (
     to_part_frames,
 )
 from pressurepose.sim.contact_grid import ContactGrid
+from pressurepose.sim.foundation import FAIL_BOTTOM, FAIL_SLIDES
 from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.pillow import footprint, spread_load
 from pressurepose.sim.raised import RaisedBed
-from pressurepose.sim.rest_state import FAIL_BOTTOM, FAIL_SLIDES, FAIL_TILT, MovingBodies, RestsDone, damp_swings
+from pressurepose.sim.rest_state import FAIL_TILT, MovingBodies, RestsDone, damp_swings
 from pressurepose.sim.self_contact import SelfContact
 
 # The revision of the engine's numerics: raised whenever a change alters its rests beyond
@@ -304,17 +305,9 @@ def rest_articulated(
             body.last_q = q
         moved = (step.abs() >= tol).any(1)
         done.reposings[act] = outer
-        if in_coarse:  # no body finishes on the coarse grid, and each takes all its re-posings
-            # there (a body's path does not depend on its batch); then the image's grid
-            if outer + 1 >= n_coarse:
-                in_coarse = False  # (and its swing damping starts again there)
-                body.last_q.zero_(), body.share.fill_(1.0), body.streak.zero_()
-                body.coarse_points(None, None)
-            if friction is not None:
-                solved = lin.contact_state(step, mp)
-            body.cur = apply_motion(body.cur, step, dofs, rot, joints, body_com)
-            continue
-        if last or not bool(moved.any()):
+        # No body finishes on the coarse grid, and each takes all its re-posings there (a body's
+        # path does not depend on its batch); then the image's grid.
+        if not in_coarse and (last or not bool(moved.any())):
             # The last re-posing, or nothing moves any more: each finishes its solve (the last
             # re-posing's already has the rest's step count); it is the rest (not settled if the
             # last re-posing still moved it).
@@ -324,7 +317,7 @@ def rest_articulated(
             done.finish(act, lin, q, cur, rot, joints, body_com, mp)
             done.moving[act] = moved & last
             break
-        if not bool(moved.all()):
+        if not in_coarse and not bool(moved.all()):
             # These have settled: their solve goes on to the rest, on their own.
             idx, keep = (~moved).nonzero()[:, 0], moved.nonzero()[:, 0]
             lin_s = lin.take(idx)
@@ -340,6 +333,10 @@ def rest_articulated(
             rot, joints, body_com = rot[keep], joints[keep], body_com[keep]
         elif friction is not None:  # the contacts where the bodies go (their damped motion)
             solved = lin.contact_state(step, mp)
+        if in_coarse and outer + 1 >= n_coarse:
+            in_coarse = False  # (and each unknown's swing damping starts again on the image's grid)
+            body.last_q.zero_(), body.share.fill_(1.0), body.streak.zero_()
+            body.coarse_points(None, None)
         body.cur = apply_motion(body.cur, step, dofs, rot, joints, body_com)
     final = done.params
     out = model(final)

@@ -167,15 +167,4 @@ class RestsDone:
         return out
 
 
-__all__ = [
-    "FAIL_BOTTOM",
-    "FAIL_NOT_CONVERGED",
-    "FAIL_NO_SUPPORT",
-    "FAIL_SLIDES",
-    "FAIL_TILT",
-    "MAX_ROLL_RAD",
-    "MOVED",
-    "MovingBodies",
-    "RestsDone",
-    "damp_swings",
-]
+__all__ = ["FAIL_TILT", "MAX_ROLL_RAD", "MOVED", "MovingBodies", "RestsDone", "damp_swings"]
