@@ -47,17 +47,16 @@ from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix, root_roll
 from pressurepose.body.rotations import matrix_to_axis_angle
 from pressurepose.errors import UserError
-from pressurepose.maps import surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated_config import ArticulatedConfig
 from pressurepose.sim.articulation import (
     Dofs,
     apply_motion,
+    corner_mass_and_com,
     dof_axes_pivots,
     dof_geometry,
     joint_stiffness,
     lying_reference,
-    part_mass_and_com,
     tissue_modulus,
     tissue_sag,
     to_part_frames,
@@ -69,6 +68,7 @@ from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.pillow import footprint, spread_load
 from pressurepose.sim.raised import RaisedBed
+from pressurepose.sim.rest_setup import SurfaceLayout
 from pressurepose.sim.rest_state import FAIL_TILT, MovingBodies, RestsDone, damp_swings
 from pressurepose.sim.self_contact import SelfContact
 
@@ -145,14 +145,10 @@ def rest_articulated(
     dtype, device = model.dtype, model.device
     B = params.batch_size
     dofs = Dofs(device, dtype)
-    faces = model.faces
-    labels_v = model.part_labels
-    face_part = labels_v[faces[:, 0]]
     # Surface points (vertices, then triangle centroids) sorted by part, so each part is a
     # contiguous slice when the parts are moved.
-    labels_all = torch.cat([labels_v, face_part])
-    order = torch.argsort(labels_all, stable=True)
-    labels = labels_all[order]
+    layout = SurfaceLayout.build(model.faces, model.part_labels)
+    labels = layout.labels
     fine = ContactGrid.build(mat, mp, cfg.sub, raised, dtype, device)
     coarse = None
     n_coarse = max(cfg.outer - cfg.fine_reposings, 0) if cfg.coarse_sub else 0
@@ -189,18 +185,20 @@ def rest_articulated(
     ref_local = lying_reference(params.pose, root_roll(params.root_rotation), cfg.lying_extension)
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).
-    pts = surface_points(out.vertices, faces)[:, order]
-    lowest = pts[..., 2].amin(1) if raised is None else raised.drop(pts)
+    pts, corners = layout.points(out.vertices)  # (B, 3, P), coordinate-major
+    lowest = pts[:, 2].amin(1) if raised is None else raised.drop(pts.transpose(1, 2))
     drop = torch.stack([torch.zeros_like(lowest), torch.zeros_like(lowest), lowest], -1)
     cur = params.replace(root_translation=params.root_translation - drop)
     # The parts ride their joints rigidly while the rest is found: their surface points and
     # centres of mass are kept in each part's joint frame; the mesh is skinned once at the end.
-    mass, com = part_mass_and_com(out.vertices - drop[:, None], faces, face_part)
+    shift = drop[:, :, None]
+    mass, com = corner_mass_and_com(*(c - shift for c in corners), layout.triangle_part)
     mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     rot, joints = pose_in_mat(rest, cur)
-    local_pts = to_part_frames(pts - drop[:, None], labels, rot, joints)
+    pts = (pts - shift).transpose(1, 2).contiguous()  # (B, P, 3): the transforms' round-off as before
+    local_pts = to_part_frames(pts, labels, rot, joints)
     point_tissue = tissue_modulus(
-        pts - drop[:, None],
+        pts,
         labels,
         joints,
         mp.tissue_pa_per_m,
@@ -208,7 +206,7 @@ def rest_articulated(
         cfg.tissue_depth,
         cfg.tissue_depth_max,
     )
-    point_sag = tissue_sag(pts - drop[:, None], labels, joints, cfg.tissue_sag_m, cfg.sag_depth_max)
+    point_sag = tissue_sag(pts, labels, joints, cfg.tissue_sag_m, cfg.sag_depth_max)
     local_com = ((com - joints)[..., None, :] @ rot)[..., 0, :]  # R^T (c - p)
     under = under_c = None
     if pillow_m is not None:
@@ -236,7 +234,7 @@ def rest_articulated(
         cur, rest, local_com, mass, local_pts, point_tissue, point_sag, dof_lo, dof_hi, ref_local, root_start, k, weight
     )
     body.pillow_m, body.pillow_under = pillow_m, under
-    vertex = order < labels_v.shape[0]  # the coarse grid's points: the mesh's vertices
+    vertex = layout.vertex  # the coarse grid's points: the mesh's vertices
     if coarse is not None:
         body.coarse_points(vertex, under_c)
     body.last_q, body.streak = k.new_zeros(B, dofs.n), k.new_zeros(B, dofs.n)

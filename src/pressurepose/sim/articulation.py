@@ -163,14 +163,19 @@ def part_mass_and_com(
     parts meet, so the parts' masses add up to the body's within a few per cent; callers
     scale them to the body's mass. Per part, its triangles' corners as (B, 3, n) rows (one
     contiguous slice of the faces sorted by part): no scatter over the faces."""
-    B = vertices.shape[0]
     order = torch.argsort(face_part, stable=True)
     tri = faces[order]
     cols = vertices.transpose(1, 2).contiguous()  # (B, 3, V)
-    v0, v1, v2 = (cols.index_select(2, tri[:, i]) for i in range(3))  # (B, 3, F) each
-    mass = vertices.new_zeros(B, NUM_JOINTS)
-    com = vertices.new_zeros(B, NUM_JOINTS, 3)
-    for j, sl in _part_slices(face_part[order]):
+    return corner_mass_and_com(*(cols.index_select(2, tri[:, i]) for i in range(3)), face_part[order])
+
+
+def corner_mass_and_com(v0, v1, v2, face_part: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`part_mass_and_com` from the triangles' corners (three (B, 3, F)), the faces sorted by
+    part (`face_part` (F,) sorted)."""
+    B = v0.shape[0]
+    mass = v0.new_zeros(B, NUM_JOINTS)
+    com = v0.new_zeros(B, NUM_JOINTS, 3)
+    for j, sl in _part_slices(face_part):
         a0, a1, a2 = v0[:, :, sl], v1[:, :, sl], v2[:, :, sl]
         corners = a0 + a1 + a2
         apex = corners.sum(2, keepdim=True) / (3 * a0.shape[2])  # (B, 3, 1)
@@ -236,14 +241,15 @@ def tissue_depth(
     out = torch.empty(points.shape[:2], dtype=points.dtype, device=points.device)
     children = {j: [c for c in range(NUM_JOINTS) if J24_PARENTS[c] == j] for j in range(NUM_JOINTS)}
     for j, sl in _part_slices(labels):
-        pts = points[:, sl]
+        pts = points[:, sl].contiguous()  # (B, n, 3) whatever the layout: the same sums
         ends = [joints[:, c] for c in children[j]] or [pts.mean(1)]
         a = joints[:, j, None]
         best = None
+        r = pts - a
         for e in ends:
             ab = (e - joints[:, j])[:, None]
-            t = (((pts - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-12)).clamp(0, 1)
-            d = (pts - a - t[..., None] * ab).norm(dim=-1)
+            t = ((r * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-12)).clamp(0, 1)
+            d = (r - t[..., None] * ab).norm(dim=-1)
             best = d if best is None else torch.minimum(best, d)
         out[:, sl] = best
     for name, depth in max_by_part:
@@ -351,6 +357,7 @@ __all__ = [
     "from_part_frames",
     "joint_stiffness",
     "lying_reference",
+    "corner_mass_and_com",
     "part_mass_and_com",
     "tissue_depth",
     "tissue_sag",
