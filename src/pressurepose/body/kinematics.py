@@ -66,6 +66,18 @@ def forward_kinematics(
     return rot, pos
 
 
+def compose_down(D: torch.Tensor) -> torch.Tensor:
+    """(B, 24, 3, 3) -> U with U_0 = D_0 and U_j = D_j U_parent(j): rotations each joint
+    applies to its subtree (world frame), composed from the root down, one batched product per
+    level of the tree."""
+    U = D.clone()
+    for idx, par, _ in _LEVEL_INDEX:
+        if idx.device != D.device:
+            idx, par = idx.to(D.device), par.to(D.device)
+        U[:, idx] = D[:, idx] @ U[:, par]
+    return U
+
+
 def pose_in_mat(rest: torch.Tensor, params: BodyParams) -> tuple[torch.Tensor, torch.Tensor]:
     """World rotations (B, 24, 3, 3, body axes -> mat frame) and joint positions (B, 24, 3)
     in the mat frame for BodyParams whose shapes have these rest joints."""

@@ -15,6 +15,7 @@ import torch
 
 from pressurepose.body.capsules import HINGE_JOINTS, JOINT_STIFFNESS, STIFFNESS_REFERENCE_MASS_KG
 from pressurepose.body.joints import J24_NAMES, J24_PARENTS, NUM_JOINTS
+from pressurepose.body.kinematics import compose_down
 from pressurepose.body.limits import JointLimits
 from pressurepose.body.model import BODY_DENSITY_KG_M3
 from pressurepose.body.params import BodyParams, supine_rotation
@@ -331,20 +332,15 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
     # Rotation vector per joint: the sum of its DoFs' q x axis (the dz DoF's axis is zero).
     delta = q.new_zeros(B, NUM_JOINTS, 3).index_add_(1, dofs.joint, q[..., None] * dofs.axes(rot))
     D = axis_angle_to_matrix(delta)  # (B, 24, 3, 3) world-frame rotation at each joint
-    U = [None] * NUM_JOINTS
-    U[0] = D[:, 0]
-    new_rot = rot.clone()
-    new_rot[:, 0] = U[0] @ rot[:, 0]
-    for j in range(1, NUM_JOINTS):
-        U[j] = D[:, j] @ U[J24_PARENTS[j]]
-        new_rot[:, j] = U[j] @ rot[:, j]
+    U = compose_down(D)  # each joint's rotation of its subtree
+    new_rot = U @ rot
     par = [max(p, 0) for p in J24_PARENTS[1:]]
     local = new_rot[:, par].transpose(-1, -2) @ new_rot[:, 1:]
-    pose = matrix_to_axis_angle(local)
     root_m = new_rot[:, 0] @ supine_rotation(dtype, device).T
-    root = matrix_to_axis_angle(root_m)
+    vectors = matrix_to_axis_angle(torch.cat([local, root_m[:, None]], 1))  # the joints', the root's
+    pose, root = vectors[:, :-1].contiguous(), vectors[:, -1].contiguous()
     pelvis = params.root_translation
-    moved = body_com + (U[0] @ (pelvis - body_com)[..., None])[..., 0]
+    moved = body_com + (U[:, 0] @ (pelvis - body_com)[..., None])[..., 0]
     moved = moved + torch.stack([torch.zeros_like(q[:, 0]), torch.zeros_like(q[:, 0]), q[:, 0]], -1)
     return params.replace(pose=pose, root_rotation=root, root_translation=moved)
 
