@@ -81,3 +81,39 @@ def test_apply_motion_moves_each_subtree_rigidly(anny64):
     pelvis = com + (U[:, 0] @ (joints[:, 0] - com)[..., None])[..., 0]
     pelvis[:, 2] += q[:, 0]
     torch.testing.assert_close(joints2[:, 0], pelvis, rtol=0, atol=1e-12)
+
+
+def _apply_motion_joint_by_joint(params, q, dofs, rot, body_com):
+    """`apply_motion` as it was before `compose_down` (session 49): the subtree turns composed
+    joint by joint, the joints' and the root's rotation vectors converted apart."""
+    from pressurepose.body.params import supine_rotation
+    from pressurepose.body.rotations import matrix_to_axis_angle
+
+    delta = q.new_zeros(q.shape[0], NUM_JOINTS, 3).index_add_(1, dofs.joint, q[..., None] * dofs.axes(rot))
+    D = axis_angle_to_matrix(delta)
+    U = [D[:, 0]] + [None] * (NUM_JOINTS - 1)
+    new_rot = rot.clone()
+    new_rot[:, 0] = U[0] @ rot[:, 0]
+    for j in range(1, NUM_JOINTS):
+        U[j] = D[:, j] @ U[J24_PARENTS[j]]
+        new_rot[:, j] = U[j] @ rot[:, j]
+    par = [max(p, 0) for p in J24_PARENTS[1:]]
+    pose = matrix_to_axis_angle(new_rot[:, par].transpose(-1, -2) @ new_rot[:, 1:])
+    root = matrix_to_axis_angle(new_rot[:, 0] @ supine_rotation(q.dtype, q.device).T)
+    moved = body_com + (U[0] @ (params.root_translation - body_com)[..., None])[..., 0]
+    moved = moved + torch.stack([torch.zeros_like(q[:, 0]), torch.zeros_like(q[:, 0]), q[:, 0]], -1)
+    return pose, root, moved
+
+
+def test_apply_motion_is_the_joint_by_joint_composition_bit_for_bit(anny64):
+    # The engine's revision rests on this: any round-off here would move the rests.
+    for B in (1, 5, 32):
+        p = _posed(anny64, B)
+        rot, joints = pose_in_mat(rest_joints(anny64, p.shape), p)
+        dofs = Dofs("cpu", torch.float64)
+        q = 0.05 * torch.randn(B, dofs.n, generator=torch.Generator().manual_seed(B), dtype=torch.float64)
+        moved = apply_motion(p, q, dofs, rot, joints, joints.mean(1))
+        pose, root, translation = _apply_motion_joint_by_joint(p, q, dofs, rot, joints.mean(1))
+        assert torch.equal(moved.pose, pose)
+        assert torch.equal(moved.root_rotation, root)
+        assert torch.equal(moved.root_translation, translation)

@@ -17,7 +17,7 @@ from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix
 
-# Joints grouped by depth in the tree, so FK runs one batched step per level (9 levels).
+# Joints grouped by depth in the tree, so FK runs one batched step per level (8 levels).
 _DEPTH = [0] * NUM_JOINTS
 for _j in range(1, NUM_JOINTS):
     _DEPTH[_j] = _DEPTH[J24_PARENTS[_j]] + 1

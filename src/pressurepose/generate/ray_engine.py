@@ -13,6 +13,7 @@ import os
 from collections.abc import Iterator
 
 from pressurepose.errors import UserError
+from pressurepose.generate.allocator import ENV as ALLOCATOR_ENV
 from pressurepose.generate.plan import ShardSpec
 from pressurepose.generate.worker import WorkContext, make_shard
 
@@ -28,6 +29,9 @@ def _import_ray():
 def _task(spec: ShardSpec, ctx: WorkContext):
     import torch
 
+    from pressurepose.generate.allocator import tune_allocator
+
+    tune_allocator()
     torch.set_num_threads(1)
     return make_shard(spec, ctx)
 
@@ -39,7 +43,11 @@ def run_ray(pending: list[ShardSpec], ctx: WorkContext, workers: int, address: s
         options = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
         if address is None:
             # Local workers inherit this environment, PYTHONPATH included (a source checkout).
-            env = {k: os.environ[k] for k in ("PYTHONPATH", "PRESSUREPOSE_CACHE", "ANNY_CACHE_DIR") if k in os.environ}
+            env = {
+                k: os.environ[k]
+                for k in ("PYTHONPATH", "PRESSUREPOSE_CACHE", "ANNY_CACHE_DIR", ALLOCATOR_ENV)
+                if k in os.environ
+            }
             ray.init(num_cpus=workers, runtime_env={"env_vars": env} if env else None, **options)
         else:
             ray.init(address=address, **options)

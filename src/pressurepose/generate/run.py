@@ -272,6 +272,9 @@ def _engine(cfg: GenerateConfig, pending: list[ShardSpec], ctx: WorkContext, on_
 def _init_worker(parent: int | None = None) -> None:
     import torch
 
+    from pressurepose.generate.allocator import tune_allocator
+
+    tune_allocator()
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING)
     if parent is not None:

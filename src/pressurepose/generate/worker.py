@@ -20,7 +20,6 @@ import torch
 from pressurepose.data.schema import SampleBatch, to_table
 from pressurepose.data.shards import table_bytes
 from pressurepose.errors import UserError
-from pressurepose.generate.allocator import tune_allocator
 from pressurepose.generate.plan import ShardSpec
 
 log = logging.getLogger(__name__)
@@ -64,7 +63,6 @@ def noise_seed(seed: int, shard_id: str, chunk: int) -> int:
 def make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes, dict]:
     """(Parquet bytes, record) of a shard with exactly spec.count accepted samples;
     `on_chunk(kept, rejected)` is called after every simulated chunk (progress)."""
-    tune_allocator()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

@@ -186,7 +186,7 @@ def rest_articulated(
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).
     pts, corners = layout.points(out.vertices)  # (B, 3, P), coordinate-major
-    lowest = pts[:, 2].amin(1) if raised is None else raised.drop(pts.transpose(1, 2))
+    lowest = pts[:, 2].amin(1) if raised is None else raised.drop(pts.transpose(1, 2).contiguous())
     drop = torch.stack([torch.zeros_like(lowest), torch.zeros_like(lowest), lowest], -1)
     cur = params.replace(root_translation=params.root_translation - drop)
     # The parts ride their joints rigidly while the rest is found: their surface points and

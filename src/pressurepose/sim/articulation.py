@@ -163,7 +163,9 @@ def part_mass_and_com(
     centroids, inside the part), density BODY_DENSITY_KG_M3. The part surfaces are open where
     parts meet, so the parts' masses add up to the body's within a few per cent; callers
     scale them to the body's mass. Per part, its triangles' corners as (B, 3, n) rows (one
-    contiguous slice of the faces sorted by part): no scatter over the faces."""
+    contiguous slice of the faces sorted by part): no scatter over the faces. The rest calls
+    `corner_mass_and_com` on corners it has gathered already (`sim.rest_setup`); this is the
+    same from a mesh (tests, diagnostics)."""
     order = torch.argsort(face_part, stable=True)
     tri = faces[order]
     cols = vertices.transpose(1, 2).contiguous()  # (B, 3, V)
@@ -348,12 +350,12 @@ def apply_motion(params: BodyParams, q, dofs: Dofs, rot, joints, body_com) -> Bo
 __all__ = [
     "Dofs",
     "apply_motion",
+    "corner_mass_and_com",
     "dof_axes_pivots",
     "dof_geometry",
     "from_part_frames",
     "joint_stiffness",
     "lying_reference",
-    "corner_mass_and_com",
     "part_mass_and_com",
     "tissue_depth",
     "tissue_sag",

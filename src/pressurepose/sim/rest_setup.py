@@ -2,12 +2,13 @@
 J24 part, coordinate-major, and its triangles' corners in the same order, gathered once.
 
 The rest keeps each part's surface points (the mesh's vertices, then its triangles' centroids,
-as `maps.surface_points`) as one contiguous slice, in a (B, 3, P) buffer - the layout
-`articulation.to_part_frames` and the contact grid's rasteriser read fastest - and the parts'
-masses and centres come from the same triangles' corners (`articulation.part_mass_and_com`).
-Gathering each corner once, in part order, for both, replaces a gather of the (B, F, 3, 3)
-corners, a concatenation and a reorder of all the points, and the mass's own three gathers;
-the numbers are the same bit for bit (the same element-wise operations in the same order).
+as `maps.surface_points`) as one contiguous slice, and the parts' masses and centres come from
+the same triangles' corners (`articulation.corner_mass_and_com`). Gathering each corner once, in
+part order, for both, replaces a gather of the (B, F, 3, 3) corners, a concatenation and a
+reorder of all the points, and the mass's own three gathers; the numbers are the same bit for
+bit (the same element-wise operations in the same order). The rest then lays the points out as
+(B, P, 3) before its part transforms and tissue depths, whose matrix products and norms round
+differently on other layouts (the rests amplify any round-off: docs/benchmarks.md "Session 50").
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import dataclasses
 import torch
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class SurfaceLayout:
     """Where a mesh's V + F surface points go when sorted by part (stable: within a part its
     vertices in index order, then its triangles in index order)."""
@@ -38,7 +39,7 @@ class SurfaceLayout:
         # The faces come in the stable part order of the faces alone, so the k-th centroid
         # among the sorted points is the k-th face in part order.
         source = order.clone()
-        source[~is_vertex] = V + torch.arange(int((~is_vertex).sum()), device=order.device)
+        source[~is_vertex] = V + torch.arange(faces.shape[0], device=order.device)
         face_order = order[~is_vertex] - V
         return SurfaceLayout(
             labels=torch.cat([vertex_part, face_part])[order],
