@@ -184,7 +184,10 @@ def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkey
     """A shard keeps exactly `count` samples: rejected primary indices are replaced by
     replacement indices, the same ones every time."""
 
-    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0):
+    handed = []
+
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0, drawn=None):
+        handed.append((list(indices), None if drawn is None else list(drawn[0].index), drawn and drawn[1]))
         rng = np.random.default_rng(seed)
         keep = [i for i in indices if i % 3 != 0]  # index 0, 3, 6, ... and some replacements rejected
         n = len(keep)
@@ -209,6 +212,37 @@ def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkey
     assert all(i >= REPLACEMENT_BASE for i in rows["index"][len(kept_primary) :])
     assert record["rejections"] == {"fake": record["candidates"] - 10}
     assert record["sampling_rejections"] == {"collisions": record["candidates"]}
+    # The primary chunks come with their poses drawn ahead (one sampler call per shard), in
+    # order; the replacements are drawn chunk by chunk.
+    primary_chunks = [h for h in handed[: len(handed) // 2] if h[0][0] < REPLACEMENT_BASE]
+    assert [i for h in primary_chunks for i in h[0]] == primary
+    assert all(h[1] == h[0] and h[2] == [] for h in primary_chunks)
+    assert all(h[1] is None for h in handed[: len(handed) // 2] if h[0][0] >= REPLACEMENT_BASE)
+
+
+def test_poses_drawn_ahead_are_the_poses_drawn_per_chunk(anny64):
+    """A shard's poses drawn in one call and handed out by chunk (`DrawnPoses.rows`) are the
+    ones a chunk would draw itself; with an unreachable index among them nothing is drawn
+    ahead (the chunks find it themselves, `_sample`)."""
+    from pressurepose.sampling import PoseSampler, SamplingConfig, UnreachableConstraints
+
+    sampler = PoseSampler(anny64, SamplingConfig(partition="general", gender="male", seed=3))
+    ahead = worker.DrawnPoses.draw(sampler, [5, 6, 7, 8])
+    poses, unreachable = ahead.rows([7, 5])
+    alone = sampler.sample([7, 5])
+    assert list(poses.index) == [7, 5] and unreachable == []
+    for name in ("shape", "pose", "root_rotation", "root_translation"):
+        assert torch.equal(getattr(poses.params, name), getattr(alone.params, name))
+    assert torch.equal(poses.joints, alone.joints)
+    for name in ("cells", "root_draw", "head_angle_deg"):
+        assert np.array_equal(getattr(poses, name), getattr(alone, name))
+    assert all(np.array_equal(poses.rejections[k], alone.rejections[k]) for k in alone.rejections)
+
+    class Gives:  # a sampler one of whose indices gives up
+        def sample(self, indices):
+            raise UnreachableConstraints("index 6 gave up")
+
+    assert worker.DrawnPoses.draw(Gives(), [5, 6, 7]) is None
 
 
 # --- whole runs ---------------------------------------------------------------------------
@@ -468,7 +502,7 @@ def test_the_pillow_share_reaches_every_chunk(monkeypatch, anny64):
     """`generate --pillow` reaches the simulation of every chunk of a shard (WorkContext.pillow)."""
     seen = []
 
-    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0):
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0, drawn=None):
         seen.append(pillow)
         return (
             fake_batch(np.array(indices, dtype=np.int64), np.random.default_rng(seed), split),
@@ -492,7 +526,7 @@ def test_rigid_dataset_settings_leave_out_the_tissue(tmp_path, monkeypatch, anny
 
     from pressurepose.sim.mattress import MattressParams
 
-    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0):
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0, drawn=None):
         return (
             fake_batch(np.array(indices, dtype=np.int64), np.random.default_rng(seed), split),
             [""] * len(indices),

@@ -86,11 +86,17 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
     rejections: Counter = Counter()
     sampling_rejections: Counter = Counter()
     primary = list(spec.primary_indices())
+    # The shard's primary poses drawn in one call: a sample does not depend on its batch, and
+    # one call shares the sampler's per-round work (shape fits, limb windows) among all of them
+    # (25-35% less sampling CPU than chunks of 32; docs/benchmarks.md "Session 50").
+    ahead = DrawnPoses.draw(sampler, primary)
     n_kept = candidates = replacements = chunk = 0
     while n_kept < spec.count:
         todo = spec.count - n_kept
+        drawn = None
         if candidates < len(primary):
             indices = primary[candidates : candidates + min(ctx.batch, len(primary) - candidates)]
+            drawn = None if ahead is None else ahead.rows(indices)
         else:  # replacements for rejected samples: exactly as many as missing, from this shard's stream
             indices = [spec.replacement_index(replacements + r) for r in range(min(ctx.batch, todo))]
             replacements += len(indices)
@@ -105,6 +111,7 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
             ctx.sim2,
             ctx.settle,
             pillow=ctx.pillow,
+            drawn=drawn,
         )
         chunk += 1
         sampling_rejections.update(counts)
@@ -154,6 +161,29 @@ def _sample(sampler, indices: list[int]):
         return (sampler.sample(ok) if ok else None), bad
 
 
+@dataclasses.dataclass
+class DrawnPoses:
+    """A shard's initial poses drawn ahead in one sampler call, handed out chunk by chunk."""
+
+    poses: object  # InitialPoses
+
+    @classmethod
+    def draw(cls, sampler, indices: list[int]) -> DrawnPoses | None:
+        """The poses of `indices`, or None if one of them is unreachable (then each chunk
+        draws its own and finds which, `_sample`, as without drawing ahead)."""
+        from pressurepose.sampling import UnreachableConstraints
+
+        try:
+            return cls(sampler.sample(indices))
+        except UnreachableConstraints:
+            return None
+
+    def rows(self, indices: list[int]) -> tuple:
+        """`_sample(sampler, indices)`'s result (poses, unreachable []) for indices drawn ahead."""
+        where = {int(i): r for r, i in enumerate(self.poses.index)}
+        return self.poses.take([where[i] for i in indices]), []
+
+
 _PILLOW_STREAM = 0x9111  # keeps the pillows' draws apart from any other stream of the sample
 
 
@@ -182,13 +212,15 @@ def simulate_indices(
     sim2: str = "rigid",
     settle: str = "mujoco",
     pillow: float = 0.0,
+    drawn: tuple | None = None,
 ):
     """Sample and simulate `indices`; (SampleBatch of the accepted ones or None, reason per
     index ("" = kept), summed sampling rejection counts). `pillow`: the share of samples whose
-    head rests on a pillow (`pillow_thickness`; the articulated rest only)."""
+    head rests on a pillow (`pillow_thickness`; the articulated rest only). `drawn`: their
+    poses drawn already (`DrawnPoses.rows`), else drawn here."""
     from pressurepose.sim.run import articulated_config_for, settle_config_for, simulate_poses
 
-    initial, unreachable = _sample(sampler, indices)
+    initial, unreachable = drawn if drawn is not None else _sample(sampler, indices)
     reasons = {i: REASON_UNREACHABLE for i in unreachable}
     if initial is None:
         return None, [reasons[i] for i in indices], {}

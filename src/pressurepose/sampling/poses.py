@@ -48,6 +48,21 @@ class InitialPoses:
         """The bed each sample rests on (what sim #1 and sim #2 must be given)."""
         return [BedShape(float(a)) for a in self.head_angle_deg]
 
+    def take(self, rows) -> InitialPoses:
+        """The samples at these rows (a sequence of ints), in that order."""
+        rows = np.asarray(rows, dtype=np.int64)
+        t = torch.from_numpy(rows)
+        return dataclasses.replace(
+            self,
+            params=self.params.index(t),
+            joints=self.joints[t],
+            index=self.index[rows],
+            cells=self.cells[rows],
+            root_draw=self.root_draw[rows],
+            head_angle_deg=self.head_angle_deg[rows],
+            rejections={k: v[rows] for k, v in self.rejections.items()},
+        )
+
     @classmethod
     def cat(cls, parts: list[InitialPoses]) -> InitialPoses:
         """One InitialPoses from several of the same config, in order."""
