@@ -220,29 +220,74 @@ def test_rejected_samples_are_replaced_from_the_shards_own_stream(anny64, monkey
     assert all(h[1] is None for h in handed[: len(handed) // 2] if h[0][0] >= REPLACEMENT_BASE)
 
 
-def test_poses_drawn_ahead_are_the_poses_drawn_per_chunk(anny64):
-    """A shard's poses drawn in one call and handed out by chunk (`DrawnPoses.rows`) are the
-    ones a chunk would draw itself; with an unreachable index among them nothing is drawn
-    ahead (the chunks find it themselves, `_sample`)."""
-    from pressurepose.sampling import PoseSampler, SamplingConfig, UnreachableConstraints
+@pytest.mark.parametrize("partition", ["general", "half_sitting"])  # half_sitting: a bed per pose
+def test_poses_drawn_ahead_are_the_poses_drawn_per_chunk(anny64, partition):
+    """A block's poses drawn in one call and handed out by chunk (`PosesAhead.rows`) are the
+    ones each chunk would draw itself, every field in order."""
+    from pressurepose.sampling import PoseSampler, SamplingConfig
 
-    sampler = PoseSampler(anny64, SamplingConfig(partition="general", gender="male", seed=3))
-    ahead = worker.DrawnPoses.draw(sampler, [5, 6, 7, 8])
-    poses, unreachable = ahead.rows([7, 5])
-    alone = sampler.sample([7, 5])
-    assert list(poses.index) == [7, 5] and unreachable == []
-    for name in ("shape", "pose", "root_rotation", "root_translation"):
-        assert torch.equal(getattr(poses.params, name), getattr(alone.params, name))
-    assert torch.equal(poses.joints, alone.joints)
-    for name in ("cells", "root_draw", "head_angle_deg"):
-        assert np.array_equal(getattr(poses, name), getattr(alone, name))
-    assert all(np.array_equal(poses.rejections[k], alone.rejections[k]) for k in alone.rejections)
+    sampler = PoseSampler(anny64, SamplingConfig(partition=partition, gender="male", seed=3))
+    primary = [5, 6, 7, 8, 9]
+    ahead = worker.PosesAhead(sampler, primary, batch=2)
+    for first in (0, 2, 4):
+        chunk = primary[first : first + 2]
+        poses, unreachable = ahead.rows(first, chunk)
+        alone = sampler.sample(chunk)
+        assert list(poses.index) == chunk and unreachable == []
+        for name in ("shape", "pose", "root_rotation", "root_translation"):
+            assert torch.equal(getattr(poses.params, name), getattr(alone.params, name))
+        assert torch.equal(poses.joints, alone.joints)
+        for name in ("cells", "root_draw", "head_angle_deg"):
+            assert np.array_equal(getattr(poses, name), getattr(alone, name))
+        assert all(np.array_equal(poses.rejections[k], alone.rejections[k]) for k in alone.rejections)
+    if partition == "half_sitting":
+        assert len(set(ahead.poses.head_angle_deg.tolist())) > 1  # the beds differ and were reordered with the poses
 
-    class Gives:  # a sampler one of whose indices gives up
-        def sample(self, indices):
-            raise UnreachableConstraints("index 6 gave up")
 
-    assert worker.DrawnPoses.draw(Gives(), [5, 6, 7]) is None
+def test_a_shard_is_the_same_drawn_ahead_or_chunk_by_chunk(anny64, monkeypatch):
+    """make_shard over several chunks and replacements: the poses each chunk simulates are the
+    same bit for bit whether drawn ahead in blocks (one sampler call per block) or chunk by
+    chunk (as when a block has an unreachable pose: `PosesAhead.rows` None)."""
+    from pressurepose.sampling import PoseSampler
+
+    calls, seen = [], []
+    real_sample = PoseSampler.sample
+
+    def counting(self, indices):
+        calls.append(list(indices))
+        return real_sample(self, indices)
+
+    def fake(model, sampler, indices, mattress, seed, split, sim2="rigid", settle="mujoco", pillow=0.0, drawn=None):
+        initial = drawn[0] if drawn is not None else worker._sample(sampler, indices)[0]
+        seen.append((list(indices), initial.params.pose.clone(), initial.params.shape.clone()))
+        keep = [i for i in indices if i % 4 != 1]  # some rejected: replacements follow
+        rng = np.random.default_rng(seed)
+        return (
+            fake_batch(np.array(keep, dtype=np.int64), rng, split) if keep else None,
+            ["fake" if i % 4 == 1 else "" for i in indices],
+            {},
+        )
+
+    monkeypatch.setattr(PoseSampler, "sample", counting)
+    monkeypatch.setattr(worker, "simulate_indices", fake)
+    monkeypatch.setattr(worker, "AHEAD_POSES", 6)  # blocks of 2 chunks of 3
+    monkeypatch.setitem(worker._MODELS, ("anny", None), anny64)
+    ctx = worker.WorkContext(seed=0, batch=3, backend="anny", smpl_dir=None, mattress={})
+    spec = plan_shards(GenerateConfig(partition="supine", n=200, shard_size=10))[1]
+    ahead_data, _ = worker.make_shard(spec, ctx)
+    ahead_seen, ahead_calls = list(seen), list(calls)
+    seen.clear(), calls.clear()
+    monkeypatch.setattr(worker.PosesAhead, "rows", lambda self, first, indices: None)
+    chunk_data, _ = worker.make_shard(spec, ctx)
+    assert ahead_data == chunk_data
+    assert [s[0] for s in ahead_seen] == [s[0] for s in seen]
+    assert all(torch.equal(a[1], b[1]) and torch.equal(a[2], b[2]) for a, b in zip(ahead_seen, seen))
+    primary = list(spec.primary_indices())
+    assert len(seen) > 4  # four primary chunks and at least one of replacements
+    # Ahead: one call per block of primary indices, then the replacements chunk by chunk.
+    assert ahead_calls[:2] == [primary[:6], primary[6:]]
+    assert all(min(c) >= REPLACEMENT_BASE for c in ahead_calls[2:])
+    assert calls[:4] == [primary[0:3], primary[3:6], primary[6:9], primary[9:]]
 
 
 # --- whole runs ---------------------------------------------------------------------------

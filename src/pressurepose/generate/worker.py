@@ -86,17 +86,14 @@ def _make_shard(spec: ShardSpec, ctx: WorkContext, on_chunk=None) -> tuple[bytes
     rejections: Counter = Counter()
     sampling_rejections: Counter = Counter()
     primary = list(spec.primary_indices())
-    # The shard's primary poses drawn in one call: a sample does not depend on its batch, and
-    # one call shares the sampler's per-round work (shape fits, limb windows) among all of them
-    # (25-35% less sampling CPU than chunks of 32; docs/benchmarks.md "Session 50").
-    ahead = DrawnPoses.draw(sampler, primary)
+    ahead = PosesAhead(sampler, primary, ctx.batch)
     n_kept = candidates = replacements = chunk = 0
     while n_kept < spec.count:
         todo = spec.count - n_kept
         drawn = None
         if candidates < len(primary):
             indices = primary[candidates : candidates + min(ctx.batch, len(primary) - candidates)]
-            drawn = None if ahead is None else ahead.rows(indices)
+            drawn = ahead.rows(candidates, indices)
         else:  # replacements for rejected samples: exactly as many as missing, from this shard's stream
             indices = [spec.replacement_index(replacements + r) for r in range(min(ctx.batch, todo))]
             replacements += len(indices)
@@ -161,27 +158,41 @@ def _sample(sampler, indices: list[int]):
         return (sampler.sample(ok) if ok else None), bad
 
 
-@dataclasses.dataclass
-class DrawnPoses:
-    """A shard's initial poses drawn ahead in one sampler call, handed out chunk by chunk."""
+# Primary poses drawn in one sampler call at most (whole chunks): the sampler's per-round work
+# (the capsule fits of shapes drawn anew, limb windows) is shared by a block (21-35% less
+# sampling CPU for 128 than for 4 x 32, docs/benchmarks.md "Session 50") while its memory (~0.3
+# MB per pose) stays bounded whatever --shard-size.
+AHEAD_POSES = 128
 
-    poses: object  # InitialPoses
 
-    @classmethod
-    def draw(cls, sampler, indices: list[int]) -> DrawnPoses | None:
-        """The poses of `indices`, or None if one of them is unreachable (then each chunk
-        draws its own and finds which, `_sample`, as without drawing ahead)."""
+class PosesAhead:
+    """A shard's primary initial poses drawn ahead in blocks of whole chunks, handed out chunk
+    by chunk. A pose does not depend on its batch, so the chunks get the poses they would draw
+    themselves."""
+
+    def __init__(self, sampler, primary: list[int], batch: int):
+        self.sampler, self.primary = sampler, primary
+        self.block = batch * max(1, AHEAD_POSES // batch)
+        self.start, self.poses, self.where = -1, None, {}
+
+    def rows(self, first: int, indices: list[int]) -> tuple | None:
+        """`_sample(sampler, indices)`'s result (poses, no unreachable ones) for the chunk of
+        primary indices starting at position `first`, or None when a pose of its block is
+        unreachable (the chunk then draws its own and finds which, `_sample`; rare, and the
+        block's draw is lost)."""
         from pressurepose.sampling import UnreachableConstraints
 
-        try:
-            return cls(sampler.sample(indices))
-        except UnreachableConstraints:
+        start = first - first % self.block
+        if start != self.start:
+            self.start = start
+            try:
+                self.poses = self.sampler.sample(self.primary[start : start + self.block])
+            except UnreachableConstraints:
+                self.poses = None
+            self.where = {} if self.poses is None else {int(i): r for r, i in enumerate(self.poses.index)}
+        if self.poses is None:
             return None
-
-    def rows(self, indices: list[int]) -> tuple:
-        """`_sample(sampler, indices)`'s result (poses, unreachable []) for indices drawn ahead."""
-        where = {int(i): r for r, i in enumerate(self.poses.index)}
-        return self.poses.take([where[i] for i in indices]), []
+        return self.poses.take([self.where[i] for i in indices]), []
 
 
 _PILLOW_STREAM = 0x9111  # keeps the pillows' draws apart from any other stream of the sample
@@ -217,7 +228,7 @@ def simulate_indices(
     """Sample and simulate `indices`; (SampleBatch of the accepted ones or None, reason per
     index ("" = kept), summed sampling rejection counts). `pillow`: the share of samples whose
     head rests on a pillow (`pillow_thickness`; the articulated rest only). `drawn`: their
-    poses drawn already (`DrawnPoses.rows`), else drawn here."""
+    poses drawn already (`PosesAhead.rows`), else drawn here."""
     from pressurepose.sim.run import articulated_config_for, settle_config_for, simulate_poses
 
     initial, unreachable = drawn if drawn is not None else _sample(sampler, indices)
