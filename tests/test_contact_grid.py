@@ -9,23 +9,20 @@ from test_articulated import _bodies
 
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.errors import UserError
-from pressurepose.maps import surface_points
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
 from pressurepose.sim.articulation import to_part_frames
 from pressurepose.sim.contact_grid import ContactGrid
 from pressurepose.sim.mattress import MattressParams
+from pressurepose.sim.rest_setup import SurfaceLayout
 
 
 def _points(model, p):
     """The posed body's surface points in their parts' frames, sorted by part, and which are vertices."""
-    out = model(p)
-    labels_v = model.part_labels
-    labels_all = torch.cat([labels_v, labels_v[model.faces[:, 0]]])
-    order = torch.argsort(labels_all, stable=True)
+    layout = SurfaceLayout.build(model.faces, model.part_labels)
     rot, joints = pose_in_mat(rest_joints(model, p.shape), p)
-    pts = surface_points(out.vertices, model.faces)[:, order]
-    return to_part_frames(pts, labels_all[order], rot, joints), labels_all[order], order < len(labels_v), rot, joints
+    pts = layout.points(model(p).vertices)[0].transpose(1, 2).contiguous()
+    return to_part_frames(pts, layout.labels, rot, joints), layout.labels, layout.vertex, rot, joints
 
 
 def test_coarse_cells_hold_the_fine_cells_lowest_vertex(anny64):

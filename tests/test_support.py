@@ -164,10 +164,12 @@ def test_the_component_major_tables_give_the_projections_bit_for_bit(name, strai
     # already in (5, 3, nk) order.
     grid = LimbGrid(LIMBS[name], straight)
     rng = np.random.default_rng(4)
-    nk = grid.rt.shape[0] // 3
-    for tab, cols in ((grid.rt, grid._rt_cols), (getattr(grid, "rt3", None), getattr(grid, "_rt3_cols", None))):
-        if tab is None:
+    nk = grid.rt.shape[1] // 3
+    for cols in (grid.rt, getattr(grid, "rt3", None)):
+        if cols is None:
             continue
+        # The row-major table: rows of R_i^T stacked (row 3 i + c is column c of R_i).
+        tab = np.ascontiguousarray(cols.reshape(3, 3, nk).transpose(2, 1, 0)).reshape(-1, 3)
         for _ in range(5):
             F = rng.normal(size=(3, 5))
             old = np.ascontiguousarray((tab @ F).reshape(nk, 3, 5).transpose(2, 1, 0)).astype(np.float32)

@@ -7,7 +7,7 @@ its mmap threshold from fresh mappings and gives the heap's free top back to the
 its trim threshold, so every such temporary page-faults its memory in again, zero-filled.
 Keeping them on the heap - the threshold at glibc's largest (32 MiB on 64-bit), the free top
 kept up to 1 GiB, 64 MiB padding per heap growth - saves that kernel work: 2-3% of the rest's
-CPU time, ~3% of a generated sample's (docs/benchmarks.md "Session 50"). PyTorch's CPU tuning
+CPU time in its benchmark (docs/benchmarks.md "Session 50"). PyTorch's CPU tuning
 guide makes the same point with other allocators (jemalloc, tcmalloc); this needs none. The
 cost: freed memory stays with the process for reuse (the paper preset's peak RSS grew by up to
 0.1 GB, ~10%). A no-op off glibc, and with PRESSUREPOSE_MALLOC_TUNING=0.

@@ -63,14 +63,11 @@ class LimbGrid:
         low, span = limb.low, limb.high - limb.low
         centre = [low[d] + span[d] * (np.arange(self.n[d]) + 0.5) / self.n[d] for d in range(DIMS)]
         k = np.stack(np.meshgrid(*centre[:3], indexing="ij"), -1).reshape(-1, 3)
-        # Rows of R_i^T, stacked: (n^3 * 3, 3) @ F (3, f) gives R_i^T f for every box.
-        R = axis_angle_to_matrix(torch.from_numpy(k)).numpy()
-        self.rt = np.ascontiguousarray(R.transpose(0, 2, 1)).reshape(-1, 3)
-        self._rt_cols = _component_major(R)
+        # The box centres' rotations, component-major (3, n^3 * 3): F^T (f, 3) @ it gives R_i^T f
+        # for every box.
+        self.rt = _component_major(axis_angle_to_matrix(torch.from_numpy(k)).numpy())
         if not self.leg:  # the collar's third of the rotation
-            R3 = axis_angle_to_matrix(torch.from_numpy(k / 3)).numpy()
-            self.rt3 = np.ascontiguousarray(R3.transpose(0, 2, 1)).reshape(-1, 3)
-            self._rt3_cols = _component_major(R3)
+            self.rt3 = _component_major(axis_angle_to_matrix(torch.from_numpy(k / 3)).numpy())
         phi = np.zeros(1) if straight else centre[3]
         self.cos, self.sin = np.cos(phi), np.sin(phi)
         self.h_rot = 0.5 * math.sqrt(float(((span[:3] / n) ** 2).sum()))  # half diagonal of a box
@@ -111,7 +108,7 @@ class LimbGrid:
         below_shoulder: 'up' <= 0 (hands behind the head); left_of_midline: the distal joint's
         body x < 0 (the crossing left leg)."""
         m = SUPPORT_MARGIN_M
-        nk, nphi = self.rt.shape[0] // 3, self.cos.shape[0]
+        nk, nphi = self.rt.shape[1] // 3, self.cos.shape[0]
         f32 = np.float32
         hr, hh = self.h_rot, self.h_hinge
         norm = np.sqrt((offsets * offsets).sum(-1))
@@ -128,11 +125,9 @@ class LimbGrid:
         # Projections onto the frame's up, along, mat x, mat y and the body's x axis.
         F = np.stack([frame[UP], frame[ALONG], frame[MAT_X], frame[MAT_Y], np.eye(3)[0]], 1)  # (3, 5)
         proj = {}  # table -> (5, 3, nk): R_i^T f for every f and box, component-major
-        for tab, tab_cols in ((self.rt, self._rt_cols), (getattr(self, "rt3", None), getattr(self, "_rt3_cols", None))):
-            if tab is not None:
-                # F^T (5, 3) @ (3, 3 nk): the same three-term sums as (tab @ F), already in
-                # (5, 3, nk) order (no transposed copy per call).
-                proj[id(tab)] = (F.T @ tab_cols).astype(f32).reshape(5, 3, nk)
+        for tab in (self.rt, getattr(self, "rt3", None)):
+            if tab is not None:  # F^T (5, 3) @ (3, 3 nk): already in (5, 3, nk) order
+                proj[id(tab)] = (F.T @ tab).astype(f32).reshape(5, 3, nk)
         a = proj[id(self.rt)]
         hinged = [self.hinge(v).astype(f32) for v in bent]  # (3, nphi) each
         first_bent = len(steps) - len(bent)

@@ -185,17 +185,18 @@ def rest_articulated(
     ref_local = lying_reference(params.pose, root_roll(params.root_rotation), cfg.lying_extension)
     iters = torch.zeros(B, dtype=torch.long, device=device)
     # Start with the lowest point of each body on the mattress top (a vertical drop).
-    pts, corners = layout.points(out.vertices)  # (B, 3, P), coordinate-major
-    lowest = pts[:, 2].amin(1) if raised is None else raised.drop(pts.transpose(1, 2).contiguous())
+    pts, corners = layout.points(out.vertices)
+    # (B, P, 3): the part transforms and tissue depths round as they always have on this layout.
+    pts = pts.transpose(1, 2).contiguous()
+    lowest = pts[..., 2].amin(1) if raised is None else raised.drop(pts)
     drop = torch.stack([torch.zeros_like(lowest), torch.zeros_like(lowest), lowest], -1)
     cur = params.replace(root_translation=params.root_translation - drop)
     # The parts ride their joints rigidly while the rest is found: their surface points and
     # centres of mass are kept in each part's joint frame; the mesh is skinned once at the end.
-    shift = drop[:, :, None]
-    mass, com = corner_mass_and_com(*(c - shift for c in corners), layout.triangle_part)
+    mass, com = corner_mass_and_com(*(c - drop[:, :, None] for c in corners), layout.triangle_part)
     mass = mass * (total_mass / mass.sum(1))[:, None]  # the parts' shares of the body's mass
     rot, joints = pose_in_mat(rest, cur)
-    pts = (pts - shift).transpose(1, 2).contiguous()  # (B, P, 3): the transforms' round-off as before
+    pts = pts - drop[:, None]
     local_pts = to_part_frames(pts, labels, rot, joints)
     point_tissue = tissue_modulus(
         pts,

@@ -244,7 +244,7 @@ def tissue_depth(
     out = torch.empty(points.shape[:2], dtype=points.dtype, device=points.device)
     children = {j: [c for c in range(NUM_JOINTS) if J24_PARENTS[c] == j] for j in range(NUM_JOINTS)}
     for j, sl in _part_slices(labels):
-        pts = points[:, sl].contiguous()  # (B, n, 3) whatever the layout: the same sums
+        pts = points[:, sl]
         ends = [joints[:, c] for c in children[j]] or [pts.mean(1)]
         a = joints[:, j, None]
         best = None

@@ -7,9 +7,9 @@ the same triangles' corners (`articulation.corner_mass_and_com`). Gathering each
 part order, for both, replaces a gather of the (B, F, 3, 3) corners, a concatenation and a
 reorder of all the points, and the mass's own three gathers; the numbers are the same bit for
 bit (the same element-wise operations in the same order). The rest then lays the points out as
-(B, P, 3) before its part transforms and tissue depths, whose matrix products and norms round
-differently on other layouts (the rests amplify any round-off: docs/benchmarks.md "Session 50").
-"""
+(B, P, 3) (one copy) before its part transforms and tissue depths, whose matrix products and
+norms round differently on other layouts (the rests amplify any round-off: docs/benchmarks.md
+"Session 50")."""
 
 from __future__ import annotations
 
