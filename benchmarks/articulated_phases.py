@@ -11,10 +11,10 @@ solves (`minimise`; the rests' own solves apart) and everything else (set-up, sk
 kinematics, springs, friction, bookkeeping). `--trace` also prints, per re-posing of the first
 batch: how many bodies still move, the median over the batch of each body's largest motion over
 its settled tolerance, the unknowns per body that swing damping holds back, and the median
-height of the centre of mass above where it is after the coarse re-posings (docs/benchmarks.md
-"Session 51": the coarse phase is mostly a fall). It instruments the engine by wrapping its
-module-level functions: numbers of a diagnostic run, not of the engine's own speed (the wrappers
-add well under 1%).
+height of the centre of mass above where the coarse re-posings leave it (docs/benchmarks.md
+"Session 51": the coarse phase is mostly a fall; blank once bodies have left the batch, or
+without a coarse grid). It instruments the engine by wrapping its module-level functions: the
+figures of a diagnostic run; `articulated_speed.py` times the engine alone.
 """
 
 from __future__ import annotations
@@ -58,7 +58,8 @@ class Probe:
             return probe._timed(f"{probe.grid}: lowest points", heights, grid, *a, **k)
 
         def minimise_w(lin, q, *a, **k):
-            rest = k.get("max_steps") == probe.config.inner
+            # the rests' own solves: the rest's step count and no re-posing stop (step_tol 0)
+            rest = k.get("max_steps") == probe.config.inner and k.get("step_tol", 0.0) == 0.0
             return probe._timed(f"{probe.grid}: Newton{' (the rests)' if rest else ''}", minimise, lin, q, *a, **k)
 
         def damp_w(q, last_q, share, streak, cap, tol):
@@ -84,7 +85,8 @@ class Probe:
 
 def print_trace(trace, coarse: int, tol_note: str) -> None:
     ends = [t["com_z"] for t in trace if "com_z" in t]
-    end = ends[min(coarse, len(ends)) - 1] if ends else None
+    # where the coarse re-posings leave the bodies: the posing the first image-grid one starts from
+    end = ends[coarse] if coarse and len(ends) > coarse else None
     print(f"  per re-posing (first batch): moving bodies, median largest motion / tolerance ({tol_note}),")
     print("  unknowns held back by swing damping per body, median centre of mass above its height after")
     print("  the coarse re-posings (mm)")
