@@ -14,25 +14,29 @@ its settled tolerance, the unknowns per body that swing damping holds back, and 
 height of the centre of mass above where the coarse re-posings leave it (docs/benchmarks.md
 "Session 51": the coarse phase is mostly a fall; blank once bodies have left the batch, or
 without a coarse grid). It instruments the engine by wrapping its module-level functions: the
-figures of a diagnostic run; `articulated_speed.py` times the engine alone.
+figures of a diagnostic run; `articulated_speed.py` times the engine alone, and
+`articulated_settling_diag.py` follows single bodies' energies solve by solve.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import sys
 import time
 from collections import Counter
+from pathlib import Path
 
 import torch
 
-from pressurepose.body import load_body_model
-from pressurepose.sampling.partitions import SamplingConfig
-from pressurepose.sampling.sampler import PoseSampler
-from pressurepose.sim import articulated
-from pressurepose.sim.contact_grid import ContactGrid
-from pressurepose.sim.mattress import MattressParams
-from pressurepose.sim.run import articulated_config_for
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from articulated_speed import partition_config, rest_options  # noqa: E402  (the same options)
+
+from pressurepose.body import load_body_model  # noqa: E402
+from pressurepose.sampling.partitions import SamplingConfig  # noqa: E402
+from pressurepose.sampling.sampler import PoseSampler  # noqa: E402
+from pressurepose.sim import articulated  # noqa: E402
+from pressurepose.sim.contact_grid import ContactGrid  # noqa: E402
+from pressurepose.sim.mattress import MattressParams  # noqa: E402
 
 
 class Probe:
@@ -103,11 +107,7 @@ def print_trace(trace, coarse: int, tol_note: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--partitions", default="general")
-    ap.add_argument("--batch", type=int, default=32)
-    ap.add_argument("--n", type=int, default=64)
-    ap.add_argument("--set", default="", help="ArticulatedConfig overrides, e.g. coarse_inner=4")
-    ap.add_argument("--bed", default="sponge", help="mattress preset (sponge, air) or parameter file")
+    rest_options(ap, "general", 32)
     ap.add_argument("--trace", action="store_true", help="per re-posing figures of the first batch")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -115,17 +115,17 @@ def main() -> None:
     mattress = MattressParams.load(args.bed)
     for part in args.partitions.split(","):
         poses = PoseSampler(model, SamplingConfig(partition=part, gender="female", seed=0)).sample(range(args.n)).params
-        over = {k: eval(v) for k, v in (kv.split("=") for kv in args.set.split(",") if kv)}  # noqa: S307
-        config = dataclasses.replace(articulated_config_for(part), **over)
-        rest_articulated = articulated.rest_articulated
-        rest_articulated(model, poses.index(torch.arange(min(4, args.n))), mattress=mattress, config=config)  # warm-up
+        config = partition_config(part, args.set)
+        articulated.rest_articulated(
+            model, poses.index(torch.arange(min(4, args.n))), mattress=mattress, config=config
+        )  # warm-up
         probe = Probe(config)
         probe.install()
         try:
             t0, reposings = time.process_time(), []
             for b0 in range(0, args.n, args.batch):
                 probe.on = args.trace and b0 == 0
-                rest = rest_articulated(
+                rest = articulated.rest_articulated(
                     model, poses.index(torch.arange(b0, min(b0 + args.batch, args.n))), mattress=mattress, config=config
                 )
                 reposings += rest.reposings.tolist()
@@ -139,9 +139,10 @@ def main() -> None:
         rest_cpu = total - sum(probe.cpu.values())
         print(f"  {'everything else':<28} {rest_cpu / n * 1e3:6.1f} ms ({rest_cpu / total:4.0%})")
         if args.trace:
-            coarse = max(config.outer - config.fine_reposings, 0) if config.coarse_sub else 0
             print_trace(
-                probe.trace, coarse, f"{config.settled_rotation_rad * 1e3:g} mrad, {config.settled_shift_m * 1e3:g} mm"
+                probe.trace,
+                config.coarse_reposings,
+                f"{config.settled_rotation_rad * 1e3:g} mrad, {config.settled_shift_m * 1e3:g} mm",
             )
 
 

@@ -30,15 +30,26 @@ from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.run import articulated_config_for
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--partitions", default="supine,general")
-    ap.add_argument("--batch", type=int, default=16)
+def rest_options(ap: argparse.ArgumentParser, partitions: str, batch: int) -> None:
+    """The options the rest's benchmarks share (also `articulated_phases.py`)."""
+    ap.add_argument("--partitions", default=partitions)
+    ap.add_argument("--batch", type=int, default=batch)
     ap.add_argument("--n", type=int, default=64)
-    ap.add_argument("--save", default=None, help="directory for the rests (<partition>.pt)")
-    ap.add_argument("--jitter", type=float, default=0.0, help="move every body by this many metres first")
     ap.add_argument("--set", default="", help="ArticulatedConfig overrides, e.g. outer=8,inner_reposing=6")
     ap.add_argument("--bed", default="sponge", help="mattress preset (sponge, air) or parameter file")
+
+
+def partition_config(partition: str, overrides: str):
+    """The partition's `ArticulatedConfig` with `--set`'s KEY=VALUE,... overrides."""
+    over = {k: eval(v) for k, v in (kv.split("=") for kv in overrides.split(",") if kv)}  # noqa: S307
+    return dataclasses.replace(articulated_config_for(partition), **over)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    rest_options(ap, "supine,general", 16)
+    ap.add_argument("--save", default=None, help="directory for the rests (<partition>.pt)")
+    ap.add_argument("--jitter", type=float, default=0.0, help="move every body by this many metres first")
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = load_body_model("anny", dtype=torch.float64)
@@ -48,8 +59,7 @@ def main() -> None:
         poses, all_beds = drawn.params, drawn.beds()
         if args.jitter:
             poses = poses.replace(root_translation=poses.root_translation + args.jitter)
-        over = {k: eval(v) for k, v in (kv.split("=") for kv in args.set.split(",") if kv)}  # noqa: S307
-        config = dataclasses.replace(articulated_config_for(part), **over)
+        config = partition_config(part, args.set)
         t0, reasons, steps, reposings, moving = time.process_time(), Counter(), [], [], 0
         saved = {"joints": [], "foundation_pa": [], "failure": []}
         for b0 in range(0, args.n, args.batch):

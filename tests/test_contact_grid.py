@@ -138,6 +138,15 @@ def test_no_coarse_grid_when_the_fine_reposings_take_them_all(anny64):
     assert torch.equal(a.joints, b.joints) and torch.equal(a.foundation_pa, b.foundation_pa)
 
 
+def test_coarse_reposings_count():
+    """Every body's re-posings on the coarse grid: `outer` minus the image grid's, none without
+    a coarse grid or when the image grid's take them all."""
+    assert ArticulatedConfig(outer=24, fine_reposings=8).coarse_reposings == 16
+    assert ArticulatedConfig(outer=4, fine_reposings=4).coarse_reposings == 0
+    assert ArticulatedConfig(outer=4, fine_reposings=9).coarse_reposings == 0
+    assert ArticulatedConfig(outer=24, coarse_sub=0).coarse_reposings == 0
+
+
 def test_the_coarse_grid_config_is_checked():
     for bad in ({"coarse_sub": -1}, {"coarse_sub": 2}, {"fine_reposings": 0}, {"coarse_inner": 0}):
         with pytest.raises(UserError, match="coarse_sub"):

@@ -151,7 +151,7 @@ def rest_articulated(
     labels = layout.labels
     fine = ContactGrid.build(mat, mp, cfg.sub, raised, dtype, device)
     coarse = None
-    n_coarse = max(cfg.outer - cfg.fine_reposings, 0) if cfg.coarse_sub else 0
+    n_coarse = cfg.coarse_reposings
     if n_coarse:
         coarse = ContactGrid.build(mat, mp, cfg.coarse_sub, raised, dtype, device)
     X, Y, xy, area = fine.X, fine.Y, fine.xy, fine.area

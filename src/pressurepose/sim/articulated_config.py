@@ -120,6 +120,12 @@ class ArticulatedConfig:
     tol: float = 1e-4
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 
+    @property
+    def coarse_reposings(self) -> int:
+        """How many re-posings every body takes on the coarse grid (0: none, `coarse_sub` 0 or
+        `fine_reposings` >= `outer`)."""
+        return max(self.outer - self.fine_reposings, 0) if self.coarse_sub else 0
+
     def __post_init__(self) -> None:
         if not (0 <= self.coarse_sub < self.sub) or self.fine_reposings < 1 or self.coarse_inner < 1:
             raise UserError(
