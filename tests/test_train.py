@@ -227,6 +227,29 @@ def test_init_starts_from_another_runs_weights(data32, tmp_path):
         train(TrainConfig.smoke(out=tmp_path / "e", lr_gamma=0.0, **common), ds)
 
 
+def test_init_keeps_how_the_other_network_is_read(data32, tmp_path):
+    """A fine-tune reads its images as the network it started from: the inference settings
+    (INFERENCE_FIELDS: IK steps, flip test, the height's blend with the localised skeleton) of the
+    --init run's model are the fine-tune's, in its saved model too; a fresh run has the defaults."""
+    from pressurepose.train.checkpoint import read_model
+    from pressurepose.train.loop import INFERENCE_FIELDS
+
+    ds = _small(data32)
+    common = dict(arch="heatmap", gender_input=False, batch_size=4, val_fraction=0.0, progress=False, epochs=1)
+    a = train(TrainConfig.smoke(out=tmp_path / "a", **common), ds)
+    weights, rec = read_model(a)
+    read_as = {"ik_steps": 7, "flip_test": True, "stature_weight": 0.25, "stature_head": False}
+    net_a, _ = load_network(a)
+    save_model(tmp_path / "a2", net_a, dict(rec, net=dict(rec["net"], **read_as)), state=weights)
+    b = train(TrainConfig.smoke(out=tmp_path / "b", init=tmp_path / "a2", **common), ds)
+    nb, rec_b = load_network(b)
+    for key, value in read_as.items():
+        assert getattr(nb.config, key) == value and rec_b["net"][key] == value, key
+    assert set(read_as) < set(INFERENCE_FIELDS)
+    fresh, _ = load_network(a)
+    assert (fresh.config.ik_steps, fresh.config.flip_test, fresh.config.stature_weight) == (3, False, 0.0)
+
+
 def test_mod2_trains_on_a_frozen_mod1(data32, tmp_path):
     ds = _small(data32)
     common = dict(batch_size=4, val_fraction=0.0, progress=False)
@@ -613,6 +636,58 @@ def test_occlude_against_a_per_row_reference(data32, tmp_path):
         TrainConfig.smoke(occlude=1.5)
     with pytest.raises(ValueError, match="--occlude and --synthesis-weight do not combine"):
         TrainConfig.smoke(occlude=0.5, module=2, mod1=tmp_path, synthesis_weight=0.1)
+
+
+def test_speckle_against_a_per_taxel_reference(data32):
+    """Stray readings: the same draws applied taxel by taxel give the same spots - a spot starts
+    where its draw is under n / (rows x cols), a share reaches the next row or column, its
+    readings lie in SPECKLE_MMHG and a taxel keeps the larger of the body's and the spot's - and
+    the images not drawn are untouched; the labels are not an input, so nothing else moves."""
+    from pressurepose.train.augment import SPECKLE_MMHG, SPECKLE_PAIR, SPECKLE_PER_IMAGE, speckle_batch
+
+    p = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:8].double()
+    inputs = NetInputs(pressure_mmhg=p)
+    assert torch.equal(speckle_batch(inputs, 0.0, torch.Generator().manual_seed(0)).pressure_mmhg, p)
+    out = speckle_batch(inputs, 0.7, torch.Generator().manual_seed(4)).pressure_mmhg
+    g = torch.Generator().manual_seed(4)
+    u = torch.rand(2, 8, generator=g).double()
+    draws = torch.rand(3, 8, 64, 27, generator=g).double()
+    lo, hi = SPECKLE_MMHG
+    drawn = 0
+    for i in range(8):
+        if not float(u[0, i]) < 0.7:
+            assert torch.equal(out[i], p[i]), i
+            continue
+        drawn += 1
+        rate = (SPECKLE_PER_IMAGE[0] + (SPECKLE_PER_IMAGE[1] - SPECKLE_PER_IMAGE[0]) * float(u[1, i])) / (64 * 27)
+        spot = [[False] * 27 for _ in range(64)]
+        for r in range(64):
+            for c in range(27):
+                if float(draws[0, i, r, c]) < rate:
+                    spot[r][c] = True
+                    d = float(draws[1, i, r, c])
+                    if d < SPECKLE_PAIR / 2 and r + 1 < 64:
+                        spot[r + 1][c] = True
+                    elif SPECKLE_PAIR / 2 <= d < SPECKLE_PAIR and c + 1 < 27:
+                        spot[r][c + 1] = True
+        ref = p[i].clone()
+        for r in range(64):
+            for c in range(27):
+                if spot[r][c]:
+                    reading = lo * (hi / lo) ** float(draws[2, i, r, c])
+                    assert lo <= reading <= hi
+                    ref[r, c] = max(float(p[i, r, c]), reading)
+        assert torch.allclose(out[i], ref, rtol=1e-12, atol=0), i
+        assert bool((out[i] >= p[i]).all())  # readings only rise, and only off the body's load
+    assert drawn >= 3
+    # over many images the number of spots follows the drawn rate: mean n = 4 starts per image
+    many = torch.zeros(400, 64, 27, dtype=torch.float64)
+    noisy = speckle_batch(NetInputs(pressure_mmhg=many), 1.0, torch.Generator().manual_seed(1)).pressure_mmhg
+    taxels = float((noisy > 0).sum(dim=(1, 2)).double().mean())
+    expected = sum(SPECKLE_PER_IMAGE) / 2 * (1 + SPECKLE_PAIR)  # a pair adds one taxel (rarely off the mat)
+    assert abs(taxels - expected) < 0.1 * expected, (taxels, expected)
+    with pytest.raises(ValueError, match="speckle"):
+        TrainConfig.smoke(speckle=1.5)
 
 
 def test_predict_ik_steps_and_flip_test_only_for_the_heatmap_arch(trained_run, tmp_path, capsys):

@@ -170,6 +170,40 @@ def texture_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
     return _read_again(inputs, p * gain, u[0] < share)
 
 
+# Speckle augmentation: stray readings off the body (docs/network.md "Stray readings").
+SPECKLE_PER_IMAGE = (0.0, 8.0)  # expected stray spots per image, drawn per image
+SPECKLE_MMHG = (REPRESS_THRESHOLD_MMHG, 15.0)  # a stray taxel's reading, log-uniform
+SPECKLE_PAIR = 0.3  # share of the spots that reach one neighbouring taxel
+
+
+def speckle_batch(inputs: NetInputs, share: float, generator: torch.Generator | None) -> NetInputs:
+    """Add stray readings to a random `share` of the images: each taxel starts a spot with
+    probability n / (rows x cols) (n ~ U(SPECKLE_PER_IMAGE) spots expected per image), a share
+    SPECKLE_PAIR of the spots reach one neighbour along or across the bed, and a spot's taxels
+    read log-uniform in SPECKLE_MMHG; a taxel reads the larger of the body's reading and the
+    spot's (on the body a spot is lost in its load). The labels stay. Why: a real mat reads small
+    loads that are not the body - a sheet's fold, a cable, a pillow's corner, a taxel reading
+    high - where the simulation reads exactly 0 off the body: PmatData's frames hold 1.8 (sponge)
+    to 5.6 (air) detached components under 2% of the force per frame, mostly one or two taxels at
+    3-13 mmHg, the simulated ones 0.8, of 6 taxels (a hand, a heel); a network that has never
+    seen one reads a spot on the mat's last row as the body reaching there (a 1.72 m subject
+    read 1.92 m; docs/real_data.md). Images not drawn are unchanged."""
+    p = inputs.pressure_mmhg
+    B, R, C = p.shape
+    u = torch.rand(2, B, generator=generator).to(p)
+    draws = torch.rand(3, B, R, C, generator=generator).to(p)
+    starts = draws[0] < (_uniform(SPECKLE_PER_IMAGE, u[1]) / (R * C))[:, None, None]
+    down = starts & (draws[1] < SPECKLE_PAIR / 2)
+    right = starts & (draws[1] >= SPECKLE_PAIR / 2) & (draws[1] < SPECKLE_PAIR)
+    spots = starts.clone()
+    spots[:, 1:] |= down[:, :-1]
+    spots[:, :, 1:] |= right[:, :, :-1]
+    lo, hi = SPECKLE_MMHG
+    reading = lo * (hi / lo) ** draws[2]
+    on = (u[0] < share)[:, None, None] & spots
+    return dataclasses.replace(inputs, pressure_mmhg=torch.where(on, torch.maximum(p, reading), p))
+
+
 FLATTEN_GAMMA = (0.0, 1.0)  # the exponent: 0 = one pressure over the whole loaded outline
 
 
@@ -310,5 +344,6 @@ __all__ = [
     "pillow_batch",
     "repress_batch",
     "shift_batch",
+    "speckle_batch",
     "texture_batch",
 ]

@@ -67,6 +67,8 @@ class TrainConfig:
             `train.augment.spread_batch`; 0 = off).
         occlude: augmentation: share of training images with one band of 2-8 loaded rows zeroed
             (the labels kept), so that no single band decides the answer (`train.augment.occlude_batch`; 0 = off).
+        speckle: augmentation: share of training images with stray readings off the body (0-8 spots
+            of one or two taxels at 3.3-15 mmHg, the labels kept; `train.augment.speckle_batch`; 0 = off).
         texture_sigma: the network smooths every reading within its loaded taxels by a Gaussian of
             this many taxels before its channels, in training and in use (detail at the taxel scale
             out, the outline kept; `net.preprocess.smooth_loaded`; 0 = off).
@@ -119,6 +121,7 @@ class TrainConfig:
     pillow: float = 0.0
     texture: float = 0.0
     occlude: float = 0.0
+    speckle: float = 0.0
     flatten: float = 0.0
     spread: float = 0.0
     texture_sigma: float = 0.0
@@ -173,7 +176,7 @@ class TrainConfig:
             raise UserError(
                 f"shift_rows must lie in [0, 64) and shift_cols in [0, 27), got {self.shift_rows}, {self.shift_cols}"
             )
-        for name in ("mirror", "repress", "bands", "pillow", "texture", "occlude", "flatten", "spread"):
+        for name in ("mirror", "repress", "bands", "pillow", "texture", "occlude", "speckle", "flatten", "spread"):
             if not 0 <= getattr(self, name) <= 1:
                 raise UserError(f"{name} must lie in [0, 1] (a share of the images), got {getattr(self, name)}")
         if not 0 <= self.dropout < 1:

@@ -36,6 +36,7 @@ from pressurepose.train.augment import (
     pillow_batch,
     repress_batch,
     shift_batch,
+    speckle_batch,
     spread_batch,
     texture_batch,
 )
@@ -100,6 +101,8 @@ def step_loss(
         inputs = bands_batch(inputs, cfg.bands, generator)
     if augment and cfg.texture > 0:
         inputs = texture_batch(inputs, cfg.texture, generator)
+    if augment and cfg.speckle > 0:
+        inputs = speckle_batch(inputs, cfg.speckle, generator)
     if augment and cfg.occlude > 0:
         inputs = occlude_batch(inputs, cfg.occlude, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
@@ -165,10 +168,16 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
     return net.to(device)
 
 
+# NetConfig fields that say how a trained network is read, not what it is (eval only).
+INFERENCE_FIELDS = ("ik_steps", "flip_test", "stature_weight", "stature_head", "posture_consistent")
+
+
 def _load_init(net: PressureNet, init: Path) -> None:
     """Start from the weights of another run's network (fine-tuning), which must be the same
     network: same arch, width, modules, inputs, input smoothing and body model. A posture readout
-    the other network lacks starts from fresh weights; one it has that this one lacks is left out."""
+    the other network lacks starts from fresh weights; one it has that this one lacks is left out.
+    Its inference settings (INFERENCE_FIELDS) are kept: a fine-tune of the packaged model reads
+    its images as that model does."""
     weights, record = read_model(init)
     own = net.trainable_state()
     readout = {k for k in own if k.startswith("mod1.posture.")}
@@ -184,6 +193,12 @@ def _load_init(net: PressureNet, init: Path) -> None:
         )
     check_tensor_shapes(weights, {k: v.shape for k, v in net.trainable_state().items()}, Path(init) / MODEL_FILE)
     net.load_trainable_state(weights)
+    # How the other network is read - inference-only settings chosen for its weights (IK steps,
+    # flip test, the height's blend with the localised skeleton) - carries over to the fine-tune.
+    carried = {f: getattr(other, f) for f in INFERENCE_FIELDS}
+    if not net.config.posture_head:
+        carried["posture_consistent"] = False
+    net.config = dataclasses.replace(net.config, **carried)
 
 
 def _split(n: int, cfg: TrainConfig) -> tuple[list[int], list[int]]:
