@@ -12,10 +12,12 @@ import math
 import torch
 
 from pressurepose.body.joints import joint_index
+from pressurepose.errors import UserError
 from pressurepose.net.losses import Targets
 from pressurepose.net.model import NetInputs
 from pressurepose.net.preprocess import MAX_MMHG, gaussian_blur
 from pressurepose.sim.mattress import PRESETS
+from pressurepose.train.config import TrainConfig
 
 log = logging.getLogger(__name__)
 
@@ -335,7 +337,39 @@ def occlude_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
     return dataclasses.replace(inputs, pressure_mmhg=q)
 
 
+def augment_batch(
+    inputs: NetInputs, targets: Targets, cfg: TrainConfig, generator: torch.Generator | None
+) -> tuple[NetInputs, Targets]:
+    """A training batch through every augmentation `cfg` turns on, in a fixed order: where the
+    body lies (shift, mirror), what bed it lies on (re-press, flatten, spread, pillow, bands), how
+    the mat reads it (texture, stray readings), then a band taken out (occlude)."""
+    if cfg.shift_rows or cfg.shift_cols:
+        inputs, targets = shift_batch(inputs, targets, cfg.shift_rows, cfg.shift_cols, generator)
+    if cfg.mirror > 0:
+        inputs, targets = mirror_batch(inputs, targets, cfg.mirror, generator)
+    if cfg.repress > 0:
+        if targets.depth_mm is None:
+            raise UserError("--repress needs the depth maps (depth_mm) of the training samples")
+        inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
+    if cfg.flatten > 0:
+        inputs = flatten_batch(inputs, cfg.flatten, generator)
+    if cfg.spread > 0:
+        inputs = spread_batch(inputs, cfg.spread, generator)
+    if cfg.pillow > 0:
+        inputs = pillow_batch(inputs, targets.joints, cfg.pillow, generator)
+    if cfg.bands > 0:
+        inputs = bands_batch(inputs, cfg.bands, generator)
+    if cfg.texture > 0:
+        inputs = texture_batch(inputs, cfg.texture, generator)
+    if cfg.speckle > 0:
+        inputs = speckle_batch(inputs, cfg.speckle, generator)
+    if cfg.occlude > 0:
+        inputs = occlude_batch(inputs, cfg.occlude, generator)
+    return inputs, targets
+
+
 __all__ = [
+    "augment_batch",
     "bands_batch",
     "flatten_batch",
     "spread_batch",

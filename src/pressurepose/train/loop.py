@@ -28,18 +28,7 @@ from pressurepose.net.heatmap import localisation_loss
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
 from pressurepose.net.posture import posture_loss
-from pressurepose.train.augment import (
-    bands_batch,
-    flatten_batch,
-    mirror_batch,
-    occlude_batch,
-    pillow_batch,
-    repress_batch,
-    shift_batch,
-    speckle_batch,
-    spread_batch,
-    texture_batch,
-)
+from pressurepose.train.augment import augment_batch
 from pressurepose.train.average import WeightAverage
 from pressurepose.train.checkpoint import (
     CHECKPOINT_FILE,
@@ -83,28 +72,8 @@ def step_loss(
     generator: torch.Generator | None,
 ) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
     """Loss of the module being trained, its parts, and the (B,) joint error of its estimate."""
-    if augment and (cfg.shift_rows or cfg.shift_cols):
-        inputs, targets = shift_batch(inputs, targets, cfg.shift_rows, cfg.shift_cols, generator)
-    if augment and cfg.mirror > 0:
-        inputs, targets = mirror_batch(inputs, targets, cfg.mirror, generator)
-    if augment and cfg.repress > 0:
-        if targets.depth_mm is None:
-            raise UserError("--repress needs the depth maps (depth_mm) of the training samples")
-        inputs = repress_batch(inputs, targets.depth_mm, cfg.repress, generator)
-    if augment and cfg.flatten > 0:
-        inputs = flatten_batch(inputs, cfg.flatten, generator)
-    if augment and cfg.spread > 0:
-        inputs = spread_batch(inputs, cfg.spread, generator)
-    if augment and cfg.pillow > 0:
-        inputs = pillow_batch(inputs, targets.joints, cfg.pillow, generator)
-    if augment and cfg.bands > 0:
-        inputs = bands_batch(inputs, cfg.bands, generator)
-    if augment and cfg.texture > 0:
-        inputs = texture_batch(inputs, cfg.texture, generator)
-    if augment and cfg.speckle > 0:
-        inputs = speckle_batch(inputs, cfg.speckle, generator)
-    if augment and cfg.occlude > 0:
-        inputs = occlude_batch(inputs, cfg.occlude, generator)
+    if augment:
+        inputs, targets = augment_batch(inputs, targets, cfg, generator)
     ests = net(inputs, augment=augment, generator=generator, mesh=cfg.module == 2)
     est = ests[-1]
     scale = net.head.shape_scale()
