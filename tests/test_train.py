@@ -250,6 +250,27 @@ def test_init_keeps_how_the_other_network_is_read(data32, tmp_path):
     assert (fresh.config.ik_steps, fresh.config.flip_test, fresh.config.stature_weight) == (3, False, 0.0)
 
 
+def test_stature_weight_is_given_to_a_new_network_and_overrides_init(data32, tmp_path):
+    """--stature-weight: a line from random weights is read with the packaged model's height blend
+    without editing its files; given with --init it replaces the other network's; a resumed run
+    may change it (it says how the network is read, not how it trains); a bad value is refused."""
+    ds = _small(data32)
+    common = dict(arch="heatmap", gender_input=False, batch_size=4, val_fraction=0.0, progress=False, epochs=1)
+    a = train(TrainConfig.smoke(out=tmp_path / "a", stature_weight=0.194, **common), ds)
+    net_a, rec_a = load_network(a)
+    assert net_a.config.stature_weight == 0.194 and rec_a["net"]["stature_weight"] == 0.194
+    b = train(TrainConfig.smoke(out=tmp_path / "b", init=a, stature_weight=0.5, **common), ds)
+    assert load_network(b)[0].config.stature_weight == 0.5
+    c = train(TrainConfig.smoke(out=tmp_path / "c", init=a, **common), ds)
+    assert load_network(c)[0].config.stature_weight == 0.194  # carried when not given
+    # resumed to a second epoch with another weight: the run goes on, read the new way
+    a2 = train(TrainConfig.smoke(out=tmp_path / "a", stature_weight=0.3, **dict(common, epochs=2)), ds)
+    assert len(_metrics(a2)) == 2 and load_network(a2)[0].config.stature_weight == 0.3
+    for bad, match in ((1.5, "stature_weight must lie"), (0.2, "--arch heatmap")):
+        with pytest.raises(ValueError, match=match):
+            TrainConfig.smoke(stature_weight=bad, **(common if bad > 1 else dict(common, arch="fast")))
+
+
 def test_mod2_trains_on_a_frozen_mod1(data32, tmp_path):
     ds = _small(data32)
     common = dict(batch_size=4, val_fraction=0.0, progress=False)

@@ -83,6 +83,10 @@ class TrainConfig:
         lr_gamma: learning-rate decay per epoch: epoch e trains at lr * lr_gamma^(e-1) (1 = constant).
         init: start from the weights of this run's network (fine-tuning; the same network settings);
             Adam's state starts fresh. "default" = the packaged model.
+        stature_weight: arch heatmap on Anny, how the trained network is read (inference only):
+            move the body's height parameter this share of the way to the localised joints'
+            bone-chain length (`NetConfig.stature_weight`, net.stature; the packaged model's 0.194).
+            Not given: 0 from random weights, the other network's with --init.
         synthesis_weight: Mod2 only: weight of the analysis-by-synthesis loss (sim #2 pressure of
             the estimated mesh vs the input; 0 = off; slow: ~15 ms a sample).
         val_fraction: share of the samples held out for per-epoch validation.
@@ -130,6 +134,7 @@ class TrainConfig:
     posture_weight: float = 0.0
     posture_only: bool = False
     init: Path | None = None
+    stature_weight: float | None = None
     synthesis_weight: float = 0.0
     val_fraction: float = 0.05
     seed: int = 0
@@ -200,6 +205,11 @@ class TrainConfig:
             raise UserError(
                 f"average_from must lie in [0, epochs = {self.epochs}] (0 = no averaging), got {self.average_from}"
             )
+        if self.stature_weight is not None:
+            if not 0 <= self.stature_weight <= 1:
+                raise UserError(f"stature_weight must lie in [0, 1], got {self.stature_weight}")
+            if self.stature_weight > 0 and (self.arch != "heatmap" or self.backend != "anny"):
+                raise UserError("--stature-weight is for --arch heatmap on the Anny body model")
         if not 0 < self.lr_gamma <= 1:
             raise UserError(f"lr_gamma must lie in (0, 1], got {self.lr_gamma}")
         if not 0 <= self.val_fraction < 1:
@@ -229,6 +239,17 @@ class TrainConfig:
 
 
 # Fields a resumed run may change without becoming a different run.
-RESUMABLE_CHANGES = ("epochs", "progress", "num_workers", "in_memory", "device", "data", "out", "save_every")
+# stature_weight says how the network is read, not how it is trained.
+RESUMABLE_CHANGES = (
+    "epochs",
+    "progress",
+    "num_workers",
+    "in_memory",
+    "device",
+    "data",
+    "out",
+    "save_every",
+    "stature_weight",
+)
 
 __all__ = ["PRESETS", "RESUMABLE_CHANGES", "TrainConfig"]

@@ -132,6 +132,8 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         net.freeze_mod1()
     if cfg.init is not None:
         _load_init(net, cfg.init)
+    if cfg.stature_weight is not None:  # how the network is read, given: over the other network's
+        net.config = dataclasses.replace(net.config, stature_weight=cfg.stature_weight)
     if cfg.posture_only:
         net.freeze_all_but_readout()
     return net.to(device)
