@@ -1,6 +1,7 @@
 """What in a real frame turns a network (issue 22): PmatData frames altered and read again.
 
     PYTHONPATH=src .venv/bin/python benchmarks/real_probe.py --model RUN [--groups BCD] [--bands] [--sim DATASET]
+        [--placement]
 
 Each variant alters every frame of the chosen groups the same way - the first k loaded rows
 (head end) zeroed or narrowed to a head's width, a share of the loaded rows zeroed at either end, the pressure made uniform on
@@ -10,7 +11,9 @@ per PmatData group "correct / read prone". With --sim DATASET (a generated datas
 same cuts on its test split's supine images (moved up until their first k loaded rows leave the
 mat; the foot end cut): whether the network reads its own images the way it reads the real ones.
 The measures of docs/network.md "Real frames span the mat" (session 33); "default" is the packaged
-model.
+model. With --placement, every frame moved k rows along the bed and read again (the real frames
+and, with --sim, the simulated test images; docs/network.md "Where a real body lies changes its
+reading", session 53): how much of a reading is the body and how much where it lies.
 """
 
 from __future__ import annotations
@@ -187,6 +190,60 @@ def probe_sim(net, folder: Path) -> None:
         print(f"  {name:34s} read {dict(count)}  height {height:+5.1f} cm")
 
 
+def moved(images: torch.Tensor, k: int) -> torch.Tensor:
+    """Every (N, rows, cols) image moved k rows toward the foot (k < 0: toward the head); rows
+    leaving the grid are lost, those entering read 0 - the same body lying elsewhere on the mat."""
+    out = torch.zeros_like(images)
+    if k >= 0:
+        out[:, k:] = images[:, : images.shape[1] - k]
+    else:
+        out[:, :k] = images[:, -k:]
+    return out
+
+
+PLACEMENT_ROWS = (-6, -4, -2, 2, 4, 6)
+
+
+def probe_placement(net, images: torch.Tensor, heights: torch.Tensor, truth: list[str] | None, label: str) -> None:
+    """Read the images as given and moved by each of PLACEMENT_ROWS rows: per move, the median
+    signed height error, the median and median absolute change of the height read against as given,
+    and (with `truth`) the posture accuracy and how many reads the move turned."""
+    base = read_bodies(net, images)
+    print(f"{label}: {len(images)} images moved along the bed and read again")
+    for k in (0, *PLACEMENT_ROWS):
+        read = base if k == 0 else read_bodies(net, moved(images, k))
+        change = (read.height_m - base.height_m).double() * 100
+        line = (
+            f"  {k:+d} rows: height error {float((read.height_m - heights).median()) * 100:+5.1f} cm, "
+            f"change {float(change.median()):+5.1f} (|change| median {float(change.abs().median()):4.1f}) cm"
+        )
+        if truth is not None:
+            ok = np.array([g == t for g, t in zip(read.postures, truth)])
+            turned = sum(a != b for a, b in zip(read.postures, base.postures))
+            line += f", posture {ok.mean():.3f}, reads turned {turned}"
+        print(line)
+
+
+def real_placement(net, root: Path, groups: str) -> None:
+    records = distinct_frames([r for r in load_index(root) if r.group in groups])
+    images = torch.from_numpy(load_images(records))
+    heights = torch.tensor([r.height_cm / 100 for r in records])
+    for mattress in ("air", "sponge"):
+        sel = [i for i, r in enumerate(records) if r.mattress == mattress]
+        truth = [GROUP_POSTURE[records[i].group] for i in sel]
+        probe_placement(net, images[sel], heights[sel], truth, f"PmatData groups {groups}, {mattress}")
+
+
+def sim_placement(net, folder: Path, n: int = 600) -> None:
+    from pressurepose.train.data import KEYS, open_dataset, standardise
+
+    ds = open_dataset(folder, "test")
+    items = [standardise(ds[i]) for i in range(min(n, len(ds)))]
+    batch = {k: torch.stack([it[k] for it in items]) for k in KEYS}
+    truth = posture_of(roll_deg(batch["root_rotation"].double()))
+    probe_placement(net, batch["pressure_mmhg"].float(), batch["height_m"], truth, f"{folder} test split")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="default")
@@ -194,8 +251,14 @@ def main() -> None:
     ap.add_argument("--pmatdata", default=PMATDATA, help="PmatData folder (default: the packaged copy)")
     ap.add_argument("--bands", action="store_true", help="also the sliding-band probe (probe_bands)")
     ap.add_argument("--sim", default=None, help="a generated dataset folder: the same cuts on its supine test images")
+    ap.add_argument("--placement", action="store_true", help="only the frames moved along the bed (probe_placement)")
     args = ap.parse_args()
     net, _ = load_network(Path(args.model))
+    if args.placement:
+        real_placement(net, resolve_pmatdata(args.pmatdata), args.groups)
+        if args.sim:
+            sim_placement(net, Path(args.sim))
+        return
     probe_real(net, resolve_pmatdata(args.pmatdata), args.groups)
     if args.bands:
         probe_bands(net, resolve_pmatdata(args.pmatdata), args.groups)
