@@ -253,7 +253,8 @@ def test_init_keeps_how_the_other_network_is_read(data32, tmp_path):
 def test_stature_weight_is_given_to_a_new_network_and_overrides_init(data32, tmp_path):
     """--stature-weight: a line from random weights is read with the packaged model's height blend
     without editing its files; given with --init it replaces the other network's; a resumed run
-    may change it (it says how the network is read, not how it trains); a bad value is refused."""
+    may change it (it says how the network is read, not how it trains) and keeps it when not given;
+    a bad value is refused."""
     ds = _small(data32)
     common = dict(arch="heatmap", gender_input=False, batch_size=4, val_fraction=0.0, progress=False, epochs=1)
     a = train(TrainConfig.smoke(out=tmp_path / "a", stature_weight=0.194, **common), ds)
@@ -266,6 +267,8 @@ def test_stature_weight_is_given_to_a_new_network_and_overrides_init(data32, tmp
     # resumed to a second epoch with another weight: the run goes on, read the new way
     a2 = train(TrainConfig.smoke(out=tmp_path / "a", stature_weight=0.3, **dict(common, epochs=2)), ds)
     assert len(_metrics(a2)) == 2 and load_network(a2)[0].config.stature_weight == 0.3
+    a3 = train(TrainConfig.smoke(out=tmp_path / "a", **dict(common, epochs=3)), ds)  # not given: the run's
+    assert len(_metrics(a3)) == 3 and load_network(a3)[0].config.stature_weight == 0.3
     for bad, match in ((1.5, "stature_weight must lie"), (0.2, "--arch heatmap")):
         with pytest.raises(ValueError, match=match):
             TrainConfig.smoke(stature_weight=bad, **(common if bad > 1 else dict(common, arch="fast")))

@@ -178,10 +178,12 @@ def _split(n: int, cfg: TrainConfig) -> tuple[list[int], list[int]]:
     return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
 
 
-def _check_resume(run: Path, cfg: TrainConfig) -> None:
+def _check_resume(run: Path, cfg: TrainConfig) -> TrainConfig:
+    """The config to resume `run` with (UserError when it is another run's); a stature weight not
+    given now is the run's own."""
     path = run / "config.json"
     if not path.is_file():
-        return
+        return cfg
     hint = "; resume with an intact run folder or train into a new --out folder"
     saved = field(read_json_object(path, "run config", hint), "train", "dict", path, hint=hint)
     now = cfg.to_json()
@@ -193,6 +195,9 @@ def _check_resume(run: Path, cfg: TrainConfig) -> None:
             f"{run} holds a run with different settings ({', '.join(differ)}); "
             "resume with the same settings or train into a new --out folder"
         )
+    if cfg.stature_weight is None and saved.get("stature_weight") is not None:
+        cfg = dataclasses.replace(cfg, stature_weight=saved["stature_weight"])
+    return cfg
 
 
 def train(
@@ -214,7 +219,7 @@ def train(
     run.mkdir(parents=True, exist_ok=True)
     resuming = (run / CHECKPOINT_FILE).is_file()
     if resuming:
-        _check_resume(run, cfg)
+        cfg = _check_resume(run, cfg)
     if cfg.in_memory:
         dataset = in_memory(dataset)
     net = build_network(cfg, device)
