@@ -131,9 +131,23 @@ SIM_VARIANTS = {
 }
 
 
-def probe_real(net, root: Path, groups: str) -> None:
+def real_frames(root: Path, groups: str) -> tuple[list, torch.Tensor]:
+    """PmatData's distinct frames of the chosen groups: their records and (N, 64, 27) images."""
     records = distinct_frames([r for r in load_index(root) if r.group in groups])
-    images = torch.from_numpy(load_images(records))
+    return records, torch.from_numpy(load_images(records))
+
+
+def sim_test_batch(folder: Path, n: int | None = None) -> dict[str, torch.Tensor]:
+    """The first n (all: None) samples of a generated dataset's test split, stacked by column."""
+    from pressurepose.train.data import KEYS, open_dataset, standardise
+
+    ds = open_dataset(folder, "test")
+    items = [standardise(ds[i]) for i in range(len(ds) if n is None else min(n, len(ds)))]
+    return {k: torch.stack([it[k] for it in items]) for k in KEYS}
+
+
+def probe_real(net, root: Path, groups: str) -> None:
+    records, images = real_frames(root, groups)
     heights = torch.tensor([r.height_cm / 100 for r in records])
     truth = [GROUP_POSTURE[r.group] for r in records]
     print(f"PmatData groups {groups}: {len(records)} frames")
@@ -157,8 +171,7 @@ def probe_bands(net, root: Path, groups: str, rows: int = 4) -> None:
     """Zero one band of `rows` rows at each 5% of every frame's loaded extent and read again:
     how many reads the band turns right (fixed) and wrong (broke) - where a network's answer on
     real frames comes from (docs/network.md "Flip test, IK settings and occlusion")."""
-    records = distinct_frames([r for r in load_index(root) if r.group in groups])
-    images = torch.from_numpy(load_images(records))
+    records, images = real_frames(root, groups)
     truth = [GROUP_POSTURE[r.group] for r in records]
     ok = np.array([g == t for g, t in zip(read_bodies(net, images).postures, truth)])
     extent = [loaded_rows(x) for x in images]
@@ -175,11 +188,7 @@ def probe_bands(net, root: Path, groups: str, rows: int = 4) -> None:
 
 
 def probe_sim(net, folder: Path) -> None:
-    from pressurepose.train.data import KEYS, open_dataset, standardise
-
-    ds = open_dataset(folder, "test")
-    items = [standardise(ds[i]) for i in range(len(ds))]
-    batch = {k: torch.stack([it[k] for it in items]) for k in KEYS}
+    batch = sim_test_batch(folder)
     supine = torch.tensor([p == "supine" for p in posture_of(roll_deg(batch["root_rotation"].double()))])
     images, heights = batch["pressure_mmhg"].float()[supine], batch["height_m"][supine]
     print(f"{folder} test split: {len(images)} supine images")
@@ -225,8 +234,7 @@ def probe_placement(net, images: torch.Tensor, heights: torch.Tensor, truth: lis
 
 
 def real_placement(net, root: Path, groups: str) -> None:
-    records = distinct_frames([r for r in load_index(root) if r.group in groups])
-    images = torch.from_numpy(load_images(records))
+    records, images = real_frames(root, groups)
     heights = torch.tensor([r.height_cm / 100 for r in records])
     for mattress in ("air", "sponge"):
         sel = [i for i, r in enumerate(records) if r.mattress == mattress]
@@ -235,11 +243,7 @@ def real_placement(net, root: Path, groups: str) -> None:
 
 
 def sim_placement(net, folder: Path, n: int = 600) -> None:
-    from pressurepose.train.data import KEYS, open_dataset, standardise
-
-    ds = open_dataset(folder, "test")
-    items = [standardise(ds[i]) for i in range(min(n, len(ds)))]
-    batch = {k: torch.stack([it[k] for it in items]) for k in KEYS}
+    batch = sim_test_batch(folder, n)
     truth = posture_of(roll_deg(batch["root_rotation"].double()))
     probe_placement(net, batch["pressure_mmhg"].float(), batch["height_m"], truth, f"{folder} test split")
 
