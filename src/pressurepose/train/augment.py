@@ -86,7 +86,7 @@ def mirror_batch(
     )
 
 
-# Re-press augmentation: ranges of the mattress law drawn per image (docs/model-card.md).
+# Re-press augmentation: ranges of the mattress law drawn per image (docs/model-history.md).
 REPRESS_EXTRA_SINK_MM = (0.0, 40.0)  # delta: how much deeper a softer mattress lets the body in
 REPRESS_EXPONENT = (0.5, 1.5)  # gamma: pressure ~ compression^gamma
 REPRESS_SPREAD_TAXELS = (0.3, 1.0)  # sigma: the mat and cover's spread
@@ -216,7 +216,7 @@ def flatten_batch(inputs: NetInputs, share: float, generator: torch.Generator | 
     reads a real supine frame made uniform on its loaded taxels as prone (`heat_line`'s epoch
     19: 99 of 159 supine frames; `benchmarks/real_probe.py`): the hypothesis was that real mats
     read more uniform pressure than the simulation. Refuted twice: a line trained with it read
-    PmatData worse (docs/model-card.md "Session 37"), and the real frames' high pressures are
+    PmatData worse (docs/model-history.md "Session 37"), and the real frames' high pressures are
     above the simulated ones, not below (docs/realism.md, session 38). Images not drawn are
     unchanged."""
     p = inputs.pressure_mmhg

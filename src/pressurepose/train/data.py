@@ -12,7 +12,7 @@ arrays are those keys with a leading sample axis N (gender as float), loaded wit
 `open_dataset(DIR)` reads the generator's Parquet shards when DIR holds a manifest.json (and
 `pressurepose.data.dataset` exists), else every *.npz file in DIR, else every dataset folder
 (with a manifest.json) directly inside DIR - e.g. links to the paper mix and a partition generated
-apart (docs/model-card.md).
+apart (docs/model-history.md).
 """
 
 from __future__ import annotations
