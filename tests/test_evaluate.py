@@ -69,6 +69,38 @@ def test_report_end_to_end(tiny):
         assert cells[1:4] == [str(e["count"]), f"{e['vpe_m'] * 100:.2f}", ci], cells
     for name in ("cases", "failures"):
         assert paths[name].read_bytes()[:4] == b"\x89PNG"
+    # The signed height error by where each image's load lies, as evaluate-real reports it: the
+    # classes recomputed from the test images, the groups' counts and medians from the rows.
+    from pressurepose.eval.real import LOAD_ENDS, load_ends
+
+    per = record["per_sample"]
+    signed = np.asarray(per["height_signed_m"])
+    np.testing.assert_allclose(np.abs(signed), per["height_err_m"], rtol=0, atol=1e-7)
+    test = open_dataset(root / "test")
+    images = np.stack([np.asarray(test[i]["pressure_mmhg"], dtype=np.float32) for i in range(n)])
+    assert per["load_ends"] == load_ends(images)
+    groups = record["height_by_load_ends"]
+    assert sum(g["frames"] for g in groups.values()) == n and set(groups) <= set(LOAD_ENDS)
+    for where, g in groups.items():
+        mine = signed[np.asarray(per["load_ends"]) == where]
+        assert g["frames"] == len(mine) and g["height_median_signed_m"] == pytest.approx(float(np.median(mine)), abs=1e-12)
+    cells = [
+        "-" if w not in groups else f"{groups[w]['height_median_signed_m'] * 100:+.1f} ({groups[w]['frames']})"
+        for w in LOAD_ENDS
+    ]
+    assert "| " + " | ".join(cells) + " |" in text and "## Height error by where the load lies" in text
+
+
+def test_height_by_load_ends_by_hand():
+    from pressurepose.eval.real import height_by_load_ends, load_ends_cells
+
+    groups = height_by_load_ends([0.01, -0.03, 0.05, 0.02], ["neither", "foot only", "neither", "foot only"])
+    assert list(groups) == ["neither", "foot only"]  # LOAD_ENDS's order, absent classes left out
+    assert groups["neither"] == {"frames": 2, "height_median_signed_m": pytest.approx(0.03)}
+    assert groups["foot only"] == {"frames": 2, "height_median_signed_m": pytest.approx(-0.005)}
+    assert load_ends_cells(groups) == ["+3.0 (2)", "-", "-0.5 (2)", "-", "-"]
+    with pytest.raises(ValueError, match="one class per height error"):
+        height_by_load_ends([0.01, 0.02], ["neither"])
 
 
 def test_mean_interval_by_hand():

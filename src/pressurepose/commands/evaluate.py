@@ -23,6 +23,7 @@ from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.eval import evaluation as E
 from pressurepose.eval.evaluation import METRICS, PREDICTIONS, REGIONS, SEED_SYNTH_VPE_CM, write_predictions
+from pressurepose.eval.real import LOAD_ENDS, height_by_load_ends, load_ends_cells
 from pressurepose.files import atomic_write, write_text
 from pressurepose.train.checkpoint import load_network
 from pressurepose.viz.evaluation import plot_cases
@@ -161,6 +162,9 @@ def _write_report(
         "baselines_vpe_m": {k: _summary(v) for k, v in base.items() if v},
         "by_partition": _group_table(rows, base, "partition"),
         "by_gender": _group_table(rows, base, "gender"),
+        # the signed height error by whether the image's load reaches the mat's ends, as
+        # evaluate-real reports it for real frames: a reading of the body or of where it lies
+        "height_by_load_ends": height_by_load_ends(rows["height_signed_m"], rows["load_ends"]),
         "cases": {k: {"index": i, "vpe_m": float(vpe[i])} for k, i in picks.items()},
         "failures": [{"index": i, "vpe_m": float(vpe[i]), "partition": rows["partition"][i]} for i in failures],
         "per_sample": {k: v for k, v in rows.items()},
@@ -251,6 +255,17 @@ def _markdown(r: dict) -> str:
     ]
     for reg, s in r["regions_m"].items():
         lines.append(f"| {reg} | {s['mean'] * 100:.2f} | {s['median'] * 100:.2f} | {s['p90'] * 100:.2f} |")
+    lines += [
+        "",
+        "## Height error by where the load lies (median signed, cm; samples)",
+        "",
+        "Whether the load (the rows holding >= 0.2% of the force) reaches the mat's head or foot row, "
+        "as `evaluate-real` reports it for real frames.",
+        "",
+        "| " + " | ".join(LOAD_ENDS) + " |",
+        "|" + " --- |" * len(LOAD_ENDS),
+        "| " + " | ".join(load_ends_cells(r["height_by_load_ends"])) + " |",
+    ]
     if has_base:
         lines += ["", "## Baselines (3DVPE, cm, mean / median)", ""]
         for k, s in r["baselines_vpe_m"].items():

@@ -37,7 +37,16 @@ from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index, repeated_frames
 from pressurepose.errors import UserError
 from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
-from pressurepose.eval.real import GROUP_POSTURE, LOAD_ENDS, POSTURES, load_ends, read_bodies, subject_interval
+from pressurepose.eval.real import (
+    GROUP_POSTURE,
+    LOAD_ENDS,
+    POSTURES,
+    height_by_load_ends,
+    load_ends,
+    load_ends_cells,
+    read_bodies,
+    subject_interval,
+)
 from pressurepose.eval.real_cloud import load_cloud_file
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import check_images
@@ -145,11 +154,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "height_median_signed_ci_m": subject_interval(height_error, subjects, np.median),
             "mass_mae_kg": float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in sel])),
             # The height error by whether the frame's load reaches the mat's ends (`load_ends`).
-            "height_by_load_ends": {
-                where: {"frames": int(mask.sum()), "height_median_signed_m": float(np.median(height_error[mask]))}
-                for where in LOAD_ENDS
-                if (mask := np.array([r["load_reaches"] == where for r in sel])).any()
-            },
+            "height_by_load_ends": height_by_load_ends(height_error, [r["load_reaches"] for r in sel]),
         }
         if read.readout is not None:
             summary[mattress]["readout_accuracy"] = sum(r["posture"] == r["readout_posture"] for r in sel) / len(sel)
@@ -217,14 +222,7 @@ def _markdown(r: dict) -> str:
         "| --- |" + " --- |" * len(LOAD_ENDS),
     ]
     for name, s in r["by_mattress"].items():
-        cells = [s["height_by_load_ends"].get(w) for w in LOAD_ENDS]
-        lines.append(
-            f"| {name} | "
-            + " | ".join(
-                "-" if c is None else f"{c['height_median_signed_m'] * 100:+.1f} ({c['frames']})" for c in cells
-            )
-            + " |"
-        )
+        lines.append(f"| {name} | " + " | ".join(load_ends_cells(s["height_by_load_ends"])) + " |")
     lines += [
         "",
         "Per posture variant (both mattresses; PmatData's groups: B supine variants, C right, D left)",

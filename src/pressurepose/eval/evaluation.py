@@ -22,6 +22,7 @@ from pressurepose.body.params import BodyParams
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from pressurepose.errors import UserError
 from pressurepose.eval import metrics as M
+from pressurepose.eval.real import load_ends
 from pressurepose.files import atomic_write
 from pressurepose.net.model import NetInputs
 from pressurepose.train.data import open_dataset, standardise
@@ -142,6 +143,7 @@ def _sample_metrics(
         "root_pos_m": M.root_position_error(est.root_translation, true.root_translation),
         "root_rot_deg": torch.rad2deg(M.root_orientation_error(est.root_rotation, true.root_rotation)),
         "height_err_m": (meas.height_m - true_measure.height_m).abs(),
+        "height_signed_m": meas.height_m - true_measure.height_m,
         "mass_err_kg": (meas.mass_kg - true_measure.mass_kg).abs(),
     }
     for region, names in REGIONS.items():
@@ -181,7 +183,7 @@ def evaluate_network(
     with torch.no_grad():  # the mean body is one mesh for every sample: packed once
         mean_facing = None if mean_body is None else M.facing_meshes(body(mean_body).vertices, body.faces)
 
-    rows: dict[str, list] = {"partition": [], "gender": []}
+    rows: dict[str, list] = {"partition": [], "gender": [], "load_ends": []}
     base_rows: dict[str, list] = {"mean_body": [], "nearest_image": []}
     estimates = []  # BodyParams per batch: the figures re-pose the few samples they show
     t0 = time.perf_counter()
@@ -201,6 +203,7 @@ def evaluate_network(
                 rows.setdefault(k, []).extend(v.tolist())
             rows["partition"] += [p for p, _ in labels]
             rows["gender"] += [g for _, g in labels]
+            rows["load_ends"] += load_ends(b["pressure_mmhg"].numpy())
             estimates.append(est)
             if mean_body is not None:
                 base_rows["mean_body"] += M.vpe_between(mean_facing, true_facing).tolist()

@@ -90,6 +90,31 @@ def load_ends(images: np.ndarray, share: float = EXTENT_SHARE) -> list[str]:
     return out
 
 
+def height_by_load_ends(height_error: Sequence[float], ends: Sequence[str]) -> dict[str, dict]:
+    """The median signed height error (m) and the count ("frames") per `load_ends` class present
+    among the images (`ends[i]` the class of image i, `height_error[i]` its estimated minus
+    true height): whether a reading is the body or where it lies (docs/network.md "Where a real
+    body lies changes its reading"). `evaluate` and `evaluate-real` report it alike."""
+    err = np.asarray(height_error, dtype=np.float64)
+    labels = np.asarray(ends)
+    if err.shape != labels.shape:
+        raise ValueError(f"one class per height error: {labels.shape} against {err.shape}")
+    return {
+        where: {"frames": int(mask.sum()), "height_median_signed_m": float(np.median(err[mask]))}
+        for where in LOAD_ENDS
+        if (mask := labels == where).any()
+    }
+
+
+def load_ends_cells(groups: dict[str, dict]) -> list[str]:
+    """`height_by_load_ends`'s result as report cells, one per LOAD_ENDS class: "+1.2 (34)"
+    (median signed cm, count), "-" for a class with no image."""
+    return [
+        "-" if (g := groups.get(w)) is None else f"{g['height_median_signed_m'] * 100:+.1f} ({g['frames']})"
+        for w in LOAD_ENDS
+    ]
+
+
 def subject_interval(
     values: Sequence[float],
     subjects: Sequence[int],
@@ -124,7 +149,9 @@ __all__ = [
     "LOAD_ENDS",
     "POSTURES",
     "BodyReadings",
+    "height_by_load_ends",
     "load_ends",
+    "load_ends_cells",
     "posture_of",
     "read_bodies",
     "roll_deg",

@@ -249,7 +249,7 @@ class Browser:
 
     def order(self, key: str) -> list[int]:
         """Sample numbers sorted by a per-sample metric, worst first ("index": as stored)."""
-        if key in self.per_sample and key not in ("partition", "gender"):
+        if key in self.per_sample and all(isinstance(v, (int, float)) for v in self.per_sample[key]):
             return np.argsort(-np.asarray(self.per_sample[key], dtype=np.float64), kind="stable").tolist()
         return list(range(len(self)))
 
