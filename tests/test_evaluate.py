@@ -83,7 +83,9 @@ def test_report_end_to_end(tiny):
     assert sum(g["frames"] for g in groups.values()) == n and set(groups) <= set(LOAD_ENDS)
     for where, g in groups.items():
         mine = signed[np.asarray(per["load_ends"]) == where]
-        assert g["frames"] == len(mine) and g["height_median_signed_m"] == pytest.approx(float(np.median(mine)), abs=1e-12)
+        assert g["frames"] == len(mine) and g["height_median_signed_m"] == pytest.approx(
+            float(np.median(mine)), abs=1e-12
+        )
     cells = [
         "-" if w not in groups else f"{groups[w]['height_median_signed_m'] * 100:+.1f} ({groups[w]['frames']})"
         for w in LOAD_ENDS
