@@ -23,7 +23,7 @@ from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.eval import evaluation as E
 from pressurepose.eval.evaluation import METRICS, PREDICTIONS, REGIONS, SEED_SYNTH_VPE_CM, write_predictions
-from pressurepose.eval.real import LOAD_ENDS, height_by_load_ends, load_ends_cells
+from pressurepose.eval.real import height_by_load_ends, load_ends_table
 from pressurepose.files import atomic_write, write_text
 from pressurepose.train.checkpoint import load_network
 from pressurepose.viz.evaluation import plot_cases
@@ -262,9 +262,7 @@ def _markdown(r: dict) -> str:
         "Whether the load (the rows holding >= 0.2% of the force) reaches the mat's head or foot row, "
         "as `evaluate-real` reports it for real frames.",
         "",
-        "| " + " | ".join(LOAD_ENDS) + " |",
-        "|" + " --- |" * len(LOAD_ENDS),
-        "| " + " | ".join(load_ends_cells(r["height_by_load_ends"])) + " |",
+        *load_ends_table({r["config"]["split"]: r["height_by_load_ends"]}, "split"),
     ]
     if has_base:
         lines += ["", "## Baselines (3DVPE, cm, mean / median)", ""]

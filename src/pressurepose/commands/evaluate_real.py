@@ -39,11 +39,10 @@ from pressurepose.errors import UserError
 from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
 from pressurepose.eval.real import (
     GROUP_POSTURE,
-    LOAD_ENDS,
     POSTURES,
     height_by_load_ends,
     load_ends,
-    load_ends_cells,
+    load_ends_table,
     read_bodies,
     subject_interval,
 )
@@ -218,11 +217,8 @@ def _markdown(r: dict) -> str:
         "Height error (median signed, cm; frames) by where the load lies: a frame whose load (the rows "
         "holding >= 0.2% of its force) reaches the mat's head or foot row may run on beyond the mat",
         "",
-        "| mattress | " + " | ".join(LOAD_ENDS) + " |",
-        "| --- |" + " --- |" * len(LOAD_ENDS),
+        *load_ends_table({name: s["height_by_load_ends"] for name, s in r["by_mattress"].items()}, "mattress"),
     ]
-    for name, s in r["by_mattress"].items():
-        lines.append(f"| {name} | " + " | ".join(load_ends_cells(s["height_by_load_ends"])) + " |")
     lines += [
         "",
         "Per posture variant (both mattresses; PmatData's groups: B supine variants, C right, D left)",

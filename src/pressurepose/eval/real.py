@@ -115,6 +115,16 @@ def load_ends_cells(groups: dict[str, dict]) -> list[str]:
     ]
 
 
+def load_ends_table(rows: dict[str, dict[str, dict]], first: str) -> list[str]:
+    """A markdown table of `height_by_load_ends` results, one row per entry of `rows` (its key in
+    the column named `first`: a mattress, a split), a column per LOAD_ENDS class."""
+    return [
+        f"| {first} | " + " | ".join(LOAD_ENDS) + " |",
+        "| --- |" + " --- |" * len(LOAD_ENDS),
+        *(f"| {name} | " + " | ".join(load_ends_cells(groups)) + " |" for name, groups in rows.items()),
+    ]
+
+
 def subject_interval(
     values: Sequence[float],
     subjects: Sequence[int],
@@ -152,6 +162,7 @@ __all__ = [
     "height_by_load_ends",
     "load_ends",
     "load_ends_cells",
+    "load_ends_table",
     "posture_of",
     "read_bodies",
     "roll_deg",
