@@ -155,9 +155,8 @@ def _sample_metrics(
 class Evaluation:
     """Per-sample metrics of a network on a dataset: `rows[metric]` (N,) lists (METRICS, the
     joint error per region, the signed height error `height_signed_m`, and the partition, gender
-    and `load_ends` labels), `baselines[name]` the
-    baselines' 3DVPE (N,) (empty without a training set), the estimated bodies and the
-    seconds it took."""
+    and `load_ends` labels), `baselines[name]` the baselines' 3DVPE (N,) (empty without a
+    training set), the estimated bodies and the seconds it took."""
 
     rows: dict[str, list]
     baselines: dict[str, list]
