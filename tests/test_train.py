@@ -11,6 +11,7 @@ import torch
 from pressurepose.cli import main
 from pressurepose.commands.predict import read_mesh
 from pressurepose.commands.train import run_train as train  # the loop + metrics.png
+from pressurepose.eval.real import LOAD_ENDS, load_ends
 from pressurepose.net import NetConfig, NetInputs, PressureNet
 from pressurepose.train.checkpoint import load_network, save_model
 from pressurepose.train.config import TrainConfig
@@ -354,12 +355,20 @@ def test_predict_writes_params_meshes_and_figures(trained_run, data32, tmp_path,
         record = json.loads((out / f"{n}.json").read_text())
         assert len(record["pose_axis_angle"]) == 23 and len(record["joints_m"]) == 24
         assert record["shape"]["gender"] == 1.0 and 30 < record["mass_kg"] < 160
+        assert record["load_ends"] in LOAD_ENDS
         v, f = read_mesh(out / f"{n}.ply")
         assert v.shape == (anny32.num_vertices, 3) and f.shape == tuple(anny32.faces.shape)
         assert (out / f"{n}.png").stat().st_size > 10_000
     # The same image gives the same answer whatever file and batch it came in.
     a, b = (json.loads((out / f"{n}.json").read_text()) for n in ("one", "stack_0000"))
     assert a["root_translation_m"] == pytest.approx(b["root_translation_m"], abs=1e-6)
+    # Where the load lies is the image's (row 0 at the head, whatever the file's own order).
+    assert [json.loads((out / f"{n}.json").read_text())["load_ends"] for n in names[1:4]] == load_ends(images)
+    cut = images[:1].copy()
+    cut[0, 0, 10:14] = cut[0].max()  # a load on the head row
+    np.save(tmp_path / "cut.npy", cut[0])
+    assert main(["predict", "--model", str(trained_run), "--out", str(out), "--no-figures", str(tmp_path / "cut.npy")]) == 0
+    assert json.loads((out / "cut.json").read_text())["load_ends"] in ("head only", "both")
 
 
 def _shard(path, images):

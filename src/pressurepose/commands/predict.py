@@ -3,7 +3,9 @@
 Every input file is read and checked first (`net.inputs`), so a bad file stops the run
 before anything is written. Images then go through the network in batches; per image
 OUT/<name>.json (parameters by name, J24 joints, height and mass of the estimated shape; the
-posture readout's probabilities for a network with one),
+posture readout's probabilities for a network with one; `load_ends`, whether the image's load
+reaches the mat's head row, its foot row, both or neither - a body the mat cuts shows less of its
+length, and its height is then read from its proportions: docs/network.md),
 OUT/<name>.ply (the mesh, mat frame, metres; or .obj / .glb with --mesh-format, written by
 trimesh) and OUT/<name>.png (the pressure image with the
 projected skeleton, top and side views of the mesh). <name> is the file's stem, with
@@ -26,6 +28,7 @@ import tyro
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.commands.netopts import with_inference_options
 from pressurepose.errors import UserError
+from pressurepose.eval.real import load_ends
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import read_pressure_file
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
@@ -141,6 +144,7 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
         "joints_m": {n: v for n, v in zip(J24_NAMES, joints.tolist())},
         "height_m": float(measured.height_m[i]),
         "mass_kg": float(measured.mass_kg[i]),
+        "load_ends": load_ends(image[None])[0],
     }
     loc = est.localisation
     if loc is not None and loc.posture_logits is not None:  # the network's posture readout
