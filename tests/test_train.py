@@ -367,7 +367,10 @@ def test_predict_writes_params_meshes_and_figures(trained_run, data32, tmp_path,
     cut = images[:1].copy()
     cut[0, 0, 10:14] = cut[0].max()  # a load on the head row
     np.save(tmp_path / "cut.npy", cut[0])
-    assert main(["predict", "--model", str(trained_run), "--out", str(out), "--no-figures", str(tmp_path / "cut.npy")]) == 0
+    assert (
+        main(["predict", "--model", str(trained_run), "--out", str(out), "--no-figures", str(tmp_path / "cut.npy")])
+        == 0
+    )
     assert json.loads((out / "cut.json").read_text())["load_ends"] in ("head only", "both")
 
 
