@@ -362,7 +362,7 @@ def test_predict_writes_params_meshes_and_figures(trained_run, data32, tmp_path,
     # The same image gives the same answer whatever file and batch it came in.
     a, b = (json.loads((out / f"{n}.json").read_text()) for n in ("one", "stack_0000"))
     assert a["root_translation_m"] == pytest.approx(b["root_translation_m"], abs=1e-6)
-    # Where the load lies is the image's (row 0 at the head, whatever the file's own order).
+    # Where the load lies is computed from each image as read, and follows a load put on the head row.
     assert [json.loads((out / f"{n}.json").read_text())["load_ends"] for n in names[1:4]] == load_ends(images)
     cut = images[:1].copy()
     cut[0, 0, 10:14] = cut[0].max()  # a load on the head row

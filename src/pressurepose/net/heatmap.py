@@ -197,8 +197,8 @@ class HeatmapNet(nn.Module):
     def _trunk(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The encoder-decoder by the modules: (bottleneck e3, maps (B, 4 J, H, W)); without
         autograd on a CPU `heatmap_fused.fused_trunk` computes the same faster."""
-        # mkldnn's convolutions in channels-last: ~20% faster at batch 128 in eval, 5-10% in
-        # training (docs/benchmarks.md "Session 55")
+        # mkldnn's convolutions in channels-last: ~20% faster at batch 128 in eval, 7-10% per
+        # training step (docs/benchmarks.md "Session 55")
         x = x.contiguous(memory_format=torch.channels_last)
         e1 = self.enc1(x * self.INPUT_SCALE)  # (B, 48, 32, 14)
         e2 = self.enc2(e1)  # (B, 64, 16, 7)
