@@ -16,6 +16,7 @@ import sys
 import tyro
 
 from pressurepose.commands.calibrate import calibrate
+from pressurepose.commands.compare import compare
 from pressurepose.commands.coregister import coregister
 from pressurepose.commands.demo import demo
 from pressurepose.commands.evaluate import evaluate
@@ -52,6 +53,7 @@ COMMANDS = {
     "predict": predict,
     "evaluate": evaluate,
     "evaluate-real": evaluate_real,
+    "compare": compare,
     "view": view,
 }
 

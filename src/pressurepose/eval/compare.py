@@ -1,0 +1,116 @@
+"""Paired comparison of two evaluations of the same samples (`pressurepose compare`).
+
+Two networks read the same test split or the same real frames; their difference is measured
+sample by sample, which resolves far smaller differences than comparing two means with their
+own intervals (a hard sample is hard for both). Synthetic reports (`evaluate`): per metric, the
+mean paired difference B - A with its 95% interval (paired t) and the Wilcoxon signed-rank p.
+Real reports (`evaluate-real`, PmatData): per mattress, the postures B reads right where A read
+them wrong and the reverse, the exact McNemar p (a binomial test on those discordant frames),
+and the accuracy difference's 95% interval resampling whole subjects (a subject's frames are
+not independent: McNemar alone overstates the evidence); the heights likewise, by each frame's
+change of absolute error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import stats
+
+from pressurepose.eval.real import subject_interval
+
+SYNTHETIC_METRICS = (
+    "vpe_m",
+    "mpjpe_m",
+    "pa_mpjpe_m",
+    "joints_arms_m",
+    "joints_legs_m",
+    "height_err_m",
+)
+
+
+def paired_difference(a: Sequence[float], b: Sequence[float]) -> dict:
+    """Mean of b - a, its 95% interval (paired t) and the two-sided Wilcoxon signed-rank p;
+    identical inputs give a zero interval and p 1."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if a.shape != b.shape or a.ndim != 1 or a.size < 2:
+        raise ValueError(f"paired values must be two 1-D arrays of one length >= 2, got {a.shape} / {b.shape}")
+    d = b - a
+    if not np.any(d):
+        return {"mean_a": float(a.mean()), "mean_b": float(b.mean()), "difference": 0.0, "ci": [0.0, 0.0], "p": 1.0}
+    ci = stats.ttest_rel(b, a).confidence_interval(0.95)
+    return {
+        "mean_a": float(a.mean()),
+        "mean_b": float(b.mean()),
+        "difference": float(d.mean()),
+        "ci": [float(ci.low), float(ci.high)],
+        "p": float(stats.wilcoxon(d).pvalue),
+    }
+
+
+def mcnemar_exact(gained: int, lost: int) -> float:
+    """Two-sided exact McNemar p: under "A and B are as good", each discordant frame is B's
+    gain or loss with probability 1/2."""
+    if gained < 0 or lost < 0:
+        raise ValueError(f"counts must be >= 0, got {gained} / {lost}")
+    n = gained + lost
+    return 1.0 if n == 0 else float(stats.binomtest(gained, n, 0.5).pvalue)
+
+
+def compare_synthetic(a: dict, b: dict) -> dict:
+    """`per_sample` columns of two `evaluate` reports of the same samples -> overall and per
+    partition paired differences (metrics missing from either report are left out)."""
+    n = len(a["partition"])
+    if len(b["partition"]) != n or a["partition"] != b["partition"] or a.get("gender") != b.get("gender"):
+        raise ValueError("the two reports hold different samples (counts, partitions or genders differ)")
+    metrics = [m for m in SYNTHETIC_METRICS if m in a and m in b]
+    out = {"samples": n, "overall": {m: paired_difference(a[m], b[m]) for m in metrics}, "by_partition": {}}
+    parts = np.asarray(a["partition"])
+    for p in sorted(set(a["partition"])):
+        idx = np.flatnonzero(parts == p)
+        if idx.size >= 2:
+            out["by_partition"][p] = {
+                "samples": int(idx.size),
+                "vpe_m": paired_difference(np.asarray(a["vpe_m"])[idx], np.asarray(b["vpe_m"])[idx]),
+            }
+    return out
+
+
+def compare_real(a: list[dict], b: list[dict]) -> dict:
+    """`per_frame` rows of two `evaluate-real` reports of the same frames -> per mattress."""
+    by_file = {r["file"]: r for r in b}
+    files = [r["file"] for r in a]
+    if len(by_file) != len(b) or set(files) != set(by_file) or len(set(files)) != len(files):
+        only_a, only_b = len(set(files) - set(by_file)), len(set(by_file) - set(files))
+        raise ValueError(f"the two reports read different frames ({only_a} only in A, {only_b} only in B)")
+    out = {}
+    for mattress in sorted({r["mattress"] for r in a}):
+        ra = [r for r in a if r["mattress"] == mattress]
+        rb = [by_file[r["file"]] for r in ra]
+        right_a = np.array([r["estimated_posture"] == r["posture"] for r in ra], dtype=float)
+        right_b = np.array([r["estimated_posture"] == r["posture"] for r in rb], dtype=float)
+        subjects = [r["subject"] for r in ra]
+        gained, lost = int(((right_b == 1) & (right_a == 0)).sum()), int(((right_b == 0) & (right_a == 1)).sum())
+        err_a = np.array([r["estimated_height_m"] - r["height_m"] for r in ra])
+        err_b = np.array([r["estimated_height_m"] - r["height_m"] for r in rb])
+        change = np.abs(err_b) - np.abs(err_a)
+        out[mattress] = {
+            "frames": len(ra),
+            "subjects": len(set(subjects)),
+            "posture_accuracy_a": float(right_a.mean()),
+            "posture_accuracy_b": float(right_b.mean()),
+            "posture_gained": gained,
+            "posture_lost": lost,
+            "posture_mcnemar_p": mcnemar_exact(gained, lost),
+            "posture_difference_ci": list(subject_interval(right_b - right_a, subjects, np.mean)),
+            "height_median_signed_a_m": float(np.median(err_a)),
+            "height_median_signed_b_m": float(np.median(err_b)),
+            "height_abs_change_median_m": float(np.median(change)),
+            "height_abs_change_ci_m": list(subject_interval(change, subjects, np.median)),
+            "height_abs_change_p": 1.0 if not np.any(change) else float(stats.wilcoxon(change).pvalue),
+        }
+    return out
+
+
+__all__ = ["SYNTHETIC_METRICS", "compare_real", "compare_synthetic", "mcnemar_exact", "paired_difference"]
