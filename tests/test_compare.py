@@ -153,15 +153,17 @@ def test_compare_cli_writes_the_report_and_refuses_bad_inputs(tmp_path, capsys):
         "real.json",
         {"command": "evaluate-real", "config": {"model": "c"}, "per_frame": _frames([True] * 10, [0.0] * 10)},
     )
+    (tmp_path / "empty_dir_missing").mkdir()
+    both = _write(_write(tmp_path / "both", "real.json", {}), "report.json", {})
     cases = [
         ([str(tmp_path / "empty_dir_missing"), str(real_a)], "no report.json or real.json"),
         ([str(real_a), str(tmp_path / "absent.json")], "absent.json"),
+        ([str(both), str(real_a)], "holds both"),
         ([str(real_a), str(syn)], "compare like with like"),
         ([str(syn), str(other_split)], "split"),
         ([str(tmp_path / "nojson"), str(real_a)], "is not JSON"),
         ([str(real_a), str(short)], "different frames"),
     ]
-    (tmp_path / "empty_dir_missing").mkdir()
     for args, message in cases:
         assert main(["compare", *args, "--out", str(tmp_path / "bad")]) == 2
         err = capsys.readouterr().err

@@ -45,8 +45,10 @@ class CompareConfig:
 def _load(path: Path, name: str) -> dict:
     if path.is_dir():
         found = [path / f for f in _KINDS.values() if (path / f).is_file()]
-        if len(found) != 1:
+        if not found:
             raise UserError(f"{name}: {path} holds no report.json or real.json (an evaluate / evaluate-real output)")
+        if len(found) > 1:
+            raise UserError(f"{name}: {path} holds both report.json and real.json: name the file to compare")
         path = found[0]
     try:
         record = json.loads(Path(path).read_text())
