@@ -8,9 +8,10 @@ from math import comb
 import numpy as np
 import pytest
 from scipy.stats import t as student_t
+from scipy.stats import ttest_rel
 
 from pressurepose.cli import main
-from pressurepose.eval.compare import compare_real, compare_synthetic, mcnemar_exact, paired_difference
+from pressurepose.eval.compare import NotComparable, compare_real, compare_synthetic, mcnemar_exact, paired_difference
 
 
 def test_paired_difference_matches_the_paired_t_interval():
@@ -23,13 +24,21 @@ def test_paired_difference_matches_the_paired_t_interval():
     assert d["difference"] == pytest.approx(diff.mean(), rel=1e-12)
     assert d["ci"] == pytest.approx([diff.mean() - half, diff.mean() + half], rel=1e-9)
     assert d["mean_a"] == pytest.approx(a.mean()) and d["mean_b"] == pytest.approx(b.mean())
-    assert d["p"] < 1e-6  # a consistent shift of 2 sigma per sample
+    t = diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size))
+    assert d["p"] == pytest.approx(2 * student_t.sf(abs(t), diff.size - 1), rel=1e-6)
+    assert d["p"] < 1e-6 and d["p_wilcoxon"] < 1e-6  # a consistent shift of 2 sigma per sample
     same = paired_difference(a, a.copy())
-    assert same["difference"] == 0.0 and same["ci"] == [0.0, 0.0] and same["p"] == 1.0
-    noise = paired_difference(a, a + rng.normal(0, 0.001, 200))
-    assert noise["ci"][0] < 0 < noise["ci"][1]
-    with pytest.raises(ValueError, match="one length"):
+    assert same["difference"] == 0.0 and same["ci"] == [0.0, 0.0] and same["p"] == same["p_wilcoxon"] == 1.0
+    nb = a + rng.normal(0, 0.001, 200)
+    noise = paired_difference(a, nb)
+    assert noise["p"] == pytest.approx(ttest_rel(nb, a).pvalue, rel=1e-9)
+    assert (noise["ci"][0] < 0 < noise["ci"][1]) == (noise["p"] > 0.05)  # the interval and its p agree
+    shift = paired_difference([1.0, 2.0, 3.0], [1.5, 2.5, 3.5])  # no spread: the interval is the shift itself
+    assert shift["ci"] == pytest.approx([0.5, 0.5]) and shift["p"] == 0.0
+    with pytest.raises(NotComparable, match="one length"):
         paired_difference(a, b[:-1])
+    with pytest.raises(NotComparable, match="not finite"):
+        paired_difference(a, np.where(np.arange(200) == 7, np.nan, b))
 
 
 @pytest.mark.parametrize("gained,lost", [(0, 0), (0, 6), (6, 11), (1, 9), (7, 7), (12, 0)])
@@ -84,8 +93,10 @@ def test_compare_real_counts_gains_and_losses_frame_by_frame():
     same = compare_real(a, a)["air"]
     assert (same["posture_gained"], same["posture_lost"], same["posture_mcnemar_p"]) == (0, 0, 1.0)
     assert same["height_abs_change_p"] == 1.0
-    with pytest.raises(ValueError, match="different frames"):
+    with pytest.raises(NotComparable, match="different frames"):
         compare_real(a, b[:-1])
+    with pytest.raises(NotComparable, match="twice"):
+        compare_real(a, [*b, b[0]])
 
 
 def test_compare_synthetic_refuses_other_samples():
@@ -96,9 +107,18 @@ def test_compare_synthetic_refuses_other_samples():
     assert res["samples"] == 10 and set(res["by_partition"]) == {"general", "supine"}
     assert res["overall"]["vpe_m"]["difference"] == pytest.approx(shift.mean(), rel=1e-9)
     assert res["by_partition"]["supine"]["samples"] == 5
-    assert "mpjpe_m" not in res["overall"]  # metrics neither report holds are left out
-    with pytest.raises(ValueError, match="different samples"):
+    assert "mpjpe_m" not in res["overall"]  # a metric is compared only where both reports hold it
+    assert "mpjpe_m" not in compare_synthetic(dict(a, mpjpe_m=a["vpe_m"]), b)["overall"]
+    with pytest.raises(NotComparable, match="different samples"):
         compare_synthetic(a, dict(b, partition=["supine"] * 10))
+    with pytest.raises(NotComparable, match="different images"):
+        compare_synthetic(dict(a, load_ends=["neither"] * 10), dict(b, load_ends=["both"] + ["neither"] * 9))
+    with pytest.raises(NotComparable, match=">= 2"):
+        compare_synthetic({k: v[:1] for k, v in a.items()}, {k: v[:1] for k, v in b.items()})
+    lone = compare_synthetic(
+        dict(a, partition=["supine"] * 9 + ["general"]), dict(b, partition=["supine"] * 9 + ["general"])
+    )
+    assert lone["partitions_left_out"] == {"general": 1} and set(lone["by_partition"]) == {"supine"}
 
 
 def _write(folder, name, record):
@@ -107,65 +127,105 @@ def _write(folder, name, record):
     return folder
 
 
-def test_compare_cli_writes_the_report_and_refuses_bad_inputs(tmp_path, capsys):
+def _real_report(rows, **config):
+    return {
+        "command": "evaluate-real",
+        "config": {"model": "a", "groups": "BCD", "threshold": 20.0, **config},
+        "per_frame": rows,
+    }
+
+
+def _syn_report(per_sample, **config):
+    return {
+        "command": "evaluate",
+        "config": {"model": "a", "data": "d", "split": "test", "limit": None, **config},
+        "per_sample": per_sample,
+    }
+
+
+def test_compare_cli_writes_both_reports(tmp_path, capsys):
     n = 20
-    real_a = _write(
-        tmp_path / "ra",
-        "real.json",
-        {
-            "command": "evaluate-real",
-            "config": {"model": "a", "flip_test": False},
-            "per_frame": _frames([True] * n, [0.07] * n),
-        },
-    )
+    real_a = _write(tmp_path / "ra", "real.json", _real_report(_frames([True] * n, [0.07] * n)))
     right = [True] * n
     right[2] = False
-    real_b = _write(
-        tmp_path / "rb",
-        "real.json",
-        {
-            "command": "evaluate-real",
-            "config": {"model": "b", "flip_test": True},
-            "per_frame": _frames(right, [0.05] * n),
-        },
-    )
+    real_b = _write(tmp_path / "rb", "real.json", _real_report(_frames(right, [0.05] * n), model="b", flip_test=True))
     assert main(["compare", str(real_a), str(real_b / "real.json"), "--out", str(tmp_path / "o")]) == 0
     assert "air: posture +0 / -1 frames" in capsys.readouterr().out
     record = json.loads((tmp_path / "o" / "compare.json").read_text())
     assert record["kind"] == "evaluate-real" and record["result"]["air"]["posture_lost"] == 1
-    assert "b (flip test) against A = a" in (tmp_path / "o" / "compare.md").read_text()
+    assert "B = b (flip test) against A = a" in (tmp_path / "o" / "compare.md").read_text()
 
-    per_sample = {"partition": ["supine"] * 6, "gender": ["female"] * 6, "vpe_m": [0.03] * 6, "mpjpe_m": [0.08] * 6}
-    syn = _write(
-        tmp_path / "sa",
-        "report.json",
-        {"command": "evaluate", "config": {"model": "a", "split": "test"}, "per_sample": per_sample},
-    )
-    other_split = _write(
-        tmp_path / "sb",
-        "report.json",
-        {"command": "evaluate", "config": {"model": "b", "split": "train"}, "per_sample": per_sample},
-    )
+    rng = np.random.default_rng(2)
+    ps = {
+        "partition": ["supine"] * 6 + ["general"] * 6,
+        "gender": ["female"] * 12,
+        "vpe_m": list(rng.uniform(0.02, 0.04, 12)),
+    }
+    ps["mpjpe_m"] = [3 * v for v in ps["vpe_m"]]
+    better = {
+        **ps,
+        "vpe_m": [v - 0.002 for v in ps["vpe_m"]],
+        "mpjpe_m": list(np.asarray(ps["mpjpe_m"]) - rng.uniform(0, 0.01, 12)),
+    }
+    syn_a = _write(tmp_path / "sa", "report.json", _syn_report(ps))
+    syn_b = _write(tmp_path / "sb", "report.json", _syn_report(better, model="b", ik_steps=6))
+    assert main(["compare", str(syn_a), str(syn_b), "--out", str(tmp_path / "os")]) == 0
+    assert "12 samples: 3DVPE B - A -0.20 cm" in capsys.readouterr().out
+    md = (tmp_path / "os" / "compare.md").read_text()
+    assert "B = b (6 IK steps) against A = a" in md and "| MPJPE (mm) |" in md and "| supine | 6 |" in md
+
+
+def test_compare_cli_refuses_bad_inputs(tmp_path, capsys):
+    rows = _frames([True] * 20, [0.07] * 20)
+    real_a = _write(tmp_path / "ra", "real.json", _real_report(rows))
+    ps = {"partition": ["supine"] * 6, "gender": ["female"] * 6, "vpe_m": [0.03, 0.02, 0.04, 0.03, 0.05, 0.02]}
+    syn = _write(tmp_path / "sa", "report.json", _syn_report(ps))
+    bad = {
+        "other_split": _syn_report(ps, split="train"),
+        "other_limit": _syn_report(ps, limit=6),
+        "other_data": _syn_report(ps, data="elsewhere"),
+        "nan": _syn_report(dict(ps, vpe_m=[0.03, float("nan"), 0.04, 0.03, 0.05, 0.02])),
+        "no_partition": _syn_report({"vpe_m": [0.03] * 6}),
+        "no_config": {"command": "evaluate-real", "per_frame": rows},
+        "no_subject": _real_report([{k: v for k, v in r.items() if k != "subject"} for r in rows]),
+        "rows_not_list": _real_report({"file": "x"}),
+        "other_threshold": _real_report(rows, threshold=30.0),
+        "short": _real_report(_frames([True] * 10, [0.0] * 10)),
+        "cloud": {"command": "evaluate-real", "kind": "point-cloud", "config": {}},
+        "other_command": {"command": "train", "config": {}},
+    }
+    folders = {
+        k: _write(tmp_path / k, "report.json" if v.get("command") == "evaluate" else "real.json", v)
+        for k, v in bad.items()
+    }
     (tmp_path / "nojson").mkdir()
     (tmp_path / "nojson" / "real.json").write_text("{not json")
-    short = _write(
-        tmp_path / "rc",
-        "real.json",
-        {"command": "evaluate-real", "config": {"model": "c"}, "per_frame": _frames([True] * 10, [0.0] * 10)},
-    )
-    (tmp_path / "empty_dir_missing").mkdir()
+    (tmp_path / "latin").mkdir()
+    (tmp_path / "latin" / "real.json").write_bytes(b'{"command": "\xe9"}' + bytes([0xE9]))
+    (tmp_path / "empty").mkdir()
     both = _write(_write(tmp_path / "both", "real.json", {}), "report.json", {})
     cases = [
-        ([str(tmp_path / "empty_dir_missing"), str(real_a)], "no report.json or real.json"),
-        ([str(real_a), str(tmp_path / "absent.json")], "absent.json"),
-        ([str(both), str(real_a)], "holds both"),
-        ([str(real_a), str(syn)], "compare like with like"),
-        ([str(syn), str(other_split)], "split"),
-        ([str(tmp_path / "nojson"), str(real_a)], "is not JSON"),
-        ([str(real_a), str(short)], "different frames"),
+        ([tmp_path / "empty", real_a], "no report.json or real.json"),
+        ([real_a, tmp_path / "absent.json"], "absent.json"),
+        ([both, real_a], "holds both"),
+        ([real_a, syn], "compare like with like"),
+        ([syn, folders["other_split"]], "split"),
+        ([syn, folders["other_limit"]], "limit"),
+        ([syn, folders["other_data"]], "the same dataset"),
+        ([syn, folders["nan"]], "not finite"),
+        ([syn, folders["no_partition"]], "damaged"),
+        ([folders["no_config"], real_a], "damaged"),
+        ([real_a, folders["no_subject"]], "damaged"),
+        ([real_a, folders["rows_not_list"]], "damaged"),
+        ([real_a, folders["other_threshold"]], "threshold"),
+        ([real_a, folders["short"]], "different frames"),
+        ([real_a, folders["cloud"]], "point-cloud"),
+        ([real_a, folders["other_command"]], "not an `evaluate`"),
+        ([tmp_path / "nojson", real_a], "is not a JSON report"),
+        ([tmp_path / "latin", real_a], "is not a JSON report"),
     ]
     for args, message in cases:
-        assert main(["compare", *args, "--out", str(tmp_path / "bad")]) == 2
+        assert main(["compare", *map(str, args), "--out", str(tmp_path / "bad")]) == 2, message
         err = capsys.readouterr().err
-        assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
-    assert not (tmp_path / "bad" / "compare.json").exists()  # nothing written for refused inputs
+        assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "bad").exists()  # nothing written for refused inputs

@@ -1,6 +1,6 @@
 """`pressurepose compare A B`: two evaluations of the same samples, compared sample by sample.
 
-A and B are output folders (or their JSON files) of `evaluate` on one split, or of
+A and B are output folders (or their JSON files) of `evaluate` on one dataset and split, or of
 `evaluate-real` on the same PmatData frames (`eval.compare` says what is measured). Differences
 read B - A: a negative error difference or a positive posture difference means B is better.
 Writes compare.md and compare.json.
@@ -14,9 +14,10 @@ from pathlib import Path
 
 import tyro
 
+from pressurepose.commands.netopts import options_label
 from pressurepose.commands.outputs import Written
 from pressurepose.errors import UserError
-from pressurepose.eval.compare import compare_real, compare_synthetic
+from pressurepose.eval.compare import REAL_FIELDS, NotComparable, compare_real, compare_synthetic
 from pressurepose.files import write_text
 
 _KINDS = {"evaluate": "report.json", "evaluate-real": "real.json"}
@@ -35,9 +36,9 @@ class CompareConfig:
     """Compare two evaluations of the same samples (B - A, sample by sample)."""
 
     a: tyro.conf.Positional[Path]
-    """The reference: an `evaluate` or `evaluate-real` output folder, or its report.json / real.json."""
+    """A, the reference: an `evaluate` or `evaluate-real` output folder, or its report.json / real.json."""
     b: tyro.conf.Positional[Path]
-    """The candidate, of the same command on the same samples."""
+    """B, the candidate: the same command's output on the same samples."""
     out: Path = Path("out/compare")
     """Report folder: compare.md, compare.json."""
 
@@ -51,97 +52,152 @@ def _load(path: Path, name: str) -> dict:
             raise UserError(f"{name}: {path} holds both report.json and real.json: name the file to compare")
         path = found[0]
     try:
-        record = json.loads(Path(path).read_text())
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{name}: {path} is not JSON ({exc.msg}, line {exc.lineno})") from None
+        record = json.loads(Path(path).read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(
+            f"{name}: {path} is not a JSON report ({exc}); give an evaluate / evaluate-real output"
+        ) from None
     command = record.get("command") if isinstance(record, dict) else None
-    if command not in _KINDS or record.get("kind") == "point-cloud":
-        raise UserError(f"{name}: {path} is not a PmatData `evaluate-real` or an `evaluate` report")
-    key = "per_frame" if command == "evaluate-real" else "per_sample"
-    if key not in record:
-        raise UserError(f"{name}: {path} has no {key} (written by an older version: evaluate again)")
+    if command not in _KINDS:
+        raise UserError(f"{name}: {path} is not an `evaluate` or `evaluate-real` report; give one of their outputs")
+    if record.get("kind") == "point-cloud":
+        raise UserError(f"{name}: {path} is a point-cloud report (evaluate-real --data); compare PmatData reports")
+    if not _well_formed(record):
+        raise UserError(f"{name}: {path} is damaged or from an older version (its per-sample rows): evaluate again")
     return record
+
+
+def _well_formed(record: dict) -> bool:
+    if not isinstance(record.get("config"), dict):
+        return False
+    if record["command"] == "evaluate":
+        rows = record.get("per_sample")
+        if not isinstance(rows, dict) or not isinstance(rows.get("partition"), list) or "vpe_m" not in rows:
+            return False
+        return all(isinstance(v, list) and len(v) == len(rows["partition"]) for v in rows.values())
+    rows = record.get("per_frame")
+    return isinstance(rows, list) and all(isinstance(r, dict) and all(k in r for k in REAL_FIELDS) for r in rows)
+
+
+def _same_path(x, y) -> bool:
+    """Two recorded paths name one dataset: equal as written, or the same folder here."""
+    if x == y:
+        return True
+    try:
+        return Path(x).samefile(y)
+    except (OSError, TypeError):
+        return False
+
+
+def _check_pairing(a: dict, b: dict) -> None:
+    """The two reports' settings that decide which samples (and images) they read agree."""
+    ca, cb = a["config"], b["config"]
+    if a["command"] == "evaluate":
+        if not _same_path(ca.get("data"), cb.get("data")):
+            raise UserError(f"A read {ca.get('data')} and B {cb.get('data')}: evaluate both on the same dataset")
+        keys, what = ("split", "limit"), "was evaluated with"
+    else:
+        keys, what = ("groups", "threshold"), "read PmatData with"
+    for key in keys:
+        if ca.get(key) != cb.get(key):
+            raise UserError(f"A {what} {key} {ca.get(key)}, B with {cb.get(key)}: evaluate both alike")
+
+
+def _side(record: dict, path: Path) -> dict:
+    c = record["config"]
+    return {
+        "path": str(path),
+        "model": c.get("model"),
+        "options": options_label(c.get("ik_steps"), bool(c.get("flip_test"))),
+    }
 
 
 def run_compare(cfg: CompareConfig) -> Written:
     a, b = _load(cfg.a, "A"), _load(cfg.b, "B")
     if a["command"] != b["command"]:
         raise UserError(f"A is an `{a['command']}` report and B an `{b['command']}` one: compare like with like")
+    _check_pairing(a, b)
     try:
         if a["command"] == "evaluate":
-            if a["config"].get("split") != b["config"].get("split"):
-                raise ValueError(f"A read the {a['config'].get('split')} split, B the {b['config'].get('split')} one")
             result = compare_synthetic(a["per_sample"], b["per_sample"])
         else:
             result = compare_real(a["per_frame"], b["per_frame"])
-    except ValueError as exc:
-        raise UserError(f"{exc}: evaluate both on the same data") from None
-    record = {
-        "command": "compare",
-        "kind": a["command"],
-        "a": {"path": str(cfg.a), "model": a["config"].get("model"), "flip_test": a["config"].get("flip_test")},
-        "b": {"path": str(cfg.b), "model": b["config"].get("model"), "flip_test": b["config"].get("flip_test")},
-        "result": result,
-    }
+    except NotComparable as exc:
+        raise UserError(f"{exc}: compare two evaluations of the same samples") from None
+    record = {"command": "compare", "kind": a["command"], "a": _side(a, cfg.a), "b": _side(b, cfg.b), "result": result}
+    text, markdown = json.dumps(record, indent=1, allow_nan=False), _markdown(record)  # both before any file
     cfg.out.mkdir(parents=True, exist_ok=True)
-    paths = {"json": write_text(cfg.out / "compare.json", json.dumps(record, indent=1))}
-    paths["markdown"] = write_text(cfg.out / "compare.md", _markdown(record))
+    paths = {"json": write_text(cfg.out / "compare.json", text)}
+    paths["markdown"] = write_text(cfg.out / "compare.md", markdown)
     return Written(paths, record)
 
 
-def _name(side: dict) -> str:
-    return f"{side['model']}{' (flip test)' if side['flip_test'] else ''}"
+def _synthetic_lines(res: dict) -> list[str]:
+    lines = [
+        f"{res['samples']} samples. Difference B - A with its 95% interval and p (paired t); the Wilcoxon "
+        "signed-rank p (the differences' median, no normality assumed) beside it. Below 0 = B's error smaller.",
+        "",
+        "| metric | A | B | B - A [95% CI] | p (t) | p (Wilcoxon) |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for m, d in res["overall"].items():
+        label, unit, k = _LABELS[m]
+        lines.append(
+            f"| {label} ({unit}) | {d['mean_a'] * k:.2f} | {d['mean_b'] * k:.2f} | {d['difference'] * k:+.2f} "
+            f"[{d['ci'][0] * k:+.2f}, {d['ci'][1] * k:+.2f}] | {d['p']:.3g} | {d['p_wilcoxon']:.3g} |"
+        )
+    lines += [
+        "",
+        "| partition | samples | 3DVPE A / B (cm) | B - A [95% CI] | p (t) |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for p, s in res["by_partition"].items():
+        d = s["vpe_m"]
+        lines.append(
+            f"| {p} | {s['samples']} | {d['mean_a'] * 100:.2f} / {d['mean_b'] * 100:.2f} | "
+            f"{d['difference'] * 100:+.2f} [{d['ci'][0] * 100:+.2f}, {d['ci'][1] * 100:+.2f}] | {d['p']:.3g} |"
+        )
+    if res["partitions_left_out"]:
+        left = ", ".join(f"{p} ({n})" for p, n in res["partitions_left_out"].items())
+        lines += ["", f"Left out (fewer than 2 samples): {left}"]
+    return lines
+
+
+def _real_lines(res: dict) -> list[str]:
+    lines = [
+        "Posture: frames B reads right where A read them wrong (gained) and the reverse (lost), exact "
+        "McNemar p, and the accuracy difference's 95% interval resampling whole subjects. Height: median "
+        "change of each frame's absolute error (below 0 = B nearer), its interval, Wilcoxon p. McNemar "
+        "takes frames as independent, the interval does not, and with few discordant frames the interval "
+        "is too narrow: read a difference as shown only when both say so.",
+        "",
+        "| mattress | frames | posture A / B | gained / lost | McNemar p | B - A [95% CI] "
+        "| height median signed A / B (cm) | abs. error change [95% CI] (cm) | p |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for m, s in res.items():
+        ci, hci = s["posture_difference_ci"], s["height_abs_change_ci_m"]
+        acc_a, acc_b = s["posture_accuracy_a"] * 100, s["posture_accuracy_b"] * 100
+        lines.append(
+            f"| {m} | {s['frames']} | {acc_a:.1f} / {acc_b:.1f}% | {s['posture_gained']} / {s['posture_lost']} | "
+            f"{s['posture_mcnemar_p']:.3g} | {acc_b - acc_a:+.1f} [{ci[0] * 100:+.1f}, {ci[1] * 100:+.1f}] | "
+            f"{s['height_median_signed_a_m'] * 100:+.1f} / {s['height_median_signed_b_m'] * 100:+.1f} | "
+            f"{s['height_abs_change_median_m'] * 100:+.1f} [{hci[0] * 100:+.1f}, {hci[1] * 100:+.1f}] | "
+            f"{s['height_abs_change_p']:.3g} |"
+        )
+    return lines
 
 
 def _markdown(r: dict) -> str:
-    lines = [f"# B = {_name(r['b'])} against A = {_name(r['a'])} (`{r['kind']}`, sample by sample)", ""]
-    res = r["result"]
-    if r["kind"] == "evaluate":
-        lines += [
-            f"{res['samples']} samples. Difference B - A, 95% interval (paired t), Wilcoxon signed-rank p; "
-            "below 0 = B's error smaller.",
-            "",
-            "| metric | A | B | B - A [95% CI] | p |",
-            "| --- | --- | --- | --- | --- |",
-        ]
-        for m, d in res["overall"].items():
-            label, unit, k = _LABELS[m]
-            lines.append(
-                f"| {label} ({unit}) | {d['mean_a'] * k:.2f} | {d['mean_b'] * k:.2f} | {d['difference'] * k:+.2f} "
-                f"[{d['ci'][0] * k:+.2f}, {d['ci'][1] * k:+.2f}] | {d['p']:.3g} |"
-            )
-        lines += [
-            "",
-            "| partition | samples | 3DVPE A / B (cm) | B - A [95% CI] | p |",
-            "| --- | --- | --- | --- | --- |",
-        ]
-        for p, s in res["by_partition"].items():
-            d = s["vpe_m"]
-            lines.append(
-                f"| {p} | {s['samples']} | {d['mean_a'] * 100:.2f} / {d['mean_b'] * 100:.2f} | {d['difference'] * 100:+.2f} "
-                f"[{d['ci'][0] * 100:+.2f}, {d['ci'][1] * 100:+.2f}] | {d['p']:.3g} |"
-            )
-    else:
-        lines += [
-            "Posture: frames B reads right where A read them wrong (gained) and the reverse (lost), exact "
-            "McNemar p, and the accuracy difference's 95% interval resampling whole subjects. Height: "
-            "median change of each frame's absolute error (below 0 = B nearer), its interval, Wilcoxon p.",
-            "",
-            "| mattress | frames | posture A / B | gained / lost | McNemar p | B - A [95% CI] "
-            "| height median signed A / B (cm) | abs. error change [95% CI] (cm) | p |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-        ]
-        for m, s in res.items():
-            ci, hci = s["posture_difference_ci"], s["height_abs_change_ci_m"]
-            lines.append(
-                f"| {m} | {s['frames']} | {s['posture_accuracy_a'] * 100:.1f} / {s['posture_accuracy_b'] * 100:.1f}% | "
-                f"{s['posture_gained']} / {s['posture_lost']} | {s['posture_mcnemar_p']:.3g} | "
-                f"{(s['posture_accuracy_b'] - s['posture_accuracy_a']) * 100:+.1f} [{ci[0] * 100:+.1f}, {ci[1] * 100:+.1f}] | "
-                f"{s['height_median_signed_a_m'] * 100:+.1f} / {s['height_median_signed_b_m'] * 100:+.1f} | "
-                f"{s['height_abs_change_median_m'] * 100:+.1f} [{hci[0] * 100:+.1f}, {hci[1] * 100:+.1f}] | "
-                f"{s['height_abs_change_p']:.3g} |"
-            )
-    return "\n".join([*lines, ""])
+    name = lambda side: f"{side['model']}{side['options']}"  # noqa: E731
+    lines = [
+        f"# B = {name(r['b'])} against A = {name(r['a'])} (`{r['kind']}`, sample by sample)",
+        "",
+        f"A: `{r['a']['path']}`; B: `{r['b']['path']}`",
+        "",
+    ]
+    body = _synthetic_lines(r["result"]) if r["kind"] == "evaluate" else _real_lines(r["result"])
+    return "\n".join([*lines, *body, ""])
 
 
 def compare(cfg: CompareConfig) -> None:
@@ -151,7 +207,10 @@ def compare(cfg: CompareConfig) -> None:
     res = written.record["result"]
     if written.record["kind"] == "evaluate":
         d = res["overall"]["vpe_m"]
-        head = f"{res['samples']} samples: 3DVPE B - A {d['difference'] * 100:+.2f} cm [{d['ci'][0] * 100:+.2f}, {d['ci'][1] * 100:+.2f}]"
+        head = (
+            f"{res['samples']} samples: 3DVPE B - A {d['difference'] * 100:+.2f} cm "
+            f"[{d['ci'][0] * 100:+.2f}, {d['ci'][1] * 100:+.2f}]"
+        )
     else:
         head = "; ".join(
             f"{m}: posture +{s['posture_gained']} / -{s['posture_lost']} frames (McNemar p {s['posture_mcnemar_p']:.2g})"

@@ -3,7 +3,8 @@
 Two networks read the same test split or the same real frames; their difference is measured
 sample by sample, which resolves far smaller differences than comparing two means with their
 own intervals (a hard sample is hard for both). Synthetic reports (`evaluate`): per metric, the
-mean paired difference B - A with its 95% interval (paired t) and the Wilcoxon signed-rank p.
+mean paired difference B - A with its 95% interval and p (paired t), and the Wilcoxon
+signed-rank p beside it (no assumption of normal differences; it tests their median).
 Real reports (`evaluate-real`, PmatData): per mattress, the postures B reads right where A read
 them wrong and the reverse, the exact McNemar p (a binomial test on those discordant frames),
 and the accuracy difference's 95% interval resampling whole subjects (a subject's frames are
@@ -20,6 +21,13 @@ from scipy import stats
 
 from pressurepose.eval.real import subject_interval
 
+REAL_FIELDS = ("file", "subject", "mattress", "posture", "estimated_posture", "height_m", "estimated_height_m")
+
+
+class NotComparable(ValueError):
+    """The two reports cannot be paired (other samples or frames, too few, damaged values)."""
+
+
 SYNTHETIC_METRICS = (
     "vpe_m",
     "mpjpe_m",
@@ -31,21 +39,26 @@ SYNTHETIC_METRICS = (
 
 
 def paired_difference(a: Sequence[float], b: Sequence[float]) -> dict:
-    """Mean of b - a, its 95% interval (paired t) and the two-sided Wilcoxon signed-rank p;
-    identical inputs give a zero interval and p 1."""
+    """Mean of b - a with its 95% interval and two-sided p (paired t), and the two-sided
+    Wilcoxon signed-rank p; identical inputs give a zero interval and p 1."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     if a.shape != b.shape or a.ndim != 1 or a.size < 2:
-        raise ValueError(f"paired values must be two 1-D arrays of one length >= 2, got {a.shape} / {b.shape}")
+        raise NotComparable(f"paired values must be two 1-D arrays of one length >= 2, got {a.shape} / {b.shape}")
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise NotComparable(f"{int((~np.isfinite(a)).sum() + (~np.isfinite(b)).sum())} values are not finite")
     d = b - a
+    out = {"mean_a": float(a.mean()), "mean_b": float(b.mean()), "difference": float(d.mean())}
     if not np.any(d):
-        return {"mean_a": float(a.mean()), "mean_b": float(b.mean()), "difference": 0.0, "ci": [0.0, 0.0], "p": 1.0}
-    ci = stats.ttest_rel(b, a).confidence_interval(0.95)
+        return {**out, "difference": 0.0, "ci": [0.0, 0.0], "p": 1.0, "p_wilcoxon": 1.0}
+    if np.ptp(d) <= 1e-12 * np.abs(d).max():  # one constant shift: no spread to test against
+        return {**out, "ci": [float(d.mean())] * 2, "p": 0.0, "p_wilcoxon": float(stats.wilcoxon(d).pvalue)}
+    t = stats.ttest_rel(b, a)
+    ci = t.confidence_interval(0.95)
     return {
-        "mean_a": float(a.mean()),
-        "mean_b": float(b.mean()),
-        "difference": float(d.mean()),
+        **out,
         "ci": [float(ci.low), float(ci.high)],
-        "p": float(stats.wilcoxon(d).pvalue),
+        "p": float(t.pvalue),
+        "p_wilcoxon": float(stats.wilcoxon(d).pvalue),
     }
 
 
@@ -60,20 +73,32 @@ def mcnemar_exact(gained: int, lost: int) -> float:
 
 def compare_synthetic(a: dict, b: dict) -> dict:
     """`per_sample` columns of two `evaluate` reports of the same samples -> overall and per
-    partition paired differences (metrics missing from either report are left out)."""
+    partition paired differences (a metric is compared when both reports hold it; partitions of
+    fewer than 2 samples are counted in `partitions_left_out`)."""
     n = len(a["partition"])
+    if n < 2:
+        raise NotComparable(f"the reports hold {n} sample(s); a paired comparison needs >= 2")
     if len(b["partition"]) != n or a["partition"] != b["partition"] or a.get("gender") != b.get("gender"):
-        raise ValueError("the two reports hold different samples (counts, partitions or genders differ)")
+        raise NotComparable("the two reports hold different samples (counts, partitions or genders differ)")
+    if "load_ends" in a and "load_ends" in b and a["load_ends"] != b["load_ends"]:
+        raise NotComparable("the two reports hold different images (where their loads lie differs)")
     metrics = [m for m in SYNTHETIC_METRICS if m in a and m in b]
-    out = {"samples": n, "overall": {m: paired_difference(a[m], b[m]) for m in metrics}, "by_partition": {}}
+    out = {"samples": n, "overall": {}, "by_partition": {}, "partitions_left_out": {}}
+    for m in metrics:
+        try:
+            out["overall"][m] = paired_difference(a[m], b[m])
+        except NotComparable as exc:
+            raise NotComparable(f"{m}: {exc}") from None
     parts = np.asarray(a["partition"])
     for p in sorted(set(a["partition"])):
         idx = np.flatnonzero(parts == p)
-        if idx.size >= 2:
-            out["by_partition"][p] = {
-                "samples": int(idx.size),
-                "vpe_m": paired_difference(np.asarray(a["vpe_m"])[idx], np.asarray(b["vpe_m"])[idx]),
-            }
+        if idx.size < 2:
+            out["partitions_left_out"][p] = int(idx.size)
+            continue
+        out["by_partition"][p] = {
+            "samples": int(idx.size),
+            "vpe_m": paired_difference(np.asarray(a["vpe_m"])[idx], np.asarray(b["vpe_m"])[idx]),
+        }
     return out
 
 
@@ -81,9 +106,14 @@ def compare_real(a: list[dict], b: list[dict]) -> dict:
     """`per_frame` rows of two `evaluate-real` reports of the same frames -> per mattress."""
     by_file = {r["file"]: r for r in b}
     files = [r["file"] for r in a]
-    if len(by_file) != len(b) or set(files) != set(by_file) or len(set(files)) != len(files):
+    if len(by_file) != len(b) or len(set(files)) != len(files):
+        raise NotComparable("a report lists one frame twice")
+    if set(files) != set(by_file):
         only_a, only_b = len(set(files) - set(by_file)), len(set(by_file) - set(files))
-        raise ValueError(f"the two reports read different frames ({only_a} only in A, {only_b} only in B)")
+        raise NotComparable(f"the two reports read different frames ({only_a} only in A, {only_b} only in B)")
+    heights = np.array([[r["estimated_height_m"], by_file[r["file"]]["estimated_height_m"]] for r in a], dtype=float)
+    if not np.isfinite(heights).all():
+        raise NotComparable(f"{int((~np.isfinite(heights)).sum())} estimated heights are not finite")
     out = {}
     for mattress in sorted({r["mattress"] for r in a}):
         ra = [r for r in a if r["mattress"] == mattress]
@@ -113,4 +143,12 @@ def compare_real(a: list[dict], b: list[dict]) -> dict:
     return out
 
 
-__all__ = ["SYNTHETIC_METRICS", "compare_real", "compare_synthetic", "mcnemar_exact", "paired_difference"]
+__all__ = [
+    "REAL_FIELDS",
+    "SYNTHETIC_METRICS",
+    "NotComparable",
+    "compare_real",
+    "compare_synthetic",
+    "mcnemar_exact",
+    "paired_difference",
+]
