@@ -132,6 +132,9 @@ def main() -> None:
             options = [("flip test", {"flip_test": True})] if args.flip_test else []
             if args.stature_weight > 0:
                 options.append((f"stature weight {args.stature_weight}", {"stature_weight": args.stature_weight}))
+                if args.flip_test:  # the shipped model read with the flip test
+                    both = {"flip_test": True, "stature_weight": args.stature_weight}
+                    options.append((f"flip test, stature weight {args.stature_weight}", both))
             for label, option in options if arch == "heatmap" else []:
                 lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, **option)
                 thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, **option)

@@ -49,7 +49,7 @@ def paired_difference(a: Sequence[float], b: Sequence[float]) -> dict:
     d = b - a
     out = {"mean_a": float(a.mean()), "mean_b": float(b.mean()), "difference": float(d.mean())}
     if not np.any(d):
-        return {**out, "difference": 0.0, "ci": [0.0, 0.0], "p": 1.0, "p_wilcoxon": 1.0}
+        return {**out, "ci": [0.0, 0.0], "p": 1.0, "p_wilcoxon": 1.0}
     if np.ptp(d) <= 1e-12 * np.abs(d).max():  # one constant shift: no spread to test against
         return {**out, "ci": [float(d.mean())] * 2, "p": 0.0, "p_wilcoxon": float(stats.wilcoxon(d).pvalue)}
     t = stats.ttest_rel(b, a)
