@@ -277,21 +277,21 @@ class AnnyBody(AnnyInference, BodyModel):
         return G
 
     def _local_rotations(self, pose: torch.Tensor, G: torch.Tensor, sk: Skeleton) -> torch.Tensor:
-        """J24 pose (B, 23, 3) in SMPL axes -> Anny local-ref rotations (B, n, 3, 3)."""
-        B, n = G.shape[:2]
+        """J24 pose (B, 23, 3) in SMPL axes -> Anny local-ref rotations (B, n, 3, 3).
+
+        C R(r) C^T = R(C r) (C = c_smpl_to_anny, a proper rotation): the rotation vectors and
+        the elbows' twist axis are turned into Anny's axes before the matrices are made."""
+        B = pose.shape[0]
         C = self.c_smpl_to_anny
+        pose = pose @ C.T  # Anny axes
         eye = torch.eye(3, dtype=pose.dtype, device=pose.device)
         R_all = torch.cat([eye.expand(B, 1, 3, 3), axis_angle_to_matrix(pose)], 1)  # J24-indexed
-        driver = self.bone_driver[sk.bones]
-        driven = driver >= 0
-        R = eye.expand(B, n, 3, 3).clone()
-        R[:, driven] = R_all[:, driver[driven]]
-        axis = torch.tensor([1.0, 0.0, 0.0], dtype=pose.dtype, device=pose.device)
-        for arm in sk.arms:
-            swing, twist = swing_twist(pose[:, arm["elbow_joint"] - 1], axis)
-            R[:, arm["elbow"]] = swing
-            R[:, arm["twist"]] = twist
-        return G[:, sk.parents].transpose(-1, -2) @ (C @ R @ C.T) @ G
+        R = R_all[:, self.bone_driver[sk.bones].clamp(min=0)]  # a bone no joint drives: J24's root, I
+        elbows = [arm["elbow_joint"] - 1 for arm in sk.arms]
+        swing, twist = swing_twist(pose[:, elbows], C[:, 0])  # about SMPL's x axis, in Anny's axes
+        R[:, [arm["elbow"] for arm in sk.arms]] = swing
+        R[:, [arm["twist"] for arm in sk.arms]] = twist
+        return G[:, sk.parents].transpose(-1, -2) @ R @ G
 
     @staticmethod
     def _forward_kinematics(offsets, local, sk):
@@ -299,18 +299,18 @@ class AnnyBody(AnnyInference, BodyModel):
 
         With world-aligned ('local-ref') deltas D, a bone's accumulated rotation is its
         parent's times D, and its head is the parent's head plus the parent's accumulated
-        rotation applied to the reference offset; the root stays at the origin.
+        rotation applied to the reference offset; the root stays at the origin. The bones are
+        taken in level order once (`sk.order`), so a level reads only the one above it.
         """
-        B = local.shape[0]
-        rot = [local[:, :1]]
-        heads = [offsets.new_zeros(B, 1, 3)]
-        for level, parent in zip(sk.levels, sk.level_parents):  # parent: position in the concatenation
-            rot_all, heads_all = torch.cat(rot, 1), torch.cat(heads, 1)
-            rot_p = rot_all[:, parent]
-            rot.append(rot_p @ local[:, level])
-            heads.append(heads_all[:, parent] + (rot_p @ offsets[:, level, :, None])[..., 0])
+        local_levels = local[:, sk.order].split(sk.level_sizes, 1)
+        offset_levels = offsets[:, sk.order, :, None].split(sk.level_sizes, 1)
+        rot, heads = [local_levels[0]], [offsets.new_zeros(local.shape[0], 1, 3, 1)]
+        for parent, loc, off in zip(sk.level_parents, local_levels[1:], offset_levels[1:]):
+            rot_p = rot[-1][:, parent]
+            rot.append(rot_p @ loc)
+            heads.append(heads[-1][:, parent] + rot_p @ off)
         order = sk.inverse_order
-        return torch.cat(rot, 1)[:, order], torch.cat(heads, 1)[:, order]
+        return torch.cat(rot, 1)[:, order], torch.cat(heads, 1)[:, order, :, 0]
 
     def _shape_pass(self, shape, sk):
         """The pose-independent part of a pass: blendshape coefficients, rest bone heads,

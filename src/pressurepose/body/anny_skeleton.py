@@ -1,5 +1,6 @@
 """The part of Anny's skeleton a pass needs (`body.anny_backend`): its bones in a level order
-for batched forward kinematics, their parents and labels."""
+for batched forward kinematics (`order`, `level_sizes`: the root, then each depth's bones; each
+bone's parent as a position in the level above), their parents and labels."""
 
 from __future__ import annotations
 
@@ -27,14 +28,15 @@ class Skeleton(torch.nn.Module):
             order += level
         position = {b: p for p, b in enumerate(order)}
         self.register_buffer("bones", torch.tensor(bones), persistent=False)
+        self.register_buffer("order", torch.tensor(order), persistent=False)
         self.register_buffer("parents", torch.tensor(parents), persistent=False)
         self.register_buffer("inverse_order", torch.tensor([position[i] for i in range(len(bones))]), persistent=False)
         for d, level in enumerate(levels):
-            self.register_buffer(f"level{d}", torch.tensor(level), persistent=False)
+            above = [0] if d == 0 else levels[d - 1]  # a bone's parent lies one level up
             self.register_buffer(
-                f"level_parent{d}", torch.tensor([position[parents[i]] for i in level]), persistent=False
+                f"level_parent{d}", torch.tensor([above.index(parents[i]) for i in level]), persistent=False
             )
-        self.num_levels = len(levels)
+        self.level_sizes = [1] + [len(level) for level in levels]
         j = {labels[b]: i for i, b in enumerate(bones)}  # bone name -> local index
         self.arms = []
         for s, sign in (("L", 1.0), ("R", -1.0)):
@@ -54,12 +56,9 @@ class Skeleton(torch.nn.Module):
             )
 
     @property
-    def levels(self) -> list[torch.Tensor]:
-        return [getattr(self, f"level{d}") for d in range(self.num_levels)]
-
-    @property
     def level_parents(self) -> list[torch.Tensor]:
-        return [getattr(self, f"level_parent{d}") for d in range(self.num_levels)]
+        """Per level below the root, each bone's parent as a position in the level above."""
+        return [getattr(self, f"level_parent{d}") for d in range(len(self.level_sizes) - 1)]
 
 
 def _descends(parents: list[int], bone: int, ancestor: int) -> bool:

@@ -17,7 +17,7 @@ from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix
 from pressurepose.body.rotations import axis_angle_to_matrix
 
-# Joints grouped by depth in the tree, so FK runs one batched step per level (8 levels).
+# Joints grouped by depth in the tree, so `compose_down` runs one batched step per level (8 levels).
 _DEPTH = [0] * NUM_JOINTS
 for _j in range(1, NUM_JOINTS):
     _DEPTH[_j] = _DEPTH[J24_PARENTS[_j]] + 1
@@ -51,19 +51,19 @@ def forward_kinematics(
         raise ValueError(f"rest joints must have shape (B, {NUM_JOINTS}, 3), got {tuple(rest.shape)}")
     if pose.ndim != 3 or pose.shape[1:] != (NUM_POSE_JOINTS, 3) or pose.shape[0] != rest.shape[0]:
         raise ValueError(f"pose must have shape ({rest.shape[0]}, {NUM_POSE_JOINTS}, 3), got {tuple(pose.shape)}")
-    B = rest.shape[0]
-    local = axis_angle_to_matrix(pose)
-    rot = rest.new_zeros(B, NUM_JOINTS, 3, 3)
-    pos = rest.new_zeros(B, NUM_JOINTS, 3)
-    rot[:, 0] = torch.eye(3, dtype=rest.dtype, device=rest.device) if root_rotation is None else root_rotation
-    offsets = (rest - rest[:, _PARENTS.to(rest.device)])[..., None]  # (B, 24, 3, 1), the root's 0
-    for idx, par, row in _LEVEL_INDEX:
-        if idx.device != rest.device:
-            idx, par, row = idx.to(rest.device), par.to(rest.device), row.to(rest.device)
-        rot_p = rot[:, par]
-        rot[:, idx] = rot_p @ local[:, row]
-        pos[:, idx] = pos[:, par] + (rot_p @ offsets[:, idx])[..., 0]
-    return rot, pos
+    local = axis_angle_to_matrix(pose).unbind(1)
+    offsets = (rest - rest[:, _PARENTS.to(rest.device)]).unsqueeze(-1).unbind(1)  # (B, 3, 1) each, the root's 0
+    root = torch.eye(3, dtype=rest.dtype, device=rest.device).expand(rest.shape[0], 3, 3)
+    rot = [root if root_rotation is None else root_rotation]
+    pos = [torch.zeros_like(offsets[0])]
+    # joint by joint (23 small products each way): at batch 1 to 128 ~1.7x faster than one
+    # batched step per level of the tree, whose gathers and scatters cost more than they save
+    # (docs/benchmarks.md, session 57)
+    for j in range(1, NUM_JOINTS):
+        parent = rot[J24_PARENTS[j]]
+        rot.append(parent @ local[j - 1])
+        pos.append(torch.baddbmm(pos[J24_PARENTS[j]], parent, offsets[j]))
+    return torch.stack(rot, 1), torch.stack(pos, 1).squeeze(-1)
 
 
 def compose_down(D: torch.Tensor) -> torch.Tensor:

@@ -57,6 +57,9 @@ def _table() -> torch.Tensor:
     return table
 
 
+_DEFAULTS: dict[tuple[torch.dtype, torch.device], JointLimits] = {}
+
+
 @dataclasses.dataclass(frozen=True)
 class JointLimits:
     """Per-axis bounds (23, 3) for joints 1..23 of J24 (the pose vector's layout), radians."""
@@ -66,8 +69,12 @@ class JointLimits:
 
     @classmethod
     def default(cls, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> JointLimits:
-        table = _table().to(dtype=dtype, device=device)
-        return cls(lower=table[..., 0], upper=table[..., 1])
+        """The table above in `dtype` on `device` (made once per pair and shared: read-only)."""
+        key = (dtype, torch.device(device))
+        if key not in _DEFAULTS:
+            table = _table().to(dtype=dtype, device=device)
+            _DEFAULTS[key] = cls(lower=table[..., 0], upper=table[..., 1])
+        return _DEFAULTS[key]
 
     def bounds_of(self, joint: str) -> torch.Tensor:
         """(3, 2) [lo, hi] per axis of one joint by J24 name."""

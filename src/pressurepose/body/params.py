@@ -122,9 +122,15 @@ def supine_rotation(dtype: torch.dtype, device: torch.device | str | None = None
     return torch.tensor(R_SUPINE, dtype=dtype, device=device)
 
 
+_SUPINE: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}  # R_SUPINE per dtype and device, made once
+
+
 def root_matrix(root_rotation: torch.Tensor) -> torch.Tensor:
     """(B, 3) root rotation -> (B, 3, 3) rotation from body axes to the mat frame."""
-    return axis_angle_to_matrix(root_rotation) @ supine_rotation(root_rotation.dtype, root_rotation.device)
+    key = (root_rotation.dtype, root_rotation.device)
+    if key not in _SUPINE:
+        _SUPINE[key] = supine_rotation(*key)
+    return axis_angle_to_matrix(root_rotation) @ _SUPINE[key]
 
 
 def root_roll(root_rotation: torch.Tensor) -> torch.Tensor:

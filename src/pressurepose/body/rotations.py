@@ -4,15 +4,16 @@ Rotation vectors (axis-angle) are (..., 3), matrices (..., 3, 3); matrices act o
 vectors (`R @ v`); quaternions here are (w, x, y, z) (MuJoCo's order; roma's is x, y, z, w).
 
 The conversions are roma's (`roma.rotvec_to_unitquat`, `unitquat_to_rotmat`,
-`rotmat_to_unitquat`, `unitquat_to_rotvec`); these names stay as thin wrappers because half the
-package calls them. Rotation vector -> matrix goes through the unit quaternion rather than
-`roma.rotvec_to_rotmat`: that one switches to the first-order I + K below 1e-6 rad (off by
-theta^2 / 2, 5e-13 at the switch) and divides by the angle above it, which makes float32
-gradients of small rotations wrong by up to 3e-5; through the quaternion (roma's sinc has a
-Taylor branch chosen for its derivative) the matrix is within 1e-15 of Rodrigues' formula in
-float64 and float32 gradients within 3e-7 at every angle, 0 included (the rest pose is all
-zeros). What roma does not have stays here: `rotation_angle` (see its docstring),
-`rotation_between`, `swing_twist` and `skew`.
+`rotmat_to_unitquat`, `unitquat_to_rotvec`) except the one every pose passes through: rotation
+vector -> matrix is written here, through the unit quaternion (w, v) = (cos h, sin(h) / (2 h) phi),
+h = |phi| / 2, as roma does it (not `roma.rotvec_to_rotmat`, which switches to the first-order
+I + K below 1e-6 rad and so makes float32 gradients of small rotations wrong by up to 3e-5), but
+in a third of the time (one body's 23 joints: 0.42 -> 0.13 ms, all of it per-operation overhead;
+predict at batch 1 converts ~12 times; docs/benchmarks.md, session 57). The half-angle sinc takes its Taylor series below roma's threshold (2 eps^(1/6)), chosen for
+the first derivative, so the matrix is within 1e-15 of Rodrigues' formula in float64 and float32
+gradients within 3e-7 at every angle, 0 included (the rest pose is all zeros). What roma does
+not have stays here too: `rotation_angle` (see its docstring), `rotation_between`, `swing_twist`
+and `skew`.
 """
 
 from __future__ import annotations
@@ -20,13 +21,54 @@ from __future__ import annotations
 import roma
 import torch
 
+_EPSILON_TENSOR = torch.zeros(3, 3, 3)  # [k, i, j]: skew(v)[i, j] = sum_k v[k] E[k, i, j]
+for _k, _i, _j in ((0, 2, 1), (1, 0, 2), (2, 1, 0)):
+    _EPSILON_TENSOR[_k, _i, _j], _EPSILON_TENSOR[_k, _j, _i] = 1.0, -1.0
+_CONSTANTS: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, ...]] = {}
+
+
+def _constants(like: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The conversion's constants in `like`'s dtype and device, made once: the (3, 9) cross-product
+    map, the identity and 0-d tensors (an operation with a Python number costs ~2x one with a
+    0-d tensor at these sizes): 1/2, 1/12, 1/240, roma's sinc threshold on h, 1."""
+    key = (like.dtype, like.device)
+    if key not in _CONSTANTS:
+        numbers = (0.5, 1 / 12, 1 / 240, 2.0 * torch.finfo(like.dtype).eps ** (1 / 6), 1.0)
+        _CONSTANTS[key] = (
+            _EPSILON_TENSOR.reshape(3, 9).to(like.dtype).to(like.device),
+            torch.eye(3, dtype=like.dtype, device=like.device),
+            *(torch.tensor(x, dtype=like.dtype, device=like.device) for x in numbers),
+        )
+    return _CONSTANTS[key]
+
+
+def _quaternion(rotvec: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Angle |phi| (..., 1), and the unit quaternion's w = cos(h) (..., 1) and v (..., 3)."""
+    _, _, half, twelfth, c240, threshold, one = _constants(rotvec)
+    angle = torch.linalg.vector_norm(rotvec, dim=-1, keepdim=True)  # its gradient at 0 is 0
+    h = angle * half
+    small = h < threshold
+    h2 = h * h
+    # s = sin(h) / (2 h), its Taylor series 1/2 - h^2 / 12 + h^4 / 240 below the threshold
+    taylor = half - h2 * (twelfth - h2 * c240)
+    s = torch.where(small, taylor, torch.sin(h) / torch.where(small, one, h) * half)
+    return angle, torch.cos(h), rotvec * s
+
 
 def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
-    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (through roma's unit
-    quaternion; exact gradients at the zero rotation)."""
+    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices, through the unit quaternion
+    (module doc; exact gradients at the zero rotation)."""
     if rotvec.shape[-1:] != (3,):
         raise ValueError(f"rotvec must have shape (..., 3), got {tuple(rotvec.shape)}")
-    return roma.unitquat_to_rotmat(roma.rotvec_to_unitquat(rotvec))
+    return _matrix(*_quaternion(rotvec))
+
+
+def _matrix(angle: torch.Tensor, w: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """The rotation matrix of `_quaternion`'s (angle, w, v)."""
+    cross, eye = _constants(v)[:2]
+    # R = 2 (v v^T + w skew(v)) + (w^2 - |v|^2) I, and w^2 - |v|^2 = cos(2 h)
+    vv = torch.addcmul(v.unsqueeze(-1) * v.unsqueeze(-2), w.unsqueeze(-1), (v @ cross).unflatten(-1, (3, 3)))
+    return torch.add(torch.cos(angle).unsqueeze(-1) * eye, vv, alpha=2)
 
 
 def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
@@ -76,12 +118,7 @@ def quaternion_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
 
 def skew(v: torch.Tensor) -> torch.Tensor:
     """(..., 3) -> (..., 3, 3) cross-product matrices, skew(a) @ b == a x b."""
-    zero = torch.zeros_like(v[..., 0])
-    x, y, z = v.unbind(-1)
-    return torch.stack(
-        [torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1), torch.stack([-y, x, zero], -1)],
-        -2,
-    )
+    return (v @ _constants(v)[0]).unflatten(-1, (3, 3))
 
 
 def rotation_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -103,12 +140,12 @@ def swing_twist(rotvec: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor,
     """Split rotations R(rotvec) = swing @ twist, twist about the unit `axis` (3,) or (..., 3).
 
     Returns (swing, twist) as (..., 3, 3) matrices. The twist angle is
-    2 atan2(v . axis, w) of the quaternion (v, w) of R (`roma.rotvec_to_unitquat`), which is
+    2 atan2(v . axis, w) of the quaternion (w, v) of R, which is
     smooth except for a swing of exactly pi.
     """
-    q = roma.rotvec_to_unitquat(rotvec)  # (..., 4) as (x, y, z, w)
+    angle, w, v = _quaternion(rotvec)
     axis = axis.to(rotvec).expand_as(rotvec)
-    twist_angle = 2 * torch.atan2((q[..., :3] * axis).sum(-1, keepdim=True), q[..., 3:])
+    twist_angle = 2 * torch.atan2((v * axis).sum(-1, keepdim=True), w)
     twist = axis_angle_to_matrix(twist_angle * axis)
-    swing = roma.unitquat_to_rotmat(q) @ twist.transpose(-1, -2)
+    swing = _matrix(angle, w, v) @ twist.transpose(-1, -2)
     return swing, twist

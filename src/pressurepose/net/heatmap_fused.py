@@ -45,11 +45,25 @@ def _fold(block: nn.Sequential, scale: float = 1.0) -> tuple:
     return weight, bn.bias - bn.running_mean * s, list(conv.padding), list(conv.stride)
 
 
+_FOLDED = ("enc1", "enc2", "enc3", "dec2", "squeeze", "dec1", "maps")  # the modules the fold reads
+
+
 def _key(net: nn.Module) -> tuple | None:
-    tensors = [*net.parameters(), *net.buffers()]
-    if any(t.is_inference() for t in tensors):  # no version counter: fold every call
-        return None
-    return tuple((t.data_ptr(), t._version) for t in tensors)
+    """Each folded module's identity and its tensors' addresses and versions (reading the seven
+    modules' own `_parameters` and `_buffers`: `net.parameters()` walks the whole module tree,
+    0.3 ms per call at batch 1)."""
+    key = []
+    for name in _FOLDED:
+        block = getattr(net, name)
+        for module in block.modules() if isinstance(block, nn.Sequential) else (block,):
+            key.append(id(module))
+            for t in (*module._parameters.values(), *module._buffers.values()):
+                if t is None:
+                    continue
+                if t.is_inference():  # no version counter: fold every call
+                    return None
+                key.append((t.data_ptr(), t._version))
+    return tuple(key)
 
 
 def _weights(net: nn.Module) -> dict[str, list[tuple]]:
