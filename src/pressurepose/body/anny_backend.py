@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from pressurepose.body.anny_inference import AnnyInference
+from pressurepose.body.anny_phenotype import phenotype_coefficients
 from pressurepose.body.anny_skeleton import Skeleton
 from pressurepose.body.anny_skinning import skin_matrix, sparse_linear_blend_skinning
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
@@ -237,8 +238,7 @@ class AnnyBody(AnnyInference, BodyModel):
 
     # --- skeleton -------------------------------------------------------------------------
     def _coefficients(self, shape: torch.Tensor) -> torch.Tensor:
-        zeros = shape.new_zeros(shape.shape[0], 0)
-        return self.anny._get_phenotype_blendshape_coefficients(shape, zeros, zeros)
+        return phenotype_coefficients(self.anny, shape, self.__dict__)
 
     def _rest_skeleton(self, coeffs: torch.Tensor, sk: Skeleton) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest bone heads (B, n, 3) and orientations (B, n, 3, 3) of the bones `sk.bones`,
@@ -262,19 +262,15 @@ class AnnyBody(AnnyInference, BodyModel):
         return A, offsets
 
     def _t_pose_corrections(self, offsets: torch.Tensor, sk: Skeleton) -> torch.Tensor:
-        """(B, n, 3, 3) G_b: Anny's reference pose -> T-pose, per bone (Anny axes)."""
-        B, n = offsets.shape[:2]
-        eye = torch.eye(3, dtype=offsets.dtype, device=offsets.device)
-        G = eye.expand(B, n, 3, 3).clone()
-        for arm in sk.arms:
-            target = torch.tensor([arm["sign"], 0.0, 0.0], dtype=offsets.dtype, device=offsets.device).expand(B, 3)
-            upper = offsets[:, arm["upper_chain"]].sum(1)  # shoulder -> elbow
-            fore = offsets[:, arm["fore_chain"]].sum(1)  # elbow -> wrist
-            G_upper = rotation_between(upper, target)
-            G_fore = rotation_between((G_upper @ fore[..., None])[..., 0], target) @ G_upper
-            G[:, arm["upper"]] = G_upper[:, None]
-            G[:, arm["fore"]] = G_fore[:, None]
-        return G
+        """(B, n, 3, 3) G_b: Anny's reference pose -> T-pose, per bone (Anny axes); both arms at once."""
+        B = offsets.shape[0]
+        target = offsets.new_tensor([[arm["sign"], 0.0, 0.0] for arm in sk.arms]).expand(B, -1, -1)
+        upper = offsets[:, [arm["upper_chain"] for arm in sk.arms]].sum(2)  # (B, arms, 3) shoulder -> elbow
+        fore = offsets[:, [arm["fore_chain"] for arm in sk.arms]].sum(2)  # elbow -> wrist
+        G_upper = rotation_between(upper, target)
+        G_fore = rotation_between((G_upper @ fore[..., None])[..., 0], target) @ G_upper
+        eye = torch.eye(3, dtype=offsets.dtype, device=offsets.device).expand(B, 1, 3, 3)
+        return torch.cat([eye, G_upper, G_fore], 1)[:, sk.correction_source]
 
     def _local_rotations(self, pose: torch.Tensor, G: torch.Tensor, sk: Skeleton) -> torch.Tensor:
         """J24 pose (B, 23, 3) in SMPL axes -> Anny local-ref rotations (B, n, 3, 3).

@@ -17,7 +17,7 @@ from pressurepose.body.anny_skinning import BlockedSkinning, wants_grad
 from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.params import BodyOutput, BodyParams, place_in_mat, root_matrix
 
-_CACHES = ("_shape_memo", "_blocked", "_chains")  # rebuilt on demand; not copied or pickled
+_CACHES = ("_shape_memo", "_blocked", "_chains", "_phenotype")  # rebuilt on demand; not copied or pickled
 
 
 class AnnyInference:

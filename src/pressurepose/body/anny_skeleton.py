@@ -55,6 +55,16 @@ class Skeleton(torch.nn.Module):
                 )
             )
 
+        # per bone, where its T-pose correction comes from (`AnnyBody._t_pose_corrections`):
+        # 0 the identity, 1 + i arm i's upper-arm rotation, 1 + len(arms) + i its forearm's
+        source = [0] * len(bones)
+        for i, arm in enumerate(self.arms):
+            for b in arm["upper"]:
+                source[b] = 1 + i
+            for b in arm["fore"]:
+                source[b] = 1 + len(self.arms) + i
+        self.register_buffer("correction_source", torch.tensor(source), persistent=False)
+
     @property
     def level_parents(self) -> list[torch.Tensor]:
         """Per level below the root, each bone's parent as a position in the level above."""
