@@ -85,8 +85,10 @@ from pressurepose.sim.self_contact import SelfContact
 # session 46); 8: raised beds rest articulated too (`sim.raised`, session 46; flat beds as in 7);
 # 9: the re-posings before the last 8 find their contacts on a taxel-sized grid with the mesh's
 # vertices only, 3 Newton steps each, and 24 re-posings at most (`ArticulatedConfig.coarse_sub`,
-# session 49, docs/physics.md "Two grids").
-ENGINE_REVISION = 9
+# session 49, docs/physics.md "Two grids"); 10: the body model's rotations, forward kinematics and
+# Anny's phenotype coefficients written for speed (session 57, docs/benchmarks.md; the same
+# numbers to round-off, which the rests amplify beyond bitwise, as in 3).
+ENGINE_REVISION = 10
 
 
 @dataclasses.dataclass
