@@ -266,3 +266,19 @@ def test_a_bug_prints_its_traceback_in_a_real_process(tmp_path):
     assert "Traceback (most recent call last)" in r.stderr and "in broken" in r.stderr
     assert r.stderr.strip().splitlines()[-1] == "ValueError: an internal bug in SamplingConfig"
     assert "pressurepose: error" not in r.stderr
+
+
+def test_a_named_command_imports_only_its_own_module():
+    """`pressurepose info` does not import the other commands (their dependencies cost seconds
+    at start-up); help and unknown names see every command, so tyro can list and suggest them."""
+    from pressurepose.cli import COMMANDS, commands_for
+
+    assert list(commands_for(["evaluate-real", "--model", "x"])) == ["evaluate-real"]
+    for argv in ([], ["--help"], ["evalute"], ["--model", "x"]):
+        assert list(commands_for(argv)) == list(COMMANDS)
+    code = (
+        "import sys; from pressurepose.cli import commands_for; commands_for(['info']); "
+        "print(sorted(m for m in sys.modules if m.startswith('pressurepose.commands.')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "['pressurepose.commands.info']"
