@@ -414,31 +414,3 @@ def test_nearest_rotation_matches_roma_on_anny_and_random_matrices(anny32):
     wanting = torch.randn(3, 3, 3, dtype=torch.float64, generator=g).requires_grad_(True)
     (grad,) = torch.autograd.grad(nearest_rotation(wanting).sum(), wanting)
     assert torch.isfinite(grad).all()
-
-
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_anny_phenotype_coefficients_match_annys_own(anny32, anny64, dtype):
-    """The laid-out coefficients (no autograd) are Anny's: random phenotypes, every anchor of
-    every phenotype (the hat functions' corners) and the range's ends; with autograd Anny's own
-    code runs and its gradient reaches the phenotypes."""
-    from pressurepose.body.anny_phenotype import PhenotypeCoefficients
-
-    body = anny32 if dtype == torch.float32 else anny64
-    m = body.anny
-    g = torch.Generator().manual_seed(8)
-    corners = torch.tensor(sorted({float(a) for f in m.phenotype_labels for a in m.anchors[f]} | {0.0, 1.0}))
-    corners = corners[(corners >= 0) & (corners <= 1)]
-    grid = corners[torch.randint(len(corners), (64, 6), generator=g)]
-    shape = torch.cat([torch.rand(64, 6, generator=g), grid]).to(dtype)
-    zeros = shape.new_zeros(len(shape), 0)
-    with torch.no_grad():
-        expected = m._get_phenotype_blendshape_coefficients(shape, zeros, zeros)
-        got = PhenotypeCoefficients(m)(shape)
-        assert body._coefficients(shape).requires_grad is False
-    torch.testing.assert_close(got, expected, atol=8 * torch.finfo(dtype).eps, rtol=8 * torch.finfo(dtype).eps)
-    assert torch.equal(body._coefficients(shape), got)  # the body's path without autograd
-    wanting = shape[:4].clone().requires_grad_(True)
-    with_grad = body._coefficients(wanting)
-    assert torch.equal(with_grad.detach(), expected[:4])  # Anny's own code
-    (grad,) = torch.autograd.grad(with_grad.square().sum(), wanting)
-    assert grad.abs().sum() > 0

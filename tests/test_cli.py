@@ -239,7 +239,9 @@ def test_bad_config_value_in_a_real_process(tmp_path):
 @pytest.mark.parametrize("kind", [ValueError, TypeError])
 def test_a_bug_while_building_a_config_keeps_its_traceback(kind, monkeypatch):
     # tyro catches ValueErrors raised while it builds the configs; one that is not a UserError
-    # is a bug and must come out as itself, not as a one-line message.
+    # is a bug and must come out as itself, not as a one-line message. The command's module is
+    # imported first (it builds a default SamplingConfig), so the bug meets tyro, not the import.
+    import pressurepose.commands.sample  # noqa: F401
     from pressurepose.sampling.partitions import SamplingConfig
 
     def broken(self):
@@ -252,9 +254,10 @@ def test_a_bug_while_building_a_config_keeps_its_traceback(kind, monkeypatch):
 
 
 def test_a_bug_prints_its_traceback_in_a_real_process(tmp_path):
-    script = (  # patched after the import, which builds the default configs
+    script = (  # patched after the command's import, which builds the default configs
         "import sys\n"
         "from pressurepose.cli import main\n"
+        "import pressurepose.commands.sample\n"
         "from pressurepose.sampling.partitions import SamplingConfig\n"
         "def broken(self):\n"
         "    raise ValueError('an internal bug in SamplingConfig')\n"

@@ -6,6 +6,7 @@ import roma
 import torch
 from torch.autograd import gradcheck
 
+from pressurepose.body import rotations as rotations_module
 from pressurepose.body.rotations import (
     axis_angle_to_matrix,
     matrix_to_axis_angle,
@@ -179,3 +180,31 @@ def test_skew_is_the_cross_product():
     a, b = torch.randn(2, 4, 6, 3, generator=g, dtype=torch.float64)
     assert torch.allclose(skew(a) @ b[..., None], torch.linalg.cross(a, b)[..., None], atol=1e-15)
     assert torch.equal(skew(a), -skew(a).transpose(-1, -2))
+
+
+def test_cached_constants_first_made_in_inference_mode_serve_autograd():
+    # The conversions keep constants per dtype and device, made on first use: when that first
+    # use is under inference mode (predict, the sampler), a later backward must still work.
+    from pressurepose.body import limits, params
+
+    caches = (rotations_module._CONSTANTS, params._SUPINE, limits._DEFAULTS)
+    saved = [dict(c) for c in caches]
+    for c in caches:
+        c.clear()
+    try:
+        with torch.inference_mode():
+            axis_angle_to_matrix(torch.zeros(1, 3))
+            params.root_matrix(torch.zeros(1, 3))
+            limits.JointLimits.default()
+        r = torch.randn(2, 3, requires_grad=True)
+        pose = torch.randn(2, 23, 3, requires_grad=True)
+        loss = axis_angle_to_matrix(r).sum() + params.root_matrix(r).sum() + skew(r).sum()
+        loss = (
+            loss + limits.JointLimits.default().squash(pose).sum() + swing_twist(r, torch.tensor([1.0, 0, 0]))[0].sum()
+        )
+        loss.backward()
+        assert torch.isfinite(r.grad).all() and torch.isfinite(pose.grad).all()
+    finally:
+        for c, s in zip(caches, saved):
+            c.clear()
+            c.update(s)

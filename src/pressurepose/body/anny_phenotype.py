@@ -30,6 +30,8 @@ class PhenotypeCoefficients:
     def __init__(self, model) -> None:
         labels = list(model.phenotype_labels)
         exposed = [f for f in PHENOTYPE_VARIATIONS if f in labels]
+        if len(exposed) != len(labels) or "race" in labels:  # e.g. race phenotypes: not laid out here
+            raise ValueError(f"PhenotypeCoefficients lays out interpolated phenotypes only, got {labels}")
         columns, rising, falling, fixed = [], [], [], []
         for feature, variations in PHENOTYPE_VARIATIONS.items():
             if feature not in exposed:

@@ -24,10 +24,8 @@ for _j in range(1, NUM_JOINTS):
 LEVELS: tuple[tuple[int, ...], ...] = tuple(
     tuple(j for j in range(NUM_JOINTS) if _DEPTH[j] == d) for d in range(1, max(_DEPTH) + 1)
 )
-# Per level: the joints, their parents and their pose rows, as index tensors made once.
-_LEVEL_INDEX = tuple(
-    (torch.tensor(level), torch.tensor([J24_PARENTS[j] for j in level]), torch.tensor(level) - 1) for level in LEVELS
-)
+# Per level: the joints and their parents, as index tensors made once.
+_LEVEL_INDEX = tuple((torch.tensor(level), torch.tensor([J24_PARENTS[j] for j in level])) for level in LEVELS)
 _PARENTS = torch.tensor([0, *J24_PARENTS[1:]])
 
 
@@ -44,7 +42,7 @@ def forward_kinematics(
 
     rest: (B, 24, 3) T-pose joints, pelvis at the origin (see `rest_joints`).
     pose: (B, 23, 3) axis-angle of joints 1..23 (BodyParams.pose).
-    root_rotation: (B, 3, 3) rotation of the whole body (default identity: body axes).
+    root_rotation: (B, 3, 3) or (3, 3) rotation of the whole body (default identity: body axes).
     The pelvis stays at the origin; add the root translation yourself.
     """
     if rest.ndim != 3 or rest.shape[1:] != (NUM_JOINTS, 3):
@@ -53,8 +51,8 @@ def forward_kinematics(
         raise ValueError(f"pose must have shape ({rest.shape[0]}, {NUM_POSE_JOINTS}, 3), got {tuple(pose.shape)}")
     local = axis_angle_to_matrix(pose).unbind(1)
     offsets = (rest - rest[:, _PARENTS.to(rest.device)]).unsqueeze(-1).unbind(1)  # (B, 3, 1) each, the root's 0
-    root = torch.eye(3, dtype=rest.dtype, device=rest.device).expand(rest.shape[0], 3, 3)
-    rot = [root if root_rotation is None else root_rotation]
+    root = torch.eye(3, dtype=rest.dtype, device=rest.device) if root_rotation is None else root_rotation.to(rest)
+    rot = [root.expand(rest.shape[0], 3, 3)]  # (3, 3) or (B, 3, 3)
     pos = [torch.zeros_like(offsets[0])]
     # joint by joint (23 small products each way): at batch 1 to 128 ~1.7x faster than one
     # batched step per level of the tree, whose gathers and scatters cost more than they save
@@ -71,7 +69,7 @@ def compose_down(D: torch.Tensor) -> torch.Tensor:
     applies to its subtree (world frame), composed from the root down, one batched product per
     level of the tree."""
     U = D.clone()
-    for idx, par, _ in _LEVEL_INDEX:
+    for idx, par in _LEVEL_INDEX:
         if idx.device != D.device:
             idx, par = idx.to(D.device), par.to(D.device)
         U[:, idx] = D[:, idx] @ U[:, par]

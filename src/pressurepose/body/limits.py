@@ -72,8 +72,9 @@ class JointLimits:
         """The table above in `dtype` on `device` (made once per pair and shared: read-only)."""
         key = (dtype, torch.device(device))
         if key not in _DEFAULTS:
-            table = _table().to(dtype=dtype, device=device)
-            _DEFAULTS[key] = cls(lower=table[..., 0], upper=table[..., 1])
+            with torch.inference_mode(False):  # usable with autograd whichever mode made it first
+                table = _table().to(dtype=dtype, device=device)
+                _DEFAULTS[key] = cls(lower=table[..., 0], upper=table[..., 1])
         return _DEFAULTS[key]
 
     def bounds_of(self, joint: str) -> torch.Tensor:

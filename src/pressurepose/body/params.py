@@ -129,7 +129,8 @@ def root_matrix(root_rotation: torch.Tensor) -> torch.Tensor:
     """(B, 3) root rotation -> (B, 3, 3) rotation from body axes to the mat frame."""
     key = (root_rotation.dtype, root_rotation.device)
     if key not in _SUPINE:
-        _SUPINE[key] = supine_rotation(*key)
+        with torch.inference_mode(False):  # an inference tensor could not be saved for a backward later
+            _SUPINE[key] = supine_rotation(*key)
     return axis_angle_to_matrix(root_rotation) @ _SUPINE[key]
 
 

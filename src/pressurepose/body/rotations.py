@@ -34,11 +34,12 @@ def _constants(like: torch.Tensor) -> tuple[torch.Tensor, ...]:
     key = (like.dtype, like.device)
     if key not in _CONSTANTS:
         numbers = (0.5, 1 / 12, 1 / 240, 2.0 * torch.finfo(like.dtype).eps ** (1 / 6), 1.0)
-        _CONSTANTS[key] = (
-            _EPSILON_TENSOR.reshape(3, 9).to(like.dtype).to(like.device),
-            torch.eye(3, dtype=like.dtype, device=like.device),
-            *(torch.tensor(x, dtype=like.dtype, device=like.device) for x in numbers),
-        )
+        with torch.inference_mode(False):  # inference tensors could not be saved for a backward later
+            _CONSTANTS[key] = (
+                _EPSILON_TENSOR.reshape(3, 9).to(like.dtype).to(like.device),
+                torch.eye(3, dtype=like.dtype, device=like.device),
+                *(torch.tensor(x, dtype=like.dtype, device=like.device) for x in numbers),
+            )
     return _CONSTANTS[key]
 
 
