@@ -13,8 +13,18 @@ import torch.nn.functional as F
 _NO_BLUR = 1e-6  # a sigma at or below this (pixels) leaves the image as it is
 
 
+_FIXED: dict[tuple, tuple[torch.Tensor, int] | None] = {}  # kernels of a Python-number sigma, made once
+
+
 def _kernels(sigma, B: int, dtype, device) -> tuple[torch.Tensor, int] | None:
     """(B, K) normalised kernels and the radius, or None when no image is blurred."""
+    key = (float(sigma), dtype, torch.device(device)) if isinstance(sigma, (int, float)) else None
+    if key is not None and (key in _FIXED or len(_FIXED) < 64):  # a constant (the network's channels):
+        if key not in _FIXED:  # no gradient, made once (a few: a calibration's many sigmas are not kept)
+            with torch.inference_mode(False):  # usable with autograd whichever mode made it first
+                _FIXED[key] = _kernels(torch.tensor(float(sigma), dtype=dtype, device=device), 1, dtype, device)
+        fixed = _FIXED[key]
+        return None if fixed is None else (fixed[0].expand(B, -1), fixed[1])
     sigma = torch.as_tensor(sigma, dtype=dtype, device=device).expand(B)
     top = float(sigma.detach().max()) if B else 0.0
     if not top > _NO_BLUR:
