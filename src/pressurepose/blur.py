@@ -10,6 +10,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from pressurepose.constants import kept
+
 _NO_BLUR = 1e-6  # a sigma at or below this (pixels) leaves the image as it is
 
 
@@ -19,11 +21,9 @@ _FIXED: dict[tuple, tuple[torch.Tensor, int] | None] = {}  # kernels of a Python
 def _kernels(sigma, B: int, dtype, device) -> tuple[torch.Tensor, int] | None:
     """(B, K) normalised kernels and the radius, or None when no image is blurred."""
     key = (float(sigma), dtype, torch.device(device)) if isinstance(sigma, (int, float)) else None
-    if key is not None and (key in _FIXED or len(_FIXED) < 64):  # a constant (the network's channels):
-        if key not in _FIXED:  # no gradient, made once (a few: a calibration's many sigmas are not kept)
-            with torch.inference_mode(False):  # usable with autograd whichever mode made it first
-                _FIXED[key] = _kernels(torch.tensor(float(sigma), dtype=dtype, device=device), 1, dtype, device)
-        fixed = _FIXED[key]
+    # a constant (the network's channels): no gradient, made once (a few: a calibration's many are not kept)
+    if key is not None and (key in _FIXED or len(_FIXED) < 64):
+        fixed = kept(_FIXED, key, lambda: _kernels(torch.tensor(key[0], dtype=dtype, device=device), 1, dtype, device))
         return None if fixed is None else (fixed[0].expand(B, -1), fixed[1])
     sigma = torch.as_tensor(sigma, dtype=dtype, device=device).expand(B)
     top = float(sigma.detach().max()) if B else 0.0

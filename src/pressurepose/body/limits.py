@@ -19,6 +19,7 @@ import math
 import torch
 
 from pressurepose.body.joints import J24_MIRROR, J24_NAMES, NUM_POSE_JOINTS
+from pressurepose.constants import kept
 
 ALPHA = 1.2  # seed B.1: bounds inflated by 20% so a straight knee is not at the tanh's edge
 
@@ -70,12 +71,12 @@ class JointLimits:
     @classmethod
     def default(cls, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> JointLimits:
         """The table above in `dtype` on `device` (made once per pair and shared: read-only)."""
-        key = (dtype, torch.device(device))
-        if key not in _DEFAULTS:
-            with torch.inference_mode(False):  # usable with autograd whichever mode made it first
-                table = _table().to(dtype=dtype, device=device)
-                _DEFAULTS[key] = cls(lower=table[..., 0], upper=table[..., 1])
-        return _DEFAULTS[key]
+
+        def make() -> JointLimits:
+            table = _table().to(dtype=dtype, device=device)
+            return cls(lower=table[..., 0], upper=table[..., 1])
+
+        return kept(_DEFAULTS, (dtype, torch.device(device)), make)
 
     def bounds_of(self, joint: str) -> torch.Tensor:
         """(3, 2) [lo, hi] per axis of one joint by J24 name."""

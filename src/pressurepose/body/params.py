@@ -18,6 +18,7 @@ import torch
 
 from pressurepose.body.joints import NUM_JOINTS, NUM_POSE_JOINTS
 from pressurepose.body.rotations import axis_angle_to_matrix
+from pressurepose.constants import kept
 
 # Body axes (x left, y head, z front) -> mat frame when lying supine with the head at row 0:
 # left -> +y, head -> -x, front -> +z.
@@ -128,10 +129,7 @@ _SUPINE: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}  # R_SUPINE p
 def root_matrix(root_rotation: torch.Tensor) -> torch.Tensor:
     """(B, 3) root rotation -> (B, 3, 3) rotation from body axes to the mat frame."""
     key = (root_rotation.dtype, root_rotation.device)
-    if key not in _SUPINE:
-        with torch.inference_mode(False):  # an inference tensor could not be saved for a backward later
-            _SUPINE[key] = supine_rotation(*key)
-    return axis_angle_to_matrix(root_rotation) @ _SUPINE[key]
+    return axis_angle_to_matrix(root_rotation) @ kept(_SUPINE, key, lambda: supine_rotation(*key))
 
 
 def root_roll(root_rotation: torch.Tensor) -> torch.Tensor:

@@ -21,6 +21,8 @@ from __future__ import annotations
 import roma
 import torch
 
+from pressurepose.constants import kept
+
 _EPSILON_TENSOR = torch.zeros(3, 3, 3)  # [k, i, j]: skew(v)[i, j] = sum_k v[k] E[k, i, j]
 for _k, _i, _j in ((0, 2, 1), (1, 0, 2), (2, 1, 0)):
     _EPSILON_TENSOR[_k, _i, _j], _EPSILON_TENSOR[_k, _j, _i] = 1.0, -1.0
@@ -31,16 +33,17 @@ def _constants(like: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """The conversion's constants in `like`'s dtype and device, made once: the (3, 9) cross-product
     map, the identity and 0-d tensors (an operation with a Python number costs ~2x one with a
     0-d tensor at these sizes): 1/2, 1/12, 1/240, roma's sinc threshold on h, 1."""
-    key = (like.dtype, like.device)
-    if key not in _CONSTANTS:
-        numbers = (0.5, 1 / 12, 1 / 240, 2.0 * torch.finfo(like.dtype).eps ** (1 / 6), 1.0)
-        with torch.inference_mode(False):  # inference tensors could not be saved for a backward later
-            _CONSTANTS[key] = (
-                _EPSILON_TENSOR.reshape(3, 9).to(like.dtype).to(like.device),
-                torch.eye(3, dtype=like.dtype, device=like.device),
-                *(torch.tensor(x, dtype=like.dtype, device=like.device) for x in numbers),
-            )
-    return _CONSTANTS[key]
+    dtype, device = like.dtype, like.device
+    numbers = (0.5, 1 / 12, 1 / 240, 2.0 * torch.finfo(dtype).eps ** (1 / 6), 1.0)
+    return kept(
+        _CONSTANTS,
+        (dtype, device),
+        lambda: (
+            _EPSILON_TENSOR.reshape(3, 9).to(dtype).to(device),
+            torch.eye(3, dtype=dtype, device=device),
+            *(torch.tensor(x, dtype=dtype, device=device) for x in numbers),
+        ),
+    )
 
 
 def _quaternion(rotvec: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

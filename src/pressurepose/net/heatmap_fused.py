@@ -45,7 +45,9 @@ def _fold(block: nn.Sequential, scale: float = 1.0) -> tuple:
     return weight, bn.bias - bn.running_mean * s, list(conv.padding), list(conv.stride)
 
 
-_FOLDED = ("enc1", "enc2", "enc3", "dec2", "squeeze", "dec1", "maps")  # the modules the fold reads
+_SEQUENCES = ("enc1", "enc2", "enc3")  # folded block by block
+_SINGLE = ("dec2", "squeeze", "dec1")  # one block each
+_FOLDED = (*_SEQUENCES, *_SINGLE, "maps")  # every module the fold reads
 
 
 def _key(net: nn.Module) -> tuple | None:
@@ -54,8 +56,7 @@ def _key(net: nn.Module) -> tuple | None:
     0.3 ms per call at batch 1)."""
     key = []
     for name in _FOLDED:
-        block = getattr(net, name)
-        for module in block.modules() if isinstance(block, nn.Sequential) else (block,):
+        for module in getattr(net, name).modules():
             key.append(id(module))
             for t in (*module._parameters.values(), *module._buffers.values()):
                 if t is None:
@@ -72,9 +73,9 @@ def _weights(net: nn.Module) -> dict[str, list[tuple]]:
     if cached is not None and key is not None and cached[0] == key:
         return cached[1]
     with torch.no_grad():
-        folded = {name: [_fold(b) for b in getattr(net, name)] for name in ("enc1", "enc2", "enc3")}
+        folded = {name: [_fold(b) for b in getattr(net, name)] for name in _SEQUENCES}
         folded["enc1"][0] = _fold(net.enc1[0], net.INPUT_SCALE)
-        folded.update({name: [_fold(getattr(net, name))] for name in ("dec2", "squeeze", "dec1")})
+        folded.update({name: [_fold(getattr(net, name))] for name in _SINGLE})
         maps = net.maps
         folded["maps"] = [(maps.weight[:, :, 0, 0].contiguous(), maps.bias[:, None])]
     net.__dict__[_CACHE] = (key, folded)
