@@ -9,7 +9,7 @@ from torch.autograd import gradcheck
 
 from pressurepose.body import BodyParams, load_body_model
 from pressurepose.body.joints import J24_MIRROR, J24_NAMES, joint_index
-from pressurepose.body.params import supine_rotation
+from pressurepose.body.params import all_finite, supine_rotation
 from pressurepose.mat import MatSpec
 
 J = {n: i for i, n in enumerate(J24_NAMES)}
@@ -193,6 +193,17 @@ def test_bad_shapes_dtypes_and_nan(anny32):
         anny32.joints(p.replace(pose=bad))
     with pytest.raises(ValueError, match="expected BodyParams"):
         anny32({"pose": p.pose})
+    # infinities, in the parameters and in the shape; finite values whose sum overflows pass
+    for field, value in (("root_translation", float("inf")), ("root_rotation", -float("inf"))):
+        bad = getattr(p, field).clone()
+        bad[1, 2] = value
+        with pytest.raises(ValueError, match=f"BodyParams.{field} contains NaN or infinite"):
+            anny32.joints(p.replace(**{field: bad}))
+    with pytest.raises(ValueError, match="shape \\(Anny phenotypes\\) contains NaN or infinite"):
+        anny32.validate_shape(torch.tensor([[0.5, float("nan"), 0.5, 0.5, 0.5, 0.5]]))
+    huge = torch.full((2, 3), 3e38)
+    assert all_finite(huge) and not math.isfinite(huge.sum())
+    assert not all_finite(torch.tensor([1.0, float("nan")])) and not all_finite(torch.tensor([float("inf")]))
 
 
 def test_bad_phenotypes(anny32):

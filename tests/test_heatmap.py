@@ -417,28 +417,58 @@ def test_heatmap_net_falls_back_to_the_modules_when_the_fused_operator_fails(mon
     torch.testing.assert_close(loc.joints, loc_ref.joints, atol=1e-5, rtol=1e-5)
 
 
-@pytest.mark.parametrize("limited", [False, True])
-def test_ik_step_without_autograd_matches_the_differentiable_step(limited):
-    """Without autograd an IK step builds W^(1/2) J in place (`scaled_jacobian`): the same step
-    as the differentiable one, to float64 round-off."""
-    from pressurepose.net.ik import scaled_jacobian
+@pytest.mark.parametrize("batch", [1, 5])
+def test_fused_fit_matches_the_reference_steps(batch):
+    """Without autograd the IK runs fused (`ik_inference.fit`): the same steps as iterating the
+    differentiable `ik_step`, to float64 round-off, from a start at the limits' edge too."""
+    from pressurepose.net import ik_inference
 
-    limits = JointLimits.default(f64) if limited else None
-    rest, p = _random_body(4, seed=8, scale=0.3)
-    _, target_params = _random_body(4, seed=9, scale=0.3)
+    limits = JointLimits.default(f64)
+    rest, p = _random_body(batch, seed=8, scale=0.3)
+    p = p.replace(pose=limits.squash(p.pose))
+    p.pose[0, 4] = limits.upper[4]  # an angle on a limit: free_pose takes it from just inside
+    _, target_params = _random_body(batch, seed=9, scale=0.3)
     target = pose_in_mat(rest, target_params)[1]
-    weights = torch.rand(4, NUM_JOINTS, dtype=f64, generator=torch.Generator().manual_seed(10)) + 0.1
-    u = free_pose(p.pose, limits)
-    with torch.no_grad():
-        fast = ik_step(
-            rest, p.shape, IKState(p.root_translation, p.root_rotation, u), target, weights, 0.5 * u, limits=limits
-        )
-    wanting = IKState(p.root_translation, p.root_rotation, u.clone().requires_grad_())
-    ref = ik_step(rest, p.shape, wanting, target, weights, 0.5 * u, limits=limits)
-    for name in ("root_translation", "root_rotation", "free_pose"):
-        torch.testing.assert_close(getattr(fast, name), getattr(ref, name).detach(), rtol=0, atol=1e-10)
-    rot, pos = pose_in_mat(rest, p)
-    rows, cols = torch.rand(4, NUM_JOINTS, dtype=f64), torch.rand(4, 23, 3, dtype=f64)
-    J = joint_jacobian(rot, pos, p)
-    J = torch.cat([J[..., :6], J[..., 6:] * cols.reshape(4, 1, -1)], -1) * rows.repeat_interleave(3, 1)[..., None]
-    torch.testing.assert_close(scaled_jacobian(rot, pos, p, rows, cols), J, rtol=0, atol=1e-14)
+    weights = torch.rand(batch, NUM_JOINTS, dtype=f64, generator=torch.Generator().manual_seed(10)) + 0.1
+    cfg = IKConfig(steps=4, joint_sigma_m=0.05, prior_sigma_rad=1.5, damping=0.7)
+    state = IKState(p.root_translation, p.root_rotation, free_pose(p.pose, limits))
+    prior = state.free_pose
+    for _ in range(cfg.steps):
+        state = ik_step(rest, p.shape, state, target, weights, prior, cfg, limits)
+    ref = state.params(p.shape, limits)
+    steps = (cfg.steps, cfg.joint_sigma_m, cfg.prior_sigma_rad, cfg.damping)
+    fused = ik_inference.fit(rest, p, free_pose(p.pose, limits), target, weights, *steps, limits)
+    assert float((ref.pose - p.pose).abs().max()) > 0.05  # the steps moved the body
+    for name in ("root_translation", "root_rotation", "pose"):
+        torch.testing.assert_close(getattr(fused, name), getattr(ref, name), rtol=0, atol=1e-10)
+    assert torch.equal(fused.shape, p.shape)
+
+
+@pytest.mark.parametrize("dtype, atol", [(f64, 1e-13), (torch.float32, 2e-6)])
+def test_rotations_and_left_jacobians_match_the_separate_formulas(dtype, atol):
+    """R and J_l from shared terms equal `axis_angle_to_matrix` and `left_jacobian`, on both
+    sides of the series' threshold (a = 0.05), at 0 and near pi."""
+    from pressurepose.net.ik_inference import rotations_and_left_jacobians
+
+    g = torch.Generator().manual_seed(11)
+    axes = torch.nn.functional.normalize(torch.randn(8, 3, generator=g, dtype=f64), dim=-1)
+    angles = torch.tensor([0.0, 1e-7, 1e-3, 0.0499, 0.0501, 0.7, 2.0, 3.1], dtype=f64)
+    phi = (axes * angles[:, None]).to(dtype)[None]  # (1, 8, 3)
+    R, J_l = rotations_and_left_jacobians(phi)
+    torch.testing.assert_close(R, axis_angle_to_matrix(phi.double()).to(dtype), rtol=0, atol=atol)
+    torch.testing.assert_close(J_l, left_jacobian(phi.double()).to(dtype), rtol=0, atol=atol)
+
+
+def test_fit_to_joints_with_autograd_runs_the_differentiable_steps(anny64):
+    """With a tensor that wants gradients `fit_to_joints` runs `ik_step` (gradients reach the
+    targets), and its answer equals the fused one's."""
+    rest, p = _random_body(2, seed=12, scale=0.2)
+    p = p.replace(shape=torch.full((2, 6), 0.5, dtype=f64), pose=JointLimits.default(f64).squash(p.pose))
+    target = anny64.joints(p.replace(root_translation=p.root_translation + 0.03)).detach()
+    fused = fit_to_joints(anny64, p, target)
+    wanting = target.clone().requires_grad_()
+    ref = fit_to_joints(anny64, p, wanting)
+    ref.pose.sum().backward()
+    assert wanting.grad is not None and float(wanting.grad.abs().sum()) > 0
+    for name in ("root_translation", "root_rotation", "pose"):
+        torch.testing.assert_close(getattr(fused, name), getattr(ref, name).detach(), rtol=0, atol=1e-10)

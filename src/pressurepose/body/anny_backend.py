@@ -30,6 +30,7 @@ from pressurepose.body.anny_skeleton import Skeleton
 from pressurepose.body.anny_skinning import skin_matrix, sparse_linear_blend_skinning
 from pressurepose.body.joints import J24_NAMES, NUM_JOINTS
 from pressurepose.body.model import BodyModel, LinearMesh, ZeroPoseSkinning, part_weights_onto_j24
+from pressurepose.body.params import all_finite
 from pressurepose.body.procrustes import nearest_rotation
 from pressurepose.body.rotations import axis_angle_to_matrix, rotation_between, swing_twist
 from pressurepose.body.shape_ranges import anny_bounds, anny_powers
@@ -225,15 +226,15 @@ class AnnyBody(AnnyInference, BodyModel):
         return shape
 
     def validate_shape(self, shape: torch.Tensor) -> None:
-        if not torch.isfinite(shape).all():
+        if not all_finite(shape):
             raise ValueError("shape (Anny phenotypes) contains NaN or infinite values")
-        lo, hi = shape.amin(), shape.amax()
+        lo, hi = (float(v) for v in torch.aminmax(shape))
         if lo < 0 or hi > 1:
             bad = ((shape < 0) | (shape > 1)).any(0).nonzero().flatten().tolist()
             names = ", ".join(ANNY_SHAPE_NAMES[i] for i in bad)
             raise ValueError(
                 f"shape (Anny phenotypes) must lie in [0, 1]; {names} out of range "
-                f"(min {lo.item():.3g}, max {hi.item():.3g})"
+                f"(min {lo:.3g}, max {hi:.3g})"
             )
 
     # --- skeleton -------------------------------------------------------------------------

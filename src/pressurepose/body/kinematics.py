@@ -29,6 +29,19 @@ _LEVEL_INDEX = tuple((torch.tensor(level), torch.tensor([J24_PARENTS[j] for j in
 _PARENTS = torch.tensor([0, *J24_PARENTS[1:]])
 
 
+def _strict_descendants() -> torch.Tensor:
+    desc = torch.zeros(NUM_JOINTS, NUM_JOINTS, dtype=torch.bool)
+    for k in range(NUM_JOINTS):
+        j = J24_PARENTS[k]
+        while j >= 0:
+            desc[j, k] = True
+            j = J24_PARENTS[j]
+    return desc
+
+
+DESCENDANTS = _strict_descendants()  # (24, 24) bool, [j, k] = k lies below j in J24
+
+
 def rest_joints(model: BodyModel, shape: torch.Tensor) -> torch.Tensor:
     """(B, 24, 3) T-pose joints of (B, S) shapes in body axes (x left, y head, z front),
     pelvis at the origin (`BodyModel.rest_joints`)."""

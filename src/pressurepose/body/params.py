@@ -13,6 +13,7 @@ Layout (docs/conventions.md):
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 
@@ -101,8 +102,15 @@ class BodyParams:
                 )
             if value.device.type != device.type:
                 raise ValueError(f"BodyParams.{name} is on {value.device}, but the body model is on {device}")
-            if not torch.isfinite(value).all():
+            if not all_finite(value):
                 raise ValueError(f"BodyParams.{name} contains NaN or infinite values")
+
+
+def all_finite(values: torch.Tensor) -> bool:
+    """Whether every entry is finite: the sum's finiteness first (a sum is finite only when every
+    entry is; 1 operation against isfinite's 3, ~5 against ~20 us at predict's sizes, called
+    ~12 times an image), each entry only when the sum is not (NaN, inf, or an overflow)."""
+    return math.isfinite(values.sum()) or bool(torch.isfinite(values).all())
 
 
 @dataclasses.dataclass(frozen=True)
