@@ -233,8 +233,7 @@ class AnnyBody(AnnyInference, BodyModel):
             bad = ((shape < 0) | (shape > 1)).any(0).nonzero().flatten().tolist()
             names = ", ".join(ANNY_SHAPE_NAMES[i] for i in bad)
             raise ValueError(
-                f"shape (Anny phenotypes) must lie in [0, 1]; {names} out of range "
-                f"(min {lo:.3g}, max {hi:.3g})"
+                f"shape (Anny phenotypes) must lie in [0, 1]; {names} out of range (min {lo:.3g}, max {hi:.3g})"
             )
 
     # --- skeleton -------------------------------------------------------------------------
