@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from pressurepose.body.joints import mirror_joints
+from pressurepose.body.joints import J24_NAMES, mirror_joints
 from pressurepose.body.params import BodyParams
 from pressurepose.cli import main
 from pressurepose.eval.real import posture_of, read_bodies, roll_deg
@@ -103,8 +103,14 @@ def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
     image = torch.rand(64, 27).numpy() * 40
     np.save(tmp_path / "a.npy", image)
     assert main(["predict", "--model", str(tmp_path / "run"), "--out", str(tmp_path / "pred"), str(tmp_path / "a.npy"), "--no-figures"]) == 0  # fmt: skip
-    readout = json.loads((tmp_path / "pred" / "a.json").read_text())["posture_readout"]
+    record = json.loads((tmp_path / "pred" / "a.json").read_text())
+    readout = record["posture_readout"]
     assert list(readout) == list(POSTURES) and sum(readout.values()) == pytest.approx(1.0)
+    # each joint's heatmap spread: the localisation's, as a standard deviation in metres
+    with torch.no_grad():
+        spread = loaded(NetInputs(torch.from_numpy(image)[None]), mesh=False)[0].localisation.spread_m2[0]
+    assert list(record["joint_spread_m"]) == list(J24_NAMES)
+    assert list(record["joint_spread_m"].values()) == pytest.approx(spread.double().sqrt().tolist(), rel=1e-5)
 
 
 def _forced(net, posture):

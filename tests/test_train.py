@@ -356,6 +356,7 @@ def test_predict_writes_params_meshes_and_figures(trained_run, data32, tmp_path,
         assert len(record["pose_axis_angle"]) == 23 and len(record["joints_m"]) == 24
         assert record["shape"]["gender"] == 1.0 and 30 < record["mass_kg"] < 160
         assert record["load_ends"] in LOAD_ENDS
+        assert "joint_spread_m" not in record  # a network without heatmaps has no spreads to report
         v, f = read_mesh(out / f"{n}.ply")
         assert v.shape == (anny32.num_vertices, 3) and f.shape == tuple(anny32.faces.shape)
         assert (out / f"{n}.png").stat().st_size > 10_000

@@ -3,7 +3,9 @@
 Every input file is read and checked first (`net.inputs`), so a bad file stops the run
 before anything is written. Images then go through the network in batches; per image
 OUT/<name>.json (parameters by name, J24 joints, height and mass of the estimated shape; the
-posture readout's probabilities for a network with one; `load_ends`, whether the image's load
+posture readout's probabilities for a network with one; for a heatmap network `joint_spread_m`, each
+joint's heatmap spread on the mat, which tells a joint the image pins down from one it guesses
+(docs/network.md "How far to trust a joint"); `load_ends`, whether the image's load
 reaches the mat's head row, its foot row, both or neither - a body the mat cuts shows less of its
 length, and its height is then read from its proportions: docs/network.md),
 OUT/<name>.ply (the mesh, mat frame, metres; or .obj / .glb with --mesh-format, written by
@@ -147,6 +149,9 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
         "load_ends": load_ends(image[None])[0],
     }
     loc = est.localisation
+    if loc is not None:  # how sharply each joint's heatmap pins it: large where the image shows it not
+        spread = loc.spread_m2[i].detach().double().clamp_min(0).sqrt().tolist()
+        record["joint_spread_m"] = dict(zip(J24_NAMES, spread))
     if loc is not None and loc.posture_logits is not None:  # the network's posture readout
         prob = torch.softmax(loc.posture_logits[i].detach().double(), -1).tolist()
         record["posture_readout"] = dict(zip(POSTURES, prob))
