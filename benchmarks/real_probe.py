@@ -25,7 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.body.joints import J24_NAMES
 from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
+from pressurepose.eval.evaluation import REGIONS
 from pressurepose.eval.real import GROUP_POSTURE, posture_of, read_bodies, roll_deg
 from pressurepose.samples import PMATDATA, resolve_pmatdata
 from pressurepose.train.checkpoint import load_network
@@ -164,7 +166,22 @@ def probe_real(net, root: Path, groups: str) -> None:
             f"{k}:{v[0]}/{v[1]}" for k, v in sorted(per.items(), key=lambda kv: (kv[0][0], int(kv[0][1:])))
         )
         height = float((read.height_m - heights).median()) * 100
-        print(f"  {name:34s} accuracy {acc:.3f}  height {height:+5.1f} cm  supine read prone {prone:3d} | {groups_txt}")
+        sure = _trunk_spread(read)
+        print(
+            f"  {name:34s} accuracy {acc:.3f}  height {height:+5.1f} cm  supine read prone {prone:3d}{sure} | {groups_txt}"
+        )
+
+
+TRUNK = [J24_NAMES.index(n) for n in (*REGIONS["head"], *REGIONS["torso"])]
+
+
+def _trunk_spread(read) -> str:
+    """For a heatmap network: the median heatmap spread of the head and torso joints, and the share
+    of them under 10 cm (docs/network.md "How far to trust a joint")."""
+    if read.spread_m is None:
+        return ""
+    s = read.spread_m[:, TRUNK] * 100
+    return f"  trunk spread {float(s.median()):4.1f} cm ({float((s < 10).double().mean()) * 100:3.0f}% < 10)"
 
 
 def probe_bands(net, root: Path, groups: str, rows: int = 4) -> None:
@@ -196,7 +213,7 @@ def probe_sim(net, folder: Path) -> None:
         read = read_bodies(net, alter(images))
         count = collections.Counter(read.postures)
         height = float((read.height_m - heights).median()) * 100
-        print(f"  {name:34s} read {dict(count)}  height {height:+5.1f} cm")
+        print(f"  {name:34s} read {dict(count)}  height {height:+5.1f} cm{_trunk_spread(read)}")
 
 
 def moved(images: torch.Tensor, k: int) -> torch.Tensor:

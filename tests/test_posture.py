@@ -96,10 +96,11 @@ def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
         )
     assert "posture readout" in (out / "real.md").read_text()
     images = torch.rand(12, 64, 27) * 40
-    readout = read_bodies(loaded, images, batch=5).readout  # in batches smaller than N
+    readings = read_bodies(loaded, images, batch=5)  # in batches smaller than N
     with torch.no_grad():
-        logits = loaded(NetInputs(images), mesh=False)[0].localisation.posture_logits
-    assert readout == [POSTURES[i] for i in logits.argmax(-1).tolist()]
+        loc = loaded(NetInputs(images), mesh=False)[0].localisation
+    assert readings.readout == [POSTURES[i] for i in loc.posture_logits.argmax(-1).tolist()]
+    torch.testing.assert_close(readings.spread_m, loc.spread_m2.sqrt(), rtol=1e-5, atol=1e-7)
     image = torch.rand(64, 27).numpy() * 40
     np.save(tmp_path / "a.npy", image)
     assert main(["predict", "--model", str(tmp_path / "run"), "--out", str(tmp_path / "pred"), str(tmp_path / "a.npy"), "--no-figures"]) == 0  # fmt: skip

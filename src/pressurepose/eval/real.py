@@ -33,13 +33,15 @@ def posture_of(roll: torch.Tensor) -> list[str]:
 @dataclasses.dataclass(frozen=True)
 class BodyReadings:
     """What a network says about each of N images: height (N,) m, mass (N,) kg (`body.measure`
-    of the estimated shape), roll (N,) deg (`roll_deg` of the estimated root) and, for a network
-    with a posture readout, the posture it reads."""
+    of the estimated shape), roll (N,) deg (`roll_deg` of the estimated root); for a network
+    with a posture readout, the posture it reads; for a heatmap network, each joint's heatmap
+    spread (N, 24) m (docs/network.md "How far to trust a joint")."""
 
     height_m: torch.Tensor
     mass_kg: torch.Tensor
     roll_deg: torch.Tensor
     readout: list[str] | None = None  # the network's posture readout (net.posture), if it has one
+    spread_m: torch.Tensor | None = None
 
     @property
     def postures(self) -> list[str]:
@@ -49,7 +51,7 @@ class BodyReadings:
 def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, batch: int = 32) -> BodyReadings:
     """Run a network (no gender given) on (N, 64, 27) mmHg images in batches; height_m and
     mass_kg (N,) are passed as inputs for networks that take them (ignored otherwise)."""
-    heights, masses, rolls, readout = [], [], [], []
+    heights, masses, rolls, readout, spreads = [], [], [], [], []
     with torch.no_grad():
         for lo in range(0, pressure_mmhg.shape[0], batch):
             p = pressure_mmhg[lo : lo + batch]
@@ -66,8 +68,14 @@ def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, b
             rolls.append(roll_deg(est.params.root_rotation.to(torch.float64)))
             if net.config.posture_head:
                 readout += [POSTURES[i] for i in est.localisation.posture_logits.argmax(-1).tolist()]
+            if est.localisation is not None:
+                spreads.append(est.localisation.spread_m2.clamp_min(0).sqrt())
     return BodyReadings(
-        torch.cat(heights), torch.cat(masses), torch.cat(rolls), readout if net.config.posture_head else None
+        torch.cat(heights),
+        torch.cat(masses),
+        torch.cat(rolls),
+        readout if net.config.posture_head else None,
+        torch.cat(spreads) if spreads else None,
     )
 
 
