@@ -155,3 +155,24 @@ def test_to_swap_pairs():
     read = torch.tensor([0, 3, 1, 2, 0, 2, 3, 1])
     swap = to_swap(roll, torch.nn.functional.one_hot(read, 4).float())
     assert swap.tolist() == [False, True, False, False, True, True, False, True]
+
+
+def test_prediction_figure_marks_each_joint_by_its_spread_band(tmp_path):
+    """`viz.prediction`: every joint lands in exactly one trust band (edges to the band above),
+    and the figure is written with and without spreads."""
+    import matplotlib.pyplot as plt
+
+    from pressurepose.mat import MatSpec
+    from pressurepose.viz.prediction import TRUST_BANDS, _trust, plot_prediction
+
+    spread = np.array([0.02] * 5 + [0.10] * 7 + [0.2499] * 3 + [0.25] * 4 + [0.6] * 5)
+    fig, ax = plt.subplots()
+    _trust(ax, np.arange(24.0), np.arange(24.0), spread)
+    counts = [len(line.get_xdata()) for line in ax.lines]
+    plt.close(fig)
+    assert len(counts) == len(TRUST_BANDS) and counts == [5, 10, 9]
+    joints = np.zeros((24, 3)) + [0.9, 0.4, 0.1]
+    vertices = np.random.default_rng(0).normal([0.9, 0.4, 0.1], 0.1, (500, 3))
+    for name, s in (("with", spread), ("without", None)):
+        path = plot_prediction(tmp_path / f"{name}.png", np.zeros((64, 27)), vertices, joints, MatSpec(), name, s)
+        assert path.stat().st_size > 10_000

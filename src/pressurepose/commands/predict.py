@@ -10,7 +10,8 @@ reaches the mat's head row, its foot row, both or neither - a body the mat cuts 
 length, and its height is then read from its proportions: docs/network.md),
 OUT/<name>.ply (the mesh, mat frame, metres; or .obj / .glb with --mesh-format, written by
 trimesh) and OUT/<name>.png (the pressure image with the
-projected skeleton, top and side views of the mesh). <name> is the file's stem, with
+projected skeleton, each joint marked by its heatmap spread's band for a heatmap network, top and
+side views of the mesh). <name> is the file's stem, with
 _<index> for files holding several images.
 """
 
@@ -149,9 +150,10 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
         "load_ends": load_ends(image[None])[0],
     }
     loc = est.localisation
+    spread = None
     if loc is not None:  # how sharply each joint's heatmap pins it: large where the image shows it not
-        spread = loc.spread_m2[i].detach().double().clamp_min(0).sqrt().tolist()
-        record["joint_spread_m"] = dict(zip(J24_NAMES, spread))
+        spread = loc.spread_m2[i].detach().double().clamp_min(0).sqrt().cpu().numpy()
+        record["joint_spread_m"] = dict(zip(J24_NAMES, spread.tolist()))
     if loc is not None and loc.posture_logits is not None:  # the network's posture readout
         prob = torch.softmax(loc.posture_logits[i].detach().double(), -1).tolist()
         record["posture_readout"] = dict(zip(POSTURES, prob))
@@ -160,7 +162,9 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
     if cfg.meshes:
         atomic_write(out / f"{name}.{cfg.mesh_format}", lambda tmp: write_mesh(tmp, vertices, faces))
     if cfg.figures:
-        atomic_write(out / f"{name}.png", lambda tmp: plot_prediction(tmp, image, vertices, joints, net.mat, name))
+        atomic_write(
+            out / f"{name}.png", lambda tmp: plot_prediction(tmp, image, vertices, joints, net.mat, name, spread)
+        )
 
 
 def write_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:

@@ -23,14 +23,38 @@ def _bones(ax, u: np.ndarray, v: np.ndarray, color: str = "crimson") -> None:
     ax.plot(u, v, "o", color=color, ms=2.5)
 
 
+# Heatmap spreads (m) that split a joint's trust (docs/network.md "How far to trust a joint": on
+# simulated images arm joints under 10 cm are ~4 cm off, 10-25 cm ~8-17, over 25 cm ~30).
+TRUST_BANDS = ((0.10, "lime", "< 10 cm"), (0.25, "gold", "10-25 cm"), (float("inf"), "red", ">= 25 cm"))
+
+
+def _trust(ax, u: np.ndarray, v: np.ndarray, spread_m: np.ndarray) -> None:
+    """Each joint marked by its heatmap spread's band, with a legend."""
+    lower = 0.0
+    for upper, color, label in TRUST_BANDS:
+        m = (spread_m >= lower) & (spread_m < upper)
+        ax.plot(u[m], v[m], "o", color=color, ms=4.5, mec="black", mew=0.5, label=label, ls="none")
+        lower = upper
+    ax.legend(title="heatmap spread", fontsize=6, title_fontsize=6, loc="lower right", framealpha=0.6)
+
+
 def plot_prediction(
-    path: str | Path, pressure_mmhg: np.ndarray, vertices: np.ndarray, joints: np.ndarray, mat: MatSpec, title: str = ""
+    path: str | Path,
+    pressure_mmhg: np.ndarray,
+    vertices: np.ndarray,
+    joints: np.ndarray,
+    mat: MatSpec,
+    title: str = "",
+    spread_m: np.ndarray | None = None,
 ) -> Path:
-    """pressure (64, 27) mmHg, vertices (V, 3) and joints (24, 3) in the mat frame (m). PNG."""
+    """pressure (64, 27) mmHg, vertices (V, 3) and joints (24, 3) in the mat frame (m); with
+    spread_m (24,), each joint on the pressure image marked by how sharply its heatmap pins it. PNG."""
     fig, (ax_p, ax_top, ax_side) = plt.subplots(1, 3, figsize=(11, 5), gridspec_kw={"width_ratios": [1, 1, 1.6]})
     im = ax_p.imshow(pressure_mmhg, cmap="magma", origin="upper", extent=(0, mat.cols, mat.rows, 0))
     rc = mat.to_taxel(joints[:, :2])
     _bones(ax_p, rc[:, 1], rc[:, 0], "cyan")
+    if spread_m is not None:
+        _trust(ax_p, rc[:, 1], rc[:, 0], np.asarray(spread_m))
     ax_p.set_xlim(0, mat.cols)
     ax_p.set_ylim(mat.rows, 0)
     ax_p.set_title("pressure + skeleton")
