@@ -64,7 +64,7 @@ def main() -> None:
             true = b["joints"].float()[:, idx]
             errs.append((net.body(est).joints[:, idx] - true).norm(dim=-1))
             seen.append(seen_joints(b["pressure_mmhg"], true, args.height_m, mat))
-            parts += [p for p, _ in labels]
+            parts += [label[0] for label in labels]
     E, S, parts = torch.cat(errs).numpy() * 100, torch.cat(seen).numpy(), np.array(parts)
     print(f"{len(E)} test samples of {args.data}, model {args.model}; errors in cm")
     print("| region | mean | seen joints | mean seen (median) | mean unseen (median) | unseen share of the error |")

@@ -115,6 +115,14 @@ def test_compare_synthetic_refuses_other_samples():
         compare_synthetic(dict(a, load_ends=["neither"] * 10), dict(b, load_ends=["both"] + ["neither"] * 9))
     with pytest.raises(NotComparable, match=">= 2"):
         compare_synthetic({k: v[:1] for k, v in a.items()}, {k: v[:1] for k, v in b.items()})
+    # reports with sample ids: the same shards, rows, seeds and indices, wherever the dataset lies
+    ids = [{"dataset": "/x", "shard": "test-s-00000", "row": i, "seed": 3, "index": 100 + i} for i in range(10)]
+    moved = [dict(s, dataset="/elsewhere") for s in ids]
+    assert compare_synthetic(dict(a, sample_id=ids), dict(b, sample_id=moved))["samples"] == 10
+    other = ids[:9] + [dict(ids[9], index=7)]
+    with pytest.raises(NotComparable, match="shards, rows or seeds"):
+        compare_synthetic(dict(a, sample_id=ids), dict(b, sample_id=other))
+    assert compare_synthetic(dict(a, sample_id=[None] * 10), dict(b, sample_id=[None] * 10))["samples"] == 10
     lone = compare_synthetic(
         dict(a, partition=["supine"] * 9 + ["general"]), dict(b, partition=["supine"] * 9 + ["general"])
     )

@@ -91,6 +91,27 @@ def test_report_end_to_end(tiny):
         for w in LOAD_ENDS
     ]
     assert "| " + " | ".join(cells) + " |" in text and "## Height error by where the load lies" in text
+    # .npz samples have no shards or generator's coordinates: no ids, no table of where they live
+    assert per["sample_id"] == [None] * n and all(f["sample_id"] is None for f in record["failures"])
+    assert "initial pose again" not in text
+
+
+def test_failure_table_names_the_shard_and_the_command_that_redraws_the_pose():
+    from pressurepose.commands.evaluate import _failure_table
+
+    sid = {"shard": "test-general-male-over-00002", "row": 7, "seed": 52, "partition": "general"}
+    rows = _failure_table(
+        [
+            {"index": 3, "vpe_m": 0.0912, "sample_id": dict(sid, gender="male", over_bed=True, index=4294967301)},
+            {"index": 9, "vpe_m": 0.05, "sample_id": None},
+        ]
+    )
+    assert rows[2] == (
+        "| 3 | 9.12 | test-general-male-over-00002, 7 | `pressurepose sample --seed 52 --partition general "
+        "--gender male --over-bed --start 4294967301 --n 1` |"
+    )
+    assert rows[3] == "| 9 | 5.00 | - | - |"
+    assert _failure_table([{"index": 0, "vpe_m": 0.1, "sample_id": None}]) == []
 
 
 def test_height_by_load_ends_by_hand():

@@ -685,3 +685,36 @@ def test_a_lying_reference_posture_is_pinned_only_when_set(monkeypatch):
         articulated, "ArticulatedConfig", lambda: dataclasses.replace(base(), lying_extension=(("neck", 0.4),))
     )
     assert _settings(cfg, {})["articulated_joints"]["lying_extension"] == [["neck", 0.4]]
+
+
+def test_evaluate_sample_ids_locate_and_redraw_the_samples(reference, anny64):
+    """`eval.evaluation.sample_ids`: every sample's shard, row, seed, partition, gender, over_bed
+    and sampler index, checked against the dataset, and the initial pose drawn again from them
+    carries the sample's shape (the rest does not change the shape)."""
+    from pressurepose.eval.evaluation import _batches, open_split, sample_ids
+    from pressurepose.sampling.partitions import SamplingConfig
+    from pressurepose.sampling.sampler import PoseSampler
+
+    out, _ = reference
+    data = open_split(out, "train")
+    labels = [label for batch_labels, _ in _batches(data, 4, None) for label in batch_labels]
+    ids = sample_ids(data, [index for _, _, index in labels])
+    assert len(ids) == len(data) >= 2
+    for i, (sid, (partition, gender, index)) in enumerate(zip(ids, labels)):
+        shard, row = data.locate(i)
+        assert sid["shard"] == data.shards[shard]["id"] and sid["row"] == row and sid["seed"] == SMALL["seed"]
+        assert (sid["partition"], sid["gender"]) == (partition, gender)
+        assert sid["index"] == index == int(data[i]["index"])
+        sampler = PoseSampler(anny64, SamplingConfig(sid["partition"], sid["gender"], sid["over_bed"], sid["seed"]))
+        redrawn = sampler.sample([sid["index"]])
+        np.testing.assert_allclose(redrawn.params.shape[0].numpy(), data[i]["shape"].numpy(), rtol=0, atol=1e-12)
+    # a folder of two datasets: each sample keeps its own dataset and rows
+    both = out.parent / "both"
+    both.mkdir(exist_ok=True)
+    for name in ("a", "b"):
+        if not (both / name).exists():
+            (both / name).symlink_to(out, target_is_directory=True)
+    two = open_split(both, "train")
+    ids2 = sample_ids(two, [None] * len(two))
+    assert [s["dataset"] for s in ids2] == [str(both / "a")] * len(data) + [str(both / "b")] * len(data)
+    assert [(s["shard"], s["row"]) for s in ids2] == [(s["shard"], s["row"]) for s in ids] * 2

@@ -166,7 +166,10 @@ def _write_report(
         # evaluate-real reports it for real frames: a reading of the body or of where it lies
         "height_by_load_ends": height_by_load_ends(rows["height_signed_m"], rows["load_ends"]),
         "cases": {k: {"index": i, "vpe_m": float(vpe[i])} for k, i in picks.items()},
-        "failures": [{"index": i, "vpe_m": float(vpe[i]), "partition": rows["partition"][i]} for i in failures],
+        "failures": [
+            {"index": i, "vpe_m": float(vpe[i]), "partition": rows["partition"][i], "sample_id": rows["sample_id"][i]}
+            for i in failures
+        ],
         "per_sample": {k: v for k, v in rows.items()},
         "seed_reference": "Bodies at Rest, Table 5 (synthetic test sets, best network)",
     }
@@ -280,8 +283,30 @@ def _markdown(r: dict) -> str:
         "",
         "![worst cases](failures.png)",
         "",
+        *_failure_table(r["failures"]),
     ]
     return "\n".join(lines)
+
+
+def _failure_table(failures: list[dict]) -> list[str]:
+    """Where the worst samples live and how to draw their initial poses again (generated data)."""
+    if not any(f.get("sample_id") for f in failures):
+        return []
+    lines = [
+        "| # (in the split) | 3DVPE (cm) | shard, row | initial pose again |",
+        "| --- | --- | --- | --- |",
+    ]
+    for f in failures:
+        s = f.get("sample_id")
+        if s is None:
+            lines.append(f"| {f['index']} | {f['vpe_m'] * 100:.2f} | - | - |")
+            continue
+        again = (
+            f"`pressurepose sample --seed {s['seed']} --partition {s['partition']} --gender {s['gender']}"
+            f"{' --over-bed' if s['over_bed'] else ''} --start {s['index']} --n 1`"
+        )
+        lines.append(f"| {f['index']} | {f['vpe_m'] * 100:.2f} | {s['shard']}, {s['row']} | {again} |")
+    return [*lines, ""]
 
 
 def evaluate(cfg: EvaluateConfig) -> None:

@@ -71,6 +71,12 @@ def mcnemar_exact(gained: int, lost: int) -> float:
     return 1.0 if n == 0 else float(stats.binomtest(gained, n, 0.5).pvalue)
 
 
+def _made_as(per_sample: dict) -> list:
+    """Each sample's shard, row, dataset seed and sampler index (`evaluate`'s `sample_id`; the
+    dataset's folder left out: the same data may lie elsewhere)."""
+    return [None if s is None else (s["shard"], s["row"], s["seed"], s["index"]) for s in per_sample["sample_id"]]
+
+
 def compare_synthetic(a: dict, b: dict) -> dict:
     """`per_sample` columns of two `evaluate` reports of the same samples -> overall and per
     partition paired differences (a metric is compared when both reports hold it; partitions of
@@ -82,6 +88,8 @@ def compare_synthetic(a: dict, b: dict) -> dict:
         raise NotComparable("the two reports hold different samples (counts, partitions or genders differ)")
     if "load_ends" in a and "load_ends" in b and a["load_ends"] != b["load_ends"]:
         raise NotComparable("the two reports hold different images (where their loads lie differs)")
+    if "sample_id" in a and "sample_id" in b and _made_as(a) != _made_as(b):
+        raise NotComparable("the two reports hold different samples (their shards, rows or seeds differ)")
     metrics = [m for m in SYNTHETIC_METRICS if m in a and m in b]
     out = {"samples": n, "overall": {}, "by_partition": {}, "partitions_left_out": {}}
     for m in metrics:

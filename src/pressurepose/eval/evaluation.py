@@ -63,18 +63,60 @@ def _item_label(item: dict, key: str, default: str) -> str:
 
 
 def _batches(dataset, batch: int, limit: int | None):
-    """(labels, tensor batch) over the dataset in order."""
+    """(labels, tensor batch) over the dataset in order; labels (partition, gender, the
+    generator's sampler index or None) per sample."""
     n = len(dataset) if limit is None else min(limit, len(dataset))
     for lo in range(0, n, batch):
         items = [dataset[i] for i in range(lo, min(lo + batch, n))]
-        labels = [(_item_label(it, "partition", "unknown"), _item_label(it, "gender", "unknown")) for it in items]
+        labels = [
+            (
+                _item_label(it, "partition", "unknown"),
+                _item_label(it, "gender", "unknown"),
+                int(it["index"]) if "index" in it else None,
+            )
+            for it in items
+        ]
         std = [standardise(it) for it in items]
         yield labels, {k: torch.stack([s[k] for s in std]) for k in std[0]}
 
 
 def open_split(data: Path, split: str):
-    """A split of a generated dataset (with its partition labels) or .npz files."""
-    return open_dataset(data, split=split, extra_columns=("partition",))
+    """A split of a generated dataset (with its partition labels and sampler indices) or .npz files."""
+    return open_dataset(data, split=split, extra_columns=("partition", "index"))
+
+
+def sample_ids(dataset, indices: list[int | None]) -> list[dict | None]:
+    """Where each of the first len(indices) samples of an `open_split` dataset lives - its dataset
+    folder, shard and row - and what the generator made it from: the dataset's seed, the shard's
+    partition, gender and over_bed, and the sampler index (`indices`, from `_batches`), so that
+    `pressurepose sample --seed SEED --partition P --gender G [--over-bed] --start INDEX --n 1`
+    draws its initial pose again. None for samples of .npz files."""
+    parts = dataset.datasets if isinstance(dataset, torch.utils.data.ConcatDataset) else [dataset]
+    ids: list[dict | None] = []
+    for part in parts:
+        take = min(len(part), len(indices) - len(ids))
+        if take <= 0:
+            break
+        if not hasattr(part, "locate"):  # .npz: no shards, no generator's coordinates
+            ids += [None] * take
+            continue
+        seed = part.manifest.get("config", {}).get("seed")
+        for i in range(take):
+            s, row = part.locate(i)
+            shard = part.shards[s]
+            ids.append(
+                {
+                    "dataset": str(part.root),
+                    "shard": shard["id"],
+                    "row": row,
+                    "seed": seed,
+                    "partition": shard["partition"],
+                    "gender": shard["gender"],
+                    "over_bed": bool(shard["over_bed"]),
+                    "index": indices[len(ids)],
+                }
+            )
+    return ids
 
 
 def check_backend(net, dataset, data: Path) -> None:
@@ -154,8 +196,9 @@ def _sample_metrics(
 @dataclasses.dataclass(frozen=True)
 class Evaluation:
     """Per-sample metrics of a network on a dataset: `rows[metric]` (N,) lists (METRICS, the
-    joint error per region, the signed height error `height_signed_m`, and the partition, gender
-    and `load_ends` labels), `baselines[name]` the baselines' 3DVPE (N,) (empty without a
+    joint error per region, the signed height error `height_signed_m`, the partition, gender
+    and `load_ends` labels, and `sample_id`: where each sample lives and how it was made,
+    `sample_ids`), `baselines[name]` the baselines' 3DVPE (N,) (empty without a
     training set), the estimated bodies and the seconds it took."""
 
     rows: dict[str, list]
@@ -184,6 +227,7 @@ def evaluate_network(
         mean_facing = None if mean_body is None else M.facing_meshes(body(mean_body).vertices, body.faces)
 
     rows: dict[str, list] = {"partition": [], "gender": [], "load_ends": []}
+    indices: list[int | None] = []
     base_rows: dict[str, list] = {"mean_body": [], "nearest_image": []}
     estimates = []  # BodyParams per batch: the figures re-pose the few samples they show
     t0 = time.perf_counter()
@@ -201,8 +245,9 @@ def evaluate_network(
             res = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure, true_facing)
             for k, v in res.items():
                 rows.setdefault(k, []).extend(v.tolist())
-            rows["partition"] += [p for p, _ in labels]
-            rows["gender"] += [g for _, g in labels]
+            rows["partition"] += [p for p, _, _ in labels]
+            rows["gender"] += [g for _, g, _ in labels]
+            indices += [i for _, _, i in labels]
             rows["load_ends"] += load_ends(b["pressure_mmhg"].numpy())
             estimates.append(est)
             if mean_body is not None:
@@ -215,6 +260,7 @@ def evaluate_network(
             done += len(labels)
             if on_batch is not None:
                 on_batch(done)
+    rows["sample_id"] = sample_ids(test, indices)
     return Evaluation(rows, base_rows, BodyParams.cat(estimates), time.perf_counter() - t0)
 
 
