@@ -3,9 +3,10 @@
     PYTHONPATH=src .venv/bin/python benchmarks/joint_spread.py --model default --data DATASET \
         [--n N] [--pmatdata pmatdata]
 
-For every J24 joint of a generated dataset's test split: the heatmap's spread (the standard
-deviation of its probability over the mat grid, `Localisation.spread_m2`; `predict` writes it per
-joint as `joint_spread_m`) and the error of the estimated body's joint (after the IK). Prints, per
+For every J24 joint of a generated dataset's test split: the heatmap's spread (the RMS distance of
+its probability from its mean over the mat grid, the square root of `Localisation.spread_m2`;
+`predict` writes it per joint as `joint_spread_m`) and the error of the estimated body's joint
+(after the IK), the image read alone (no gender, height or mass, as `predict` reads it). Prints, per
 region, the rank correlation of the two and the error in bands of spread; with --pmatdata, the
 share of real frames' joints (PmatData experiment II, groups B-D, distinct frames) in each band
 beside the simulated share (real frames have no joint labels: what their spreads say is how often

@@ -9,7 +9,7 @@ import torch
 
 from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat
-from pressurepose.body.limits import JointLimits
+from pressurepose.body.limits import ALPHA, JointLimits
 from pressurepose.body.params import BodyParams
 from pressurepose.body.rotations import axis_angle_to_matrix
 from pressurepose.mat import MatSpec
@@ -426,7 +426,8 @@ def test_fused_fit_matches_the_reference_steps(batch):
     limits = JointLimits.default(f64)
     rest, p = _random_body(batch, seed=8, scale=0.3)
     p = p.replace(pose=limits.squash(p.pose))
-    p.pose[0, 4] = limits.upper[4]  # an angle on a limit: free_pose takes it from just inside
+    inflated_upper = (limits.lower + limits.upper) / 2 + ALPHA * (limits.upper - limits.lower) / 2
+    p.pose[0, 4] = inflated_upper[4]  # on the inflated limit: free_pose takes it from just inside
     _, target_params = _random_body(batch, seed=9, scale=0.3)
     target = pose_in_mat(rest, target_params)[1]
     weights = torch.rand(batch, NUM_JOINTS, dtype=f64, generator=torch.Generator().manual_seed(10)) + 0.1
@@ -459,16 +460,35 @@ def test_rotations_and_left_jacobians_match_the_separate_formulas(dtype, atol):
     torch.testing.assert_close(J_l, left_jacobian(phi.double()).to(dtype), rtol=0, atol=atol)
 
 
-def test_fit_to_joints_with_autograd_runs_the_differentiable_steps(anny64):
+def test_fit_to_joints_with_autograd_runs_the_differentiable_steps(anny64, monkeypatch):
     """With a tensor that wants gradients `fit_to_joints` runs `ik_step` (gradients reach the
     targets), and its answer equals the fused one's."""
+    from pressurepose.net import ik_inference
+
+    fused_fit = ik_inference.fit
     rest, p = _random_body(2, seed=12, scale=0.2)
     p = p.replace(shape=torch.full((2, 6), 0.5, dtype=f64), pose=JointLimits.default(f64).squash(p.pose))
     target = anny64.joints(p.replace(root_translation=p.root_translation + 0.03)).detach()
+    calls = []
+    monkeypatch.setattr(ik_inference, "fit", lambda *a, **k: calls.append(1) or fused_fit(*a, **k))
     fused = fit_to_joints(anny64, p, target)
+    assert len(calls) == 1  # nothing wanted gradients: the fused steps ran
     wanting = target.clone().requires_grad_()
     ref = fit_to_joints(anny64, p, wanting)
+    assert len(calls) == 1  # a target wanting gradients: the differentiable steps, not the fused ones
     ref.pose.sum().backward()
     assert wanting.grad is not None and float(wanting.grad.abs().sum()) > 0
     for name in ("root_translation", "root_rotation", "pose"):
         torch.testing.assert_close(getattr(fused, name), getattr(ref, name).detach(), rtol=0, atol=1e-10)
+
+
+def test_fit_to_joints_refuses_badly_shaped_weights_and_poses(anny32):
+    """Both paths get the same one-line ValueError for inputs of the wrong shape."""
+    p = BodyParams.zeros(2, torch.full((2, 6), 0.5))
+    target = torch.zeros(2, NUM_JOINTS, 3)
+    for weights in (torch.ones(2, NUM_JOINTS, 1), torch.ones(1, NUM_JOINTS), torch.ones(NUM_JOINTS), torch.ones(2, 23)):
+        for w in (weights, weights.clone().requires_grad_()):
+            with pytest.raises(ValueError, match=r"weights must have shape \(2, 24\)"):
+                fit_to_joints(anny32, p, target, w)
+    with pytest.raises(ValueError, match=r"params.pose must have shape \(2, 23, 3\)"):
+        fit_to_joints(anny32, p.replace(pose=torch.zeros(2, 24, 3)), target)

@@ -83,6 +83,8 @@ def test_posture_head_in_the_network(anny32):
 
 def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
     net = _net(anny32)
+    with torch.no_grad():  # peaked heatmaps: each joint's spread its own (flat ones all read ~0.57 m)
+        net.mod1.maps.weight.mul_(300.0)
     save_model(tmp_path / "run", net, {"train": {}, "net": dict(net.config.__dict__)})
     loaded, _ = load_network(tmp_path / "run", body=anny32)
     assert loaded.config.posture_head
@@ -101,6 +103,7 @@ def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
         loc = loaded(NetInputs(images), mesh=False)[0].localisation
     assert readings.readout == [POSTURES[i] for i in loc.posture_logits.argmax(-1).tolist()]
     torch.testing.assert_close(readings.spread_m, loc.spread_m2.sqrt(), rtol=1e-5, atol=1e-7)
+    assert float(readings.spread_m.std()) > 0.005  # the spreads differ from joint to joint and image to image
     image = torch.rand(64, 27).numpy() * 40
     np.save(tmp_path / "a.npy", image)
     assert main(["predict", "--model", str(tmp_path / "run"), "--out", str(tmp_path / "pred"), str(tmp_path / "a.npy"), "--no-figures"]) == 0  # fmt: skip

@@ -228,7 +228,7 @@ class AnnyBody(AnnyInference, BodyModel):
     def validate_shape(self, shape: torch.Tensor) -> None:
         if not all_finite(shape):
             raise ValueError("shape (Anny phenotypes) contains NaN or infinite values")
-        lo, hi = (float(v) for v in torch.aminmax(shape))
+        lo, hi = (float(v) for v in torch.aminmax(shape.detach()))
         if lo < 0 or hi > 1:
             bad = ((shape < 0) | (shape > 1)).any(0).nonzero().flatten().tolist()
             names = ", ".join(ANNY_SHAPE_NAMES[i] for i in bad)

@@ -4,7 +4,8 @@ Every input file is read and checked first (`net.inputs`), so a bad file stops t
 before anything is written. Images then go through the network in batches; per image
 OUT/<name>.json (parameters by name, J24 joints, height and mass of the estimated shape; the
 posture readout's probabilities for a network with one; for a heatmap network `joint_spread_m`, each
-joint's heatmap spread on the mat, which tells a joint the image pins down from one it guesses
+joint's heatmap spread on the mat (its RMS distance from its mean, m), which tells a joint the image
+pins down from one it guesses
 (docs/network.md "How far to trust a joint"); `load_ends`, whether the image's load
 reaches the mat's head row, its foot row, both or neither - a body the mat cuts shows less of its
 length, and its height is then read from its proportions: docs/network.md),

@@ -15,7 +15,7 @@ locked axes barely move); the prior then reads |u - u_0|. A projection (solve fr
 was tried first: it stalled ~1 cm from reachable targets. The Jacobian is analytic,
 so a step needs no autograd yet is itself differentiable (gradcheck in float64,
 tests/test_heatmap.py). Without autograd `fit_to_joints` runs the same steps fused
-(`ik_inference.fit`, ~3x faster at batch 1):
+(`ik_inference.fit`, ~2x faster at batch 1):
 
 - translation: dp_k / dt = I for every joint;
 - a rotation at joint j turns its strict descendants k about p_j: a perturbation d of its
@@ -204,8 +204,13 @@ def fit_to_joints(
     """`config.steps` IK steps from `params` towards the targets (B, 24, 3), the pose prior
     centred on params.pose, within the default joint limits (inflated by ALPHA, as the
     output head's). weights (B, 24), default 1."""
-    if target.shape != (params.batch_size, NUM_JOINTS, 3):
-        raise ValueError(f"target must have shape ({params.batch_size}, {NUM_JOINTS}, 3), got {tuple(target.shape)}")
+    B = params.batch_size
+    if target.shape != (B, NUM_JOINTS, 3):
+        raise ValueError(f"target must have shape ({B}, {NUM_JOINTS}, 3), got {tuple(target.shape)}")
+    if weights is not None and weights.shape != (B, NUM_JOINTS):
+        raise ValueError(f"weights must have shape ({B}, {NUM_JOINTS}), got {tuple(weights.shape)}")
+    if params.pose.shape != (B, NUM_POSE_JOINTS, 3):
+        raise ValueError(f"params.pose must have shape ({B}, {NUM_POSE_JOINTS}, 3), got {tuple(params.pose.shape)}")
     if config.steps == 0:
         return params
     rest = rest_joints(body, params.shape)
@@ -224,7 +229,6 @@ def fit_to_joints(
 
 
 __all__ = [
-    "DESCENDANTS",
     "IKConfig",
     "IKState",
     "fit_to_joints",

@@ -2,8 +2,9 @@
 
 The same damped Gauss-Newton steps as `ik.ik_step` (the reference, differentiable; the tests
 check the two agree to float64 round-off), written for a CPU at batch 1, where a step is
-per-operation overhead on small tensors: ~330 torch calls a step there, ~70 here (a fit of 3
-steps 6.2 -> 2.3 ms on the 2-core AMD EPYC, docs/benchmarks.md "Session 58"). How:
+per-operation overhead on small tensors: ~330 torch calls a step there, ~70 here
+(`fit_to_joints` with 3 steps, the shape pass kept: 6.2-7.4 -> 3.6 ms on the 2-core AMD EPYC,
+docs/benchmarks.md "Session 58"). How:
 
 - what the steps share is made once a fit: the limits' centres and half-widths, the square roots
   of the joints' weights, the lever-arm mask, the Jacobian's translation columns, the bone
@@ -85,7 +86,8 @@ def _constants(like: torch.Tensor) -> dict[str, torch.Tensor]:
 
 def rotations_and_left_jacobians(phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, n, 3) rotation vectors -> their rotation matrices and left Jacobians of SO(3),
-    (B, n, 3, 3) each, from shared terms (module doc). No autograd."""
+    (B, n, 3, 3) each, from shared terms (module doc). For `fit` (no autograd); differentiable
+    in form, but only `body.rotations` and `ik.left_jacobian` are tested for gradients."""
     c = _constants(phi)
     a2 = (phi * phi).sum(-1, keepdim=True)  # (B, n, 1)
     small = a2 < c["series_below"]
