@@ -26,7 +26,6 @@ from typing import Literal
 
 import numpy as np
 import torch
-import trimesh
 import tyro
 
 from pressurepose.body.joints import J24_NAMES
@@ -39,7 +38,6 @@ from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
 from pressurepose.net.posture import POSTURES
 from pressurepose.train.checkpoint import load_network
 from pressurepose.train.loop import pick_device
-from pressurepose.viz.prediction import plot_prediction
 
 GENDERS = {"female": 1.0, "male": 0.0, "unknown": GENDER_UNKNOWN}
 
@@ -163,6 +161,8 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
     if cfg.meshes:
         atomic_write(out / f"{name}.{cfg.mesh_format}", lambda tmp: write_mesh(tmp, vertices, faces))
     if cfg.figures:
+        from pressurepose.viz.prediction import plot_prediction  # matplotlib (~0.7 s) only when drawing
+
         atomic_write(
             out / f"{name}.png", lambda tmp: plot_prediction(tmp, image, vertices, joints, net.mat, name, spread)
         )
@@ -171,12 +171,16 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
 def write_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
     """A triangle mesh, vertices (V, 3) m and faces (F, 3), in the format of the file's suffix
     (.ply binary, .obj, .glb), every vertex kept in order."""
+    import trimesh  # ~0.9 s to import: only when meshes are written
+
     trimesh.Trimesh(np.asarray(vertices, dtype=np.float32), np.asarray(faces), process=False).export(path)
     return Path(path)
 
 
 def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """The (vertices (V, 3), faces (F, 3)) of a mesh file `write_mesh` wrote."""
+    import trimesh
+
     mesh = trimesh.load(path, process=False, force="mesh")
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
