@@ -25,9 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pressurepose.body.joints import J24_NAMES
 from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
-from pressurepose.eval.evaluation import REGIONS
+from pressurepose.eval.evaluation import TRUNK
 from pressurepose.eval.real import GROUP_POSTURE, posture_of, read_bodies, roll_deg
 from pressurepose.samples import PMATDATA, resolve_pmatdata
 from pressurepose.train.checkpoint import load_network
@@ -170,9 +169,6 @@ def probe_real(net, root: Path, groups: str) -> None:
         print(
             f"  {name:34s} accuracy {acc:.3f}  height {height:+5.1f} cm  supine read prone {prone:3d}{sure} | {groups_txt}"
         )
-
-
-TRUNK = [J24_NAMES.index(n) for n in (*REGIONS["head"], *REGIONS["torso"])]
 
 
 def _trunk_spread(read) -> str:

@@ -94,6 +94,11 @@ def test_report_end_to_end(tiny):
     # .npz samples have no shards or generator's coordinates: no ids, no table of where they live
     assert per["sample_id"] == [None] * n and all(f["sample_id"] is None for f in record["failures"])
     assert "initial pose again" not in text
+    # a network without heatmaps has no spreads to read, and its real-frame report says nothing of them
+    from pressurepose.eval.real import read_bodies
+    from pressurepose.train.checkpoint import load_network
+
+    assert read_bodies(load_network(run)[0], torch.from_numpy(images[:2])).spread_m is None
 
 
 def test_failure_table_names_the_shard_and_the_command_that_redraws_the_pose():

@@ -97,6 +97,12 @@ def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
             sum(f["readout_posture"] == f["posture"] for f in frames) / len(frames)
         )
     assert "posture readout" in (out / "real.md").read_text()
+    # the head and torso joints' heatmap spreads: per frame, and summarised per mattress from them
+    for mattress, s in record["by_mattress"].items():
+        frames = [f["trunk_spread_m"] for f in record["per_frame"] if f["mattress"] == mattress]
+        assert s["trunk_spread"]["median_m"] == pytest.approx(float(torch.tensor(frames).median()), rel=1e-6)
+        assert 0 <= s["trunk_spread"]["share_sure"] <= 1
+    assert "Heatmap spread of the head and torso joints" in (out / "real.md").read_text()
     images = torch.rand(12, 64, 27) * 40
     readings = read_bodies(loaded, images, batch=5)  # in batches smaller than N
     with torch.no_grad():
@@ -179,3 +185,12 @@ def test_prediction_figure_marks_each_joint_by_its_spread_band(tmp_path):
     for name, s in (("with", spread), ("without", None)):
         path = plot_prediction(tmp_path / f"{name}.png", np.zeros((64, 27)), vertices, joints, MatSpec(), name, s)
         assert path.stat().st_size > 10_000
+
+
+def test_spread_summary_by_hand():
+    from pressurepose.eval.real import spread_lines, spread_summary
+
+    spread = torch.tensor([[0.05, 0.08, 0.30], [0.12, 0.20, 0.02], [0.09, 0.11, 0.15]])
+    s = spread_summary(spread)  # frame medians 0.08, 0.12, 0.11 -> 0.11; 4 of 9 joints under 0.10
+    assert s == {"median_m": pytest.approx(0.11), "share_sure": pytest.approx(4 / 9)}
+    assert spread_lines({}) == [] and spread_lines({"air": s})[1].endswith("air 11.0 cm, 44% under 10 cm")

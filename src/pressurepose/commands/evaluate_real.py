@@ -2,16 +2,15 @@
 (issue 9, seed A.8); with `--data`, an imported real set with point clouds (3DVPE per
 participant).
 
-Real frames have no 3D labels, but PmatData knows each subject's posture (supine / left /
-right lateral), height and weight. The command runs a trained network on the frames and
-reports, per mattress (air, sponge): posture accuracy - the posture read from the estimated
-root orientation (`eval.real.posture_of`) - and the estimated height and mass against the
-subjects' values, with a confusion matrix and scatter plots.
+Real frames have no 3D labels, but PmatData knows each subject's posture (supine / left / right lateral),
+height and weight. The command runs a trained network on the frames and reports, per mattress (air,
+sponge): posture accuracy - the posture read from the estimated root orientation (`eval.real.posture_of`)
+- and the estimated height and mass against the subjects' values, with a confusion matrix and scatter
+plots; for a heatmap network, how sharply its heatmaps pin the head and torso (`eval.real.spread_summary`).
 
-Frames are normalised as the data's README says (empty level removed, noise threshold, summed
-force = the subject's weight, mmHg; `data.pmatdata.normalise`), clipped at 100 mmHg as the
-sensor model does. Gender is unknown to PmatData (given as 0.5); height and weight are given
-when the network takes them.
+Frames are normalised as the data's README says (empty level removed, noise threshold, summed force = the
+subject's weight, mmHg; `data.pmatdata.normalise`), clipped at 100 mmHg as the sensor model does. Gender
+is unknown to PmatData (given as 0.5); height and weight are given when the network takes them.
 
 With `--data FILE.npz` (written by `import-pressurepose-real`, or any .npz with
 pressure_mmhg, subject, cloud_points, cloud_offsets): the network estimates each frame's body
@@ -36,6 +35,7 @@ from pressurepose.commands.netopts import options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index, repeated_frames
 from pressurepose.errors import UserError
+from pressurepose.eval.evaluation import TRUNK
 from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
 from pressurepose.eval.real import (
     GROUP_POSTURE,
@@ -44,6 +44,8 @@ from pressurepose.eval.real import (
     load_ends,
     load_ends_table,
     read_bodies,
+    spread_lines,
+    spread_summary,
     subject_interval,
 )
 from pressurepose.eval.real_cloud import load_cloud_file
@@ -126,6 +128,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "mass_kg": r.weight_kg,
             "estimated_mass_kg": float(m),
             "load_reaches": ends[i],
+            **({} if read.spread_m is None else {"trunk_spread_m": float(read.spread_m[i, TRUNK].median())}),
         }
         for i, (r, e, a, h, m) in enumerate(zip(records, predicted, read.roll_deg, read.height_m, read.mass_kg))
     ]
@@ -155,6 +158,9 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             # The height error by whether the frame's load reaches the mat's ends (`load_ends`).
             "height_by_load_ends": height_by_load_ends(height_error, [r["load_reaches"] for r in sel]),
         }
+        if read.spread_m is not None:  # the head and torso joints' heatmap spreads
+            mine = [i for i, r in enumerate(rows) if r["mattress"] == mattress]
+            summary[mattress]["trunk_spread"] = spread_summary(read.spread_m[mine][:, TRUNK])
         if read.readout is not None:
             summary[mattress]["readout_accuracy"] = sum(r["posture"] == r["readout_posture"] for r in sel) / len(sel)
     variants = {}
@@ -202,6 +208,7 @@ def _markdown(r: dict) -> str:
             f"{s['height_median_signed_m'] * 100:+.1f} [{s['height_median_signed_ci_m'][0] * 100:+.1f}, "
             f"{s['height_median_signed_ci_m'][1] * 100:+.1f}] | {s['mass_mae_kg']:.1f} |"
         )
+    lines += spread_lines({k: s["trunk_spread"] for k, s in r["by_mattress"].items() if "trunk_spread" in s})
     for name, s in r["by_mattress"].items():
         lines += [
             "",

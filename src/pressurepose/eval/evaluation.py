@@ -44,6 +44,8 @@ REGIONS = {
     "arms": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("shoulder", "elbow", "wrist", "hand")),
     "legs": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("hip", "knee", "ankle", "foot")),
 }
+# The head and torso joints by J24 index: every simulated image pins them (their heatmap spreads)
+TRUNK = [J24_NAMES.index(n) for n in (*REGIONS["head"], *REGIONS["torso"])]
 METRICS = ("vpe_m", "v2v_m", "mpjpe_m", "pa_mpjpe_m", "root_pos_m", "root_rot_deg", "height_err_m", "mass_err_kg")
 PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
 PREDICTIONS = "predictions.npz"  # the estimated BodyParams per sample (write_predictions)
