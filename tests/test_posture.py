@@ -194,3 +194,22 @@ def test_spread_summary_by_hand():
     s = spread_summary(spread)  # frame medians 0.08, 0.12, 0.11 -> 0.11; 4 of 9 joints under 0.10
     assert s == {"median_m": pytest.approx(0.11), "share_sure": pytest.approx(4 / 9)}
     assert spread_lines({}) == [] and spread_lines({"air": s})[1].endswith("air 11.0 cm, 44% under 10 cm")
+
+
+def test_evaluate_reports_the_trunk_spread_of_a_heatmap_network(anny32, anny64, tmp_path):
+    """`evaluate` with a heatmap network: each sample's median head-and-torso spread, their summary
+    (the same `spread_summary` as evaluate-real) and its line in report.md."""
+    from pressurepose.commands.evaluate import EvaluateConfig, run_evaluate
+    from pressurepose.train.data import synthetic_arrays, write_npz
+
+    net = _net(anny32)
+    with torch.no_grad():
+        net.mod1.maps.weight.mul_(300.0)  # peaked heatmaps
+    save_model(tmp_path / "run", net, {"train": {}, "net": dict(net.config.__dict__)})
+    write_npz(tmp_path / "test.npz", synthetic_arrays(4, seed=5, body=anny64))
+    paths = run_evaluate(EvaluateConfig(model=tmp_path / "run", data=tmp_path / "test.npz", out=tmp_path / "r"))
+    record = json.loads(paths["json"].read_text())
+    per = record["per_sample"]["trunk_spread_m"]
+    assert len(per) == record["count"] and all(0.0 < v < 1.0 for v in per)
+    assert record["trunk_spread"]["median_m"] == pytest.approx(float(torch.tensor(per).median()), rel=1e-6)
+    assert "Heatmap spread of the head and torso joints" in paths["markdown"].read_text()

@@ -23,7 +23,7 @@ from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.eval import evaluation as E
 from pressurepose.eval.evaluation import METRICS, PREDICTIONS, REGIONS, SEED_SYNTH_VPE_CM, write_predictions
-from pressurepose.eval.real import height_by_load_ends, load_ends_table
+from pressurepose.eval.real import height_by_load_ends, load_ends_table, spread_lines
 from pressurepose.files import atomic_write, write_text
 from pressurepose.train.checkpoint import load_network
 from pressurepose.viz.evaluation import plot_cases
@@ -102,6 +102,7 @@ def run_evaluate(cfg: EvaluateConfig) -> Written:
         net.body.faces.numpy(),
         result.seconds,
         result.estimates,
+        result.trunk_spread,
     )
 
 
@@ -144,7 +145,14 @@ def _group_table(rows: dict, base: dict, key: str) -> list[dict]:
 
 
 def _write_report(
-    cfg: EvaluateConfig, rows: dict, base: dict, case, faces: np.ndarray, seconds: float, estimates: BodyParams
+    cfg: EvaluateConfig,
+    rows: dict,
+    base: dict,
+    case,
+    faces: np.ndarray,
+    seconds: float,
+    estimates: BodyParams,
+    trunk_spread: dict | None = None,
 ) -> Written:
     cfg.out.mkdir(parents=True, exist_ok=True)
     vpe = np.asarray(rows["vpe_m"])
@@ -165,6 +173,7 @@ def _write_report(
         # the signed height error by whether the image's load reaches the mat's ends, as
         # evaluate-real reports it for real frames: a reading of the body or of where it lies
         "height_by_load_ends": height_by_load_ends(rows["height_signed_m"], rows["load_ends"]),
+        "trunk_spread": trunk_spread,  # heatmap networks: how sharply the heatmaps pin the head and torso
         "cases": {k: {"index": i, "vpe_m": float(vpe[i])} for k, i in picks.items()},
         "failures": [
             {"index": i, "vpe_m": float(vpe[i]), "partition": rows["partition"][i], "sample_id": rows["sample_id"][i]}
@@ -266,6 +275,7 @@ def _markdown(r: dict) -> str:
         "as `evaluate-real` reports it for real frames.",
         "",
         *load_ends_table({r["config"]["split"]: r["height_by_load_ends"]}, "split"),
+        *spread_lines({r["config"]["split"]: r["trunk_spread"]} if r.get("trunk_spread") else {}),
     ]
     if has_base:
         lines += ["", "## Baselines (3DVPE, cm, mean / median)", ""]

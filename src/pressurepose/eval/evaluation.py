@@ -22,7 +22,7 @@ from pressurepose.body.params import BodyParams
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from pressurepose.errors import UserError
 from pressurepose.eval import metrics as M
-from pressurepose.eval.real import load_ends
+from pressurepose.eval.real import load_ends, spread_summary
 from pressurepose.files import atomic_write
 from pressurepose.net.model import NetInputs
 from pressurepose.train.data import open_dataset, standardise
@@ -207,6 +207,7 @@ class Evaluation:
     baselines: dict[str, list]
     estimates: BodyParams
     seconds: float
+    trunk_spread: dict | None = None  # heatmap networks: `eval.real.spread_summary` of the head and torso
 
 
 def evaluate_network(
@@ -230,6 +231,7 @@ def evaluate_network(
 
     rows: dict[str, list] = {"partition": [], "gender": [], "load_ends": []}
     indices: list[int | None] = []
+    trunk_spreads = []  # (B, 8) per batch, heatmap networks
     base_rows: dict[str, list] = {"mean_body": [], "nearest_image": []}
     estimates = []  # BodyParams per batch: the figures re-pose the few samples they show
     t0 = time.perf_counter()
@@ -243,7 +245,12 @@ def evaluate_network(
             inputs = NetInputs(
                 pressure_mmhg=b["pressure_mmhg"], gender=b["gender"], height_m=b["height_m"], mass_kg=b["mass_kg"]
             )
-            est = net(inputs, mesh=False)[-1].params
+            out = net(inputs, mesh=False)[-1]
+            est = out.params
+            if out.localisation is not None:  # how sharply the heatmaps pin the head and torso
+                spread = out.localisation.spread_m2[:, TRUNK].clamp_min(0).sqrt()
+                rows.setdefault("trunk_spread_m", []).extend(spread.median(1).values.tolist())
+                trunk_spreads.append(spread)
             res = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure, true_facing)
             for k, v in res.items():
                 rows.setdefault(k, []).extend(v.tolist())
@@ -263,7 +270,8 @@ def evaluate_network(
             if on_batch is not None:
                 on_batch(done)
     rows["sample_id"] = sample_ids(test, indices)
-    return Evaluation(rows, base_rows, BodyParams.cat(estimates), time.perf_counter() - t0)
+    spread = spread_summary(torch.cat(trunk_spreads)) if trunk_spreads else None
+    return Evaluation(rows, base_rows, BodyParams.cat(estimates), time.perf_counter() - t0, spread)
 
 
 def case_meshes(body, test, estimates: BodyParams, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
