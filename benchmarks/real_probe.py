@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.body.joints import TRUNK_JOINTS
 from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
-from pressurepose.eval.evaluation import TRUNK
 from pressurepose.eval.real import GROUP_POSTURE, posture_of, read_bodies, roll_deg
 from pressurepose.samples import PMATDATA, resolve_pmatdata
 from pressurepose.train.checkpoint import load_network
@@ -176,7 +176,7 @@ def _trunk_spread(read) -> str:
     of them under 10 cm (docs/network.md "How far to trust a joint")."""
     if read.spread_m is None:
         return ""
-    s = read.spread_m[:, TRUNK] * 100
+    s = read.spread_m[:, list(TRUNK_JOINTS)] * 100
     return f"  trunk spread {float(s.median()):4.1f} cm ({float((s < 10).double().mean()) * 100:3.0f}% < 10)"
 
 

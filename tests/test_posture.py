@@ -114,7 +114,13 @@ def test_readout_in_evaluate_real_and_predict(anny32, tmp_path):
     np.save(tmp_path / "a.npy", image)
     assert main(["predict", "--model", str(tmp_path / "run"), "--out", str(tmp_path / "pred"), str(tmp_path / "a.npy"), "--no-figures"]) == 0  # fmt: skip
     record = json.loads((tmp_path / "pred" / "a.json").read_text())
+    header, row = (tmp_path / "pred" / "predictions.csv").read_text().splitlines()
+    assert header == "image,posture,roll_deg,height_m,mass_kg,load_ends,trunk_spread_m,readout_posture"
     readout = record["posture_readout"]
+    assert row.split(",")[-1] == max(readout, key=readout.get)
+    trunk = [record["joint_spread_m"][n] for n in ("neck", "head", "pelvis", "spine1", "spine2", "spine3")]
+    trunk += [record["joint_spread_m"][n] for n in ("left_collar", "right_collar")]
+    assert float(row.split(",")[-2]) == pytest.approx(sorted(trunk)[3], abs=1e-4)  # torch's median: the lower middle
     assert list(readout) == list(POSTURES) and sum(readout.values()) == pytest.approx(1.0)
     # each joint's heatmap spread: the localisation's, as a standard deviation in metres
     with torch.no_grad():

@@ -11,7 +11,7 @@ import torch
 from pressurepose.cli import main
 from pressurepose.commands.predict import read_mesh
 from pressurepose.commands.train import run_train as train  # the loop + metrics.png
-from pressurepose.eval.real import LOAD_ENDS, load_ends
+from pressurepose.eval.real import LOAD_ENDS, load_ends, posture_of, roll_deg
 from pressurepose.net import NetConfig, NetInputs, PressureNet
 from pressurepose.train.checkpoint import load_network, save_model
 from pressurepose.train.config import TrainConfig
@@ -357,9 +357,20 @@ def test_predict_writes_params_meshes_and_figures(trained_run, data32, tmp_path,
         assert record["shape"]["gender"] == 1.0 and 30 < record["mass_kg"] < 160
         assert record["load_ends"] in LOAD_ENDS
         assert "joint_spread_m" not in record  # a network without heatmaps has no spreads to report
+        rr = torch.tensor([record["root_rotation_axis_angle"]], dtype=torch.float64)
+        assert record["roll_deg"] == pytest.approx(float(roll_deg(rr)[0]), abs=1e-6)
+        assert record["posture"] == posture_of(torch.tensor([record["roll_deg"]]))[0]
         v, f = read_mesh(out / f"{n}.ply")
         assert v.shape == (anny32.num_vertices, 3) and f.shape == tuple(anny32.faces.shape)
         assert (out / f"{n}.png").stat().st_size > 10_000
+    # One row per image, in input order: the JSONs' posture, height, mass and where the load lies.
+    table = (out / "predictions.csv").read_text().splitlines()
+    assert table[0] == "image,posture,roll_deg,height_m,mass_kg,load_ends" and len(table) == 1 + len(names)
+    for n, line in zip(names, table[1:]):
+        record = json.loads((out / f"{n}.json").read_text())
+        cells = line.split(",")
+        assert cells[:2] == [n, record["posture"]] and cells[5] == record["load_ends"]
+        assert float(cells[3]) == pytest.approx(record["height_m"], abs=1e-4)
     # The same image gives the same answer whatever file and batch it came in.
     a, b = (json.loads((out / f"{n}.json").read_text()) for n in ("one", "stack_0000"))
     assert a["root_translation_m"] == pytest.approx(b["root_translation_m"], abs=1e-6)

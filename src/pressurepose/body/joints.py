@@ -77,6 +77,17 @@ def _mirror_name(name: str) -> str:
     return name
 
 
+# The joints by body region, as the error reports group them (`eval.evaluation`).
+J24_REGIONS: dict[str, tuple[str, ...]] = {
+    "head": ("neck", "head"),
+    "torso": ("pelvis", "spine1", "spine2", "spine3", "left_collar", "right_collar"),
+    "arms": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("shoulder", "elbow", "wrist", "hand")),
+    "legs": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("hip", "knee", "ankle", "foot")),
+}
+# The head and torso joints by index: every simulated image pins them (their heatmap spreads say
+# how sure a network is where a body lies, docs/network.md "How far to trust a joint").
+TRUNK_JOINTS: tuple[int, ...] = tuple(J24_NAMES.index(n) for n in (*J24_REGIONS["head"], *J24_REGIONS["torso"]))
+
 # Index of each joint's left/right counterpart (itself on the midline).
 J24_MIRROR: tuple[int, ...] = tuple(J24_NAMES.index(_mirror_name(n)) for n in J24_NAMES)
 

@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pressurepose.body.joints import TRUNK_JOINTS
 from pressurepose.commands.netopts import options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index, repeated_frames
 from pressurepose.errors import UserError
-from pressurepose.eval.evaluation import TRUNK
 from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
 from pressurepose.eval.real import (
     GROUP_POSTURE,
@@ -113,6 +113,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     seconds = time.perf_counter() - t0
     predicted = read.postures
     ends = load_ends(images.numpy())
+    trunk = None if read.spread_m is None else read.spread_m[:, list(TRUNK_JOINTS)]  # heatmap networks
     rows = [
         {
             "file": _rel(r, cfg),
@@ -128,7 +129,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             "mass_kg": r.weight_kg,
             "estimated_mass_kg": float(m),
             "load_reaches": ends[i],
-            **({} if read.spread_m is None else {"trunk_spread_m": float(read.spread_m[i, TRUNK].median())}),
+            **({} if trunk is None else {"trunk_spread_m": float(trunk[i].median())}),
         }
         for i, (r, e, a, h, m) in enumerate(zip(records, predicted, read.roll_deg, read.height_m, read.mass_kg))
     ]
@@ -158,9 +159,8 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
             # The height error by whether the frame's load reaches the mat's ends (`load_ends`).
             "height_by_load_ends": height_by_load_ends(height_error, [r["load_reaches"] for r in sel]),
         }
-        if read.spread_m is not None:  # the head and torso joints' heatmap spreads
-            mine = [i for i, r in enumerate(rows) if r["mattress"] == mattress]
-            summary[mattress]["trunk_spread"] = spread_summary(read.spread_m[mine][:, TRUNK])
+        if trunk is not None:  # how sharply the heatmaps pin the head and torso
+            summary[mattress]["trunk_spread"] = spread_summary(trunk[[r["mattress"] == mattress for r in rows]])
         if read.readout is not None:
             summary[mattress]["readout_accuracy"] = sum(r["posture"] == r["readout_posture"] for r in sel) / len(sel)
     variants = {}

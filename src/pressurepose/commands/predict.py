@@ -3,6 +3,7 @@
 Every input file is read and checked first (`net.inputs`), so a bad file stops the run
 before anything is written. Images then go through the network in batches; per image
 OUT/<name>.json (parameters by name, J24 joints, height and mass of the estimated shape; the
+posture - supine, left, right or prone - read from the body's roll, as evaluate-real reads it; the
 posture readout's probabilities for a network with one; for a heatmap network `joint_spread_m`, each
 joint's heatmap spread on the mat (its RMS distance from its mean, m), which tells a joint the image
 pins down from one it guesses
@@ -13,7 +14,10 @@ OUT/<name>.ply (the mesh, mat frame, metres; or .obj / .glb with --mesh-format, 
 trimesh) and OUT/<name>.png (the pressure image with the
 projected skeleton, each joint marked by its heatmap spread's band for a heatmap network, top and
 side views of the mesh). <name> is the file's stem, with
-_<index> for files holding several images.
+_<index> for files holding several images. Last, OUT/predictions.csv: one row per image in input
+order (posture, roll, height, mass, where the load lies; the head and torso joints' median heatmap
+spread and the readout's posture when the network has them) - a recording at a glance; a run that
+stops early leaves none.
 """
 
 from __future__ import annotations
@@ -28,10 +32,10 @@ import numpy as np
 import torch
 import tyro
 
-from pressurepose.body.joints import J24_NAMES
+from pressurepose.body.joints import J24_NAMES, TRUNK_JOINTS
 from pressurepose.commands.netopts import with_inference_options
 from pressurepose.errors import UserError
-from pressurepose.eval.real import load_ends
+from pressurepose.eval.real import load_ends, posture_of, roll_deg
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import read_pressure_file
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
@@ -114,6 +118,7 @@ def run_predict(cfg: PredictConfig) -> dict:
         raise UserError("this network takes height and mass as inputs: give --height-m and --mass-kg")
     out.mkdir(parents=True, exist_ok=True)
     t_net = 0.0
+    table = []  # one row per image: OUT/predictions.csv, written last (a run that stops leaves none)
     for start in range(0, len(items), cfg.batch_size):
         chunk = items[start : start + cfg.batch_size]
         B = len(chunk)
@@ -127,12 +132,27 @@ def run_predict(cfg: PredictConfig) -> dict:
             est = net(inputs, mesh=True, maps=False)[-1]
             t_net += time.perf_counter() - t0
             measured = net.body.measure(est.params.shape)
+        rolls = roll_deg(est.params.root_rotation.detach().double().cpu())
         for i, (name, image) in enumerate(chunk):
-            _write_one(out, name, image, est, measured, i, net, cfg)
+            table.append(_write_one(out, name, image, est, measured, i, net, cfg, float(rolls[i])))
+    _write_table(out / "predictions.csv", table)
     return {"images": len(items), "out": str(out), "network_ms_per_image": 1000 * t_net / len(items)}
 
 
-def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, net, cfg: PredictConfig) -> None:
+def _write_table(path: Path, rows: list[dict]) -> Path:
+    """The images' summaries as CSV, one row each, in input order (a night's recording at a glance)."""
+    columns = list(dict.fromkeys(k for row in rows for k in row))
+    lines = [",".join(columns)]
+    for row in rows:
+        cells = [row.get(k, "") for k in columns]
+        lines.append(",".join(f"{c:.4f}" if isinstance(c, float) else str(c) for c in cells))
+    return write_text(path, "\n".join(lines) + "\n")
+
+
+def _write_one(
+    out: Path, name: str, image: np.ndarray, est, measured, i: int, net, cfg: PredictConfig, roll: float
+) -> dict:
+    """OUT/<name>.json (and the mesh and figure when asked); returns the image's row of predictions.csv."""
     p = est.params
     vertices = est.vertices[i].detach().cpu().numpy()
     joints = est.joints[i].detach().cpu().numpy()
@@ -147,15 +167,21 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
         "height_m": float(measured.height_m[i]),
         "mass_kg": float(measured.mass_kg[i]),
         "load_ends": load_ends(image[None])[0],
+        "posture": posture_of(torch.tensor([roll]))[0],  # from the body's roll, as evaluate-real reads it
+        "roll_deg": roll,
     }
     loc = est.localisation
     spread = None
     if loc is not None:  # how sharply each joint's heatmap pins it: large where the image shows it not
         spread = loc.spread_m2[i].detach().double().clamp_min(0).sqrt().cpu().numpy()
         record["joint_spread_m"] = dict(zip(J24_NAMES, spread.tolist()))
+    row = {k: record[k] for k in ("posture", "roll_deg", "height_m", "mass_kg", "load_ends")}
+    if spread is not None:  # the head and torso joints' median spread, as evaluate-real reports it
+        row["trunk_spread_m"] = float(torch.from_numpy(spread[list(TRUNK_JOINTS)]).median())  # the lower middle
     if loc is not None and loc.posture_logits is not None:  # the network's posture readout
         prob = torch.softmax(loc.posture_logits[i].detach().double(), -1).tolist()
         record["posture_readout"] = dict(zip(POSTURES, prob))
+        row["readout_posture"] = POSTURES[int(np.argmax(prob))]
     write_text(out / f"{name}.json", json.dumps(record, indent=1))
     faces = net.faces.cpu().numpy()
     if cfg.meshes:
@@ -166,6 +192,7 @@ def _write_one(out: Path, name: str, image: np.ndarray, est, measured, i: int, n
         atomic_write(
             out / f"{name}.png", lambda tmp: plot_prediction(tmp, image, vertices, joints, net.mat, name, spread)
         )
+    return {"image": name, **row}
 
 
 def write_mesh(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pressurepose.body.joints import J24_NAMES
+from pressurepose.body.joints import J24_NAMES, J24_REGIONS, TRUNK_JOINTS
 from pressurepose.body.params import BodyParams
 from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from pressurepose.errors import UserError
@@ -38,14 +38,7 @@ SEED_SYNTH_VPE_CM = {
     "female": 3.85,
     "male": 4.04,
 }
-REGIONS = {
-    "head": ("neck", "head"),
-    "torso": ("pelvis", "spine1", "spine2", "spine3", "left_collar", "right_collar"),
-    "arms": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("shoulder", "elbow", "wrist", "hand")),
-    "legs": tuple(f"{s}_{n}" for s in ("left", "right") for n in ("hip", "knee", "ankle", "foot")),
-}
-# The head and torso joints by J24 index: every simulated image pins them (their heatmap spreads)
-TRUNK = [J24_NAMES.index(n) for n in (*REGIONS["head"], *REGIONS["torso"])]
+REGIONS = J24_REGIONS
 METRICS = ("vpe_m", "v2v_m", "mpjpe_m", "pa_mpjpe_m", "root_pos_m", "root_rot_deg", "height_err_m", "mass_err_kg")
 PARAM_KEYS = tuple(f.name for f in dataclasses.fields(BodyParams))
 PREDICTIONS = "predictions.npz"  # the estimated BodyParams per sample (write_predictions)
@@ -248,7 +241,7 @@ def evaluate_network(
             out = net(inputs, mesh=False)[-1]
             est = out.params
             if out.localisation is not None:  # how sharply the heatmaps pin the head and torso
-                spread = out.localisation.spread_m2[:, TRUNK].clamp_min(0).sqrt()
+                spread = out.localisation.spread_m2[:, list(TRUNK_JOINTS)].clamp_min(0).sqrt()
                 rows.setdefault("trunk_spread_m", []).extend(spread.median(1).values.tolist())
                 trunk_spreads.append(spread)
             res = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure, true_facing)
