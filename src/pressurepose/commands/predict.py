@@ -22,7 +22,9 @@ stops early leaves none.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import io
 import json
 import time
 from pathlib import Path
@@ -142,11 +144,12 @@ def run_predict(cfg: PredictConfig) -> dict:
 def _write_table(path: Path, rows: list[dict]) -> Path:
     """The images' summaries as CSV, one row each, in input order (a night's recording at a glance)."""
     columns = list(dict.fromkeys(k for row in rows for k in row))
-    lines = [",".join(columns)]
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")  # quotes a name holding a comma
+    writer.writerow(columns)
     for row in rows:
-        cells = [row.get(k, "") for k in columns]
-        lines.append(",".join(f"{c:.4f}" if isinstance(c, float) else str(c) for c in cells))
-    return write_text(path, "\n".join(lines) + "\n")
+        writer.writerow([f"{c:.4f}" if isinstance(c, float) else c for c in (row.get(k, "") for k in columns)])
+    return write_text(path, text.getvalue())
 
 
 def _write_one(
