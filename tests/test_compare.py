@@ -90,6 +90,14 @@ def test_compare_real_counts_gains_and_losses_frame_by_frame():
     assert air["height_median_signed_a_m"] == pytest.approx(0.08) and sponge[
         "height_median_signed_b_m"
     ] == pytest.approx(0.10)
+    assert "trunk_spread_change_median_m" not in air  # reports without heatmap spreads
+    # two heatmap networks' reports: the median per-frame change of the trunk's spread, B - A
+    spread_a = [dict(r, trunk_spread_m=0.12) for r in a]
+    spread_b = [dict(r, trunk_spread_m=0.12 - 0.01 * (i < n // 2)) for i, r in enumerate(b)]
+    both = compare_real(spread_a, spread_b)
+    assert both["air"]["trunk_spread_change_median_m"] == pytest.approx(-0.01)
+    assert both["sponge"]["trunk_spread_change_median_m"] == pytest.approx(0.0)
+    assert "trunk_spread_change_median_m" not in compare_real(spread_a, b)["air"]  # one side has none
     same = compare_real(a, a)["air"]
     assert (same["posture_gained"], same["posture_lost"], same["posture_mcnemar_p"]) == (0, 0, 1.0)
     assert same["height_abs_change_p"] == 1.0

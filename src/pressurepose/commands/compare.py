@@ -185,6 +185,15 @@ def _real_lines(res: dict) -> list[str]:
             f"{s['height_abs_change_median_m'] * 100:+.1f} [{hci[0] * 100:+.1f}, {hci[1] * 100:+.1f}] | "
             f"{s['height_abs_change_p']:.3g} |"
         )
+    spread = {m: s for m, s in res.items() if "trunk_spread_change_median_m" in s}
+    if spread:
+        cells = [
+            f"{m} {s['trunk_spread_change_median_m'] * 100:+.1f} cm [{s['trunk_spread_change_ci_m'][0] * 100:+.1f}, "
+            f"{s['trunk_spread_change_ci_m'][1] * 100:+.1f}]"
+            for m, s in spread.items()
+        ]
+        lines += ["", "Heatmap spread of the head and torso, median change per frame (B - A; below 0 = B surer): "]
+        lines[-1] += "; ".join(cells)
     return lines
 
 

@@ -148,6 +148,10 @@ def compare_real(a: list[dict], b: list[dict]) -> dict:
             "height_abs_change_ci_m": list(subject_interval(change, subjects, np.median)),
             "height_abs_change_p": 1.0 if not np.any(change) else float(stats.wilcoxon(change).pvalue),
         }
+        if all("trunk_spread_m" in r for r in (*ra, *rb)):  # two heatmap networks: which is surer
+            spread = np.array([r["trunk_spread_m"] for r in rb]) - np.array([r["trunk_spread_m"] for r in ra])
+            out[mattress]["trunk_spread_change_median_m"] = float(np.median(spread))
+            out[mattress]["trunk_spread_change_ci_m"] = list(subject_interval(spread, subjects, np.median))
     return out
 
 
