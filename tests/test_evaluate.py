@@ -117,6 +117,13 @@ def test_failure_table_names_the_shard_and_the_command_that_redraws_the_pose():
     )
     assert rows[3] == "| 9 | 5.00 | - | - |"
     assert _failure_table([{"index": 0, "vpe_m": 0.1, "sample_id": None}]) == []
+    imported = dict(sid, gender="male", over_bed=False, seed=None, index=None)  # a dataset generate did not make
+    assert _failure_table([{"index": 1, "vpe_m": 0.1, "sample_id": imported}])[2].endswith("7 | - |")
+    smpl = dict(sid, gender="female", over_bed=False, backend="smpl", index=12)
+    assert (
+        "--gender female --backend smpl --smpl-dir DIR --start 12 --n 1`"
+        in _failure_table([{"index": 1, "vpe_m": 0.1, "sample_id": smpl}])[2]
+    )
 
 
 def test_height_by_load_ends_by_hand():

@@ -715,6 +715,19 @@ def test_evaluate_sample_ids_locate_and_redraw_the_samples(reference, anny64):
         if not (both / name).exists():
             (both / name).symlink_to(out, target_is_directory=True)
     two = open_split(both, "train")
-    ids2 = sample_ids(two, [None] * len(two))
+    ids2 = sample_ids(two, list(range(2 * len(data))))
     assert [s["dataset"] for s in ids2] == [str(both / "a")] * len(data) + [str(both / "b")] * len(data)
     assert [(s["shard"], s["row"]) for s in ids2] == [(s["shard"], s["row"]) for s in ids] * 2
+    assert [s["index"] for s in ids2] == list(range(2 * len(data)))  # each sample keeps its own index
+    # a dataset without samples in the split, sorted first, is passed over (not the end of the list)
+    from test_data import make_fake_dataset
+
+    mixed = out.parent / "mixed"
+    make_fake_dataset(mixed / "a_train_only", [("train", "supine", "male", 3)])
+    if not (mixed / "b").exists():
+        (mixed / "b").symlink_to(out, target_is_directory=True)
+    ids3 = sample_ids(open_split(mixed, "train"), list(range(3 + len(data))))
+    assert [s["dataset"] for s in ids3] == [str(mixed / "a_train_only")] * 3 + [str(mixed / "b")] * len(data)
+    assert all(s["seed"] is None and s["index"] is None for s in ids3[:3])  # no generator's seed: no redraw
+    test = open_split(mixed, "test")
+    assert [s["dataset"] for s in sample_ids(test, [0] * len(test))] == [str(mixed / "b")] * len(test)

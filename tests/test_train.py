@@ -910,3 +910,26 @@ def test_flatten_against_a_per_taxel_reference(data32, monkeypatch):
         assert float(flat[i].sum()) == pytest.approx(float(p[i].sum()), rel=1e-9)
     with pytest.raises(ValueError, match="flatten"):
         TrainConfig.smoke(flatten=2.0)
+
+
+def test_predict_leaves_no_table_when_a_run_stops(trained_run, data32, tmp_path, monkeypatch):
+    """predictions.csv is written last: a run that stops on its second image leaves none, not an
+    earlier run's table that no longer matches the files."""
+    import pressurepose.commands.predict as P
+
+    images = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:2].numpy()
+    np.save(tmp_path / "two.npy", images)
+    out = tmp_path / "out"
+    args = ["predict", "--model", str(trained_run), "--out", str(out), "--no-figures", "--no-meshes"]
+    assert main([*args, str(tmp_path / "two.npy")]) == 0 and (out / "predictions.csv").is_file()
+    written = P._write_one
+
+    def stop_at_the_second(*a, **k):
+        if a[1].endswith("0001"):
+            raise RuntimeError("disk full")
+        return written(*a, **k)
+
+    monkeypatch.setattr(P, "_write_one", stop_at_the_second)
+    with pytest.raises(RuntimeError, match="disk full"):
+        P.run_predict(P.PredictConfig(files=(tmp_path / "two.npy",), model=trained_run, out=out, figures=False))
+    assert not (out / "predictions.csv").exists()

@@ -311,10 +311,13 @@ def _failure_table(failures: list[dict]) -> list[str]:
         if s is None:
             lines.append(f"| {f['index']} | {f['vpe_m'] * 100:.2f} | - | - |")
             continue
-        again = (
-            f"`pressurepose sample --seed {s['seed']} --partition {s['partition']} --gender {s['gender']}"
-            f"{' --over-bed' if s['over_bed'] else ''} --start {s['index']} --n 1`"
-        )
+        again = "-"  # a sample `generate` did not make (imported) has no initial pose to draw
+        if s.get("seed") is not None and s.get("index") is not None:
+            backend = "" if s.get("backend", "anny") == "anny" else f" --backend {s['backend']} --smpl-dir DIR"
+            again = (
+                f"`pressurepose sample --seed {s['seed']} --partition {s['partition']} --gender {s['gender']}"
+                f"{' --over-bed' if s['over_bed'] else ''}{backend} --start {s['index']} --n 1`"
+            )
         lines.append(f"| {f['index']} | {f['vpe_m'] * 100:.2f} | {s['shard']}, {s['row']} | {again} |")
     return [*lines, ""]
 

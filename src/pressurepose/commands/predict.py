@@ -119,6 +119,7 @@ def run_predict(cfg: PredictConfig) -> dict:
     if net.config.height_weight and (cfg.height_m is None or cfg.mass_kg is None):
         raise UserError("this network takes height and mass as inputs: give --height-m and --mass-kg")
     out.mkdir(parents=True, exist_ok=True)
+    (out / "predictions.csv").unlink(missing_ok=True)  # an earlier run's table would not match this run's files
     t_net = 0.0
     table = []  # one row per image: OUT/predictions.csv, written last (a run that stops leaves none)
     for start in range(0, len(items), cfg.batch_size):
@@ -170,7 +171,9 @@ def _write_one(
         "height_m": float(measured.height_m[i]),
         "mass_kg": float(measured.mass_kg[i]),
         "load_ends": load_ends(image[None])[0],
-        "posture": posture_of(torch.tensor([roll]))[0],  # from the body's roll, as evaluate-real reads it
+        "posture": posture_of(torch.tensor([roll], dtype=torch.float64))[
+            0
+        ],  # from the body's roll, as evaluate-real reads it
         "roll_deg": roll,
     }
     loc = est.localisation

@@ -83,19 +83,21 @@ def open_split(data: Path, split: str):
 def sample_ids(dataset, indices: list[int | None]) -> list[dict | None]:
     """Where each of the first len(indices) samples of an `open_split` dataset lives - its dataset
     folder, shard and row - and what the generator made it from: the dataset's seed, the shard's
-    partition, gender and over_bed, and the sampler index (`indices`, from `_batches`), so that
-    `pressurepose sample --seed SEED --partition P --gender G [--over-bed] --start INDEX --n 1`
-    draws its initial pose again. None for samples of .npz files."""
+    partition, gender and over_bed, its body model and the sampler index (`indices`, from
+    `_batches`), so that `pressurepose sample --seed SEED --partition P --gender G [--over-bed]
+    --start INDEX --n 1` draws its initial pose again. None for samples of .npz files; seed and
+    index None for a dataset `generate` did not make (an imported one: no seed in its manifest)."""
     parts = dataset.datasets if isinstance(dataset, torch.utils.data.ConcatDataset) else [dataset]
     ids: list[dict | None] = []
     for part in parts:
-        take = min(len(part), len(indices) - len(ids))
-        if take <= 0:
+        if len(ids) >= len(indices):
             break
+        take = min(len(part), len(indices) - len(ids))  # 0 for a part without samples in the split
         if not hasattr(part, "locate"):  # .npz: no shards, no generator's coordinates
             ids += [None] * take
             continue
-        seed = part.manifest.get("config", {}).get("seed")
+        config = part.manifest.get("config", {})
+        seed = None if "source" in config else config.get("seed")  # imported data name their source
         for i in range(take):
             s, row = part.locate(i)
             shard = part.shards[s]
@@ -108,7 +110,8 @@ def sample_ids(dataset, indices: list[int | None]) -> list[dict | None]:
                     "partition": shard["partition"],
                     "gender": shard["gender"],
                     "over_bed": bool(shard["over_bed"]),
-                    "index": indices[len(ids)],
+                    "backend": config.get("backend", "anny"),
+                    "index": None if seed is None else indices[len(ids)],
                 }
             )
     return ids

@@ -167,9 +167,10 @@ SURE_SPREAD_M = 0.10  # a joint whose heatmap spread is below this is pinned by 
 
 def spread_summary(spread_m: torch.Tensor) -> dict[str, float]:
     """(N, J) heatmap spreads (m) of some joints of N frames -> the median over the frames of each
-    frame's median spread, and the share of the joints under SURE_SPREAD_M. For the head and torso
-    joints the shipped model reads simulated images at ~7.7 cm and 95-96%, PmatData's at ~12.6 cm
-    and 25% (docs/network.md "How far to trust a joint"): how sure the network is where a body lies."""
+    frame's median spread (torch's median: the lower middle of an even count), and the share of the
+    joints under SURE_SPREAD_M. For the head and torso joints the shipped model reads simulated test
+    images at ~7.8 cm and 93%, PmatData's frames at 11.7-12.8 cm and 23-27% (docs/network.md "How far
+    to trust a joint"): how sure the network is where a body lies."""
     return {
         "median_m": float(spread_m.median(1).values.median()),
         "share_sure": float((spread_m < SURE_SPREAD_M).double().mean()),
@@ -185,8 +186,8 @@ def spread_lines(summaries: dict[str, dict]) -> list[str]:
     ]
     return [
         "",
-        "Heatmap spread of the head and torso joints, median per frame (how sure the network is where the "
-        "body lies; the shipped model on simulated images: ~7.7 cm, 95-96% of them under 10 cm): " + "; ".join(cells),
+        "Heatmap spread of the head and torso joints, median per image (how sure the network is where the "
+        "body lies; the shipped model on simulated test images: ~7.8 cm, 93% of them under 10 cm): " + "; ".join(cells),
     ]
 
 

@@ -327,7 +327,10 @@ class Browser:
                 if k not in meta and np.ndim(v) == 0:
                     meta[k] = json_number(v)
         for k, vals in self.per_sample.items():
-            meta.setdefault(k, json_number(vals[i]))
+            if isinstance(vals[i], dict):  # evaluate's sample_id: shown as where the sample lives
+                meta.setdefault("shard, row", f"{vals[i].get('shard')}, {vals[i].get('row')}")
+            elif not isinstance(vals[i], list):
+                meta.setdefault(k, json_number(vals[i]))
         true_joints = None
         if res["true"] is not None:
             stored = item.get("joints_m", item.get("joints"))
