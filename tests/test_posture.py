@@ -220,3 +220,32 @@ def test_evaluate_reports_the_trunk_spread_of_a_heatmap_network(anny32, anny64, 
     assert len(per) == record["count"] and all(0.0 < v < 1.0 for v in per)
     assert record["trunk_spread"]["median_m"] == pytest.approx(float(torch.tensor(per).median()), rel=1e-6)
     assert "Heatmap spread of the head and torso joints" in paths["markdown"].read_text()
+
+
+def test_realism_reads_the_real_frames_and_their_twins_through_a_heatmap_network(anny32, tmp_path):
+    """`realism --model`: the trunk's spread summary of each image set by the network, as
+    `spread_summary` of `read_bodies` gives it; nothing for no images or no model; the report's table."""
+    from pressurepose.body.joints import TRUNK_JOINTS
+    from pressurepose.commands.realism import _spread_reader
+    from pressurepose.commands.realism_report import spread_markdown
+    from pressurepose.eval.real import spread_summary
+
+    net = _net(anny32)
+    with torch.no_grad():
+        net.mod1.maps.weight.mul_(300.0)
+    save_model(tmp_path / "run", net, {"train": {}, "net": dict(net.config.__dict__)})
+    reader = _spread_reader(tmp_path / "run")
+    images = torch.rand(5, 64, 27, generator=torch.Generator().manual_seed(4)) * 40
+    s = reader(images.numpy())
+    loaded, _ = load_network(tmp_path / "run", body=anny32)
+    assert s == spread_summary(read_bodies(loaded, images).spread_m[:, list(TRUNK_JOINTS)])
+    assert reader(np.zeros((0, 64, 27))) is None and _spread_reader(None) is None
+    rows = [
+        {"posture": "supine", "mattress": "air", "trunk_spread": {"real": s, "simulated": None}},
+        {"posture": "left", "mattress": "air"},
+    ]
+    md = spread_markdown(rows, "run")
+    assert (
+        len(md) == 6 and md[-1] == f"| supine | air | {s['median_m'] * 100:.1f} cm, {s['share_sure'] * 100:.0f}% | - |"
+    )
+    assert spread_markdown(rows[1:], "run") == []

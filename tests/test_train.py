@@ -933,3 +933,11 @@ def test_predict_leaves_no_table_when_a_run_stops(trained_run, data32, tmp_path,
     with pytest.raises(RuntimeError, match="disk full"):
         P.run_predict(P.PredictConfig(files=(tmp_path / "two.npy",), model=trained_run, out=out, figures=False))
     assert not (out / "predictions.csv").exists()
+
+
+def test_realism_refuses_a_network_without_heatmaps(trained_run):
+    from pressurepose.commands.realism import _spread_reader
+    from pressurepose.errors import UserError
+
+    with pytest.raises(UserError, match="has no heatmaps"):
+        _spread_reader(trained_run)

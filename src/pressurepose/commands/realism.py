@@ -69,6 +69,11 @@ class RealismConfig:
     default since session 44): the images as the generator writes them, read from the sensor's
     own floor (`MattressParams.floor_mmhg`: the presets' 3.31 / 3.61 mmHg, PmatData's), so the
     report judges what a network trains on (docs/realism.md "The sensor's floor in the generator")."""
+    model: Path | None = Path("default")
+    """Heatmap network that reads the real frames and their simulated twins: how sharply its heatmaps
+    pin the head and torso on each (`eval.real.trunk_spread`; docs/network.md "How far to trust a
+    joint"), the generator's realism through the estimator's eyes; "default" = the packaged model,
+    None: skip."""
     raised: bool = True
     """Also the raised beds (PmatData group F, the head of the bed at 0-60 deg) against bodies
     half-sitting on them, with the articulated sim #2 (`commands.realism_raised`; ~60 s more)."""
@@ -268,6 +273,20 @@ def real_scenes(real: dict, cfg: RealismConfig) -> dict | None:
     return scenes
 
 
+def _spread_reader(model: Path | None):
+    """images (N, 64, 27) mmHg -> `eval.real.trunk_spread` by the model, or None (no model, or a
+    network without heatmaps)."""
+    if model is None:
+        return None
+    from pressurepose.eval.real import trunk_spread
+    from pressurepose.train.checkpoint import load_network
+
+    net = load_network(model)[0]
+    if net.config.arch != "heatmap":
+        raise UserError(f"--model {model} has no heatmaps (arch {net.config.arch}); give a heatmap network or None")
+    return lambda images: trunk_spread(net, torch.as_tensor(np.asarray(images), dtype=torch.float32))
+
+
 def run_realism(cfg: RealismConfig) -> dict[str, Path]:
     from pressurepose.mat import MatSpec
 
@@ -278,6 +297,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
     real_sets = {key: R.summarise(imgs, hts, *pitch) for key, (imgs, hts, _) in real.items()}
     rows, ceilings, figures = [], [], {}
+    spread = _spread_reader(cfg.model)
     for posture in POSTURES:
         for (p, mattress), (imgs, hts, subj) in real.items():
             if p != posture:
@@ -299,6 +319,8 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
                 "floor_mmhg": round(floor, 2),
                 "sim_seconds": round(seconds, 2),
             }
+            if spread is not None:
+                row["trunk_spread"] = {"real": spread(imgs), "simulated": spread(images)}
             if sim_set:
                 row["comparison"] = dataclasses.asdict(R.compare(real_set, sim_set))
                 figures[(posture, mattress)] = (real_set, sim_set)

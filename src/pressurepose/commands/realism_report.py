@@ -131,6 +131,7 @@ def markdown(record: dict) -> str:
                 f"| {r['posture']} | {r['mattress']} | {rb['period_m']:.4f} | {b['amplitude']:.3f} "
                 f"({rb['amplitude']:.3f}) | {b['crest_m']:.4f} ({rb['crest_m']:.4f}) | {rb['r2']:.3f} |"
             )
+    lines += spread_markdown(record["rows"], record["config"].get("model"))
     lines += [
         "",
         "Ceiling (real against real, the same measures):",
@@ -146,4 +147,25 @@ def markdown(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["bands_dict", "markdown", "set_dict"]
+def spread_markdown(rows: list[dict], model: str | None) -> list[str]:
+    """The network's heatmap spread of the head and torso on the real frames and on their simulated
+    twins (`trunk_spread` in the rows); none without it."""
+    rows = [r for r in rows if r.get("trunk_spread")]
+    if not rows:
+        return []
+    cell = lambda s: "-" if not s else f"{s['median_m'] * 100:.1f} cm, {s['share_sure'] * 100:.0f}%"  # noqa: E731
+    lines = [
+        "",
+        f"Through the estimator's eyes (`{model}`): its heatmaps' spread over the head and torso joints, median "
+        "per image, and the share of those joints under 10 cm - how sure it is where each body lies:",
+        "",
+        "| posture | mattress | real | simulated twins |",
+        "| --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        s = r["trunk_spread"]
+        lines.append(f"| {r['posture']} | {r['mattress']} | {cell(s['real'])} | {cell(s['simulated'])} |")
+    return lines
+
+
+__all__ = ["bands_dict", "markdown", "set_dict", "spread_markdown"]

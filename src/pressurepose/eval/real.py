@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
+from pressurepose.body.joints import TRUNK_JOINTS
 from pressurepose.eval.realism import EXTENT_SHARE, load_span
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
 from pressurepose.net.posture import POSTURES, posture_index
@@ -177,6 +178,15 @@ def spread_summary(spread_m: torch.Tensor) -> dict[str, float]:
     }
 
 
+def trunk_spread(net, images: torch.Tensor) -> dict[str, float] | None:
+    """`spread_summary` of the head and torso joints of a heatmap network reading (N, 64, 27) mmHg
+    images; None for a network without heatmaps or no images."""
+    if len(images) == 0:
+        return None
+    spread = read_bodies(net, images).spread_m
+    return None if spread is None else spread_summary(spread[:, list(TRUNK_JOINTS)])
+
+
 def spread_lines(summaries: dict[str, dict]) -> list[str]:
     """Markdown lines of `spread_summary` per set (e.g. per mattress); none without summaries."""
     if not summaries:
@@ -206,4 +216,5 @@ __all__ = [
     "spread_lines",
     "spread_summary",
     "subject_interval",
+    "trunk_spread",
 ]
