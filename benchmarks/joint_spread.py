@@ -25,6 +25,7 @@ import torch
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
 from pressurepose.eval.evaluation import REGIONS, _batches, open_split
+from pressurepose.eval.real import read_bodies
 from pressurepose.net.model import NetInputs
 from pressurepose.samples import resolve_pmatdata
 from pressurepose.train.checkpoint import load_network
@@ -38,13 +39,18 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(ra, rb)[0, 1])
 
 
-def _spreads(net, images: torch.Tensor, batch: int = 64) -> np.ndarray:
-    """(N, 24) heatmap spreads (cm) of (N, 64, 27) images."""
-    out = []
-    for part in images.split(batch):
-        loc = net(NetInputs(part), mesh=False)[-1].localisation
-        out.append(loc.spread_m2.clamp_min(0).sqrt() * 100)
-    return torch.cat(out).numpy()
+def _bands(s: np.ndarray) -> list[np.ndarray]:
+    """One mask over s (cm) per band of BANDS_CM."""
+    return [(s >= lo) & (s < hi) for lo, hi in zip(BANDS_CM[:-1], BANDS_CM[1:])]
+
+
+def _header(first: list[str]) -> str:
+    names = [
+        f"spread < {hi:.0f}" if lo == 0 else f">= {lo:.0f}" if hi == float("inf") else f"{lo:.0f}-{hi:.0f}"
+        for lo, hi in zip(BANDS_CM[:-1], BANDS_CM[1:])
+    ]
+    cols = first + names
+    return "| " + " | ".join(cols) + " |\n|" + " --- |" * len(cols)
 
 
 def main() -> None:
@@ -63,48 +69,34 @@ def main() -> None:
         for _, b in _batches(open_split(args.data, "test"), 64, args.n):
             est = net(NetInputs(b["pressure_mmhg"]), mesh=False)[-1]
             errors.append((est.joints - b["joints"].to(est.joints)).norm(dim=-1) * 100)
-            spreads.append(est.localisation.spread_m2.clamp_min(0).sqrt() * 100)
+            spreads.append(est.localisation.spread_m * 100)
         E, S = torch.cat(errors).numpy(), torch.cat(spreads).numpy()
         real = None
         if args.pmatdata is not None:
             records = distinct_frames([r for r in load_index(resolve_pmatdata(args.pmatdata)) if r.group in "BCD"])
-            real = _spreads(net, torch.from_numpy(load_images(records)))
-    print(f"{len(E)} test samples of {args.data}, model {args.model}; cm")
-    print("\n| region | rank correlation | spread p10 / p50 / p90 | " + " | ".join(_band_names()) + " |")
-    print("| --- | --- | --- | " + " | ".join("---" for _ in _band_names()) + " |")
-    for region, names in REGIONS.items():
-        idx = [J24_NAMES.index(n) for n in names]
+            real = (read_bodies(net, torch.from_numpy(load_images(records))).spread_m * 100).numpy()
+    regions = {region: [J24_NAMES.index(n) for n in names] for region, names in REGIONS.items()}
+    print(f"{len(E)} test samples of {args.data}, model {args.model}; cm\n")
+    print(_header(["region", "rank correlation", "spread p10 / p50 / p90"]))
+    for region, idx in regions.items():
         e, s = E[:, idx].ravel(), S[:, idx].ravel()
-        cells = []
-        for lo, hi in zip(BANDS_CM[:-1], BANDS_CM[1:]):
-            m = (s >= lo) & (s < hi)
-            cells.append(
-                f"{m.mean() * 100:.0f}%: {e[m].mean():.1f} / {np.median(e[m]):.1f} / {np.percentile(e[m], 90):.1f}"
-                if m.any()
-                else "-"
-            )
+        cells = [
+            f"{m.mean() * 100:.0f}%: {e[m].mean():.1f} / {np.median(e[m]):.1f} / {np.percentile(e[m], 90):.1f}"
+            if m.any()
+            else "-"
+            for m in _bands(s)
+        ]
         p = np.percentile(s, [10, 50, 90])
         print(f"| {region} | {spearman(e, s):.2f} | {p[0]:.1f} / {p[1]:.1f} / {p[2]:.1f} | " + " | ".join(cells) + " |")
     print("\n(each band: the share of the region's joints in it: mean / median / p90 error)")
     if real is not None:
         print(f"\nShare of joints per band, simulated test split against PmatData ({len(real)} distinct frames):\n")
-        print("| region | " + " | ".join(_band_names()) + " |")
-        print("| --- | " + " | ".join("---" for _ in _band_names()) + " |")
-        for region, names in REGIONS.items():
-            idx = [J24_NAMES.index(n) for n in names]
-            s, r = S[:, idx].ravel(), real[:, idx].ravel()
-            cells = [
-                f"{((s >= lo) & (s < hi)).mean() * 100:.0f}% / {((r >= lo) & (r < hi)).mean() * 100:.0f}%"
-                for lo, hi in zip(BANDS_CM[:-1], BANDS_CM[1:])
-            ]
-            print(f"| {region} | " + " | ".join(cells) + " |")
-
-
-def _band_names() -> list[str]:
-    return [
-        f"spread < {hi:.0f}" if lo == 0 else f">= {lo:.0f}" if hi == float("inf") else f"{lo:.0f}-{hi:.0f}"
-        for lo, hi in zip(BANDS_CM[:-1], BANDS_CM[1:])
-    ]
+        print(_header(["region"]))
+        for region, idx in regions.items():
+            pairs = zip(_bands(S[:, idx].ravel()), _bands(real[:, idx].ravel()))
+            print(
+                f"| {region} | " + " | ".join(f"{a.mean() * 100:.0f}% / {b.mean() * 100:.0f}%" for a, b in pairs) + " |"
+            )
 
 
 if __name__ == "__main__":

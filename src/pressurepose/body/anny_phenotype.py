@@ -21,6 +21,7 @@ from anny.models.phenotype import PHENOTYPE_VARIATIONS
 from anny.utils.interpolation import linear_interpolation_coefficients
 
 from pressurepose.body.anny_skinning import wants_grad
+from pressurepose.constants import kept
 
 
 class PhenotypeCoefficients:
@@ -64,10 +65,11 @@ class PhenotypeCoefficients:
         self._typed: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, ...]] = {}
 
     def _constants(self, like: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        key = (like.dtype, like.device)
-        if key not in self._typed:
-            to = dict(dtype=like.dtype, device=like.device)
-            self._typed[key] = (
+        to = dict(dtype=like.dtype, device=like.device)
+        return kept(
+            self._typed,
+            (like.dtype, like.device),
+            lambda: (
                 self.columns.to(like.device),
                 self.rising[:, 0].to(**to),
                 self.rising[:, 1].to(**to),
@@ -80,8 +82,8 @@ class PhenotypeCoefficients:
                 self.mask.to(**to),
                 (1 - self.mask).to(**to),
                 None if self.projection is None else self.projection.to(**to),
-            )
-        return self._typed[key]
+            ),
+        )
 
     @torch.no_grad()
     def __call__(self, shape: torch.Tensor) -> torch.Tensor:

@@ -179,7 +179,7 @@ def _write_one(
     loc = est.localisation
     spread = None
     if loc is not None:  # how sharply each joint's heatmap pins it: large where the image shows it not
-        spread = loc.spread_m2[i].detach().double().clamp_min(0).sqrt().cpu().numpy()
+        spread = loc.spread_m[i].detach().double().cpu().numpy()
         record["joint_spread_m"] = dict(zip(J24_NAMES, spread.tolist()))
     row = {k: record[k] for k in ("posture", "roll_deg", "height_m", "mass_kg", "load_ends")}
     if spread is not None:  # the head and torso joints' median spread, as evaluate-real reports it

@@ -292,12 +292,12 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
 
     mat = MatSpec()
     real, subjects = load_real(cfg.real, cfg.threshold)
+    spread = _spread_reader(cfg.model)  # a bad --model stops the run before the simulations
     scenes = real_scenes(real, cfg)
     sims = simulate_subjects(subjects, cfg, scenes=scenes)
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
     real_sets = {key: R.summarise(imgs, hts, *pitch) for key, (imgs, hts, _) in real.items()}
     rows, ceilings, figures = [], [], {}
-    spread = _spread_reader(cfg.model)
     for posture in POSTURES:
         for (p, mattress), (imgs, hts, subj) in real.items():
             if p != posture:

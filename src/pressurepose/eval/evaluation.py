@@ -244,7 +244,7 @@ def evaluate_network(
             out = net(inputs, mesh=False)[-1]
             est = out.params
             if out.localisation is not None:  # how sharply the heatmaps pin the head and torso
-                spread = out.localisation.spread_m2[:, list(TRUNK_JOINTS)].clamp_min(0).sqrt()
+                spread = out.localisation.spread_m[:, list(TRUNK_JOINTS)]
                 rows.setdefault("trunk_spread_m", []).extend(spread.median(1).values.tolist())
                 trunk_spreads.append(spread)
             res = _sample_metrics(body, est, true, b["joints"].to(dtype), true_out, true_measure, true_facing)

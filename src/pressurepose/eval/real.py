@@ -70,7 +70,7 @@ def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, b
             if net.config.posture_head:
                 readout += [POSTURES[i] for i in est.localisation.posture_logits.argmax(-1).tolist()]
             if est.localisation is not None:
-                spreads.append(est.localisation.spread_m2.clamp_min(0).sqrt())
+                spreads.append(est.localisation.spread_m)
     return BodyReadings(
         torch.cat(heights),
         torch.cat(masses),

@@ -62,6 +62,12 @@ class Localisation:
     features: torch.Tensor | None = None  # (B, F) the pooled bottleneck the heads read
 
     @property
+    def spread_m(self) -> torch.Tensor:
+        """(B, 24) each heatmap's spread on the mat: the RMS distance of its probability from its
+        mean, sqrt(spread_m2) (docs/network.md "How far to trust a joint")."""
+        return self.spread_m2.clamp_min(0).sqrt()
+
+    @property
     def log_prob(self) -> torch.Tensor:
         """(B, 24, H, W) log-softmax of the heatmaps (for the loss; not computed at inference)."""
         B, J, H, W = self.logits.shape

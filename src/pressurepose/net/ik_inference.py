@@ -2,9 +2,10 @@
 
 The same damped Gauss-Newton steps as `ik.ik_step` (the reference, differentiable; the tests
 check the two agree to float64 round-off), written for a CPU at batch 1, where a step is
-per-operation overhead on small tensors: ~330 torch calls a step there, ~70 here
-(`fit_to_joints` with 3 steps, the shape pass kept: 6.2-7.4 -> 3.6 ms on the 2-core AMD EPYC,
-docs/benchmarks.md "Session 58"). How:
+per-operation overhead on small tensors: 125 torch calls a step here against 300 in `ik_step` and
+~330 in the no-grad branch this replaced (every call a TorchFunctionMode sees, attribute reads and
+indexing included; `fit_to_joints` with 3 steps, the shape pass kept: 6.2-7.4 -> 3.1-3.6 ms on the
+2-core AMD EPYC, ~0.8 ms a step; docs/benchmarks.md "Session 58"). How:
 
 - what the steps share is made once a fit: the limits' centres and half-widths, the square roots
   of the joints' weights, the lever-arm mask, the Jacobian's translation columns, the bone
@@ -31,6 +32,7 @@ from pressurepose.body.joints import J24_PARENTS, NUM_JOINTS, NUM_POSE_JOINTS
 from pressurepose.body.kinematics import DESCENDANTS
 from pressurepose.body.limits import ALPHA, JointLimits
 from pressurepose.body.params import BodyParams, supine_rotation
+from pressurepose.body.rotations import skew
 from pressurepose.constants import kept
 
 _SERIES_BELOW = 2.5e-3  # a^2: Taylor series of A, B, C to a^6 below a = 0.05 (next terms < 1e-15)
@@ -48,9 +50,6 @@ def _pointer_jumps() -> list[list[int]]:
 
 
 def _make_constants(dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
-    cross = torch.zeros(3, 3, 3)  # [k, i, j]: skew(v)[i, j] = sum_k v[k] cross[k, i, j]
-    for k, i, j in ((0, 2, 1), (1, 0, 2), (2, 1, 0)):
-        cross[k, i, j], cross[k, j, i] = 1.0, -1.0
     # [k, a] = 1 when bone a (ending at joint a, a != pelvis) lies on k's chain: a is k or above it
     chains = (DESCENDANTS.T | torch.eye(NUM_JOINTS, dtype=torch.bool)).float()
     chains[:, 0] = 0
@@ -61,7 +60,6 @@ def _make_constants(dtype: torch.dtype, device: torch.device) -> dict[str, torch
         (-1 / 5040, -1 / 40320, -1 / 40320, -1 / 362880),
     ]
     made = {
-        "cross": cross.reshape(3, 9),
         "eye9": torch.eye(3).reshape(9),
         "eye": torch.eye(3),
         "series": torch.tensor(series, dtype=torch.float64),  # cast from float64: exact 1/6 etc.
@@ -99,7 +97,7 @@ def rotations_and_left_jacobians(phi: torch.Tensor) -> tuple[torch.Tensor, torch
     s0, s1, s2, s3 = c["series"]
     series = torch.addcmul(s0, a2, torch.addcmul(s1, a2, torch.addcmul(s2, a2, s3)))
     coef = torch.where(small, series, closed).view(-1, 2, 2)  # [[A, B], [B, C]]
-    K = (phi.reshape(-1, 3) @ c["cross"]).view(-1, 3, 3)
+    K = skew(phi.reshape(-1, 3))
     powers = torch.stack([K, torch.bmm(K, K)], 1).view(-1, 2, 9)  # (K, K^2)
     both = torch.baddbmm(c["eye9"], coef, powers).view(*phi.shape[:-1], 2, 3, 3)
     return both[..., 0, :, :], both[..., 1, :, :]
