@@ -264,7 +264,7 @@ def test_bad_inputs(tiny, tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr
 
 
-PMAT = Path(__file__).resolve().parent / "data" / "pmatdata"  # 12 frames of PmatData (its README)
+PMAT = Path(__file__).resolve().parent / "data" / "pmatdata"  # 16 frames of PmatData (its README)
 
 
 def test_posture_from_the_root_orientation():
@@ -367,6 +367,72 @@ def test_a_frame_repeating_another_subjects_is_left_out(tiny, tmp_path):
     assert [(r.subject, o.subject) for r, o in swapped] == [(9, 1)]
 
 
+def test_tilt_summary_by_hand():
+    """Group E's measures on six frames worked out by hand, the roll error wrapped to [0, 180]."""
+    from pressurepose.eval.real import documented_roll, tilt_summary
+
+    doc = [documented_roll("right", 20), documented_roll("left", 40), 20, 40, -20, 20]
+    read = [25, 100, -15, -170, -25, 5]
+    s = tilt_summary(doc, read)
+    # toward the documented side: 25, -100, -15, -170, 25, 5 -> median (-15 + 5) / 2
+    assert s["read_toward_median_deg"] == pytest.approx(-5.0)
+    # errors 5, 140, 35, 150 (not 210: wrapped), 5, 15 -> median (15 + 35) / 2
+    assert s["abs_error_median_deg"] == pytest.approx(25.0)
+    assert s["share_turned"] == pytest.approx(2 / 6) and s["share_other_way"] == pytest.approx(3 / 6)
+    assert s["frames"] == 6 and "share_turned_ci" not in s
+    one = tilt_summary(doc, read, subjects=[1] * 6)  # one subject: every resample is the set itself
+    assert one["share_turned_ci"] == pytest.approx((2 / 6, 2 / 6))
+    with pytest.raises(ValueError, match="right or the left"):
+        documented_roll("supine", 20)
+    with pytest.raises(ValueError, match=r"\(0, 90\)"):
+        documented_roll("left", 0)
+    with pytest.raises(ValueError, match="no roll may be 0"):
+        tilt_summary([20, 0], [1, 2])
+    with pytest.raises(ValueError, match="one read roll per documented roll"):
+        tilt_summary([20, -20], [1])
+
+
+def test_evaluate_real_reads_tilted_frames_against_their_rolls(tiny, tmp_path):
+    """Group E (lateral on wedges at 20 / 40 deg) is reported by its roll, apart from the posture
+    table; with E alone there is no posture table, and an earlier run's figure of it is removed."""
+    from pressurepose.cli import main
+    from pressurepose.eval.real import tilt_summary
+
+    _, run = tiny
+    out = tmp_path / "real"
+    assert main(["evaluate-real", "--model", str(run), "--pmatdata", str(PMAT), "--out", str(out)]) == 0
+    record = json.loads((out / "real.json").read_text())
+    assert record["frames"] == 12 and {f["variant"][0] for f in record["per_frame"]} == {"C", "D"}
+    tilted = record["tilted"]
+    rows = tilted["per_frame"]
+    assert tilted["frames"] == len(rows) == 4
+    assert sorted((f["variant"], f["mattress"], f["documented_roll_deg"]) for f in rows) == [
+        ("E1", "air", 20.0),
+        ("E2", "sponge", 40.0),
+        ("E3", "sponge", -20.0),
+        ("E4", "air", -40.0),
+    ]
+    for mattress, s in tilted["by_mattress"].items():
+        sel = [f for f in rows if f["mattress"] == mattress]
+        expect = tilt_summary([f["documented_roll_deg"] for f in sel], [f["roll_deg"] for f in sel], [1] * len(sel))
+        assert s.pop("share_turned_ci") == pytest.approx(list(expect.pop("share_turned_ci")))
+        assert s == pytest.approx(expect)
+    assert set(tilted["by_variant"]) == {"E1 air", "E2 sponge", "E3 sponge", "E4 air"}
+    text = (out / "real.md").read_text()
+    assert "(12 frames flat, 4 tilted, groups BCDE)" in text and "posture accuracy" in text
+    assert "| E4 air (1) | -40 |" in text and "![tilt](tilt.png)" in text
+    for name in ("real.png", "tilt.png"):
+        assert (out / name).read_bytes()[:4] == b"\x89PNG"
+    assert (
+        main(["evaluate-real", "--model", str(run), "--pmatdata", str(PMAT), "--groups", "E", "--out", str(out)]) == 0
+    )
+    record = json.loads((out / "real.json").read_text())
+    assert record["frames"] == 0 and record["by_mattress"] == {} and record["tilted"]["frames"] == 4
+    text = (out / "real.md").read_text()
+    assert "posture accuracy" not in text and "![real]" not in text and "| E1 air (1) | +20 |" in text
+    assert not (out / "real.png").exists() and (out / "tilt.png").exists()
+
+
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):
     from pressurepose.cli import main
 
@@ -446,14 +512,14 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
             "--pmatdata",
             str(PMAT),
             "--groups",
-            "BX",
+            "BF",
             "--out",
             str(tmp_path / "o"),
         ],
         capture_output=True,
         text=True,
     )
-    assert r.returncode == 2 and "groups must be" in r.stderr
+    assert r.returncode == 2 and "groups must be letters of BCDE" in r.stderr
 
 
 @pytest.mark.slow

@@ -32,14 +32,18 @@ import numpy as np
 import torch
 
 from pressurepose.body.joints import TRUNK_JOINTS
+from pressurepose.commands.evaluate_cloud import run_evaluate_cloud
 from pressurepose.commands.netopts import options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index, repeated_frames
 from pressurepose.errors import UserError
-from pressurepose.eval.metrics import CAMERA_M, vpe_to_cloud
+from pressurepose.eval.metrics import CAMERA_M
 from pressurepose.eval.real import (
     GROUP_POSTURE,
     POSTURES,
+    TILTED_GROUPS,
+    TURN_DEG,
+    documented_roll,
     height_by_load_ends,
     load_ends,
     load_ends_table,
@@ -47,14 +51,12 @@ from pressurepose.eval.real import (
     spread_lines,
     spread_summary,
     subject_interval,
+    tilt_summary,
 )
-from pressurepose.eval.real_cloud import load_cloud_file
 from pressurepose.files import atomic_write, write_text
-from pressurepose.net.inputs import check_images
-from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
 from pressurepose.samples import resolve_pmatdata
 from pressurepose.train.checkpoint import load_network
-from pressurepose.viz.real import plot_real, plot_real_cloud
+from pressurepose.viz.real import plot_real, plot_tilt
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,8 +69,9 @@ class RealEvalConfig:
     """PmatData folder (index.csv, experiment-ii/); "pmatdata" = the packaged copy of experiment II."""
     out: Path = Path("out/evaluate-real")
     """Report folder: real.md, real.json, real.png."""
-    groups: str = "BCD"
-    """PmatData posture groups: B supine, C right, D left (flat bed)."""
+    groups: str = "BCDE"
+    """PmatData posture groups: B supine, C right, D left (flat bed: the posture table); E lateral
+    on wedges or a pillow at 20 or 40 deg of roll (the tilt table: the roll read against it)."""
     threshold: float = 20.0
     """Raw noise threshold of the frames' normalisation (data README)."""
     batch: int = 32
@@ -92,12 +95,12 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
         return run_evaluate_cloud(cfg)
     cfg = dataclasses.replace(cfg, pmatdata=resolve_pmatdata(cfg.pmatdata))
 
-    groups = [g for g in cfg.groups if g in GROUP_POSTURE]
-    if not groups or len(groups) != len(cfg.groups):
+    known = "".join(GROUP_POSTURE) + TILTED_GROUPS
+    if not cfg.groups or any(g not in known for g in cfg.groups):
         raise UserError(
-            f"groups must be letters of {''.join(GROUP_POSTURE)} (B supine, C right, D left), got {cfg.groups!r}"
+            f"groups must be letters of {known} (B supine, C right, D left, E tilted on wedges), got {cfg.groups!r}"
         )
-    records = [r for r in load_index(cfg.pmatdata) if r.group in groups]
+    records = [r for r in load_index(cfg.pmatdata) if r.group in cfg.groups]
     if not records:
         raise UserError(f"no PmatData frames of groups {cfg.groups} under {cfg.pmatdata}")
     # A frame that repeats another record's byte for byte is left out (not a new measurement).
@@ -105,12 +108,43 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     left_out = {id(r) for r, _ in repeats}
     records = [r for r in records if id(r) not in left_out]
     net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
+    flat = [r for r in records if r.group in GROUP_POSTURE]
+    tilted = [r for r in records if r.group in TILTED_GROUPS]
+    t0 = time.perf_counter()
+    rows, summary, variants = _flat_report(net, flat, cfg) if flat else ([], {}, {})
+    tilt = _tilted_report(net, tilted, cfg) if tilted else None
+    seconds = time.perf_counter() - t0
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "command": "evaluate-real",
+        "config": flat_config(cfg),
+        "frames": len(rows),
+        "repeats_left_out": [{"file": _rel(r, cfg), "same_as": _rel(o, cfg)} for r, o in repeats],
+        "seconds": round(seconds, 2),
+        "by_mattress": summary,
+        "by_variant": dict(sorted(variants.items(), key=lambda kv: (kv[0][0], int(kv[0][1:])))),
+        "per_frame": rows,
+        **({} if tilt is None else {"tilted": tilt}),
+    }
+    paths = {}
+    figures = {"figure": ("real.png", rows, lambda tmp: plot_real(tmp, rows, summary))}
+    figures["tilt_figure"] = ("tilt.png", tilt, lambda tmp: plot_tilt(tmp, tilt["per_frame"]))
+    for key, (name, present, plot) in figures.items():
+        if present:
+            paths[key] = atomic_write(cfg.out / name, plot)
+        else:  # an earlier run's figure would not show this report's frames
+            (cfg.out / name).unlink(missing_ok=True)
+    paths["json"] = write_text(cfg.out / "real.json", json.dumps(record, indent=1))
+    paths["markdown"] = write_text(cfg.out / "real.md", _markdown(record))
+    return Written(paths, record)
+
+
+def _flat_report(net, records: list, cfg: RealEvalConfig) -> tuple[list[dict], dict, dict]:
+    """Per-frame rows, per-mattress summary and per-variant counts of the flat groups (B-D)."""
     images = torch.from_numpy(load_images(records, cfg.threshold))
     heights = [r.height_cm / 100 for r in records]
     masses = [r.weight_kg for r in records]
-    t0 = time.perf_counter()
     read = read_bodies(net, images, torch.tensor(heights), torch.tensor(masses), cfg.batch)
-    seconds = time.perf_counter() - t0
     predicted = read.postures
     ends = load_ends(images.numpy())
     trunk = None if read.spread_m is None else read.spread_m[:, list(TRUNK_JOINTS)]  # heatmap networks
@@ -168,21 +202,45 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
         v = variants.setdefault(r["variant"], {"posture": r["posture"], "frames": 0, "estimated": {}})
         v["frames"] += 1
         v["estimated"][r["estimated_posture"]] = v["estimated"].get(r["estimated_posture"], 0) + 1
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    record = {
-        "command": "evaluate-real",
-        "config": flat_config(cfg),
+    return rows, summary, variants
+
+
+def _tilted_report(net, records: list, cfg: RealEvalConfig) -> dict:
+    """Group E's frames against their documented rolls (`eval.real.tilt_summary`): per mattress,
+    per variant and mattress, and per frame."""
+    images = torch.from_numpy(load_images(records, cfg.threshold))
+    heights = torch.tensor([r.height_cm / 100 for r in records])
+    read = read_bodies(net, images, heights, torch.tensor([r.weight_kg for r in records]), cfg.batch)
+    rows = [
+        {
+            "file": _rel(r, cfg),
+            "subject": r.subject,
+            "mattress": r.mattress,
+            "variant": f"{r.group}{r.index}",
+            "posture": r.posture,
+            "documented_roll_deg": documented_roll(r.posture, r.body_roll_deg),
+            "roll_deg": float(a),
+            "estimated_posture": e,
+        }
+        for r, a, e in zip(records, read.roll_deg, read.postures)
+    ]
+
+    def summary(sel: list[dict]) -> dict:
+        doc, got = [r["documented_roll_deg"] for r in sel], [r["roll_deg"] for r in sel]
+        return tilt_summary(doc, got, [r["subject"] for r in sel])
+
+    mattresses = sorted({r["mattress"] for r in rows})
+    keys = sorted({(r["variant"], r["mattress"]) for r in rows}, key=lambda k: (int(k[0][1:]), k[1]))
+    by_variant = {}
+    for v, m in keys:
+        sel = [r for r in rows if r["variant"] == v and r["mattress"] == m]
+        by_variant[f"{v} {m}"] = {"documented_roll_deg": sel[0]["documented_roll_deg"], **summary(sel)}
+    return {
         "frames": len(rows),
-        "repeats_left_out": [{"file": _rel(r, cfg), "same_as": _rel(o, cfg)} for r, o in repeats],
-        "seconds": round(seconds, 2),
-        "by_mattress": summary,
-        "by_variant": dict(sorted(variants.items(), key=lambda kv: (kv[0][0], int(kv[0][1:])))),
+        "by_mattress": {m: summary([r for r in rows if r["mattress"] == m]) for m in mattresses},
+        "by_variant": by_variant,
         "per_frame": rows,
     }
-    paths = {"figure": atomic_write(cfg.out / "real.png", lambda tmp: plot_real(tmp, rows, summary))}
-    paths["json"] = write_text(cfg.out / "real.json", json.dumps(record, indent=1))
-    paths["markdown"] = write_text(cfg.out / "real.md", _markdown(record))
-    return Written(paths, record)
 
 
 def _rel(record, cfg: RealEvalConfig) -> str:
@@ -192,10 +250,29 @@ def _rel(record, cfg: RealEvalConfig) -> str:
 def _markdown(r: dict) -> str:
     left_out = len(r["repeats_left_out"])
     note = f"{left_out} frame(s) left out: each repeats another record's file byte for byte (`repeats_left_out`)"
+    tilted = r.get("tilted")
+    counts = f"{r['frames']} frames" + (f" flat, {tilted['frames']} tilted" if tilted else "")
     lines = [
-        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on PmatData experiment II ({r['frames']} frames, groups {r['config']['groups']})",
+        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on PmatData experiment II ({counts}, groups {r['config']['groups']})",
         "",
         *([note, ""] if left_out else []),
+    ]
+    if r["by_mattress"]:
+        lines += _flat_lines(r)
+    if tilted:
+        lines += _tilt_lines(tilted)
+    lines += [
+        "",
+        "Intervals: 95%, resampling whole subjects with replacement (a subject's frames are not "
+        "independent); a difference between two networks smaller than them is not shown by these frames.",
+    ]
+    lines += [f"\n![{name}]({name}.png)" for name, part in (("real", r["by_mattress"]), ("tilt", tilted)) if part]
+    return "\n".join(lines + [""])
+
+
+def _flat_lines(r: dict) -> list[str]:
+    """The flat groups' tables: per mattress, confusions, heights by load ends, per variant."""
+    lines = [
         "| mattress | frames (subjects) | posture accuracy [95% CI] | height MAE (cm) "
         "| height error median: absolute / signed [95% CI] (cm) | mass MAE (kg) |",
         "| --- | --- | --- | --- | --- | --- |",
@@ -247,126 +324,29 @@ def _markdown(r: dict) -> str:
             "The network's posture readout (net.posture; the posture above is its body's): "
             + ", ".join(f"{k} {v * 100:.1f}%" for k, v in readout.items()),
         ]
-    lines += [
-        "",
-        "Intervals: 95%, resampling whole subjects with replacement (a subject's frames are not "
-        "independent); a difference between two networks smaller than them is not shown by these frames.",
-        "",
-        "![real](real.png)",
-        "",
-    ]
-    return "\n".join(lines)
+    return lines
 
 
-def run_evaluate_cloud(cfg) -> Written:
-    """Report (real.md, real.json, real.png in cfg.out) of a RealEvalConfig with `data`."""
-    arrays = load_cloud_file(cfg.data)
-    images = torch.from_numpy(check_images(arrays["pressure_mmhg"], Path(cfg.data)))
-    n = len(images)
-    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
-    genders = arrays.get("gender")
-    gender = torch.tensor(
-        [{"female": 1.0, "male": 0.0}.get(str(g), GENDER_UNKNOWN) for g in genders]
-        if genders is not None
-        else [GENDER_UNKNOWN] * n
-    )
-    height = torch.tensor(arrays["height_m"], dtype=torch.float32) if "height_m" in arrays else None
-    mass = torch.tensor(arrays["mass_kg"], dtype=torch.float32) if "mass_kg" in arrays else None
-    if net.config.height_weight and (height is None or mass is None):
-        raise UserError(f"{cfg.data}: this network takes height and mass; the file has no height_m / mass_kg")
-    faces = net.faces
-    t0 = time.perf_counter()
-    vpes, est_h, est_m = [], [], []
-    with torch.no_grad():
-        for lo in range(0, n, cfg.batch):
-            sl = slice(lo, lo + cfg.batch)
-            inputs = NetInputs(
-                pressure_mmhg=images[sl],
-                gender=gender[sl],
-                height_m=None if height is None else height[sl],
-                mass_kg=None if mass is None else mass[sl],
-            )
-            est = net(inputs, mesh=True, maps=False)[-1]
-            meas = net.body.measure(est.params.shape)
-            est_h.append(meas.height_m)
-            est_m.append(meas.mass_kg)
-            for j, verts in enumerate(est.vertices):
-                i = lo + j
-                cloud = torch.from_numpy(
-                    arrays["cloud_points"][arrays["cloud_offsets"][i] : arrays["cloud_offsets"][i + 1]]
-                )
-                vpes.append(
-                    float(vpe_to_cloud(verts, faces, cloud.to(verts.dtype), camera=cfg.camera_m, voxel_m=cfg.voxel_m))
-                )
-    seconds = time.perf_counter() - t0
-    est_h, est_m = torch.cat(est_h).tolist(), torch.cat(est_m).tolist()
-    rows = []
-    for i in range(n):
-        r = {
-            "subject": str(arrays["subject"][i]),
-            "vpe_m": vpes[i],
-            "estimated_height_m": est_h[i],
-            "estimated_mass_kg": est_m[i],
-        }
-        for k in ("pose_set", "pose_type", "index", "height_m", "mass_kg"):
-            if k in arrays:
-                v = arrays[k][i]
-                r[k] = v.item() if hasattr(v, "item") else v
-        rows.append(r)
-    by_subject = {}
-    for s in sorted({r["subject"] for r in rows}):
-        sel = [r for r in rows if r["subject"] == s]
-        e = {"frames": len(sel), "vpe_m": float(np.mean([r["vpe_m"] for r in sel]))}
-        if "height_m" in sel[0]:
-            e["height_error_m"] = float(np.mean([r["estimated_height_m"] - r["height_m"] for r in sel]))
-            e["mass_error_kg"] = float(np.mean([r["estimated_mass_kg"] - r["mass_kg"] for r in sel]))
-        by_subject[s] = e
-    overall = {
-        "participants": len(by_subject),
-        "vpe_m": float(np.mean([e["vpe_m"] for e in by_subject.values()])),
-        "vpe_m_over_frames": float(np.mean(vpes)),
-    }
-    if "height_m" in arrays:
-        overall["height_mae_m"] = float(np.mean([abs(r["estimated_height_m"] - r["height_m"]) for r in rows]))
-        overall["mass_mae_kg"] = float(np.mean([abs(r["estimated_mass_kg"] - r["mass_kg"]) for r in rows]))
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    record = {
-        "command": "evaluate-real",
-        "kind": "point-cloud",
-        "config": flat_config(cfg),
-        "frames": n,
-        "seconds": round(seconds, 2),
-        "overall": overall,
-        "by_participant": by_subject,
-        "per_frame": rows,
-    }
-    paths = {"figure": atomic_write(cfg.out / "real.png", lambda tmp: plot_real_cloud(tmp, rows, by_subject))}
-    paths["json"] = write_text(cfg.out / "real.json", json.dumps(record, indent=1))
-    paths["markdown"] = write_text(cfg.out / "real.md", _cloud_markdown(record))
-    return Written(paths, record)
-
-
-def _cloud_markdown(r: dict) -> str:
-    o = r["overall"]
+def _tilt_lines(t: dict) -> list[str]:
+    """Group E's table: the roll read against the documented one, per mattress and variant."""
     lines = [
-        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on {r['config']['data']} ({r['frames']} frames, {o['participants']} participants)",
         "",
-        f"3DVPE against the point clouds: **{o['vpe_m'] * 100:.2f} cm** (mean of the participants' means, as "
-        f"released; {o['vpe_m_over_frames'] * 100:.2f} cm over frames).",
+        f"Tilted bodies (group E: lateral on one or two wedges, E1-E4, or a pillow, E5-E6; {t['frames']} frames): "
+        f"the roll read (+ right, - left) against the documented one; turned = read at least {TURN_DEG:.0f} deg "
+        "toward the documented side; other way = as far toward the other",
         "",
+        "| mattress / variant (frames) | documented roll (deg) | read toward that side, median (deg) | abs. roll error, median (deg) "
+        "| turned [95% CI] | other way |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
-    if "height_mae_m" in o:
-        lines += [f"Height MAE {o['height_mae_m'] * 100:.1f} cm, mass MAE {o['mass_mae_kg']:.1f} kg.", ""]
-    has_hw = all("height_error_m" in e for e in r["by_participant"].values())
-    head = "| participant | frames | 3DVPE (cm) |" + (" height error (cm) | mass error (kg) |" if has_hw else "")
-    lines += [head, "| --- | --- | --- |" + (" --- | --- |" if has_hw else "")]
-    for s, e in r["by_participant"].items():
-        line = f"| {s} | {e['frames']} | {e['vpe_m'] * 100:.2f} |"
-        if has_hw:
-            line += f" {e['height_error_m'] * 100:+.1f} | {e['mass_error_kg']:+.1f} |"
-        lines.append(line)
-    lines += ["", "![real](real.png)", ""]
-    return "\n".join(lines)
+    for name, s in {**t["by_mattress"], **t["by_variant"]}.items():
+        doc = f"{s['documented_roll_deg']:+.0f}" if "documented_roll_deg" in s else "+-20, +-40"
+        lo, hi = s["share_turned_ci"]
+        lines.append(
+            f"| {name} ({s['frames']}) | {doc} | {s['read_toward_median_deg']:+.1f} | {s['abs_error_median_deg']:.1f} | "
+            f"{s['share_turned'] * 100:.0f}% [{lo * 100:.0f}, {hi * 100:.0f}] | {s['share_other_way'] * 100:.0f}% |"
+        )
+    return lines
 
 
 def evaluate_real(cfg: RealEvalConfig) -> None:
@@ -394,7 +374,13 @@ def evaluate_real(cfg: RealEvalConfig) -> None:
         + f", height MAE {v['height_mae_m'] * 100:.1f} cm, mass MAE {v['mass_mae_kg']:.1f} kg"
         for k, v in record["by_mattress"].items()
     ]
-    print(f"{record['frames']} frames; " + "; ".join(parts) + f" -> {written['markdown']}")
+    if "tilted" in record:
+        parts += [
+            f"tilted ({k}): {v['share_turned'] * 100:.0f}% turned toward their side, roll error {v['abs_error_median_deg']:.0f} deg"
+            for k, v in record["tilted"]["by_mattress"].items()
+        ]
+    tilted = f" + {record['tilted']['frames']} tilted" if "tilted" in record else ""
+    print(f"{record['frames']} frames{tilted}; " + "; ".join(parts) + f" -> {written['markdown']}")
 
 
 __all__ = ["RealEvalConfig", "evaluate_real", "run_evaluate_real"]

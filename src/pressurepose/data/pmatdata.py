@@ -73,6 +73,9 @@ class PmatRecord:
     bed_incline_deg: float
     height_cm: float
     weight_kg: float
+    # group E's roll toward `posture`'s side (20 or 40 deg, on wedges or a pillow); 0 where the
+    # protocol gives none (groups B-D: flat supine and full lateral)
+    body_roll_deg: float = 0.0
 
 
 def load_index(root: str | Path) -> list[PmatRecord]:
@@ -93,6 +96,7 @@ def load_index(root: str | Path) -> list[PmatRecord]:
                     index=int(row["index"]),
                     posture=row["posture"],
                     bed_incline_deg=float(row["bed_incline_deg"] or 0),
+                    body_roll_deg=float(row.get("body_roll_deg") or 0),
                     height_cm=float(row["height_cm"]),
                     weight_kg=float(row["weight_kg"]),
                 )
@@ -146,7 +150,8 @@ def import_pmatdata(
     """PmatData frames -> one .npz in the project's image convention, ready for `predict`:
     pressure_mmhg (N, 64, 27) float32 (row 0 at the head; normalised as the README says and
     clipped at the sensor's 100 mmHg), with per frame: path, subject, mattress, group, index,
-    posture, bed_incline_deg, height_m, mass_kg (no pickles: strings as unicode arrays).
+    posture, bed_incline_deg, body_roll_deg (group E's documented roll toward its posture's
+    side, else 0), height_m, mass_kg (no pickles: strings as unicode arrays).
     groups: posture groups to keep (e.g. "BCD"; default all); mattress: air or sponge (default
     both). Returns counts."""
     from pressurepose.files import atomic_write
@@ -171,6 +176,7 @@ def import_pmatdata(
         "index": np.array([r.index for r in records], dtype=np.int64),
         "posture": np.array([r.posture for r in records]),
         "bed_incline_deg": np.array([r.bed_incline_deg for r in records]),
+        "body_roll_deg": np.array([r.body_roll_deg for r in records]),
         "height_m": np.array([r.height_cm / 100 for r in records]),
         "mass_kg": np.array([r.weight_kg for r in records]),
     }

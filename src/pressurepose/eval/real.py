@@ -22,7 +22,12 @@ from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
 from pressurepose.net.posture import POSTURES, posture_index
 from pressurepose.net.posture import roll_from_root as roll_deg
 
-GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData groups (README)
+GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData's flat groups (README)
+# PmatData's group E: lateral on one or two wedges or a pillow, rolled 20 or 40 deg toward the
+# side its posture names - between the flat groups' supine and full side, so judged by its roll
+# (`tilt_summary`), not by a posture class.
+TILTED_GROUPS = "E"
+TURN_DEG = 10.0  # a read roll this far toward a side is turned to it (`tilt_summary`)
 # Where a frame's load lies on the mat (`load_ends`).
 LOAD_ENDS = ("neither", "head only", "foot only", "both", "empty")
 
@@ -163,6 +168,43 @@ def subject_interval(
     return float(np.quantile(stats, tail)), float(np.quantile(stats, 1.0 - tail))
 
 
+def documented_roll(posture: str, roll_deg: float) -> float:
+    """A tilted frame's roll in `roll_deg`'s convention (+ right, - left) from PmatData's posture
+    label ("right" / "left") and its unsigned documented roll."""
+    if posture not in ("right", "left"):
+        raise ValueError(f"a tilted frame lies to the right or the left, got {posture!r}")
+    if not 0.0 < roll_deg < 90.0:
+        raise ValueError(f"a tilt's documented roll lies in (0, 90) deg, got {roll_deg}")
+    return roll_deg if posture == "right" else -roll_deg
+
+
+def tilt_summary(documented_deg: Sequence[float], read_deg: Sequence[float], subjects=None) -> dict:
+    """How a network reads tilted bodies (PmatData group E) against their documented rolls (deg,
+    + right, `documented_roll`): the median roll read toward the documented side (s x read roll,
+    s its sign; negative: turned the other way), the median absolute roll error (wrapped to
+    [0, 180]), the shares turned at least TURN_DEG toward the documented side and toward the
+    other, and with `subjects` a 95% interval of the first share resampling whole subjects."""
+    doc = np.asarray(documented_deg, dtype=np.float64)
+    read = np.asarray(read_deg, dtype=np.float64)
+    if doc.shape != read.shape or doc.ndim != 1 or doc.size == 0:
+        raise ValueError(f"one read roll per documented roll, non-empty: {read.shape} against {doc.shape}")
+    if (doc == 0).any():
+        raise ValueError("a documented tilt has a side: no roll may be 0")
+    toward = np.sign(doc) * read
+    error = np.abs((read - doc + 180.0) % 360.0 - 180.0)
+    turned = (toward >= TURN_DEG).astype(np.float64)
+    out = {
+        "frames": int(doc.size),
+        "read_toward_median_deg": float(np.median(toward)),
+        "abs_error_median_deg": float(np.median(error)),
+        "share_turned": float(turned.mean()),
+        "share_other_way": float((toward <= -TURN_DEG).mean()),
+    }
+    if subjects is not None:
+        out["share_turned_ci"] = subject_interval(turned, subjects, np.mean)
+    return out
+
+
 SURE_SPREAD_M = 0.10  # a joint whose heatmap spread is below this is pinned by the image
 
 
@@ -205,7 +247,10 @@ __all__ = [
     "GROUP_POSTURE",
     "LOAD_ENDS",
     "POSTURES",
+    "TILTED_GROUPS",
+    "TURN_DEG",
     "BodyReadings",
+    "documented_roll",
     "height_by_load_ends",
     "load_ends",
     "load_ends_cells",
@@ -216,5 +261,6 @@ __all__ = [
     "spread_lines",
     "spread_summary",
     "subject_interval",
+    "tilt_summary",
     "trunk_spread",
 ]

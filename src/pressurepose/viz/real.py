@@ -44,6 +44,31 @@ def plot_real(path, rows: list[dict], summary: dict) -> None:
     plt.close(fig)
 
 
+def plot_tilt(path, rows: list[dict]) -> None:
+    """Tilted frames (`evaluate-real`'s group E rows): the roll read against the documented one,
+    a panel per mattress; the frames of one documented roll spread sideways to be seen apart."""
+    mattresses = sorted({r["mattress"] for r in rows})
+    fig, axes = plt.subplots(1, len(mattresses), figsize=(5 * len(mattresses), 4.2), squeeze=False)
+    offsets = np.linspace(-4, 4, 9)
+    for ax, name in zip(axes[0], mattresses):
+        sel = [r for r in rows if r["mattress"] == name]
+        doc = np.array([r["documented_roll_deg"] for r in sel])
+        x = doc + offsets[np.arange(len(sel)) % len(offsets)]
+        ax.scatter(x, [r["roll_deg"] for r in sel], s=14)
+        ax.plot([-50, 50], [-50, 50], "k--", lw=0.8)
+        ax.axhline(0, color="0.7", lw=0.6)
+        ax.set(
+            xlabel="documented roll (deg, + right)",
+            ylabel="read roll (deg)",
+            ylim=(-185, 185),
+            yticks=range(-180, 181, 45),
+            title=f"{name}: tilted on wedges or a pillow",
+        )
+    fig.tight_layout()
+    save_figure(fig, path, format="png", dpi=80)
+    plt.close(fig)
+
+
 def plot_real_cloud(path, rows: list[dict], by_subject: dict) -> None:
     names = list(by_subject)
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 3.8))
@@ -57,4 +82,4 @@ def plot_real_cloud(path, rows: list[dict], by_subject: dict) -> None:
     plt.close(fig)
 
 
-__all__ = ["plot_real", "plot_real_cloud"]
+__all__ = ["plot_real", "plot_real_cloud", "plot_tilt"]
