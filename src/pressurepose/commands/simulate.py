@@ -58,6 +58,10 @@ def run_simulate(cfg: SimulateConfig) -> Written:
     check_thickness(cfg.pillow_m)
     if cfg.pillow_m > 0 and cfg.settle != "articulated":
         raise UserError("--pillow-m needs the articulated engine (--settle articulated, the default)")
+    if cfg.sampling.spec.wedge and cfg.settle != "articulated":
+        raise UserError(
+            f"partition {cfg.sampling.partition} rests on wedges: it needs --settle articulated (the default)"
+        )
     mattress = MattressParams.load(cfg.params) if cfg.params is not None else default_mattress(cfg.settle)
     options = {"model_dir": cfg.smpl_dir} if cfg.backend == "smpl" else {}
     model = load_body_model(cfg.backend, dtype=torch.float64, **options)

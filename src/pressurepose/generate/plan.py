@@ -145,6 +145,10 @@ class GenerateConfig:
             raise UserError(f"pillow is a share of the samples, in [0, 1]; got {self.pillow}")
         if self.pillow > 0 and self.sim2_engine != "articulated":
             raise UserError("--pillow needs the articulated engine (the default --settle articulated)")
+        if self.partition is not None and get_partition(self.partition).wedge and self.sim2_engine != "articulated":
+            raise UserError(
+                f"partition {self.partition} rests on wedges: it needs the articulated engine (the default --settle articulated)"
+            )
         if self.settle == "articulated" and self.sim2 == "rigid":
             raise UserError(
                 "--sim2 rigid needs --settle mujoco (the articulated engine, the default, makes the image itself)"

@@ -34,9 +34,11 @@ from pressurepose.generate.plan import (
     TEST_INDEX_BASE,
     GenerateConfig,
     ShardSpec,
+    plan_groups,
     plan_shards,
 )
 from pressurepose.generate.worker import WorkContext, make_shard
+from pressurepose.sampling.partitions import get_partition
 
 log = logging.getLogger(__name__)
 SETTINGS = "generate.json"
@@ -71,6 +73,10 @@ def _settings(cfg: GenerateConfig, mattress: dict) -> dict:
         if joints.lying_extension:  # pinned only when set, so datasets made without it resume
             settings["articulated_joints"]["lying_extension"] = [list(e) for e in joints.lying_extension]
         settings["articulated_engine"] = ENGINE_REVISION
+    if any(get_partition(g.partition).wedge for g in plan_groups(cfg)):  # so do the wedges (`sim.wedge`)
+        from pressurepose.sim.wedge import Wedge
+
+        settings["wedge"] = dataclasses.asdict(Wedge())
     if cfg.pillow > 0:  # the pillows' size and material define the images as much as the bed
         from pressurepose.sim.pillow import PILLOW_THICKNESS_M, Pillow
 

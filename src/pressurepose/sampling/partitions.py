@@ -82,6 +82,8 @@ class Partition:
     head_angles_deg: tuple[float, ...] = (0.0,)
     # Sim #1's trunk roll hold for this partition (SettleConfig.hold_roll_m; 0: passive body).
     hold_roll_m: float = 0.0
+    # A wedge under each body's back in the articulated rest (`sim.wedge`; its slope the body's turn).
+    wedge: bool = False
 
     @property
     def raised(self) -> bool:
@@ -179,6 +181,19 @@ def _partitions() -> dict[str, Partition]:
             arm_cells=(2, 3, 4, 5),
             hold_roll_m=HOLD_ROLL_M,
         ),
+        # Beyond Table 4: turned 15-45 deg toward a side with a wedge under the back, as people
+        # are positioned to offload the sacrum (PmatData group E: 20 and 40 deg); the articulated
+        # rest props each body on a wedge sloped at its turn (`sim.wedge`, `articulated_config_for`).
+        Partition(
+            "tilted",
+            "turned 15-45 deg toward the left or right on a wedge under the back, limbs near the body",
+            roll=(math.pi / 12, math.pi / 4),
+            either_side=True,
+            yaw=(-math.pi / 18, math.pi / 18),
+            leg_cells=(2, 3),
+            arm_cells=(3, 4, 5, 6),
+            wedge=True,
+        ),
     ]
     return {p.name: p for p in parts}
 
@@ -201,8 +216,9 @@ class SamplingConfig:
     Attributes:
         partition: general, supine, hands_behind_head, prone_hands_up, crossed_legs,
             straight_limbs, half_sitting (head of the bed raised 10-60 deg), lateral (on either
-            side, legs drawn up) or lateral_straight (on either side, legs nearly straight; the
-            trunk roll held in sim #1).
+            side, legs drawn up), lateral_straight (on either side, legs nearly straight; the
+            trunk roll held in sim #1) or tilted (turned 15-45 deg on a wedge; the articulated
+            engine).
         gender: Gender of the sampled bodies.
         over_bed: Keep knees, ankles, feet, elbows, wrists and hands over the mattress.
         seed: dataset seed; a sample is a function of (seed, partition, gender, over_bed, index).

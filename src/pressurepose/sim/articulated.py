@@ -71,6 +71,7 @@ from pressurepose.sim.raised import RaisedBed
 from pressurepose.sim.rest_setup import SurfaceLayout
 from pressurepose.sim.rest_state import FAIL_TILT, MovingBodies, RestsDone, damp_swings
 from pressurepose.sim.self_contact import SelfContact
+from pressurepose.sim.wedge import rigid_base, thickness_map, tilt_of
 
 # The revision of the engine's numerics: raised whenever a change alters its rests beyond
 # bitwise (datasets pin it, `generate.run`). 2: stalled solves leave, trimmed cells, a
@@ -222,6 +223,12 @@ def rest_articulated(
             raise UserError("pillows lie on flat beds only; drop pillow_m for a raised bed")
         under = footprint(cfg.pillow, joints, xy, pillow_m)
         under_c = None if coarse is None else footprint(cfg.pillow, joints, coarse.xy, pillow_m)
+    wedge_m = wedge_c = None
+    if cfg.wedge is not None and bool((tilt := tilt_of(root_roll(params.root_rotation))).gt(0).any()):
+        if point_tissue is None or raised is not None:
+            raise UserError("a wedge lies on a flat bed and needs the soft tissue (MattressParams.tissue_pa_per_m > 0)")
+        wedge_m = thickness_map(cfg.wedge, tilt, joints, xy)
+        wedge_c = None if coarse is None else thickness_map(cfg.wedge, tilt, joints, coarse.xy)
     contact = None
     if cfg.self_contact:
         contact = SelfContact(fit_capsules(model, params.shape), rot, joints, weight, cfg.self_contact_sink_m)
@@ -236,10 +243,10 @@ def rest_articulated(
     body = MovingBodies(
         cur, rest, local_com, mass, local_pts, point_tissue, point_sag, dof_lo, dof_hi, ref_local, root_start, k, weight
     )
-    body.pillow_m, body.pillow_under = pillow_m, under
+    body.pillow_m, body.pillow_under, body.wedge_m = pillow_m, under, wedge_m
     vertex = layout.vertex  # the coarse grid's points: the mesh's vertices
     if coarse is not None:
-        body.coarse_points(vertex, under_c)
+        body.coarse_points(vertex, under_c, wedge_c)
     body.last_q, body.streak = k.new_zeros(B, dofs.n), k.new_zeros(B, dofs.n)
     body.share = torch.ones_like(body.last_q)
     # Each unknown's trust region and settled tolerance (the vertical shift in m, the rest in rad).
@@ -257,11 +264,20 @@ def rest_articulated(
         body_com = (body.mass[..., None] * com).sum(1) / body.mass.sum(1)[:, None]
         if in_coarse:
             g, pts, lab, sag, tissue, pill = coarse, body.c_pts, labels_c, body.c_sag, body.c_tissue, body.c_under
+            wedge = body.c_wedge_m
         else:
             g, pts, lab, sag, tissue = fine, body.local_pts, labels, body.point_sag, body.point_tissue
-            pill = body.pillow_under
+            pill, wedge = body.pillow_under, body.wedge_m
         h, part, cell_tissue = g.heights(
-            pts, lab, rot, joints, sag=sag, tissue=tissue, raised=raised, pillow=(body.pillow_m, pill, cfg.pillow)
+            pts,
+            lab,
+            rot,
+            joints,
+            sag=sag,
+            tissue=tissue,
+            raised=raised,
+            pillow=(body.pillow_m, pill, cfg.pillow),
+            wedge=(wedge, cfg.wedge),
         )
         dof_a, e = dof_geometry(dofs, rot, joints, body_com, cur.pose, body.ref_local)
         e[:, 1] = matrix_to_axis_angle(root_matrix(cur.root_rotation) @ body.root_start.transpose(-1, -2))[:, 0]
@@ -349,6 +365,8 @@ def rest_articulated(
     foundation = done.foundation.view(B, nr, nc)
     if under is not None:  # what the mat reads beneath the pillows (the cell centres from above)
         foundation = spread_load(foundation, under.view(B, nr, nc), cfg.pillow, pillow_m, X[:, 0], Y[0])
+    if wedge_m is not None:  # and beneath the wedges
+        foundation = rigid_base(foundation, wedge_m.view(B, nr, nc) > 0, X[:, 0], Y[0])
     force, w_max = done.force, done.max_compression
     failure = done.failures(params.root_rotation, weight, mp)
     bad = torch.tensor([bool(x) for x in failure], device=device)

@@ -9,6 +9,7 @@ import math
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.errors import UserError
 from pressurepose.sim.pillow import Pillow
+from pressurepose.sim.wedge import Wedge
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,6 +118,9 @@ class ArticulatedConfig:
     pillow: Pillow = Pillow()
     """The pillow under the heads of the bodies given one (`rest_articulated(pillow_m=...)`,
     `sim.pillow`): its size and material."""
+    wedge: Wedge | None = None
+    """A wedge under the back of every body that starts turned 5-90 deg from supine, sloped at
+    its turn (`sim.wedge`; the `tilted` partition's); None: no wedges."""
     tol: float = 1e-4
     """Converged when the force imbalance is below tol x the weight and the steps are tiny."""
 

@@ -13,6 +13,7 @@ from pressurepose.sim.articulation import from_part_frames
 from pressurepose.sim.mattress import MattressParams
 from pressurepose.sim.pillow import in_series
 from pressurepose.sim.soft_contact import lowest_points
+from pressurepose.sim.wedge import in_series as wedge_in_series
 
 
 @dataclasses.dataclass
@@ -41,6 +42,7 @@ class ContactGrid:
         tissue: torch.Tensor | None = None,
         raised=None,
         pillow: tuple | None = None,
+        wedge: tuple | None = None,
     ):
         """The lowest surface point per cell at a posing (rot (B, 24, 3, 3), joints (B, 24, 3)):
         its height (B, C) above the mattress top, its part (B, C; on a raised bed + 24 on the
@@ -48,7 +50,8 @@ class ContactGrid:
         or None. `local` (B, P, 3): the points in their parts' frames, `labels` (P,) their parts
         (sorted), `sag` and `tissue` (B, P) or None; `pillow` (thickness (B,), cells under it
         (B, C) or None, `sim.pillow.Pillow`): heights above the pillows' tops, through them in
-        series (`sim.articulated`)."""
+        series (`sim.articulated`); `wedge` (thickness per cell (B, C) or None, `sim.wedge.Wedge`)
+        likewise above and through a wedge."""
         pts = from_part_frames(local, labels, rot, joints)
         if sag is not None:  # the tissue hangs toward the bed, whatever the part's turn
             pts[..., 2] -= sag
@@ -63,6 +66,10 @@ class ContactGrid:
             thickness, under, spec = pillow
             h = h - thickness[:, None] * under
             cell_tissue = in_series(cell_tissue, spec, thickness, under)
+        if wedge is not None and wedge[0] is not None:
+            thickness, spec = wedge
+            h = h - thickness
+            cell_tissue = wedge_in_series(cell_tissue, spec, thickness)
         return h, part, cell_tissue
 
     @classmethod

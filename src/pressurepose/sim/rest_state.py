@@ -42,6 +42,7 @@ class MovingBodies:
     weight: torch.Tensor  # (B,)
     pillow_m: torch.Tensor | None = None  # (B,) pillow thickness (0: none)
     pillow_under: torch.Tensor | None = None  # (B, C) cells under the pillow
+    wedge_m: torch.Tensor | None = None  # (B, C) the wedge's thickness per cell (`sim.wedge`)
     # Swing damping (`damp_swings`): the last re-posing's motion, each unknown's share of its
     # motion taken, and how many re-posings in a row its motion kept its direction without shrinking.
     last_q: torch.Tensor | None = None  # (B, N)
@@ -52,14 +53,18 @@ class MovingBodies:
     c_tissue: torch.Tensor | None = None
     c_sag: torch.Tensor | None = None
     c_under: torch.Tensor | None = None
+    c_wedge_m: torch.Tensor | None = None
 
-    def coarse_points(self, keep: torch.Tensor | None, under: torch.Tensor | None) -> None:
+    def coarse_points(
+        self, keep: torch.Tensor | None, under: torch.Tensor | None, wedge_m: torch.Tensor | None = None
+    ) -> None:
         """Keep the surface points `keep` (P,) bool for the coarse grid (coordinate-major, as
-        `articulation.to_part_frames` lays them out); `under` (B, C'): its pillow cells. None:
-        drop them (the coarse re-posings are over)."""
+        `articulation.to_part_frames` lays them out); `under` (B, C'): its pillow cells; `wedge_m`
+        (B, C'): its wedge thickness. None: drop them (the coarse re-posings are over)."""
         if keep is None:
-            self.c_pts = self.c_tissue = self.c_sag = self.c_under = None
+            self.c_pts = self.c_tissue = self.c_sag = self.c_under = self.c_wedge_m = None
             return
+        self.c_wedge_m = wedge_m
         self.c_pts = self.local_pts[:, keep].transpose(1, 2).contiguous().transpose(1, 2)
         self.c_tissue = None if self.point_tissue is None else self.point_tissue[:, keep].contiguous()
         self.c_sag = None if self.point_sag is None else self.point_sag[:, keep].contiguous()

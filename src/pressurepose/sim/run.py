@@ -74,10 +74,12 @@ def settle_config_for(partition: str) -> SettleConfig:
 
 def articulated_config_for(partition: str) -> ArticulatedConfig:
     """The articulated rest's settings for a sampling partition (the same trunk roll hold as
-    sim #1's, `settle_config_for`)."""
+    sim #1's, `settle_config_for`; the `tilted` partition's wedges, `sim.wedge`)."""
     from pressurepose.sim.articulated import ArticulatedConfig
+    from pressurepose.sim.wedge import Wedge
 
-    return ArticulatedConfig(hold_roll_m=get_partition(partition).hold_roll_m)
+    spec = get_partition(partition)
+    return ArticulatedConfig(hold_roll_m=spec.hold_roll_m, wedge=Wedge() if spec.wedge else None)
 
 
 def simulate_poses(
