@@ -41,7 +41,6 @@ import torch
 
 from pressurepose.bed import BedShape
 from pressurepose.body.capsules import fit_capsules
-from pressurepose.body.joints import NUM_JOINTS
 from pressurepose.body.kinematics import pose_in_mat, rest_joints
 from pressurepose.body.model import BodyModel
 from pressurepose.body.params import BodyParams, root_matrix, root_roll
@@ -67,11 +66,11 @@ from pressurepose.sim.friction import Friction
 from pressurepose.sim.linearised import Linearised, minimise
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
 from pressurepose.sim.pillow import footprint, spread_load
-from pressurepose.sim.raised import RaisedBed
+from pressurepose.sim.raised import RaisedBed, on_sheet
 from pressurepose.sim.rest_setup import SurfaceLayout
 from pressurepose.sim.rest_state import FAIL_TILT, MovingBodies, RestsDone, damp_swings
 from pressurepose.sim.self_contact import SelfContact
-from pressurepose.sim.wedge import rigid_base, thickness_map, tilt_of
+from pressurepose.sim.wedge import rigid_base, wedge_thickness
 
 # The revision of the engine's numerics: raised whenever a change alters its rests beyond
 # bitwise (datasets pin it, `generate.run`). 2: stalled solves leave, trimmed cells, a
@@ -223,12 +222,8 @@ def rest_articulated(
             raise UserError("pillows lie on flat beds only; drop pillow_m for a raised bed")
         under = footprint(cfg.pillow, joints, xy, pillow_m)
         under_c = None if coarse is None else footprint(cfg.pillow, joints, coarse.xy, pillow_m)
-    wedge_m = wedge_c = None
-    if cfg.wedge is not None and bool((tilt := tilt_of(root_roll(params.root_rotation))).gt(0).any()):
-        if point_tissue is None or raised is not None:
-            raise UserError("a wedge lies on a flat bed and needs the soft tissue (MattressParams.tissue_pa_per_m > 0)")
-        wedge_m = thickness_map(cfg.wedge, tilt, joints, xy)
-        wedge_c = None if coarse is None else thickness_map(cfg.wedge, tilt, joints, coarse.xy)
+    grids = (xy, None if coarse is None else coarse.xy)
+    wedge_m, wedge_c = wedge_thickness(cfg.wedge, root_roll(params.root_rotation), joints, grids, point_tissue, raised)
     contact = None
     if cfg.self_contact:
         contact = SelfContact(fit_capsules(model, params.shape), rot, joints, weight, cfg.self_contact_sink_m)
@@ -285,7 +280,7 @@ def rest_articulated(
         section_a = None if raised is None else raised.section_a(dof_a, axes, pivots)
         springs = [] if moving_contact is None else [moving_contact.linearise(rot, joints, axes, pivots, dof_parts)]
         if friction is not None and solved is not None:
-            friction.update(rot, joints, *_on_sheet(solved, raised))
+            friction.update(rot, joints, *on_sheet(solved, raised))
             springs.append(friction.linearise(rot, joints, axes, pivots, dof_parts))
         lin = Linearised(
             h,
@@ -388,14 +383,6 @@ def rest_articulated(
         pillow_m=pillow_m,
         friction_ratio=None if raised is None else done.friction_ratio,
     )
-
-
-def _on_sheet(state, raised: RaisedBed | None):
-    """`Linearised.contact_state` for `sim.friction`: the parts (0-23) and world contact points."""
-    if raised is None:
-        return state
-    part, xyz, force, stiffness = state
-    return part % NUM_JOINTS, raised.to_world(xyz), force, stiffness
 
 
 __all__ = [

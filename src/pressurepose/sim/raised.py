@@ -89,4 +89,14 @@ class RaisedBed:
         return (force * (part >= NUM_JOINTS)).sum(1) * self.sin
 
 
-__all__ = ["RaisedBed"]
+def on_sheet(state, raised: RaisedBed | None):
+    """`Linearised.contact_state` for `sim.friction`: the parts (0-23) and world contact points
+    (on a raised bed the state's parts carry + 24 on the head section and its points lie in
+    surface coordinates)."""
+    if raised is None:
+        return state
+    part, xyz, force, stiffness = state
+    return part % NUM_JOINTS, raised.to_world(xyz), force, stiffness
+
+
+__all__ = ["RaisedBed", "on_sheet"]

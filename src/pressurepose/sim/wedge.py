@@ -87,6 +87,19 @@ def thickness_map(wedge: Wedge, tilt: torch.Tensor, joints: torch.Tensor, xy: to
     return torch.where(on, u * torch.tan(tilt)[:, None], torch.zeros_like(u))
 
 
+def wedge_thickness(wedge: Wedge | None, roll: torch.Tensor, joints: torch.Tensor, grids, tissue, raised) -> tuple:
+    """The rest's wedges: for each grid's cell centres (C, 2) in `grids` (None: no such grid) the
+    (B, C) thickness map of bodies turned by `roll` (B,) rad - or None for every grid when there is
+    no wedge or no body is turned enough (`tilt_of`). A wedge needs a flat bed (`raised` None) and
+    the soft tissue (`tissue`, the surface points' modulus, not None) to rest on."""
+    tilt = tilt_of(roll)
+    if wedge is None or not bool(tilt.gt(0).any()):
+        return tuple(None for _ in grids)
+    if tissue is None or raised is not None:
+        raise UserError("a wedge lies on a flat bed and needs the soft tissue (MattressParams.tissue_pa_per_m > 0)")
+    return tuple(None if xy is None else thickness_map(wedge, tilt, joints, xy) for xy in grids)
+
+
 def in_series(tissue: torch.Tensor, wedge: Wedge, thickness: torch.Tensor) -> torch.Tensor:
     """The cells' tissue modulus (B, C) with the wedge's E / t in series where t > 0."""
     on = thickness > 0
@@ -120,4 +133,13 @@ def rigid_base(pressure: torch.Tensor, on: torch.Tensor, x: torch.Tensor, y: tor
     return torch.where(has[:, None, None], pressure * (1 - w) + base, pressure)
 
 
-__all__ = ["MAX_TILT_RAD", "MIN_TILT_RAD", "Wedge", "in_series", "rigid_base", "thickness_map", "tilt_of"]
+__all__ = [
+    "MAX_TILT_RAD",
+    "MIN_TILT_RAD",
+    "Wedge",
+    "in_series",
+    "rigid_base",
+    "thickness_map",
+    "tilt_of",
+    "wedge_thickness",
+]
