@@ -941,3 +941,56 @@ def test_realism_refuses_a_network_without_heatmaps(trained_run):
 
     with pytest.raises(UserError, match="has no heatmaps"):
         _spread_reader(trained_run)
+
+
+def test_predict_head_end_auto_turns_a_reversed_file(tmp_path, capsys):
+    """`--head-end auto` with the packaged heatmap network: PmatData's frames as imported (head at
+    row 0) read the first row as the head end; the same frames turned end for end read the last,
+    and are read turned back (the same estimates); `last-row` turns a file without asking; a
+    network without heatmaps cannot tell."""
+    from pathlib import Path
+
+    from pressurepose.data.pmatdata import load_images, load_index
+
+    pmat = Path(__file__).resolve().parent / "data" / "pmatdata"
+    frames = load_images(load_index(pmat))
+    np.save(tmp_path / "given.npy", frames)
+    np.save(tmp_path / "turned.npy", np.ascontiguousarray(frames[:, ::-1]))
+    out = tmp_path / "auto"
+    flags = ["--no-figures", "--no-meshes", "--out", str(out)]
+    assert (
+        main(["predict", "--head-end", "auto", *flags, str(tmp_path / "given.npy"), str(tmp_path / "turned.npy")]) == 0
+    )
+    n = len(frames)
+    given = [json.loads((out / f"given_{k:04d}.json").read_text()) for k in range(n)]
+    turned = [json.loads((out / f"turned_{k:04d}.json").read_text()) for k in range(n)]
+    assert {r["head_end"] for r in given} == {"first row"} and {r["head_end"] for r in turned} == {"last row"}
+    spreads = given[0]["head_end_trunk_spread_m"]
+    assert (
+        spreads["first row"] < spreads["last row"]
+        and turned[0]["head_end_trunk_spread_m"]["last row"] < spreads["last row"]
+    )
+    for a, b in zip(given, turned):  # the same images once turned back: the same bodies
+        np.testing.assert_allclose(a["joints_m"]["head"], b["joints_m"]["head"], atol=1e-4)
+        assert a["posture"] == b["posture"]
+    rows = (out / "predictions.csv").read_text().splitlines()
+    assert rows[0].split(",")[:7] == ["image", "posture", "roll_deg", "height_m", "mass_kg", "load_ends", "head_end"]
+    assert sum(r.split(",")[6] == "last row" for r in rows[1:]) == n
+    # last-row: turned without asking; the default leaves the file as it is (and says nothing).
+    assert main(["predict", "--head-end", "last-row", *flags, str(tmp_path / "turned.npy")]) == 0
+    last = json.loads((out / "turned_0000.json").read_text())
+    assert last["head_end"] == "last row" and "head_end_trunk_spread_m" not in last
+    np.testing.assert_allclose(last["joints_m"]["head"], given[0]["joints_m"]["head"], atol=1e-4)
+    assert main(["predict", *flags, str(tmp_path / "given.npy")]) == 0
+    assert "head_end" not in json.loads((out / "given_0000.json").read_text())
+
+
+def test_predict_head_end_auto_needs_heatmaps(trained_run, tmp_path, capsys):
+    path = tmp_path / "one.npy"
+    np.save(path, np.full((64, 27), 5.0, dtype=np.float32))
+    capsys.readouterr()
+    args = ["predict", "--model", str(trained_run), "--head-end", "auto", "--out", str(tmp_path / "o"), str(path)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "--head-end auto reads the head end from heatmaps" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()

@@ -18,6 +18,13 @@ _<index> for files holding several images. Last, OUT/predictions.csv: one row pe
 order (posture, roll, height, mass, where the load lies; the head and torso joints' median heatmap
 spread and the readout's posture when the network has them) - a recording at a glance; a run that
 stops early leaves none.
+
+`--head-end last-row` reads files whose head end is their last row (turned end for end first);
+`auto` reads each file both ways and keeps, for all its images, the way the heatmaps pin the head
+and torso more sharply (`eval.real.head_end_spreads`; docs/real_data.md "Which end is the head").
+The outputs are then in the mat frame with the head end at row 0, and each JSON and row says which
+end of the file was the head. Left and right cannot be told apart so (a mirrored body presses the
+mirrored image): the columns stay as given.
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ import tyro
 from pressurepose.body.joints import J24_NAMES, TRUNK_JOINTS
 from pressurepose.commands.netopts import with_inference_options
 from pressurepose.errors import UserError
-from pressurepose.eval.real import load_ends, posture_of, roll_deg
+from pressurepose.eval.real import head_end_spreads, load_ends, posture_of, roll_deg
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import read_pressure_file
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
@@ -71,6 +78,9 @@ class PredictConfig:
             (MPJPE ~2 mm lower for the default model; twice the network's work per image).
         device: auto (CUDA when present), cpu or cuda.
         force: use images reading more than 1000 mmHg (the plausibility bound, net.inputs), clipped there.
+        head_end: which row of the files lies at the head end: first-row (the project's
+            convention), last-row (the images are turned end for end before reading), or auto (per
+            file, the way a heatmap network pins the head and torso more sharply).
     """
 
     files: tyro.conf.Positional[tuple[Path, ...]] = ()
@@ -88,18 +98,20 @@ class PredictConfig:
     flip_test: bool = False
     device: Literal["auto", "cpu", "cuda"] = "auto"
     force: bool = False
+    head_end: Literal["first-row", "last-row", "auto"] = "first-row"
 
 
-def read_inputs(cfg: PredictConfig) -> list[tuple[str, np.ndarray]]:
-    """[(name, (64, 27) image)] of every file, all checked (ValueError on the first bad one)."""
+def read_inputs(cfg: PredictConfig) -> list[tuple[str, np.ndarray, int]]:
+    """[(name, (64, 27) image, index of its file in cfg.files)] of every file, all checked
+    (ValueError on the first bad one)."""
     if not cfg.files:
         raise UserError("no input files; give pressure images after the options")
     items = []
-    for path in cfg.files:
+    for f, path in enumerate(cfg.files):
         images = read_pressure_file(path, cfg.text_units, cfg.mass_kg or 70.0, cfg.force)
         for k, image in enumerate(images):
-            items.append((path.stem if len(images) == 1 else f"{path.stem}_{k:04d}", image))
-    names = [n for n, _ in items]
+            items.append((path.stem if len(images) == 1 else f"{path.stem}_{k:04d}", image, f))
+    names = [n for n, _, _ in items]
     if len(set(names)) != len(names):
         raise UserError("two inputs would write the same output name; give files with different names")
     return items
@@ -118,6 +130,9 @@ def run_predict(cfg: PredictConfig) -> dict:
     net = with_inference_options(net, cfg.ik_steps, cfg.flip_test)
     if net.config.height_weight and (cfg.height_m is None or cfg.mass_kg is None):
         raise UserError("this network takes height and mass as inputs: give --height-m and --mass-kg")
+    if cfg.head_end == "auto" and net.config.arch != "heatmap":
+        raise UserError("--head-end auto reads the head end from heatmaps: it needs a heatmap network (--arch heatmap)")
+    items, ends = _orient(items, cfg, net, device)
     out.mkdir(parents=True, exist_ok=True)
     (out / "predictions.csv").unlink(missing_ok=True)  # an earlier run's table would not match this run's files
     t_net = 0.0
@@ -125,7 +140,7 @@ def run_predict(cfg: PredictConfig) -> dict:
     for start in range(0, len(items), cfg.batch_size):
         chunk = items[start : start + cfg.batch_size]
         B = len(chunk)
-        pressure = torch.from_numpy(np.stack([im for _, im in chunk])).to(device)
+        pressure = torch.from_numpy(np.stack([im for _, im, _ in chunk])).to(device)
         full = lambda v: None if v is None else torch.full((B,), float(v), device=device)  # noqa: E731
         inputs = NetInputs(
             pressure, gender=full(GENDERS[cfg.gender]), height_m=full(cfg.height_m), mass_kg=full(cfg.mass_kg)
@@ -136,10 +151,31 @@ def run_predict(cfg: PredictConfig) -> dict:
             t_net += time.perf_counter() - t0
             measured = net.body.measure(est.params.shape)
         rolls = roll_deg(est.params.root_rotation.detach().double().cpu())
-        for i, (name, image) in enumerate(chunk):
-            table.append(_write_one(out, name, image, est, measured, i, net, cfg, float(rolls[i])))
+        for i, (name, image, f) in enumerate(chunk):
+            table.append(_write_one(out, name, image, est, measured, i, net, cfg, float(rolls[i]), ends.get(f)))
     _write_table(out / "predictions.csv", table)
     return {"images": len(items), "out": str(out), "network_ms_per_image": 1000 * t_net / len(items)}
+
+
+def _orient(items: list, cfg: PredictConfig, net, device) -> tuple[list, dict[int, dict]]:
+    """The items with each file's images turned end for end where its head end is its last row
+    (`--head-end`), and per file index what was found: {"head_end": "first row" | "last row"}, with
+    auto the two trunk spreads; empty for the default (first-row)."""
+    if cfg.head_end == "first-row":
+        return items, {}
+    ends = {}
+    for f in sorted({f for _, _, f in items}):
+        if cfg.head_end == "last-row":
+            ends[f] = {"head_end": "last row"}
+            continue
+        images = torch.from_numpy(np.stack([im for _, im, g in items if g == f])).to(device)
+        given, turned = head_end_spreads(net, images)
+        ends[f] = {
+            "head_end": "last row" if turned < given else "first row",
+            "head_end_trunk_spread_m": {"first row": given, "last row": turned},
+        }
+    flip = {f for f, e in ends.items() if e["head_end"] == "last row"}
+    return [(n, np.ascontiguousarray(im[::-1]) if f in flip else im, f) for n, im, f in items], ends
 
 
 def _write_table(path: Path, rows: list[dict]) -> Path:
@@ -154,7 +190,7 @@ def _write_table(path: Path, rows: list[dict]) -> Path:
 
 
 def _write_one(
-    out: Path, name: str, image: np.ndarray, est, measured, i: int, net, cfg: PredictConfig, roll: float
+    out: Path, name: str, image: np.ndarray, est, measured, i: int, net, cfg: PredictConfig, roll: float, end=None
 ) -> dict:
     """OUT/<name>.json (and the mesh and figure when asked); returns the image's row of predictions.csv."""
     p = est.params
@@ -175,13 +211,14 @@ def _write_one(
             0
         ],  # from the body's roll, as evaluate-real reads it
         "roll_deg": roll,
+        **(end or {}),  # which end of the file was the head (--head-end)
     }
     loc = est.localisation
     spread = None
     if loc is not None:  # how sharply each joint's heatmap pins it: large where the image shows it not
         spread = loc.spread_m[i].detach().double().cpu().numpy()
         record["joint_spread_m"] = dict(zip(J24_NAMES, spread.tolist()))
-    row = {k: record[k] for k in ("posture", "roll_deg", "height_m", "mass_kg", "load_ends")}
+    row = {k: record[k] for k in ("posture", "roll_deg", "height_m", "mass_kg", "load_ends", "head_end") if k in record}
     if spread is not None:  # the head and torso joints' median spread, as evaluate-real reports it
         row["trunk_spread_m"] = float(torch.from_numpy(spread[list(TRUNK_JOINTS)]).median())  # the lower middle
     if loc is not None and loc.posture_logits is not None:  # the network's posture readout
