@@ -191,6 +191,16 @@ def test_compare_cli_writes_both_reports(tmp_path, capsys):
     assert "B = b (6 IK steps) against A = a" in md and "| MPJPE (mm) |" in md and "| supine | 6 |" in md
 
 
+def test_compare_reads_the_posture_groups_only(tmp_path, capsys):
+    """A report read with group E's tilts (the default since session 59) pairs with one without:
+    compare reads the posture table's groups B-D."""
+    rows = _frames([True] * 20, [0.07] * 20)
+    a = _write(tmp_path / "a", "real.json", _real_report(rows))
+    b = _write(tmp_path / "b", "real.json", _real_report(rows, groups="BCDE"))
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o")]) == 0
+    assert "air: posture +0 / -0 frames" in capsys.readouterr().out
+
+
 def test_compare_cli_refuses_bad_inputs(tmp_path, capsys):
     rows = _frames([True] * 20, [0.07] * 20)
     real_a = _write(tmp_path / "ra", "real.json", _real_report(rows))
@@ -206,6 +216,8 @@ def test_compare_cli_refuses_bad_inputs(tmp_path, capsys):
         "no_subject": _real_report([{k: v for k, v in r.items() if k != "subject"} for r in rows]),
         "rows_not_list": _real_report({"file": "x"}),
         "other_threshold": _real_report(rows, threshold=30.0),
+        "other_groups": _real_report(rows, groups="BC"),
+        "tilts_only": _real_report(rows, groups="E"),
         "short": _real_report(_frames([True] * 10, [0.0] * 10)),
         "cloud": {"command": "evaluate-real", "kind": "point-cloud", "config": {}},
         "other_command": {"command": "train", "config": {}},
@@ -234,6 +246,8 @@ def test_compare_cli_refuses_bad_inputs(tmp_path, capsys):
         ([real_a, folders["no_subject"]], "damaged"),
         ([real_a, folders["rows_not_list"]], "damaged"),
         ([real_a, folders["other_threshold"]], "threshold"),
+        ([real_a, folders["other_groups"]], "groups BCD, B with BC"),
+        ([folders["tilts_only"], folders["tilts_only"]], "neither report read PmatData's groups B-D"),
         ([real_a, folders["short"]], "different frames"),
         ([real_a, folders["cloud"]], "point-cloud"),
         ([real_a, folders["other_command"]], "not an `evaluate`"),

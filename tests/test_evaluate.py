@@ -361,27 +361,28 @@ def test_a_frame_repeating_another_subjects_is_left_out(tiny, tmp_path):
         {"file": "experiment-ii/S9/Air_Mat/Matrix_Air_C1.txt", "same_as": "experiment-ii/S1/Air_Mat/Matrix_Air_C1.txt"}
     ]
     assert "Matrix_Air_C1.txt" not in {f["file"] for f in record["per_frame"] if f["subject"] == 9}
-    assert "1 frame(s) left out: each repeats another record's file" in (out / "real.md").read_text()
+    assert "1 frame(s) left out (all groups): each repeats another record's file" in (out / "real.md").read_text()
     # Of a group of copies the lowest-numbered subject's is the original, wherever it is listed.
     swapped = repeated_frames(records[::-1])
     assert [(r.subject, o.subject) for r, o in swapped] == [(9, 1)]
 
 
 def test_tilt_summary_by_hand():
-    """Group E's measures on six frames worked out by hand, the roll error wrapped to [0, 180]."""
+    """Group E's measures on seven frames worked out by hand, the roll error wrapped to [0, 180]."""
     from pressurepose.eval.real import documented_roll, tilt_summary
 
-    doc = [documented_roll("right", 20), documented_roll("left", 40), 20, 40, -20, 20]
-    read = [25, 100, -15, -170, -25, 5]
+    doc = [documented_roll("right", 20), documented_roll("left", 40), 20, 40, -20, 20, 20]
+    read = [25, 100, -15, -170, -25, 5, 170]
     s = tilt_summary(doc, read)
-    # toward the documented side: 25, -100, -15, -170, 25, 5 -> median (-15 + 5) / 2
-    assert s["read_toward_median_deg"] == pytest.approx(-5.0)
-    # errors 5, 140, 35, 150 (not 210: wrapped), 5, 15 -> median (15 + 35) / 2
-    assert s["abs_error_median_deg"] == pytest.approx(25.0)
-    assert s["share_turned"] == pytest.approx(2 / 6) and s["share_other_way"] == pytest.approx(3 / 6)
-    assert s["frames"] == 6 and "share_turned_ci" not in s
-    one = tilt_summary(doc, read, subjects=[1] * 6)  # one subject: every resample is the set itself
-    assert one["share_turned_ci"] == pytest.approx((2 / 6, 2 / 6))
+    # toward the documented side: 25, -100, -15, -170, 25, 5, 170 -> median 5
+    assert s["read_toward_median_deg"] == pytest.approx(5.0)
+    # errors 5, 140, 35, 150 (not 210: wrapped), 5, 15, 150 -> median 35
+    assert s["abs_error_median_deg"] == pytest.approx(35.0)
+    # turned: 25 and 25 (5 is too little; 170 toward the side is face down); the other way: 3
+    assert s["share_turned"] == pytest.approx(2 / 7) and s["share_other_way"] == pytest.approx(3 / 7)
+    assert s["frames"] == 7 and "share_turned_ci" not in s
+    one = tilt_summary(doc, read, subjects=[1] * 7)  # one subject: every resample is the set itself
+    assert one["share_turned_ci"] == pytest.approx((2 / 7, 2 / 7))
     with pytest.raises(ValueError, match="right or the left"):
         documented_roll("supine", 20)
     with pytest.raises(ValueError, match=r"\(0, 90\)"):
@@ -431,6 +432,21 @@ def test_evaluate_real_reads_tilted_frames_against_their_rolls(tiny, tmp_path):
     text = (out / "real.md").read_text()
     assert "posture accuracy" not in text and "![real]" not in text and "| E1 air (1) | +20 |" in text
     assert not (out / "real.png").exists() and (out / "tilt.png").exists()
+    # A group E row without its roll: one line naming the index and the file, nothing written.
+    import shutil
+
+    root = tmp_path / "pmat"
+    shutil.copytree(PMAT, root)
+    index = root / "index.csv"
+    index.write_text(index.read_text().replace(",E,1,right,20,", ",E,1,right,0,"))
+    r = subprocess.run(
+        [sys.executable, "-m", "pressurepose.cli", "evaluate-real", "--model", str(run), "--pmatdata", str(root)]
+        + ["--groups", "E", "--out", str(tmp_path / "bad")],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and "Matrix_Air_E1.txt" in r.stderr and "index.csv" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "bad").exists()
 
 
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):

@@ -113,3 +113,30 @@ def test_predict_and_evaluate_real_with_the_flip_test(anny32, tmp_path):
     # Group B's 159 frames less subject 8's 14 repeats of subject 4's (B4-B10 on both mattresses).
     assert lines[0].endswith("(flip test) on PmatData experiment II (145 frames, groups B)")
     assert lines[2].startswith("14 frame(s) left out")
+
+
+def test_predict_head_end_auto_gives_the_network_its_inputs(anny32, tmp_path):
+    """`--head-end auto` reads the head end with the subject's height, mass and gender for a
+    network that takes them, as the estimate itself does."""
+    import json
+
+    import numpy as np
+
+    from pressurepose.cli import main
+    from pressurepose.train.checkpoint import save_model
+
+    cfg = NetConfig(arch="heatmap", gender_input=True, height_weight=True, ik_steps=1)
+    net = PressureNet(cfg, body=anny32).eval()
+    run = tmp_path / "run"
+    run.mkdir()
+    save_model(run, net, {"train": {}, "net": dict(net.config.__dict__)})
+    image = tmp_path / "two.npy"
+    np.save(image, (np.random.default_rng(0).random((2, 64, 27)) * 30).astype(np.float32))
+    out = tmp_path / "pred"
+    args = ["predict", "--model", str(run), "--out", str(out), "--no-figures", "--no-meshes", "--head-end", "auto"]
+    assert main([*args, "--height-m", "1.7", "--mass-kg", "70", "--gender", "female", str(image)]) == 0
+    record = json.loads((out / "two_0000.json").read_text())
+    assert record["head_end"] in ("first row", "last row") and set(record["head_end_trunk_spread_m"]) == {
+        "first row",
+        "last row",
+    }

@@ -145,6 +145,7 @@ def test_unknown_partition_lists_the_valid_ones():
         "half_sitting",
         "lateral",
         "lateral_straight",
+        "tilted",
     }
     assert get_partition("supine").roll == (0.0, 0.0)
 

@@ -3,6 +3,7 @@ series and the rigid base against hand-computed cases; the rest on it (weight ca
 kept turned, the wedge's load read as a flat patch, a mirrored body gives the mirrored image,
 no wedge changes nothing); the `tilted` partition's settings and bad input."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -168,6 +169,38 @@ def test_no_wedge_for_untilted_bodies_changes_nothing(anny64):
     assert torch.equal(a.foundation_pa, b.foundation_pa) and torch.equal(a.joints, b.joints)
 
 
+def test_wedges_in_a_mixed_batch_and_on_both_grids(anny64, monkeypatch):
+    """A batch of a tilted and a supine body: the supine one rests as it does in the same batch
+    without the wedge setting (friction makes a rest depend on its batch at round-off, wedge or
+    not: compared within one batch), the tilted one on its wedge - whose map reaches the coarse
+    grid's re-posings as well as the image's grid."""
+    from pressurepose.sim.contact_grid import ContactGrid
+
+    seen = []
+    heights = ContactGrid.heights
+
+    def spy(self, *args, **kwargs):
+        wedge = kwargs.get("wedge")
+        seen.append((self.sub, None if wedge is None or wedge[0] is None else tuple(wedge[0].shape)))
+        return heights(self, *args, **kwargs)
+
+    monkeypatch.setattr(ContactGrid, "heights", spy)
+    bed = MattressParams.preset("sponge")
+    cfg = ArticulatedConfig(wedge=Wedge())
+    both = _tilted(anny64, 30.0, B=2)
+    both = both.replace(root_rotation=torch.tensor([[math.radians(30.0), 0, 0], [0.0, 0, 0]], dtype=F64))
+    mixed = rest_articulated(anny64, both, mattress=bed, config=cfg)
+    assert {sub for sub, shape in seen if shape is not None} == {cfg.sub, cfg.coarse_sub}
+    seen.clear()
+    plain = rest_articulated(anny64, both, mattress=bed, config=ArticulatedConfig())
+    assert all(shape is None for _, shape in seen)  # no wedge setting: no maps at all
+    assert mixed.failure == plain.failure == ["", ""]
+    np.testing.assert_allclose(mixed.foundation_pa[1].numpy(), plain.foundation_pa[1].numpy(), rtol=1e-6, atol=1e-3)
+    turned = math.degrees(float(root_roll(mixed.params.root_rotation)[0]))
+    free = math.degrees(float(root_roll(plain.params.root_rotation)[0]))
+    assert turned > free + 3.0, (turned, free)
+
+
 def test_tilted_partition_rests_on_wedges_and_bad_input(anny64):
     from pressurepose.generate.plan import GenerateConfig
     from pressurepose.sim.run import articulated_config_for
@@ -175,12 +208,37 @@ def test_tilted_partition_rests_on_wedges_and_bad_input(anny64):
     assert articulated_config_for("tilted").wedge == Wedge() and articulated_config_for("supine").wedge is None
     with pytest.raises(UserError, match="Wedge.base_m must be > 0"):
         Wedge(base_m=0.0)
-    with pytest.raises(UserError, match="needs the articulated engine"):
-        GenerateConfig(partition="tilted", settle="mujoco")
-    with pytest.raises(UserError, match="a wedge lies on a flat bed and needs the soft tissue"):
+    for sim2 in (None, "articulated", "rigid"):  # MuJoCo's settling has no wedges, whatever sim #2
+        with pytest.raises(UserError, match="needs the articulated engine"):
+            GenerateConfig(partition="tilted", settle="mujoco", sim2=sim2)
+    # Its datasets record the wedge; other partitions' do not.
+    from pressurepose.generate.run import _settings
+
+    assert _settings(GenerateConfig(partition="tilted"), {})["wedge"] == dataclasses.asdict(Wedge())
+    assert "wedge" not in _settings(GenerateConfig(partition="supine"), {})
+    with pytest.raises(UserError, match="a wedge needs the soft tissue"):
         rest_articulated(
             anny64,
             _tilted(anny64, 30.0),
             mattress=MattressParams(tissue_pa_per_m=0.0),
             config=ArticulatedConfig(wedge=Wedge()),
         )
+
+
+def test_simulate_tilted_records_the_wedge_and_refuses_raised_beds(tmp_path, capsys):
+    import json
+
+    from pressurepose.cli import main
+
+    assert main(["simulate", "--partition", "tilted", "--out", str(tmp_path / "s")]) == 0
+    record = json.loads((tmp_path / "s" / "simulate.json").read_text())
+    assert record["wedge"] == dataclasses.asdict(Wedge())
+    capsys.readouterr()
+    for flags, said in (
+        (["--head-angle-deg", "20"], "wedges, which lie on flat beds only"),
+        (["--settle", "mujoco"], "needs --settle articulated"),
+    ):
+        assert main(["simulate", "--partition", "tilted", *flags, "--out", str(tmp_path / "r")]) == 2
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err
+    assert not (tmp_path / "r").exists()

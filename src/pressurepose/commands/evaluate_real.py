@@ -7,6 +7,8 @@ height and weight. The command runs a trained network on the frames and reports,
 sponge): posture accuracy - the posture read from the estimated root orientation (`eval.real.posture_of`)
 - and the estimated height and mass against the subjects' values, with a confusion matrix and scatter
 plots; for a heatmap network, how sharply its heatmaps pin the head and torso (`eval.real.spread_summary`).
+Group E's tilted bodies (20 or 40 deg on wedges or a pillow) are judged apart, by the roll read
+against the documented one (`eval.real.tilt_summary`: real.md's tilt table, tilt.png).
 
 Frames are normalised as the data's README says (empty level removed, noise threshold, summed force = the
 subject's weight, mmHg; `data.pmatdata.normalise`), clipped at 100 mmHg as the sensor model does. Gender
@@ -68,7 +70,7 @@ class RealEvalConfig:
     pmatdata: Path = Path("pmatdata")
     """PmatData folder (index.csv, experiment-ii/); "pmatdata" = the packaged copy of experiment II."""
     out: Path = Path("out/evaluate-real")
-    """Report folder: real.md, real.json, real.png."""
+    """Report folder: real.md, real.json, real.png (groups B-D), tilt.png (group E)."""
     groups: str = "BCDE"
     """PmatData posture groups: B supine, C right, D left (flat bed: the posture table); E lateral
     on wedges or a pillow at 20 or 40 deg of roll (the tilt table: the roll read against it)."""
@@ -218,7 +220,7 @@ def _tilted_report(net, records: list, cfg: RealEvalConfig) -> dict:
             "mattress": r.mattress,
             "variant": f"{r.group}{r.index}",
             "posture": r.posture,
-            "documented_roll_deg": documented_roll(r.posture, r.body_roll_deg),
+            "documented_roll_deg": _documented(r, cfg),
             "roll_deg": float(a),
             "estimated_posture": e,
         }
@@ -243,13 +245,21 @@ def _tilted_report(net, records: list, cfg: RealEvalConfig) -> dict:
     }
 
 
+def _documented(record, cfg: RealEvalConfig) -> float:
+    """A group E record's documented roll (+ right), or a one-line error naming its index row."""
+    try:
+        return documented_roll(record.posture, record.body_roll_deg)
+    except ValueError as exc:
+        raise UserError(f"{cfg.pmatdata / 'index.csv'}: {_rel(record, cfg)}: {exc}") from None
+
+
 def _rel(record, cfg: RealEvalConfig) -> str:
     return str(record.path.relative_to(Path(cfg.pmatdata)))
 
 
 def _markdown(r: dict) -> str:
     left_out = len(r["repeats_left_out"])
-    note = f"{left_out} frame(s) left out: each repeats another record's file byte for byte (`repeats_left_out`)"
+    note = f"{left_out} frame(s) left out (all groups): each repeats another record's file byte for byte (`repeats_left_out`)"
     tilted = r.get("tilted")
     counts = f"{r['frames']} frames" + (f" flat, {tilted['frames']} tilted" if tilted else "")
     lines = [

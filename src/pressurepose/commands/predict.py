@@ -44,7 +44,7 @@ import tyro
 from pressurepose.body.joints import J24_NAMES, TRUNK_JOINTS
 from pressurepose.commands.netopts import with_inference_options
 from pressurepose.errors import UserError
-from pressurepose.eval.real import head_end_spreads, load_ends, posture_of, roll_deg
+from pressurepose.eval.real import head_end_picks, head_end_spreads, load_ends, posture_of, roll_deg
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import read_pressure_file
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
@@ -168,8 +168,11 @@ def _orient(items: list, cfg: PredictConfig, net, device) -> tuple[list, dict[in
         if cfg.head_end == "last-row":
             ends[f] = {"head_end": "last row"}
             continue
-        images = torch.from_numpy(np.stack([im for _, im, g in items if g == f])).to(device)
-        given, turned = head_end_spreads(net, images)
+        mine = [im for _, im, g in items if g == f]
+        images = torch.from_numpy(np.stack([mine[k] for k in head_end_picks(len(mine)).tolist()])).to(device)
+        given, turned = head_end_spreads(
+            net, images, height_m=cfg.height_m, mass_kg=cfg.mass_kg, gender=GENDERS[cfg.gender]
+        )
         ends[f] = {
             "head_end": "last row" if turned < given else "first row",
             "head_end_trunk_spread_m": {"first row": given, "last row": turned},

@@ -77,6 +77,10 @@ def run_simulate(cfg: SimulateConfig) -> Written:
                 f"{bed.head_angle_deg:g} deg; leave out --head-angle-deg (or pick another index)"
             )
         bed = BedShape(cfg.head_angle_deg)
+    if sampling.spec.wedge and not bed.flat:
+        raise UserError(
+            f"partition {sampling.partition} rests on wedges, which lie on flat beds only: leave out --head-angle-deg"
+        )
     if cfg.pillow_m > 0 and not bed.flat:
         raise UserError(
             f"--pillow-m: pillows lie on flat beds only, and this sample's bed is raised {bed.head_angle_deg:g} deg;"
@@ -118,6 +122,8 @@ def run_simulate(cfg: SimulateConfig) -> Written:
         "sink_mm": round(float(sim.sink_m[0]) * 1e3, 1),
         "head_angle_deg": bed.head_angle_deg,
     }
+    if sampling.spec.wedge:  # the wedge under the back (`sim.wedge`), sloped at the starting turn
+        record["wedge"] = dataclasses.asdict(articulated_config_for(sampling.partition).wedge)
     paths = {}
     arrays = {
         "pressure_mmhg": p.astype(np.float32),

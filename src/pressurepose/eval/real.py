@@ -54,16 +54,19 @@ class BodyReadings:
         return posture_of(self.roll_deg)
 
 
-def read_bodies(net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, batch: int = 32) -> BodyReadings:
-    """Run a network (no gender given) on (N, 64, 27) mmHg images in batches; height_m and
-    mass_kg (N,) are passed as inputs for networks that take them (ignored otherwise)."""
+def read_bodies(
+    net, pressure_mmhg: torch.Tensor, height_m=None, mass_kg=None, batch: int = 32, gender=None
+) -> BodyReadings:
+    """Run a network on (N, 64, 27) mmHg images in batches; height_m and mass_kg (N,) are passed
+    as inputs for networks that take them (ignored otherwise), and gender (N,) on Anny's scale
+    (default unknown, as PmatData's)."""
     heights, masses, rolls, readout, spreads = [], [], [], [], []
     with torch.no_grad():
         for lo in range(0, pressure_mmhg.shape[0], batch):
             p = pressure_mmhg[lo : lo + batch]
             inputs = NetInputs(
                 pressure_mmhg=p,
-                gender=torch.full((p.shape[0],), GENDER_UNKNOWN),
+                gender=torch.full((p.shape[0],), GENDER_UNKNOWN) if gender is None else gender[lo : lo + batch],
                 height_m=None if height_m is None else torch.as_tensor(height_m[lo : lo + batch]),
                 mass_kg=None if mass_kg is None else torch.as_tensor(mass_kg[lo : lo + batch]),
             )
@@ -182,8 +185,9 @@ def tilt_summary(documented_deg: Sequence[float], read_deg: Sequence[float], sub
     """How a network reads tilted bodies (PmatData group E) against their documented rolls (deg,
     + right, `documented_roll`): the median roll read toward the documented side (s x read roll,
     s its sign; negative: turned the other way), the median absolute roll error (wrapped to
-    [0, 180]), the shares turned at least TURN_DEG toward the documented side and toward the
-    other, and with `subjects` a 95% interval of the first share resampling whole subjects."""
+    [0, 180]), the shares turned TURN_DEG to 135 deg toward the documented side (beyond, the read
+    is face down) and at least TURN_DEG toward the other, and with `subjects` a 95% interval of the
+    first share resampling whole subjects."""
     doc = np.asarray(documented_deg, dtype=np.float64)
     read = np.asarray(read_deg, dtype=np.float64)
     if doc.shape != read.shape or doc.ndim != 1 or doc.size == 0:
@@ -192,7 +196,8 @@ def tilt_summary(documented_deg: Sequence[float], read_deg: Sequence[float], sub
         raise ValueError("a documented tilt has a side: no roll may be 0")
     toward = np.sign(doc) * read
     error = np.abs((read - doc + 180.0) % 360.0 - 180.0)
-    turned = (toward >= TURN_DEG).astype(np.float64)
+    # Turned: at least TURN_DEG toward the side and not past 135 deg (face down, `posture_of`).
+    turned = ((toward >= TURN_DEG) & (toward <= 135.0)).astype(np.float64)
     out = {
         "frames": int(doc.size),
         "read_toward_median_deg": float(np.median(toward)),
@@ -220,30 +225,40 @@ def spread_summary(spread_m: torch.Tensor) -> dict[str, float]:
     }
 
 
-def trunk_spread(net, images: torch.Tensor) -> dict[str, float] | None:
+def trunk_spread(net, images: torch.Tensor, **inputs) -> dict[str, float] | None:
     """`spread_summary` of the head and torso joints of a heatmap network reading (N, 64, 27) mmHg
-    images; None for a network without heatmaps or no images."""
+    images (`inputs`: read_bodies' height_m, mass_kg, gender); None for a network without
+    heatmaps or no images."""
     if len(images) == 0:
         return None
-    spread = read_bodies(net, images).spread_m
+    spread = read_bodies(net, images, **inputs).spread_m
     return None if spread is None else spread_summary(spread[:, list(TRUNK_JOINTS)])
 
 
 HEAD_END_FRAMES = 64  # frames of a recording `head_end_spreads` reads (evenly spaced)
 
 
-def head_end_spreads(net, images: torch.Tensor, frames: int = HEAD_END_FRAMES) -> tuple[float, float]:
+def head_end_picks(n: int, frames: int = HEAD_END_FRAMES) -> torch.Tensor:
+    """The indices of up to `frames` evenly spaced images of n (all of them when n <= frames)."""
+    return torch.linspace(0, n - 1, min(frames, n)).round().long().unique()
+
+
+def head_end_spreads(
+    net, images: torch.Tensor, frames: int = HEAD_END_FRAMES, height_m=None, mass_kg=None, gender=None
+) -> tuple[float, float]:
     """How sharply a heatmap network pins the head and torso of a recording's (N, 64, 27) mmHg
     images as given and turned end for end (rows reversed): the median over up to `frames` evenly
     spaced images of each image's median trunk spread (m), as given and reversed. The way with
     the smaller one has the head at row 0: for the shipped model the right way on 94.6% of PmatData's
     frames one by one, 99.6-100% of its recordings of 4 or more frames (docs/real_data.md "Which end is
-    the head"). ValueError for a network without heatmaps or no images."""
+    the head"). `height_m`, `mass_kg`, `gender`: the subject's, as numbers, for networks that take
+    them. ValueError for a network without heatmaps or no images."""
     if len(images) == 0:
         raise ValueError("no images to read the head end from")
-    pick = torch.linspace(0, len(images) - 1, min(frames, len(images))).round().long().unique()
-    sub = images[pick]
-    given, reversed_ = trunk_spread(net, sub), trunk_spread(net, sub.flip(1))
+    sub = images[head_end_picks(len(images), frames)]
+    full = lambda v: None if v is None else torch.full((len(sub),), float(v), device=sub.device)  # noqa: E731
+    inputs = {"height_m": full(height_m), "mass_kg": full(mass_kg), "gender": full(gender)}
+    given, reversed_ = trunk_spread(net, sub, **inputs), trunk_spread(net, sub.flip(1), **inputs)
     if given is None or reversed_ is None:
         raise ValueError("the head end is read from heatmaps: this network has none")
     return given["median_m"], reversed_["median_m"]
@@ -272,6 +287,7 @@ __all__ = [
     "TURN_DEG",
     "BodyReadings",
     "documented_roll",
+    "head_end_picks",
     "head_end_spreads",
     "height_by_load_ends",
     "load_ends",

@@ -145,7 +145,7 @@ class GenerateConfig:
             raise UserError(f"pillow is a share of the samples, in [0, 1]; got {self.pillow}")
         if self.pillow > 0 and self.sim2_engine != "articulated":
             raise UserError("--pillow needs the articulated engine (the default --settle articulated)")
-        if self.partition is not None and get_partition(self.partition).wedge and self.sim2_engine != "articulated":
+        if self.partition is not None and get_partition(self.partition).wedge and self.settle != "articulated":
             raise UserError(
                 f"partition {self.partition} rests on wedges: it needs the articulated engine (the default --settle articulated)"
             )

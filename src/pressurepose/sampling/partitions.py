@@ -186,7 +186,7 @@ def _partitions() -> dict[str, Partition]:
         # rest props each body on a wedge sloped at its turn (`sim.wedge`, `articulated_config_for`).
         Partition(
             "tilted",
-            "turned 15-45 deg toward the left or right on a wedge under the back, limbs near the body",
+            "turned 15-45 deg toward the left or right on a wedge under the back, legs near straight, wrists by the trunk",
             roll=(math.pi / 12, math.pi / 4),
             either_side=True,
             yaw=(-math.pi / 18, math.pi / 18),
