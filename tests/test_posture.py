@@ -226,7 +226,7 @@ def test_realism_reads_the_real_frames_and_their_twins_through_a_heatmap_network
     """`realism --model`: the trunk's spread summary of each image set by the network, as
     `spread_summary` of `read_bodies` gives it; nothing for no images or no model; the report's table."""
     from pressurepose.body.joints import TRUNK_JOINTS
-    from pressurepose.commands.realism import _spread_reader
+    from pressurepose.commands.realism import _readers
     from pressurepose.commands.realism_report import spread_markdown
     from pressurepose.eval.real import spread_summary
 
@@ -234,12 +234,14 @@ def test_realism_reads_the_real_frames_and_their_twins_through_a_heatmap_network
     with torch.no_grad():
         net.mod1.maps.weight.mul_(300.0)
     save_model(tmp_path / "run", net, {"train": {}, "net": dict(net.config.__dict__)})
-    reader = _spread_reader(tmp_path / "run")
+    reader, rolls = _readers(tmp_path / "run")
     images = torch.rand(5, 64, 27, generator=torch.Generator().manual_seed(4)) * 40
     s = reader(images.numpy())
     loaded, _ = load_network(tmp_path / "run", body=anny32)
     assert s == spread_summary(read_bodies(loaded, images).spread_m[:, list(TRUNK_JOINTS)])
-    assert reader(np.zeros((0, 64, 27))) is None and _spread_reader(None) is None
+    assert reader(np.zeros((0, 64, 27))) is None and _readers(None) == (None, None)
+    # The roll read, as read_bodies reads it (the tilted rows' `turned`).
+    np.testing.assert_allclose(rolls(images.numpy()), read_bodies(loaded, images).roll_deg.numpy(), atol=1e-9)
     rows = [
         {"posture": "supine", "mattress": "air", "trunk_spread": {"real": s, "simulated": None}},
         {"posture": "left", "mattress": "air"},

@@ -319,3 +319,37 @@ def test_raised_rows_on_two_frames(tmp_path):
     assert 0.0 <= row["hips_past_hinge_m"] <= 0.6
     table = "\n".join(raised_markdown([row]))
     assert "Raised head of the bed" in table and "| 30 | sponge |" in table and "2 of 2" in table
+
+
+def test_tilted_rows_on_two_frames(tmp_path):
+    """The report's tilted bodies (`commands.realism_tilted`) on two PmatData group E frames (40
+    deg to the right on two wedges, sponge): one twin per frame, turned by the documented roll on
+    the wedge, resting turned; the measures in range; a reader's rolls give the turned shares; the
+    markdown's table."""
+    from pressurepose.commands.realism import RealismConfig
+    from pressurepose.commands.realism_tilted import load_tilted, tilted_markdown, tilted_rows
+
+    picked = []
+
+    def two_e2(r):
+        if r["group"] == "E" and r["index"] == "2" and r["mattress"] == "sponge" and len(picked) < 2:
+            picked.append(r)
+            return True
+        return False
+
+    assert len(_copy_frames(tmp_path, two_e2)) == 2
+    real = load_tilted(tmp_path, 20.0)
+    assert list(real) == [(40.0, "sponge")] and real[(40.0, "sponge")][0].shape == (2, 64, 27)
+
+    def reader(images):  # the first image read turned toward the right, the second not
+        return np.array([30.0, -5.0])[: len(images)]
+
+    (row,) = tilted_rows(real, RealismConfig(out=tmp_path / "out", real=tmp_path), reader)
+    assert row["frames"] == row["simulated_bodies"] == 2 and not row["rejected"]
+    assert 25.0 < row["rest_roll_deg"] < 55.0  # held turned by the wedge
+    assert 0 < row["comparison"]["along"] <= 1 and 0 < row["comparison"]["across"] <= 1
+    assert row["comparison"]["area_ratio"] > 0
+    assert row["turned"] == {"real": 0.5, "simulated": 0.5}
+    table = "\n".join(tilted_markdown([row]))
+    assert "Tilted bodies" in table and "| +40 | sponge |" in table and "2 of 2 | 50% / 50% |" in table
+    assert tilted_markdown([]) == []

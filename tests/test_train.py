@@ -936,11 +936,11 @@ def test_predict_leaves_no_table_when_a_run_stops(trained_run, data32, tmp_path,
 
 
 def test_realism_refuses_a_network_without_heatmaps(trained_run):
-    from pressurepose.commands.realism import _spread_reader
+    from pressurepose.commands.realism import _readers
     from pressurepose.errors import UserError
 
     with pytest.raises(UserError, match="has no heatmaps"):
-        _spread_reader(trained_run)
+        _readers(trained_run)
 
 
 def test_predict_head_end_auto_turns_a_reversed_file(tmp_path, capsys):

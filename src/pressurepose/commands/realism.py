@@ -77,6 +77,9 @@ class RealismConfig:
     raised: bool = True
     """Also the raised beds (PmatData group F, the head of the bed at 0-60 deg) against bodies
     half-sitting on them, with the articulated sim #2 (`commands.realism_raised`; ~60 s more)."""
+    tilted: bool = True
+    """Also the tilted bodies (PmatData group E, 20 or 40 deg on wedges or a pillow) against twins
+    on the `tilted` partition's wedge, with the articulated sim #2 (`commands.realism_tilted`)."""
 
     def __post_init__(self) -> None:
         from pressurepose.sim.pillow import check_thickness
@@ -273,18 +276,19 @@ def real_scenes(real: dict, cfg: RealismConfig) -> dict | None:
     return scenes
 
 
-def _spread_reader(model: Path | None):
-    """images (N, 64, 27) mmHg -> `eval.real.trunk_spread` by the model, or None (no model, or a
-    network without heatmaps)."""
+def _readers(model: Path | None):
+    """(images (N, 64, 27) mmHg -> `eval.real.trunk_spread`, images -> the roll read (N,) deg) by
+    the model, or (None, None) without one; a network without heatmaps is refused."""
     if model is None:
-        return None
-    from pressurepose.eval.real import trunk_spread
+        return None, None
+    from pressurepose.eval.real import read_bodies, trunk_spread
     from pressurepose.train.checkpoint import load_network
 
     net = load_network(model)[0]
     if net.config.arch != "heatmap":
         raise UserError(f"--model {model} has no heatmaps (arch {net.config.arch}); give a heatmap network or None")
-    return lambda images: trunk_spread(net, torch.as_tensor(np.asarray(images), dtype=torch.float32))
+    tensor = lambda images: torch.as_tensor(np.asarray(images), dtype=torch.float32)  # noqa: E731
+    return lambda x: trunk_spread(net, tensor(x)), lambda x: read_bodies(net, tensor(x)).roll_deg.numpy()
 
 
 def run_realism(cfg: RealismConfig) -> dict[str, Path]:
@@ -292,7 +296,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
 
     mat = MatSpec()
     real, subjects = load_real(cfg.real, cfg.threshold)
-    spread = _spread_reader(cfg.model)  # a bad --model stops the run before the simulations
+    spread, rolls = _readers(cfg.model)  # a bad --model stops the run before the simulations
     scenes = real_scenes(real, cfg)
     sims = simulate_subjects(subjects, cfg, scenes=scenes)
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
@@ -350,6 +354,11 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
         from pressurepose.commands.realism_raised import load_raised, raised_rows
 
         raised = raised_rows(load_raised(cfg.real, cfg.threshold), cfg)
+    tilted = []
+    if cfg.tilted and cfg.sim2 == "articulated":
+        from pressurepose.commands.realism_tilted import load_tilted, tilted_rows
+
+        tilted = tilted_rows(load_tilted(cfg.real, cfg.threshold), cfg, rolls)
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {
         "command": "realism",
@@ -357,6 +366,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
         "rows": rows,
         "ceilings": ceilings,
         "raised": raised,
+        "tilted": tilted,
     }
     paths = {"json": write_text(cfg.out / "report.json", json.dumps(record, indent=1))}
     paths["markdown"] = write_text(cfg.out / "report.md", markdown(record))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 
 from pressurepose.commands.realism_raised import raised_markdown
+from pressurepose.commands.realism_tilted import tilted_markdown
 from pressurepose.eval import realism as R
 
 
@@ -144,6 +145,7 @@ def markdown(record: dict) -> str:
             f"| {c['posture']} | {c['between']} | {c['along']:.3f} | {c['across']:.3f} | {c['area_ratio']:.2f} |"
         )
     lines += raised_markdown(record.get("raised", []))
+    lines += tilted_markdown(record.get("tilted", []))
     return "\n".join(lines) + "\n"
 
 
