@@ -79,7 +79,7 @@ class RealismConfig:
     half-sitting on them, with the articulated sim #2 (`commands.realism_raised`; ~60 s more)."""
     tilted: bool = True
     """Also the tilted bodies (PmatData group E, 20 or 40 deg on wedges or a pillow) against twins
-    on the `tilted` partition's wedge, with the articulated sim #2 (`commands.realism_tilted`)."""
+    on the `tilted` partition's wedge, with the articulated sim #2 (`commands.realism_tilted`; ~90 s more)."""
 
     def __post_init__(self) -> None:
         from pressurepose.sim.pillow import check_thickness
