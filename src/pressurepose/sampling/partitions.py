@@ -182,16 +182,17 @@ def _partitions() -> dict[str, Partition]:
             hold_roll_m=HOLD_ROLL_M,
         ),
         # Beyond Table 4: turned 15-45 deg toward a side with a wedge under the back, as people
-        # are positioned to offload the sacrum (PmatData group E: 20 and 40 deg); the articulated
-        # rest props each body on a wedge sloped at its turn (`sim.wedge`, `articulated_config_for`).
+        # are positioned to offload the sacrum (PmatData group E: 20 and 40 deg, legs straight,
+        # arms down); the articulated rest props each body on a wedge sloped at its turn
+        # (`sim.wedge`, `articulated_config_for`).
         Partition(
             "tilted",
-            "turned 15-45 deg toward the left or right on a wedge under the back, legs near straight, wrists by the trunk",
+            "turned 15-45 deg toward the left or right on a wedge under the back, legs nearly straight, wrists below the shoulders",
             roll=(math.pi / 12, math.pi / 4),
             either_side=True,
             yaw=(-math.pi / 18, math.pi / 18),
-            leg_cells=(2, 3),
-            arm_cells=(3, 4, 5, 6),
+            leg_cells=(LEG_CELLS - 1,),
+            arm_cells=(4, 5, 6, 7),
             wedge=True,
         ),
     ]
