@@ -11,7 +11,14 @@ from scipy.stats import t as student_t
 from scipy.stats import ttest_rel
 
 from pressurepose.cli import main
-from pressurepose.eval.compare import NotComparable, compare_real, compare_synthetic, mcnemar_exact, paired_difference
+from pressurepose.eval.compare import (
+    NotComparable,
+    compare_real,
+    compare_synthetic,
+    compare_tilted,
+    mcnemar_exact,
+    paired_difference,
+)
 
 
 def test_paired_difference_matches_the_paired_t_interval():
@@ -259,3 +266,48 @@ def test_compare_cli_refuses_bad_inputs(tmp_path, capsys):
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "bad").exists()  # nothing written for refused inputs
+
+
+def _tilts(reads: list[float], docs=(20.0, -40.0, 20.0, -20.0)) -> list[dict]:
+    """Group E-like rows: four air frames of two subjects."""
+    return [
+        {"file": f"E/f{i}.txt", "subject": i // 2, "mattress": "air", "documented_roll_deg": d, "roll_deg": r}
+        for i, (d, r) in enumerate(zip(docs, reads))
+    ]
+
+
+def test_compare_tilted_by_hand():
+    """Turned = 10-135 deg toward the documented side. A: 25 (turned), 0, 5, -170 against -20 (170
+    toward it: face down, not turned); B: all four turned. Errors A 5 / 40 / 15 / 150, B 5 / 10 / 5 / 5."""
+    res = compare_tilted(_tilts([25, 0, 5, -170]), _tilts([25, -30, 15, -25]))["air"]
+    assert res["frames"] == 4 and res["turned_a"] == 0.25 and res["turned_b"] == 1.0
+    assert (res["turned_gained"], res["turned_lost"]) == (3, 0) and res["turned_mcnemar_p"] == mcnemar_exact(3, 0)
+    assert res["roll_error_change_median_deg"] == pytest.approx(-20.0)  # changes 0, -30, -10, -145
+    lo, hi = res["roll_error_change_ci_deg"]
+    assert -145.0 <= lo <= hi <= 0.0 and 0 < res["roll_error_change_p"] <= 1
+    with pytest.raises(NotComparable, match="different tilted frames"):
+        compare_tilted(_tilts([1, 2, 3, 4]), _tilts([1, 2, 3, 4])[:3])
+    with pytest.raises(NotComparable, match="document"):
+        compare_tilted(_tilts([1, 2, 3, 4]), _tilts([1, 2, 3, 4], docs=(20.0, -40.0, 20.0, 20.0)))
+
+
+def test_compare_cli_pairs_the_tilts_when_both_read_them(tmp_path, capsys):
+    rows = _frames([True] * 20, [0.07] * 20)
+
+    def report(reads, **extra):
+        return {**_real_report(rows, groups="BCDE"), "tilted": {"per_frame": _tilts(reads)}, **extra}
+
+    a = _write(tmp_path / "a", "real.json", report([25, 0, 5, -170]))
+    b = _write(tmp_path / "b", "real.json", report([25, -30, 15, -25]))
+    flat = _write(tmp_path / "flat", "real.json", _real_report(rows))
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o")]) == 0
+    assert "tilted air: turned +3 / -0, roll error -20.0 deg" in capsys.readouterr().out
+    record = json.loads((tmp_path / "o" / "compare.json").read_text())
+    assert record["tilted"]["air"]["turned_gained"] == 3
+    assert "| air | 4 | 25 / 100% | 3 / 0 |" in (tmp_path / "o" / "compare.md").read_text()
+    assert main(["compare", str(flat), str(b), "--out", str(tmp_path / "o2")]) == 0  # one without: B-D only
+    assert "tilted" not in json.loads((tmp_path / "o2" / "compare.json").read_text())
+    damaged = _write(tmp_path / "d", "real.json", {**_real_report(rows, groups="BCDE"), "tilted": {"per_frame": [{}]}})
+    capsys.readouterr()
+    assert main(["compare", str(a), str(damaged), "--out", str(tmp_path / "o3")]) == 2
+    assert "damaged" in capsys.readouterr().err

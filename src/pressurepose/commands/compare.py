@@ -17,7 +17,14 @@ import tyro
 from pressurepose.commands.netopts import options_label
 from pressurepose.commands.outputs import Written
 from pressurepose.errors import UserError
-from pressurepose.eval.compare import REAL_FIELDS, NotComparable, compare_real, compare_synthetic
+from pressurepose.eval.compare import (
+    REAL_FIELDS,
+    TILTED_FIELDS,
+    NotComparable,
+    compare_real,
+    compare_synthetic,
+    compare_tilted,
+)
 from pressurepose.eval.real import GROUP_POSTURE
 from pressurepose.files import write_text
 
@@ -77,7 +84,13 @@ def _well_formed(record: dict) -> bool:
             return False
         return all(isinstance(v, list) and len(v) == len(rows["partition"]) for v in rows.values())
     rows = record.get("per_frame")
-    return isinstance(rows, list) and all(isinstance(r, dict) and all(k in r for k in REAL_FIELDS) for r in rows)
+    ok = isinstance(rows, list) and all(isinstance(r, dict) and all(k in r for k in REAL_FIELDS) for r in rows)
+    if ok and "tilted" in record:  # group E's rows (evaluate-real since session 59)
+        tilted = record["tilted"].get("per_frame") if isinstance(record["tilted"], dict) else None
+        ok = isinstance(tilted, list) and all(
+            isinstance(r, dict) and all(k in r for k in TILTED_FIELDS) for r in tilted
+        )
+    return ok
 
 
 def _same_path(x, y) -> bool:
@@ -128,9 +141,14 @@ def run_compare(cfg: CompareConfig) -> Written:
             result = compare_synthetic(a["per_sample"], b["per_sample"])
         else:
             result = compare_real(a["per_frame"], b["per_frame"])
+            # Group E's tilts when both read them (a report without them pairs on B-D alone).
+            both = "tilted" in a and "tilted" in b
+            tilted = compare_tilted(a["tilted"]["per_frame"], b["tilted"]["per_frame"]) if both else None
     except NotComparable as exc:
         raise UserError(f"{exc}: compare two evaluations of the same samples") from None
     record = {"command": "compare", "kind": a["command"], "a": _side(a, cfg.a), "b": _side(b, cfg.b), "result": result}
+    if a["command"] == "evaluate-real" and tilted is not None:
+        record["tilted"] = tilted
     text, markdown = json.dumps(record, indent=1, allow_nan=False), _markdown(record)  # both before any file
     cfg.out.mkdir(parents=True, exist_ok=True)
     paths = {"json": write_text(cfg.out / "compare.json", text)}
@@ -203,6 +221,29 @@ def _real_lines(res: dict) -> list[str]:
     return lines
 
 
+def _tilted_lines(res: dict | None) -> list[str]:
+    """Group E's paired table (`compare_tilted`); none when a report did not read it."""
+    if not res:
+        return []
+    lines = [
+        "",
+        "Tilted bodies (group E): frames B reads turned toward their side (10-135 deg) where A did not "
+        "(gained) and the reverse (lost), exact McNemar p; the median change of each frame's absolute "
+        "roll error (B - A, below 0 = B nearer), its 95% interval resampling whole subjects, Wilcoxon p.",
+        "",
+        "| mattress | frames | turned A / B | gained / lost | McNemar p | roll error change [95% CI] (deg) | p |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for m, s in res.items():
+        ci = s["roll_error_change_ci_deg"]
+        lines.append(
+            f"| {m} | {s['frames']} | {s['turned_a'] * 100:.0f} / {s['turned_b'] * 100:.0f}% | "
+            f"{s['turned_gained']} / {s['turned_lost']} | {s['turned_mcnemar_p']:.3g} | "
+            f"{s['roll_error_change_median_deg']:+.1f} [{ci[0]:+.1f}, {ci[1]:+.1f}] | {s['roll_error_change_p']:.3g} |"
+        )
+    return lines
+
+
 def _markdown(r: dict) -> str:
     name = lambda side: f"{side['model']}{side['options']}"  # noqa: E731
     lines = [
@@ -212,6 +253,7 @@ def _markdown(r: dict) -> str:
         "",
     ]
     body = _synthetic_lines(r["result"]) if r["kind"] == "evaluate" else _real_lines(r["result"])
+    body += _tilted_lines(r.get("tilted"))
     return "\n".join([*lines, *body, ""])
 
 
@@ -230,6 +272,11 @@ def compare(cfg: CompareConfig) -> None:
         head = "; ".join(
             f"{m}: posture +{s['posture_gained']} / -{s['posture_lost']} frames (McNemar p {s['posture_mcnemar_p']:.2g})"
             for m, s in res.items()
+        )
+        head += "".join(
+            f"; tilted {m}: turned +{s['turned_gained']} / -{s['turned_lost']}, roll error "
+            f"{s['roll_error_change_median_deg']:+.1f} deg"
+            for m, s in (written.record.get("tilted") or {}).items()
         )
     print(f"{head} -> {written['markdown']}")
 

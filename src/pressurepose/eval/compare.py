@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import stats
 
-from pressurepose.eval.real import subject_interval
+from pressurepose.eval.real import roll_error, subject_interval, turned_toward
 
 REAL_FIELDS = ("file", "subject", "mattress", "posture", "estimated_posture", "height_m", "estimated_height_m")
 
@@ -155,11 +155,53 @@ def compare_real(a: list[dict], b: list[dict]) -> dict:
     return out
 
 
+TILTED_FIELDS = ("file", "subject", "mattress", "documented_roll_deg", "roll_deg")
+
+
+def compare_tilted(a: list[dict], b: list[dict]) -> dict:
+    """`tilted.per_frame` rows of two `evaluate-real` reports of the same frames (PmatData group
+    E) -> per mattress: frames read turned toward their side by B and not A (gained) and the
+    reverse (lost, exact McNemar p), and the median per-frame change of the absolute roll error
+    (B - A, deg) with its interval resampling whole subjects and the Wilcoxon p."""
+    by_file = {r["file"]: r for r in b}
+    files = [r["file"] for r in a]
+    if len(by_file) != len(b) or len(set(files)) != len(files) or set(files) != set(by_file):
+        raise NotComparable("the two reports read different tilted frames")
+    out = {}
+    for mattress in sorted({r["mattress"] for r in a}):
+        ra = [r for r in a if r["mattress"] == mattress]
+        rb = [by_file[r["file"]] for r in ra]
+        doc = np.array([r["documented_roll_deg"] for r in ra], dtype=float)
+        if any(r["documented_roll_deg"] != by_file[r["file"]]["documented_roll_deg"] for r in ra):
+            raise NotComparable("the two reports document the tilted frames' rolls differently")
+        read_a, read_b = (np.array([r["roll_deg"] for r in rows], dtype=float) for rows in (ra, rb))
+        if not (np.isfinite(read_a).all() and np.isfinite(read_b).all()):
+            raise NotComparable("a read roll is not finite")
+        ta, tb = turned_toward(doc, read_a), turned_toward(doc, read_b)
+        gained, lost = int((tb & ~ta).sum()), int((ta & ~tb).sum())
+        change = roll_error(doc, read_b) - roll_error(doc, read_a)
+        subjects = [r["subject"] for r in ra]
+        out[mattress] = {
+            "frames": len(ra),
+            "turned_a": float(ta.mean()),
+            "turned_b": float(tb.mean()),
+            "turned_gained": gained,
+            "turned_lost": lost,
+            "turned_mcnemar_p": mcnemar_exact(gained, lost),
+            "roll_error_change_median_deg": float(np.median(change)),
+            "roll_error_change_ci_deg": list(subject_interval(change, subjects, np.median)),
+            "roll_error_change_p": 1.0 if not np.any(change) else float(stats.wilcoxon(change).pvalue),
+        }
+    return out
+
+
 __all__ = [
     "REAL_FIELDS",
+    "TILTED_FIELDS",
     "SYNTHETIC_METRICS",
     "NotComparable",
     "compare_real",
+    "compare_tilted",
     "compare_synthetic",
     "mcnemar_exact",
     "paired_difference",

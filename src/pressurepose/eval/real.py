@@ -181,6 +181,19 @@ def documented_roll(posture: str, roll_deg: float) -> float:
     return roll_deg if posture == "right" else -roll_deg
 
 
+def roll_error(documented_deg, read_deg) -> np.ndarray:
+    """|read - documented| per frame (deg), wrapped to [0, 180]."""
+    doc, read = np.asarray(documented_deg, dtype=np.float64), np.asarray(read_deg, dtype=np.float64)
+    return np.abs((read - doc + 180.0) % 360.0 - 180.0)
+
+
+def turned_toward(documented_deg, read_deg) -> np.ndarray:
+    """Per frame: read TURN_DEG to 135 deg toward the documented roll's side (beyond 135 the read
+    is face down, `posture_of`)."""
+    toward = np.sign(np.asarray(documented_deg, dtype=np.float64)) * np.asarray(read_deg, dtype=np.float64)
+    return (toward >= TURN_DEG) & (toward <= 135.0)
+
+
 def tilt_summary(documented_deg: Sequence[float], read_deg: Sequence[float], subjects=None) -> dict:
     """How a network reads tilted bodies (PmatData group E) against their documented rolls (deg,
     + right, `documented_roll`): the median roll read toward the documented side (s x read roll,
@@ -195,9 +208,8 @@ def tilt_summary(documented_deg: Sequence[float], read_deg: Sequence[float], sub
     if (doc == 0).any():
         raise ValueError("a documented tilt has a side: no roll may be 0")
     toward = np.sign(doc) * read
-    error = np.abs((read - doc + 180.0) % 360.0 - 180.0)
-    # Turned: at least TURN_DEG toward the side and not past 135 deg (face down, `posture_of`).
-    turned = ((toward >= TURN_DEG) & (toward <= 135.0)).astype(np.float64)
+    error = roll_error(doc, read)
+    turned = turned_toward(doc, read).astype(np.float64)
     out = {
         "frames": int(doc.size),
         "read_toward_median_deg": float(np.median(toward)),
@@ -296,9 +308,11 @@ __all__ = [
     "posture_of",
     "read_bodies",
     "roll_deg",
+    "roll_error",
     "spread_lines",
     "spread_summary",
     "subject_interval",
     "tilt_summary",
     "trunk_spread",
+    "turned_toward",
 ]
