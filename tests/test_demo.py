@@ -78,3 +78,27 @@ def test_packaged_default_model_estimates_bodies(anny64):
     assert mpjpe < 0.8 * mean_pose, (float(mpjpe), float(mean_pose))
     height = net.body.measure(est.params.shape).height_m
     assert ((height > 1.3) & (height < 2.2)).all()
+
+
+def test_demo_summary_names_the_tilted_frames_when_read():
+    """The demo's real section: the posture over groups B-D's frames, and group E's turned shares
+    when evaluate-real read them (a line only then)."""
+    from pressurepose.commands.demo import _markdown, _summary
+
+    frame = {"posture": "left", "estimated_posture": "left", "height_m": 1.8, "estimated_height_m": 1.9}
+    rows = [
+        dict(frame, mass_kg=80.0, estimated_mass_kg=70.0),
+        dict(frame, estimated_posture="prone", mass_kg=80.0, estimated_mass_kg=85.0),
+    ]
+    overall = {"vpe_m": {"mean": 0.03}, "mpjpe_m": {"mean": 0.08}}
+    synthetic = {"count": 5, "overall": overall, "baselines_vpe_m": {"mean_body": {"mean": 0.11}}}
+    real = {"per_frame": rows, "by_mattress": {"air": {"posture_accuracy": 0.5, "height_mae_m": 0.1}}}
+    tilted = {"by_mattress": {"air": {"share_turned": 0.31}, "sponge": {"share_turned": 0.52}}}
+    for with_tilts in (False, True):
+        s = _summary(synthetic, {**real, "tilted": tilted} if with_tilts else real)
+        assert s["real"]["posture_accuracy"] == 0.5
+        assert s["real"]["tilted_turned"] == ({"air": 0.31, "sponge": 0.52} if with_tilts else {})
+        text = _markdown({**s, "model": "m", "seconds": {"total_s": 1.0}, "samples": 6, "seed": 0})
+        assert (
+            "tilted on wedges (group E), read turned 10-135 deg toward their side: air 31%, sponge 52%" in text
+        ) == with_tilts

@@ -112,6 +112,8 @@ def _summary(synthetic: dict, real: dict) -> dict:
                 m: {"posture_accuracy": s["posture_accuracy"], "height_mae_m": s["height_mae_m"]}
                 for m, s in real["by_mattress"].items()
             },
+            # group E's tilted bodies (20 / 40 deg on wedges or a pillow): read turned toward their side
+            "tilted_turned": {m: s["share_turned"] for m, s in real.get("tilted", {}).get("by_mattress", {}).items()},
         },
     }
 
@@ -143,6 +145,11 @@ def _markdown(s: dict) -> str:
         f"- {m}: posture {v['posture_accuracy'] * 100:.1f}%, height MAE {v['height_mae_m'] * 100:.1f} cm"
         for m, v in real["by_mattress"].items()
     ]
+    if real["tilted_turned"]:
+        lines.append(
+            "- tilted on wedges (group E), read turned 10-135 deg toward their side: "
+            + ", ".join(f"{m} {v * 100:.0f}%" for m, v in real["tilted_turned"].items())
+        )
     lines += [
         "- per frame, confusion and scatter: [real/real.md](real/real.md)",
         "",
