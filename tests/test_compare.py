@@ -306,7 +306,9 @@ def test_compare_cli_pairs_the_tilts_when_both_read_them(tmp_path, capsys):
     assert record["tilted"]["air"]["turned_gained"] == 3
     assert "| air | 4 | 25 / 100% | 3 / 0 |" in (tmp_path / "o" / "compare.md").read_text()
     assert main(["compare", str(flat), str(b), "--out", str(tmp_path / "o2")]) == 0  # one without: B-D only
-    assert "tilted" not in json.loads((tmp_path / "o2" / "compare.json").read_text())
+    record = json.loads((tmp_path / "o2" / "compare.json").read_text())
+    assert "tilted" not in record and record["tilted_note"].startswith("only B read group E")
+    assert "only B read group E's tilted frames: not compared" in (tmp_path / "o2" / "compare.md").read_text()
     damaged = _write(tmp_path / "d", "real.json", {**_real_report(rows, groups="BCDE"), "tilted": {"per_frame": [{}]}})
     capsys.readouterr()
     assert main(["compare", str(a), str(damaged), "--out", str(tmp_path / "o3")]) == 2

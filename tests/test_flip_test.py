@@ -115,7 +115,7 @@ def test_predict_and_evaluate_real_with_the_flip_test(anny32, tmp_path):
     assert lines[2].startswith("14 frame(s) left out")
 
 
-def test_predict_head_end_auto_gives_the_network_its_inputs(anny32, tmp_path):
+def test_predict_head_end_auto_gives_the_network_its_inputs(anny32, tmp_path, monkeypatch):
     """`--head-end auto` reads the head end with the subject's height, mass and gender for a
     network that takes them, as the estimate itself does."""
     import json
@@ -133,8 +133,20 @@ def test_predict_head_end_auto_gives_the_network_its_inputs(anny32, tmp_path):
     image = tmp_path / "two.npy"
     np.save(image, (np.random.default_rng(0).random((2, 64, 27)) * 30).astype(np.float32))
     out = tmp_path / "pred"
+    import pressurepose.eval.real as real_mod
+
+    seen, read = [], real_mod.read_bodies
+
+    def spy(net, images, height_m=None, mass_kg=None, batch=32, gender=None):
+        seen.append((height_m, mass_kg, gender))
+        return read(net, images, height_m, mass_kg, batch, gender)
+
+    monkeypatch.setattr(real_mod, "read_bodies", spy)
     args = ["predict", "--model", str(run), "--out", str(out), "--no-figures", "--no-meshes", "--head-end", "auto"]
     assert main([*args, "--height-m", "1.7", "--mass-kg", "70", "--gender", "female", str(image)]) == 0
+    assert len(seen) == 2  # the file read as given and turned, with the subject's inputs
+    for h, m, g in seen:
+        np.testing.assert_allclose([h.tolist(), m.tolist(), g.tolist()], [[1.7] * 2, [70.0] * 2, [1.0] * 2], rtol=1e-6)
     record = json.loads((out / "two_0000.json").read_text())
     assert record["head_end"] in ("first row", "last row") and set(record["head_end_trunk_spread_m"]) == {
         "first row",

@@ -408,6 +408,10 @@ def test_resume_remakes_damaged_and_half_written_shards(reference, tmp_path, cap
     (out / "generate.json").write_text(json.dumps(settings))
     with pytest.raises(ValueError, match="sampler's law differ.*kneeling"):
         run_generate(GenerateConfig(out=out, **SMALL), progress=False)
+    settings["sampling_law"] = SAMPLING_LAW - 1  # a later law: which one it was drawn under
+    (out / "generate.json").write_text(json.dumps(settings))
+    with pytest.raises(ValueError, match=f"drawn under law {SAMPLING_LAW - 1}, this version draws law {SAMPLING_LAW}"):
+        run_generate(GenerateConfig(out=out, **SMALL), progress=False)
     # One rested by another revision of the engine's numerics (or before revisions were
     # pinned) does not resume either: a remade shard would not equal the lost one.
     settings = json.loads((ref / "generate.json").read_text())

@@ -346,10 +346,29 @@ def test_tilted_rows_on_two_frames(tmp_path):
 
     (row,) = tilted_rows(real, RealismConfig(out=tmp_path / "out", real=tmp_path), reader)
     assert row["frames"] == row["simulated_bodies"] == 2 and not row["rejected"]
-    assert 25.0 < row["rest_roll_deg"] < 55.0  # held turned by the wedge
+    assert abs(row["rest_roll_deg"] - 40.0) < 5.0  # held at its roll by the wedge (without: ~36 deg)
     assert 0 < row["comparison"]["along"] <= 1 and 0 < row["comparison"]["across"] <= 1
     assert row["comparison"]["area_ratio"] > 0
     assert row["turned"] == {"real": 0.5, "simulated": 0.5}
     table = "\n".join(tilted_markdown([row]))
     assert "Tilted bodies" in table and "| +40 | sponge |" in table and "2 of 2 | 50% / 50% |" in table
     assert tilted_markdown([]) == []
+
+
+def test_realism_refuses_a_group_e_row_without_its_roll_before_simulating(tmp_path, capsys):
+    """An index whose group E rows carry no roll (e.g. written before session 59): one line naming
+    the file and the way out, nothing written."""
+    import csv
+
+    keep = _copy_frames(
+        tmp_path / "real", lambda r: r["subject"] == "1" and r["mattress"] == "sponge" and r["group"] in ("B", "E")
+    )
+    rows = [{**r, "body_roll_deg": "0" if r["group"] == "E" else r["body_roll_deg"]} for r in keep]
+    with (tmp_path / "real" / "index.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    assert main(["realism", "--real", str(tmp_path / "real"), "--out", str(tmp_path / "out"), "--no-raised"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "body_roll_deg" in err[0] and "--no-tilted" in err[0] and "Matrix_Sponge_E" in err[0]
+    assert not (tmp_path / "out").exists()

@@ -441,3 +441,22 @@ def test_smpl_backend_samples(smpl64):
     s = poses.params.shape
     assert (s >= -3).all() and (s <= 3).all()
     np.testing.assert_array_equal(limb_cells(poses), poses.cells)
+
+
+def test_tilted_partition_draws_turned_bodies_with_straight_legs(anny64):
+    """`tilted`: turned 15-45 deg toward either side, legs nearly straight (ankles more than 3/4 of
+    the leg below the hips: cell 3), wrists below the shoulders (arm cells 4-7), small yaw."""
+    import math
+
+    from pressurepose.body.params import root_roll
+    from pressurepose.sampling.partitions import ARM_CELLS, LEG_CELLS, get_partition
+    from pressurepose.sampling.sampler import PoseSampler
+
+    spec = get_partition("tilted")
+    assert spec.wedge and spec.either_side and spec.leg_cells == (LEG_CELLS - 1,)
+    assert spec.arm_cells == tuple(range(4, ARM_CELLS))
+    poses = PoseSampler(anny64, SamplingConfig(partition="tilted", gender="male", seed=3)).sample(list(range(12)))
+    roll = torch.rad2deg(root_roll(poses.params.root_rotation.double()))
+    assert bool(((roll.abs() >= 15 - 1e-6) & (roll.abs() <= 45 + 1e-6)).all()), roll
+    assert bool((roll > 0).any()) and bool((roll < 0).any())  # both sides
+    assert math.isclose(spec.roll[0], math.pi / 12) and math.isclose(spec.roll[1], math.pi / 4)

@@ -939,7 +939,7 @@ def test_realism_refuses_a_network_without_heatmaps(trained_run):
     from pressurepose.commands.realism import _readers
     from pressurepose.errors import UserError
 
-    with pytest.raises(UserError, match="has no heatmaps"):
+    with pytest.raises(UserError, match="must be a heatmap network without height and mass inputs"):
         _readers(trained_run)
 
 

@@ -115,11 +115,13 @@ def _check_pairing(a: dict, b: dict) -> None:
     for key in keys:
         va, vb = ca.get(key), cb.get(key)
         if key == "groups":  # the posture table's groups (B-D): group E's tilts are not compared
-            va, vb = (None if v is None else "".join(g for g in v if g in GROUP_POSTURE) for v in (va, vb))
+            va, vb = (None if v is None else "".join(sorted(g for g in set(v) if g in GROUP_POSTURE)) for v in (va, vb))
             if va == vb == "":
                 raise UserError("neither report read PmatData's groups B-D: compare reads their posture tables")
         if va != vb:
-            raise UserError(f"A {what} {key} {va}, B with {vb}: evaluate both alike")
+            raise UserError(
+                f"A {what} {key} {va or '(none of B-D)'}, B with {vb or '(none of B-D)'}: evaluate both alike"
+            )
 
 
 def _side(record: dict, path: Path) -> dict:
@@ -149,6 +151,8 @@ def run_compare(cfg: CompareConfig) -> Written:
     record = {"command": "compare", "kind": a["command"], "a": _side(a, cfg.a), "b": _side(b, cfg.b), "result": result}
     if a["command"] == "evaluate-real" and tilted is not None:
         record["tilted"] = tilted
+    elif a["command"] == "evaluate-real" and ("tilted" in a or "tilted" in b):
+        record["tilted_note"] = f"only {'A' if 'tilted' in a else 'B'} read group E's tilted frames: not compared"
     text, markdown = json.dumps(record, indent=1, allow_nan=False), _markdown(record)  # both before any file
     cfg.out.mkdir(parents=True, exist_ok=True)
     paths = {"json": write_text(cfg.out / "compare.json", text)}
@@ -253,7 +257,7 @@ def _markdown(r: dict) -> str:
         "",
     ]
     body = _synthetic_lines(r["result"]) if r["kind"] == "evaluate" else _real_lines(r["result"])
-    body += _tilted_lines(r.get("tilted"))
+    body += _tilted_lines(r.get("tilted")) + (["", r["tilted_note"]] if "tilted_note" in r else [])
     return "\n".join([*lines, *body, ""])
 
 

@@ -147,7 +147,7 @@ def _markdown(s: dict) -> str:
     ]
     if real["tilted_turned"]:
         lines.append(
-            "- tilted on wedges (group E), read turned 10-135 deg toward their side: "
+            "- tilted on wedges or a pillow (group E), read turned 10-135 deg toward their side: "
             + ", ".join(f"{m} {v * 100:.0f}%" for m, v in real["tilted_turned"].items())
         )
     lines += [

@@ -109,9 +109,11 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     repeats = repeated_frames(records)
     left_out = {id(r) for r, _ in repeats}
     records = [r for r in records if id(r) not in left_out]
-    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
     flat = [r for r in records if r.group in GROUP_POSTURE]
     tilted = [r for r in records if r.group in TILTED_GROUPS]
+    for r in tilted:  # a row without its documented roll stops the run before the network
+        _documented(r, cfg)
+    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
     t0 = time.perf_counter()
     rows, summary, variants = _flat_report(net, flat, cfg) if flat else ([], {}, {})
     tilt = _tilted_report(net, tilted, cfg) if tilted else None
@@ -342,8 +344,8 @@ def _tilt_lines(t: dict) -> list[str]:
     lines = [
         "",
         f"Tilted bodies (group E: lateral on one or two wedges, E1-E4, or a pillow, E5-E6; {t['frames']} frames): "
-        f"the roll read (+ right, - left) against the documented one; turned = read at least {TURN_DEG:.0f} deg "
-        "toward the documented side; other way = as far toward the other",
+        f"the roll read (+ right, - left) against the documented one; turned = read {TURN_DEG:.0f}-135 deg "
+        f"toward the documented side (beyond 135: face down); other way = at least {TURN_DEG:.0f} deg toward the other",
         "",
         "| mattress / variant (frames) | documented roll (deg) | read toward that side, median (deg) | abs. roll error, median (deg) "
         "| turned [95% CI] | other way |",

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from pressurepose.commands.realism_report import bands_dict, markdown, set_dict
+from pressurepose.commands.realism_tilted import load_tilted, tilted_rows
 from pressurepose.errors import UserError
 from pressurepose.eval import realism as R
 from pressurepose.files import write_text
@@ -285,8 +286,8 @@ def _readers(model: Path | None):
     from pressurepose.train.checkpoint import load_network
 
     net = load_network(model)[0]
-    if net.config.arch != "heatmap":
-        raise UserError(f"--model {model} has no heatmaps (arch {net.config.arch}); give a heatmap network or None")
+    if net.config.arch != "heatmap" or net.config.height_weight:
+        raise UserError(f"--model {model} must be a heatmap network without height and mass inputs (or None)")
     tensor = lambda images: torch.as_tensor(np.asarray(images), dtype=torch.float32)  # noqa: E731
     return lambda x: trunk_spread(net, tensor(x)), lambda x: read_bodies(net, tensor(x)).roll_deg.numpy()
 
@@ -296,7 +297,8 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
 
     mat = MatSpec()
     real, subjects = load_real(cfg.real, cfg.threshold)
-    spread, rolls = _readers(cfg.model)  # a bad --model stops the run before the simulations
+    spread, rolls = _readers(cfg.model)  # a bad --model or group E row stops the run before the simulations
+    tilted_real = load_tilted(cfg.real, cfg.threshold) if cfg.tilted and cfg.sim2 == "articulated" else {}
     scenes = real_scenes(real, cfg)
     sims = simulate_subjects(subjects, cfg, scenes=scenes)
     pitch = (mat.pitch_row_m, mat.pitch_col_m)
@@ -354,11 +356,7 @@ def run_realism(cfg: RealismConfig) -> dict[str, Path]:
         from pressurepose.commands.realism_raised import load_raised, raised_rows
 
         raised = raised_rows(load_raised(cfg.real, cfg.threshold), cfg)
-    tilted = []
-    if cfg.tilted and cfg.sim2 == "articulated":
-        from pressurepose.commands.realism_tilted import load_tilted, tilted_rows
-
-        tilted = tilted_rows(load_tilted(cfg.real, cfg.threshold), cfg, rolls)
+    tilted = tilted_rows(tilted_real, cfg, rolls) if tilted_real else []
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {
         "command": "realism",

@@ -22,14 +22,23 @@ from pressurepose.eval import realism as R
 
 def load_tilted(root, threshold: float) -> dict:
     """Real frames of group E per (documented roll (+ right, deg), mattress): images (N, 64, 27)
-    mmHg, heights (N,) m, masses (N,) kg. Empty when the folder has none."""
+    mmHg, heights (N,) m, masses (N,) kg. Empty when the folder has none; a row without its roll
+    is a one-line error."""
     from pressurepose.data.pmatdata import distinct_frames, load_images, load_index
+    from pressurepose.errors import UserError
     from pressurepose.eval.real import TILTED_GROUPS, documented_roll
     from pressurepose.samples import resolve_pmatdata
 
     root = resolve_pmatdata(root)
     records = distinct_frames([r for r in load_index(root) if r.group in TILTED_GROUPS and r.bed_incline_deg == 0])
-    rolls = [documented_roll(r.posture, r.body_roll_deg) for r in records]
+    rolls = []
+    for r in records:
+        try:
+            rolls.append(documented_roll(r.posture, r.body_roll_deg))
+        except ValueError as exc:
+            raise UserError(
+                f"{root / 'index.csv'}: {r.path.relative_to(root)}: {exc} (column body_roll_deg); or --no-tilted"
+            ) from None
     out = {}
     for key in sorted({(roll, r.mattress) for roll, r in zip(rolls, records)}):
         rs = [r for roll, r in zip(rolls, records) if (roll, r.mattress) == key]

@@ -58,6 +58,10 @@ def run_simulate(cfg: SimulateConfig) -> Written:
     check_thickness(cfg.pillow_m)
     if cfg.pillow_m > 0 and cfg.settle != "articulated":
         raise UserError("--pillow-m needs the articulated engine (--settle articulated, the default)")
+    if cfg.sampling.spec.wedge and cfg.head_angle_deg:
+        raise UserError(
+            f"partition {cfg.sampling.partition} rests on wedges, which lie on flat beds only: leave out --head-angle-deg"
+        )
     if cfg.sampling.spec.wedge and cfg.settle != "articulated":
         raise UserError(
             f"partition {cfg.sampling.partition} rests on wedges: it needs --settle articulated (the default)"
@@ -77,10 +81,6 @@ def run_simulate(cfg: SimulateConfig) -> Written:
                 f"{bed.head_angle_deg:g} deg; leave out --head-angle-deg (or pick another index)"
             )
         bed = BedShape(cfg.head_angle_deg)
-    if sampling.spec.wedge and not bed.flat:
-        raise UserError(
-            f"partition {sampling.partition} rests on wedges, which lie on flat beds only: leave out --head-angle-deg"
-        )
     if cfg.pillow_m > 0 and not bed.flat:
         raise UserError(
             f"--pillow-m: pillows lie on flat beds only, and this sample's bed is raised {bed.head_angle_deg:g} deg;"

@@ -109,9 +109,13 @@ def _prepare_folder(cfg: GenerateConfig, settings: dict) -> None:
             hint = ""
             if "settle" in diff and "settle" not in (old or {}).get("config", {}):
                 hint = " (it was made with MuJoCo, the default before the articulated engine: add --settle mujoco)"
-            elif not diff and settings["sampling_law"] != (old or {}).get("sampling_law", 1):
+            elif not diff and settings["sampling_law"] != (law := (old or {}).get("sampling_law", 1)):
                 what = "the pose sampler's law"
-                hint = " (drawn before face-down bodies stopped kneeling on the bed, docs/sampling.md)"
+                hint = (
+                    " (drawn before face-down bodies stopped kneeling on the bed, docs/sampling.md)"
+                    if law == 1
+                    else f" (drawn under law {law}, this version draws law {settings['sampling_law']}: docs/generation.md)"
+                )
             elif not diff and settings.get("articulated_joints") != (old or {}).get("articulated_joints"):
                 what = "the articulated engine's joint springs"
                 hint = (

@@ -44,8 +44,10 @@ OVER_BED_MAX_FAILURES = 5
 # "An adult population's body mass"); 4: half_sitting's hips 0.2-0.5 m past the hinge, not 0.05-0.3
 # (docs/sampling.md "Half-sitting on a raised bed"); 5: half_sitting over the bed measures the arms'
 # over-bed rule on the head section as they will lie once sat up, and finds the trunk's pitch by
-# grids instead of a bisection (session 48; the other partitions' samples unchanged, bit for bit).
-SAMPLING_LAW = 5
+# grids instead of a bisection (session 48; the other partitions' samples unchanged, bit for bit);
+# 6: the tilted partition's legs in cell 3 and wrists in cells 4-7 (session 59; first drawn with
+# legs in cells 2-3 and wrists in 3-6; the other partitions' samples unchanged).
+SAMPLING_LAW = 6
 
 
 @dataclasses.dataclass(frozen=True)
