@@ -294,6 +294,19 @@ def test_real_frames_are_read_once(tmp_path):
     assert raised[0].shape == (1, 64, 27)
 
 
+def _first(n: int, **match):
+    """An index-row selector for `_copy_frames`: the first n rows whose fields equal `match`'s."""
+    picked = []
+
+    def select(r):
+        if len(picked) < n and all(r[k] == v for k, v in match.items()):
+            picked.append(r)
+            return True
+        return False
+
+    return select
+
+
 def test_raised_rows_on_two_frames(tmp_path):
     """The report's raised beds (`commands.realism_raised`) on two PmatData group F frames (30
     deg, sponge): one body per frame, its hips moved to the frame's centre of pressure, the
@@ -301,15 +314,7 @@ def test_raised_rows_on_two_frames(tmp_path):
     from pressurepose.commands.realism import RealismConfig
     from pressurepose.commands.realism_raised import load_raised, raised_markdown, raised_rows
 
-    picked = []
-
-    def two_at_30(r):
-        if r["group"] == "F" and r["bed_incline_deg"] == "30" and r["mattress"] == "sponge" and len(picked) < 2:
-            picked.append(r)
-            return True
-        return False
-
-    assert len(_copy_frames(tmp_path, two_at_30)) == 2
+    assert len(_copy_frames(tmp_path, _first(2, group="F", bed_incline_deg="30", mattress="sponge"))) == 2
     real = load_raised(tmp_path, 20.0)
     assert list(real) == [(30.0, "sponge")] and real[(30.0, "sponge")][0].shape == (2, 64, 27)
     (row,) = raised_rows(real, RealismConfig(out=tmp_path / "out", real=tmp_path))
@@ -329,15 +334,7 @@ def test_tilted_rows_on_two_frames(tmp_path):
     from pressurepose.commands.realism import RealismConfig
     from pressurepose.commands.realism_tilted import load_tilted, tilted_markdown, tilted_rows
 
-    picked = []
-
-    def two_e2(r):
-        if r["group"] == "E" and r["index"] == "2" and r["mattress"] == "sponge" and len(picked) < 2:
-            picked.append(r)
-            return True
-        return False
-
-    assert len(_copy_frames(tmp_path, two_e2)) == 2
+    assert len(_copy_frames(tmp_path, _first(2, group="E", index="2", mattress="sponge"))) == 2
     real = load_tilted(tmp_path, 20.0)
     assert list(real) == [(40.0, "sponge")] and real[(40.0, "sponge")][0].shape == (2, 64, 27)
 

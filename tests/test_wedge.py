@@ -16,7 +16,8 @@ from pressurepose.errors import UserError
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulated import ArticulatedConfig, rest_articulated
 from pressurepose.sim.mattress import GRAVITY_M_S2, MattressParams
-from pressurepose.sim.wedge import HIPS, SHOULDERS, Wedge, in_series, rigid_base, thickness_map, tilt_of
+from pressurepose.sim.pillow import layer_in_series
+from pressurepose.sim.wedge import HIPS, SHOULDERS, Wedge, rigid_base, thickness_map, tilt_of
 
 F64 = torch.float64
 
@@ -61,7 +62,7 @@ def test_thickness_map_by_hand():
 def test_stiffness_in_series_by_hand():
     tissue = torch.tensor([[2e5, 5e4, 1e5]], dtype=F64)
     thickness = torch.tensor([[0.1, 0.05, 0.0]], dtype=F64)
-    got = in_series(tissue, Wedge(modulus_pa=3e4), thickness)
+    got = layer_in_series(tissue, Wedge(modulus_pa=3e4).modulus_pa, thickness)
     want = [1 / (1 / 2e5 + 0.1 / 3e4), 1 / (1 / 5e4 + 0.05 / 3e4), 1e5]
     np.testing.assert_allclose(got.numpy(), [want], rtol=1e-12)
 

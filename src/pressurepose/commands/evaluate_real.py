@@ -111,12 +111,11 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     records = [r for r in records if id(r) not in left_out]
     flat = [r for r in records if r.group in GROUP_POSTURE]
     tilted = [r for r in records if r.group in TILTED_GROUPS]
-    for r in tilted:  # a row without its documented roll stops the run before the network
-        _documented(r, cfg)
+    documented = [_documented(r, cfg) for r in tilted]  # a row without its roll stops the run before the network
     net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
     t0 = time.perf_counter()
     rows, summary, variants = _flat_report(net, flat, cfg) if flat else ([], {}, {})
-    tilt = _tilted_report(net, tilted, cfg) if tilted else None
+    tilt = _tilted_report(net, tilted, documented, cfg) if tilted else None
     seconds = time.perf_counter() - t0
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {
@@ -209,9 +208,9 @@ def _flat_report(net, records: list, cfg: RealEvalConfig) -> tuple[list[dict], d
     return rows, summary, variants
 
 
-def _tilted_report(net, records: list, cfg: RealEvalConfig) -> dict:
-    """Group E's frames against their documented rolls (`eval.real.tilt_summary`): per mattress,
-    per variant and mattress, and per frame."""
+def _tilted_report(net, records: list, documented: list[float], cfg: RealEvalConfig) -> dict:
+    """Group E's frames against their documented rolls (`documented`, one per record;
+    `eval.real.tilt_summary`): per mattress, per variant and mattress, and per frame."""
     images = torch.from_numpy(load_images(records, cfg.threshold))
     heights = torch.tensor([r.height_cm / 100 for r in records])
     read = read_bodies(net, images, heights, torch.tensor([r.weight_kg for r in records]), cfg.batch)
@@ -222,11 +221,11 @@ def _tilted_report(net, records: list, cfg: RealEvalConfig) -> dict:
             "mattress": r.mattress,
             "variant": f"{r.group}{r.index}",
             "posture": r.posture,
-            "documented_roll_deg": _documented(r, cfg),
+            "documented_roll_deg": d,
             "roll_deg": float(a),
             "estimated_posture": e,
         }
-        for r, a, e in zip(records, read.roll_deg, read.postures)
+        for r, d, a, e in zip(records, documented, read.roll_deg, read.postures)
     ]
 
     def summary(sel: list[dict]) -> dict:

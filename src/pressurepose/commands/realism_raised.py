@@ -47,29 +47,41 @@ def raised_share(images: np.ndarray, hinge_row: int) -> float:
     return float(np.median(images[:, :hinge_row].sum((1, 2)) / images.sum((1, 2)).clip(min=1e-12)))
 
 
+def twin_setup(cfg):
+    """What the report's per-frame twins (raised and tilted rows) are made with, for a
+    `RealismConfig`: the mat on its simulated mattress, its pitch (row, col) m, the float64 body
+    model, the `--params` bed or None (each set's own preset)."""
+    from pressurepose.body import load_body_model
+    from pressurepose.mat import MatSpec
+    from pressurepose.sim.mattress import MattressParams
+
+    mat = MatSpec(covered_cols=cfg.bed_width_cols)
+    fixed = MattressParams.load(cfg.params) if cfg.params else None
+    return mat, (mat.pitch_row_m, mat.pitch_col_m), load_body_model("anny", dtype=torch.float64), fixed
+
+
+def subject_shapes(model, heights: np.ndarray, masses: np.ndarray) -> torch.Tensor:
+    """The body shapes of subjects of these heights (m) and masses (kg), male phenotype."""
+    from pressurepose.body.fit_shape import shape_for_height_mass
+
+    h, m = torch.from_numpy(heights).double(), torch.from_numpy(masses).double()
+    return shape_for_height_mass(model, h, m, female=0.0)[0]
+
+
 def raised_rows(real: dict, cfg) -> list[dict]:
     """The report's rows for the raised beds (module doc); cfg a `RealismConfig`."""
     from pressurepose.bed import BedShape
-    from pressurepose.body import load_body_model
-    from pressurepose.body.fit_shape import shape_for_height_mass
     from pressurepose.commands.realism import frame_placement, set_mattress
-    from pressurepose.mat import MatSpec
     from pressurepose.sampling.sitting import half_sitting_params
-    from pressurepose.sim.mattress import MattressParams
     from pressurepose.sim.run import simulate_poses
 
-    mat = MatSpec(covered_cols=cfg.bed_width_cols)
-    pitch = (mat.pitch_row_m, mat.pitch_col_m)
-    model = load_body_model("anny", dtype=torch.float64)
-    fixed = MattressParams.load(cfg.params) if cfg.params else None
+    mat, pitch, model, fixed = twin_setup(cfg)
     rows = []
     for (angle, mattress), (imgs, heights, masses) in real.items():
         bed = BedShape(angle)
         hinge_row = mat.rows - bed.hinge_row_from_foot
         bed_params = set_mattress(cfg, mattress, fixed)
-        shape, _, _ = shape_for_height_mass(
-            model, torch.from_numpy(heights).double(), torch.from_numpy(masses).double(), female=0.0
-        )
+        shape = subject_shapes(model, heights, masses)
         floor = R.reading_floor(imgs) if cfg.match_floor else 0.0
         offset = np.full(len(imgs), FIRST_HIP_OFFSET_M)
         for rest in range(2):
@@ -132,4 +144,4 @@ def raised_markdown(rows: list[dict]) -> list[str]:
     return lines
 
 
-__all__ = ["load_raised", "raised_markdown", "raised_rows", "raised_share"]
+__all__ = ["load_raised", "raised_markdown", "raised_rows", "raised_share", "subject_shapes", "twin_setup"]

@@ -53,30 +53,22 @@ def load_tilted(root, threshold: float) -> dict:
 def tilted_rows(real: dict, cfg, reader=None) -> list[dict]:
     """The report's rows for the tilted bodies (module doc); cfg a `RealismConfig`; `reader`:
     images (N, 64, 27) -> roll read (N,) deg by the report's network, or None."""
-    from pressurepose.body import load_body_model
     from pressurepose.body.capsules import home_pose
-    from pressurepose.body.fit_shape import shape_for_height_mass
     from pressurepose.body.params import BodyParams, root_roll
     from pressurepose.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
     from pressurepose.commands.realism import frame_placement, set_mattress
+    from pressurepose.commands.realism_raised import subject_shapes, twin_setup
     from pressurepose.eval.real import tilt_summary
     from pressurepose.maps import mesh_centroid
-    from pressurepose.mat import MatSpec
     from pressurepose.sim.articulated import ArticulatedConfig
-    from pressurepose.sim.mattress import MattressParams
     from pressurepose.sim.run import simulate_poses
     from pressurepose.sim.wedge import Wedge
 
-    mat = MatSpec(covered_cols=cfg.bed_width_cols)
-    pitch = (mat.pitch_row_m, mat.pitch_col_m)
-    model = load_body_model("anny", dtype=torch.float64)
-    fixed = MattressParams.load(cfg.params) if cfg.params else None
+    mat, pitch, model, fixed = twin_setup(cfg)
     rows = []
     for (roll_deg, mattress), (imgs, heights, masses) in real.items():
         B = len(imgs)
-        shape, _, _ = shape_for_height_mass(
-            model, torch.from_numpy(heights).double(), torch.from_numpy(masses).double(), female=0.0
-        )
+        shape = subject_shapes(model, heights, masses)
         centres, angles = frame_placement(imgs, *pitch)
         turn = axis_angle_to_matrix(torch.tensor([[np.radians(roll_deg), 0.0, 0.0]] * B, dtype=torch.float64))
         yaw = axis_angle_to_matrix(torch.from_numpy(np.stack([np.zeros(B), np.zeros(B), angles], 1)))

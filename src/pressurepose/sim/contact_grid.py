@@ -11,9 +11,8 @@ from pressurepose.maps import cell_centres, grid_shape
 from pressurepose.mat import MatSpec
 from pressurepose.sim.articulation import from_part_frames
 from pressurepose.sim.mattress import MattressParams
-from pressurepose.sim.pillow import in_series
+from pressurepose.sim.pillow import in_series, layer_in_series
 from pressurepose.sim.soft_contact import lowest_points
-from pressurepose.sim.wedge import in_series as wedge_in_series
 
 
 @dataclasses.dataclass
@@ -69,7 +68,7 @@ class ContactGrid:
         if wedge is not None and wedge[0] is not None:
             thickness, spec = wedge
             h = h - thickness
-            cell_tissue = wedge_in_series(cell_tissue, spec, thickness)
+            cell_tissue = layer_in_series(cell_tissue, spec.modulus_pa, thickness)
         return h, part, cell_tissue
 
     @classmethod

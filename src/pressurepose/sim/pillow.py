@@ -78,11 +78,17 @@ def footprint(pillow: Pillow, joints: torch.Tensor, xy: torch.Tensor, thickness:
     return along & across & (thickness[:, None] > 0)
 
 
+def layer_in_series(tissue: torch.Tensor, modulus_pa: float, thickness: torch.Tensor) -> torch.Tensor:
+    """The cells' tissue modulus (B, C) with a linear layer's E / t in series wherever its
+    thickness (B, C) m is > 0 (a pillow here, `sim.wedge`'s wedge): two linear springs in series."""
+    on = thickness > 0
+    k = modulus_pa / torch.where(on, thickness, torch.ones_like(thickness))
+    return torch.where(on, 1.0 / (1.0 / tissue + 1.0 / k), tissue)
+
+
 def in_series(tissue: torch.Tensor, pillow: Pillow, thickness: torch.Tensor, under: torch.Tensor) -> torch.Tensor:
     """The cells' tissue modulus (B, C) with the pillow's E / t in series where `under`."""
-    k_p = pillow.modulus_pa / thickness.clamp(min=1e-6)
-    both = 1.0 / (1.0 / tissue + 1.0 / k_p[:, None])
-    return torch.where(under, both, tissue)
+    return layer_in_series(tissue, pillow.modulus_pa, thickness[:, None] * under)
 
 
 def spread_load(
@@ -119,5 +125,6 @@ __all__ = [
     "check_thickness",
     "footprint",
     "in_series",
+    "layer_in_series",
     "spread_load",
 ]

@@ -14,8 +14,8 @@ evenly loaded patch beside the back - the wedge's base on the mat. The wedge her
   the thin edge is u tan(tilt), the tilt read from the starting pose's roll (`tilt_of`) - so
   a body turned by that angle leans on its slope;
 - mechanics: a linear layer of modulus E, i.e. a per-cell stiffness E / t (Pa/m) in series
-  with the tissue and the mattress, its top t above the mattress top (as `sim.pillow`'s layer,
-  with a thickness per cell);
+  with the tissue and the mattress, its top t above the mattress top (`sim.pillow.layer_in_series`,
+  the pillow's layer with a thickness per cell);
 - what the mat reads under it: the block's base pressure (`rigid_base`). A foam block 30 cm wide
   bends far less than the mattress under it compresses, so its base sinks as a plane: on an
   elastic bed the base pressure is then affine in position, with the force and moments of the
@@ -104,13 +104,6 @@ def wedge_thickness(wedge: Wedge | None, roll: torch.Tensor, joints: torch.Tenso
     return tuple(None if xy is None else thickness_map(wedge, tilt, joints, xy) for xy in grids)
 
 
-def in_series(tissue: torch.Tensor, wedge: Wedge, thickness: torch.Tensor) -> torch.Tensor:
-    """The cells' tissue modulus (B, C) with the wedge's E / t in series where t > 0."""
-    on = thickness > 0
-    k_w = wedge.modulus_pa / torch.where(on, thickness, torch.ones_like(thickness))
-    return torch.where(on, 1.0 / (1.0 / tissue + 1.0 / k_w), tissue)
-
-
 def rigid_base(pressure: torch.Tensor, on: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """What the mat reads (B, R, C) beneath the wedges: on each footprint `on` (B, R, C) the load
     replaced by the affine pressure a + b (x - xc) + c (y - yc) of the same force and first moments
@@ -141,7 +134,6 @@ __all__ = [
     "MAX_TILT_RAD",
     "MIN_TILT_RAD",
     "Wedge",
-    "in_series",
     "rigid_base",
     "thickness_map",
     "tilt_of",
