@@ -935,6 +935,31 @@ def test_predict_leaves_no_table_when_a_run_stops(trained_run, data32, tmp_path,
     assert not (out / "predictions.csv").exists()
 
 
+def test_predict_without_meshes_or_figures_skips_the_mesh(trained_run, data32, tmp_path, monkeypatch):
+    """With neither meshes nor figures asked for, predict poses no mesh (the joints come from the
+    skeleton alone) and writes the same JSON numbers as a run that writes the meshes."""
+    import pressurepose.body.model as body_model
+
+    images = NpzDataset(data32 / "train.npz").arrays["pressure_mmhg"][:3].numpy()
+    np.save(tmp_path / "three.npy", images)
+    base = ["predict", "--model", str(trained_run), "--no-figures", str(tmp_path / "three.npy")]
+    assert main([*base, "--out", str(tmp_path / "with")]) == 0
+    assert (tmp_path / "with" / "three_0000.ply").is_file()
+    posed = []
+    forward = body_model.BodyModel.forward
+    monkeypatch.setattr(body_model.BodyModel, "forward", lambda self, p: posed.append(p) or forward(self, p))
+    assert main([*base, "--no-meshes", "--out", str(tmp_path / "without")]) == 0
+    assert not posed and not list((tmp_path / "without").glob("*.ply"))
+    for k in range(3):
+        a, b = (json.loads((tmp_path / d / f"three_{k:04d}.json").read_text()) for d in ("with", "without"))
+        assert a.keys() == b.keys() and a["posture"] == b["posture"]
+        for joint, xyz in a["joints_m"].items():
+            np.testing.assert_allclose(b["joints_m"][joint], xyz, atol=1e-5)
+        assert b["height_m"] == pytest.approx(a["height_m"], abs=1e-5)
+        assert b["mass_kg"] == pytest.approx(a["mass_kg"], rel=1e-5)
+    assert (tmp_path / "without" / "predictions.csv").read_text() == (tmp_path / "with" / "predictions.csv").read_text()
+
+
 def test_realism_refuses_a_network_without_heatmaps(trained_run):
     from pressurepose.commands.realism import _readers
     from pressurepose.errors import UserError
