@@ -129,7 +129,7 @@ def _side(record: dict, path: Path) -> dict:
     return {
         "path": str(path),
         "model": c.get("model"),
-        "options": options_label(c.get("ik_steps"), bool(c.get("flip_test"))),
+        "options": options_label(c.get("ik_steps"), bool(c.get("flip_test")), bool(c.get("shift_test"))),
     }
 
 

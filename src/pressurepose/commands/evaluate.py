@@ -55,12 +55,14 @@ class EvaluateConfig:
     """Arch heatmap: IK steps instead of the model's own (predict --ik-steps)."""
     flip_test: bool = False
     """Arch heatmap: localise on the mirror image too and average (predict --flip-test)."""
+    shift_test: bool = False
+    """Arch heatmap: also read the image moved +-2 and +-4 rows along the bed and average (predict --shift-test)."""
 
 
 def run_evaluate(cfg: EvaluateConfig) -> Written:
     if cfg.batch < 1:
         raise UserError(f"batch must be >= 1, got {cfg.batch}")
-    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
+    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test, cfg.shift_test)
     test = E.open_split(cfg.data, cfg.split)
     n = len(test) if cfg.limit is None else min(cfg.limit, len(test))
     if n == 0:
@@ -206,7 +208,7 @@ def _cm(x: float | None) -> str:
 def _markdown(r: dict) -> str:
     has_base = bool(r["baselines_vpe_m"])
     lines = [
-        f"# Evaluation: {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
+        f"# Evaluation: {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'], r['config'].get('shift_test', False))} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
         "",
         "All errors unaligned except PA-MPJPE; 3DVPE as released (camera-facing vertices, two-way, "
         "area-weighted). Seed = Bodies at Rest Table 5, synthetic, best network.",

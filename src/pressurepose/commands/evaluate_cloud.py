@@ -34,7 +34,7 @@ def run_evaluate_cloud(cfg) -> Written:
     arrays = load_cloud_file(cfg.data)
     images = torch.from_numpy(check_images(arrays["pressure_mmhg"], Path(cfg.data)))
     n = len(images)
-    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
+    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test, cfg.shift_test)
     genders = arrays.get("gender")
     gender = torch.tensor(
         [{"female": 1.0, "male": 0.0}.get(str(g), GENDER_UNKNOWN) for g in genders]
@@ -120,7 +120,7 @@ def run_evaluate_cloud(cfg) -> Written:
 def _cloud_markdown(r: dict) -> str:
     o = r["overall"]
     lines = [
-        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on {r['config']['data']} ({r['frames']} frames, {o['participants']} participants)",
+        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'], r['config'].get('shift_test', False))} on {r['config']['data']} ({r['frames']} frames, {o['participants']} participants)",
         "",
         f"3DVPE against the point clouds: **{o['vpe_m'] * 100:.2f} cm** (mean of the participants' means, as "
         f"released; {o['vpe_m_over_frames'] * 100:.2f} cm over frames).",

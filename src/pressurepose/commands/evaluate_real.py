@@ -81,6 +81,8 @@ class RealEvalConfig:
     """Arch heatmap: IK steps instead of the model's own (predict --ik-steps)."""
     flip_test: bool = False
     """Arch heatmap: localise on the mirror image too and average (predict --flip-test)."""
+    shift_test: bool = False
+    """Arch heatmap: also read the image moved +-2 and +-4 rows along the bed and average (predict --shift-test)."""
     data: Path | None = None
     """An imported real-data .npz with point clouds (`import-pressurepose-real`): instead of
     PmatData, report 3DVPE against the clouds per participant and height / mass errors."""
@@ -112,7 +114,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     flat = [r for r in records if r.group in GROUP_POSTURE]
     tilted = [r for r in records if r.group in TILTED_GROUPS]
     documented = [_documented(r, cfg) for r in tilted]  # a row without its roll stops the run before the network
-    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test)
+    net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test, cfg.shift_test)
     t0 = time.perf_counter()
     rows, summary, variants = _flat_report(net, flat, cfg) if flat else ([], {}, {})
     tilt = _tilted_report(net, tilted, documented, cfg) if tilted else None
@@ -264,7 +266,7 @@ def _markdown(r: dict) -> str:
     tilted = r.get("tilted")
     counts = f"{r['frames']} frames" + (f" flat, {tilted['frames']} tilted" if tilted else "")
     lines = [
-        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'])} on PmatData experiment II ({counts}, groups {r['config']['groups']})",
+        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'], r['config'].get('shift_test', False))} on PmatData experiment II ({counts}, groups {r['config']['groups']})",
         "",
         *([note, ""] if left_out else []),
     ]

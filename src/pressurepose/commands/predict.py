@@ -77,6 +77,9 @@ class PredictConfig:
             the model's own (3 by default; more fit closer, ~1 ms per image and step at batch 1).
         flip_test: arch heatmap: also localise the joints on the mirror image and average
             (MPJPE ~2 mm lower for the default model; twice the network's work per image).
+        shift_test: arch heatmap: also read the image moved +-2 and +-4 rows along the bed and
+            average the joints moved back (real frames' reads settle: docs/network.md "The shift
+            test"; 5x the encoder-decoder's work per image).
         device: auto (CUDA when present), cpu or cuda.
         force: use images reading more than 1000 mmHg (the plausibility bound, net.inputs), clipped there.
         head_end: which row of the files lies at the head end: first-row (the project's
@@ -97,6 +100,7 @@ class PredictConfig:
     mesh_format: Literal["ply", "obj", "glb"] = "ply"
     ik_steps: int | None = None
     flip_test: bool = False
+    shift_test: bool = False
     device: Literal["auto", "cpu", "cuda"] = "auto"
     force: bool = False
     head_end: Literal["first-row", "last-row", "auto"] = "first-row"
@@ -128,7 +132,7 @@ def run_predict(cfg: PredictConfig) -> dict:
     items = read_inputs(cfg)
     device = pick_device(cfg.device)
     net, _ = load_network(cfg.model, device)
-    net = with_inference_options(net, cfg.ik_steps, cfg.flip_test)
+    net = with_inference_options(net, cfg.ik_steps, cfg.flip_test, cfg.shift_test)
     if net.config.height_weight and (cfg.height_m is None or cfg.mass_kg is None):
         raise UserError("this network takes height and mass as inputs: give --height-m and --mass-kg")
     if cfg.head_end == "auto" and net.config.arch != "heatmap":

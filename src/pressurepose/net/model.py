@@ -35,6 +35,7 @@ from pressurepose.net.preprocess import (
     smooth_loaded,
     upsample2,
 )
+from pressurepose.net.shift_test import SHIFT_TEST_ROWS, shift_merged, shift_stack
 from pressurepose.net.stature import stature_from_joints
 
 GENDER_UNKNOWN = 0.5  # Anny's gender phenotype: 0 male, 1 female
@@ -56,6 +57,9 @@ class NetConfig:
     # heatmap arch, eval only: also localise on the mirror image and average (net.heatmap.flip_merged);
     # twice the CNN's work per image.
     flip_test: bool = False
+    # heatmap arch, eval only: also read the image moved a few rows along the bed and average the
+    # joints moved back (net.shift_test); 5x the CNN's work per image.
+    shift_test: bool = False
     # Smooth the reading within its loaded taxels first (sigma in taxels; 0: off), training and
     # inference alike: detail at the taxel scale out (net.preprocess.smooth_loaded).
     texture_sigma_taxels: float = 0.0
@@ -81,6 +85,10 @@ class NetConfig:
         if self.flip_test and self.arch != "heatmap":
             raise UserError(
                 f"the flip test is for arch 'heatmap' (its localised joints); this network is {self.arch!r}"
+            )
+        if self.shift_test and self.arch != "heatmap":
+            raise UserError(
+                f"the shift test is for arch 'heatmap' (its localised joints); this network is {self.arch!r}"
             )
         if self.posture_head and self.arch != "heatmap":
             raise UserError(f"the posture head is for arch 'heatmap'; this network is {self.arch!r}")
@@ -266,6 +274,9 @@ class PressureNet(nn.Module):
             raw, loc = raw[: x.shape[0]], flip_merged(loc, self.mat.sensing_width_m)
         else:
             raw, loc = self.mod1(x)
+        if self._shifting():  # x holds the shift test's copies (forward): one read of each image
+            loc = shift_merged(loc, self.mat.pitch_row_m)
+            raw = self.mod1.read_params(loc.joints, loc.features)
         params = self.head(raw, gender)
         if not self.training and self.config.posture_consistent:
             raw, loc, params = self._agree_with_readout(raw, loc, params, gender)
@@ -278,6 +289,9 @@ class PressureNet(nn.Module):
             ik = IKConfig(steps=self.config.ik_steps)
             params = fit_to_joints(self.body, params, loc.joints, ik.weights(loc.spread_m2), ik)
         return self.estimate(raw, gender, mesh, maps, params=params, localisation=loc)
+
+    def _shifting(self) -> bool:
+        return self.config.shift_test and self.config.arch == "heatmap" and not self.training
 
     def _agree_with_readout(self, raw, loc: Localisation, params: BodyParams, gender):
         """Where the body lies supine and the readout says prone (or the sides likewise), the
@@ -308,6 +322,9 @@ class PressureNet(nn.Module):
         reconstruct its PMR maps (Mod1's mesh and maps are always made when Mod2 follows,
         since Mod2 reads them)."""
         gender = inputs.gender if self.config.gender_input else None
+        if self._shifting():  # the shift test: the moved copies' channels from the moved images
+            inputs = dataclasses.replace(inputs, pressure_mmhg=shift_stack(inputs.pressure_mmhg))
+            inputs = _repeated(inputs, 1 + len(SHIFT_TEST_ROWS))
         x = self.channels(inputs, augment, generator)
         with torch.set_grad_enabled(torch.is_grad_enabled() and not self.mod1_frozen):
             if self.config.arch == "heatmap":
@@ -318,6 +335,15 @@ class PressureNet(nn.Module):
         x2 = torch.cat([x, reconstruction_channels(est1.depth_mm.detach(), est1.contact.detach())], 1)
         raw2 = est1.raw + self._cnn(self.mod2, x2)
         return [est1, self.estimate(raw2, gender, mesh, maps)]
+
+
+def _repeated(inputs: NetInputs, n: int) -> NetInputs:
+    """`inputs` whose pressure already holds n copies of each batch, its per-image values
+    (gender, height, mass) repeated to match."""
+    rep = lambda v: None if v is None else v.repeat(n, *[1] * (v.ndim - 1))  # noqa: E731
+    return dataclasses.replace(
+        inputs, gender=rep(inputs.gender), height_m=rep(inputs.height_m), mass_kg=rep(inputs.mass_kg)
+    )
 
 
 __all__ = ["Estimate", "GENDER_UNKNOWN", "NetConfig", "NetInputs", "PressureNet"]

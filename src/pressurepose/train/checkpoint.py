@@ -156,6 +156,7 @@ NET_FIELDS = {
     "width": "int",
     "ik_steps": "int",
     "flip_test": "bool",
+    "shift_test": "bool",
     "posture_consistent": "bool",
     "posture_head": "bool",
     "texture_sigma_taxels": "number",

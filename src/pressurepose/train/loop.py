@@ -140,7 +140,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
 
 
 # NetConfig fields that say how a trained network is read, not what it is (eval only).
-INFERENCE_FIELDS = ("ik_steps", "flip_test", "stature_weight", "stature_head", "posture_consistent")
+INFERENCE_FIELDS = ("ik_steps", "flip_test", "shift_test", "stature_weight", "stature_head", "posture_consistent")
 
 
 def _load_init(net: PressureNet, init: Path) -> None:
