@@ -2,7 +2,7 @@
 at batch 1 and throughput at batch 128 (CNN + body model + mesh, what `predict` runs).
 
     .venv/bin/python benchmarks/net.py [--archs fast paper] [--batch 128] [--steps 3] [--device cpu]
-                                       [--threads N] [--flip-test]
+                                       [--threads N] [--flip-test] [--shift-test]
 
 Training steps use the real loop's loss (`train.loop.step_loss`) on random pressure images and
 targets of the right shapes (speed does not depend on the values); Mod2 steps include Mod1's
@@ -73,10 +73,20 @@ def train_speed(body, arch: str, module: int, B: int, steps: int, device) -> flo
 
 
 def predict_speed(
-    body, arch: str, module: int, B: int, steps: int, device, flip_test: bool = False, stature_weight: float = 0.0
+    body,
+    arch: str,
+    module: int,
+    B: int,
+    steps: int,
+    device,
+    flip_test: bool = False,
+    stature_weight: float = 0.0,
+    shift_test: bool = False,
 ) -> tuple[float, float]:
     """Seconds per batch of B: network + body model + mesh (+ PMR for Mod2's input)."""
-    config = NetConfig(arch=arch, modules=module, flip_test=flip_test, stature_weight=stature_weight)
+    config = NetConfig(
+        arch=arch, modules=module, flip_test=flip_test, stature_weight=stature_weight, shift_test=shift_test
+    )
     net = PressureNet(config, body=body).to(device).eval()
     # A new batch each call, as in `predict`: nothing computed for one batch's bodies (the
     # body model keeps the last shapes' skeleton pass) may be reused by the next.
@@ -98,6 +108,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--flip-test", action="store_true", help="heatmap: also predict with the flip test")
+    parser.add_argument("--shift-test", action="store_true", help="heatmap: also predict with the shift test")
     parser.add_argument(
         "--stature-weight", type=float, default=0.0, help="heatmap: also predict with this stature_weight (net.stature)"
     )
@@ -135,6 +146,11 @@ def main() -> None:
                 if args.flip_test:  # the shipped model read with the flip test
                     both = {"flip_test": True, "stature_weight": args.stature_weight}
                     options.append((f"flip test, stature weight {args.stature_weight}", both))
+                if args.shift_test:  # the shipped model read with the shift test
+                    both = {"shift_test": True, "stature_weight": args.stature_weight}
+                    options.append((f"shift test, stature weight {args.stature_weight}", both))
+            elif args.shift_test:
+                options.append(("shift test", {"shift_test": True}))
             for label, option in options if arch == "heatmap" else []:
                 lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, **option)
                 thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, **option)
