@@ -107,6 +107,34 @@ def test_the_shift_test_reads_each_moved_copy_and_averages(anny32):
     assert gap > 1e-3  # the copies do read differently: the mean is not one read
 
 
+def test_the_shift_test_with_per_image_inputs_and_a_posture_readout(anny32):
+    """Per-image inputs (gender, height, mass planes) follow their images into every moved copy,
+    and a posture readout with the consistency swap reads the merged localisation: one estimate
+    per image, each the read of its own inputs."""
+    cfg = dict(arch="heatmap", gender_input=True, height_weight=True, ik_steps=1, posture_head=True)
+    torch.manual_seed(1)
+    plain = PressureNet(NetConfig(**cfg), body=anny32).eval()
+    shifted = PressureNet(NetConfig(**cfg, shift_test=True, posture_consistent=True), body=anny32)
+    shifted.load_state_dict(plain.state_dict())
+    shifted.eval()
+    p = torch.rand(3, 64, 27) * 40 * (torch.rand(3, 64, 27) > 0.5)
+    inputs = NetInputs(
+        p,
+        gender=torch.tensor([0.0, 1.0, 0.5]),
+        height_m=torch.tensor([1.6, 1.7, 1.9]),
+        mass_kg=torch.tensor([55.0, 70.0, 95.0]),
+    )
+    with torch.inference_mode():
+        est = shifted(inputs, mesh=False)[-1]
+        one = shifted(
+            NetInputs(p[1:2], gender=inputs.gender[1:2], height_m=inputs.height_m[1:2], mass_kg=inputs.mass_kg[1:2]),
+            mesh=False,
+        )[-1]
+    assert est.joints.shape == (3, NUM_JOINTS, 3) and est.localisation.posture_logits.shape == (3, 4)
+    torch.testing.assert_close(est.localisation.joints[1:2], one.localisation.joints, rtol=0, atol=1e-5)
+    torch.testing.assert_close(est.joints[1:2], one.joints, rtol=0, atol=1e-4)
+
+
 def test_shift_test_bad_inputs_and_label(anny32):
     with pytest.raises(ValueError, match="shift test is for arch 'heatmap'"):
         NetConfig(arch="fast", shift_test=True)
