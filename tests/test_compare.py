@@ -276,6 +276,34 @@ def _tilts(reads: list[float], docs=(20.0, -40.0, 20.0, -20.0)) -> list[dict]:
     ]
 
 
+def test_compare_cli_pairs_the_raised_beds_when_both_read_them(tmp_path, capsys):
+    """Group F's rows pair as the flat ones do (read supine = right), in a table of their own; a
+    report without them pairs on B-D alone, with a note."""
+    rows = _frames([True] * 20, [0.07] * 20)
+    raised_a = _frames([True, False, False, True] + [True] * 4, [0.10] * 8)  # air: the first four
+    raised_b = _frames([True, True, True, False] + [True] * 4, [0.05] * 8)
+
+    def report(raised):
+        return {**_real_report(rows, groups="BCDF"), "raised": {"per_frame": raised}}
+
+    a = _write(tmp_path / "a", "real.json", report(raised_a))
+    b = _write(tmp_path / "b", "real.json", report(raised_b))
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o")]) == 0
+    assert "raised air: supine +2 / -1, height error -5.0 cm" in capsys.readouterr().out
+    record = json.loads((tmp_path / "o" / "compare.json").read_text())
+    assert record["raised"] == compare_real(raised_a, raised_b)
+    text = (tmp_path / "o" / "compare.md").read_text()
+    assert "Raised beds (group F" in text and "| air | 4 | 50.0 / 75.0% | 2 / 1 |" in text
+    flat = _write(tmp_path / "flat", "real.json", _real_report(rows))
+    assert main(["compare", str(flat), str(b), "--out", str(tmp_path / "o2")]) == 0
+    record = json.loads((tmp_path / "o2" / "compare.json").read_text())
+    assert "raised" not in record and record["raised_note"].startswith("only B read group F")
+    damaged = _write(tmp_path / "d", "real.json", {**_real_report(rows), "raised": {"per_frame": [{"file": "x"}]}})
+    capsys.readouterr()
+    assert main(["compare", str(a), str(damaged), "--out", str(tmp_path / "o3")]) == 2
+    assert "damaged" in capsys.readouterr().err
+
+
 def test_compare_tilted_by_hand():
     """Turned = 10-135 deg toward the documented side. A: 25 (turned), 0, 5, -170 against -20 (170
     toward it: face down, not turned); B: all four turned. Errors A 5 / 40 / 15 / 150, B 5 / 10 / 5 / 5."""

@@ -80,9 +80,9 @@ def test_packaged_default_model_estimates_bodies(anny64):
     assert ((height > 1.3) & (height < 2.2)).all()
 
 
-def test_demo_summary_names_the_tilted_frames_when_read():
+def test_demo_summary_names_the_tilted_and_raised_frames_when_read():
     """The demo's real section: the posture over groups B-D's frames, and group E's turned shares
-    when evaluate-real read them (a line only then)."""
+    and group F's supine shares and heights when evaluate-real read them (a line each only then)."""
     from pressurepose.commands.demo import _markdown, _summary
 
     frame = {"posture": "left", "estimated_posture": "left", "height_m": 1.8, "estimated_height_m": 1.9}
@@ -94,8 +94,9 @@ def test_demo_summary_names_the_tilted_frames_when_read():
     synthetic = {"count": 5, "overall": overall, "baselines_vpe_m": {"mean_body": {"mean": 0.11}}}
     real = {"per_frame": rows, "by_mattress": {"air": {"posture_accuracy": 0.5, "height_mae_m": 0.1}}}
     tilted = {"by_mattress": {"air": {"share_turned": 0.31}, "sponge": {"share_turned": 0.52}}}
+    raised = {"by_mattress": {"air": {"posture_accuracy": 0.9375, "height_median_signed_m": 0.111}}}
     for with_tilts in (False, True):
-        s = _summary(synthetic, {**real, "tilted": tilted} if with_tilts else real)
+        s = _summary(synthetic, {**real, "tilted": tilted, "raised": raised} if with_tilts else real)
         assert s["real"]["posture_accuracy"] == 0.5
         assert s["real"]["tilted_turned"] == ({"air": 0.31, "sponge": 0.52} if with_tilts else {})
         text = _markdown({**s, "model": "m", "seconds": {"total_s": 1.0}, "samples": 6, "seed": 0})
@@ -103,3 +104,4 @@ def test_demo_summary_names_the_tilted_frames_when_read():
             "tilted on wedges or a pillow (group E), read turned 10-135 deg toward their side: air 31%, sponge 52%"
             in text
         ) == with_tilts
+        assert ("group F, outside the flat-bed scope), read supine: air 94% (height +11.1 cm)" in text) == with_tilts

@@ -264,7 +264,7 @@ def test_bad_inputs(tiny, tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr
 
 
-PMAT = Path(__file__).resolve().parent / "data" / "pmatdata"  # 16 frames of PmatData (its README)
+PMAT = Path(__file__).resolve().parent / "data" / "pmatdata"  # 20 frames of PmatData (its README)
 
 
 def test_posture_from_the_root_orientation():
@@ -420,7 +420,7 @@ def test_evaluate_real_reads_tilted_frames_against_their_rolls(tiny, tmp_path):
         assert s == pytest.approx(expect)
     assert set(tilted["by_variant"]) == {"E1 air", "E2 sponge", "E3 sponge", "E4 air"}
     text = (out / "real.md").read_text()
-    assert "(12 frames flat, 4 tilted, groups BCDE)" in text and "posture accuracy" in text
+    assert "(12 frames flat, 4 tilted, 4 raised, groups BCDEF)" in text and "posture accuracy" in text
     assert "| E4 air (1) | -40 |" in text and "![tilt](tilt.png)" in text
     for name in ("real.png", "tilt.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
@@ -447,6 +447,43 @@ def test_evaluate_real_reads_tilted_frames_against_their_rolls(tiny, tmp_path):
     )
     assert r.returncode == 2 and "Matrix_Air_E1.txt" in r.stderr and "index.csv" in r.stderr
     assert "Traceback" not in r.stderr and not (tmp_path / "bad").exists()
+
+
+def test_evaluate_real_reads_raised_beds_by_angle(tiny, tmp_path):
+    """Group F (supine, the head of the bed raised) is reported apart: the share read supine and the
+    height error per mattress and per angle, each recomputed from the per-frame rows; with F alone
+    there is no posture table and no figure."""
+    from pressurepose.cli import main
+
+    _, run = tiny
+    out = tmp_path / "real"
+    args = ["evaluate-real", "--model", str(run), "--pmatdata", str(PMAT), "--groups", "F", "--out", str(out)]
+    assert main(args) == 0
+    record = json.loads((out / "real.json").read_text())
+    assert record["frames"] == 0 and record["by_mattress"] == {} and "tilted" not in record
+    raised = record["raised"]
+    rows = raised["per_frame"]
+    assert raised["frames"] == len(rows) == 4
+    assert sorted((f["variant"], f["mattress"], f["bed_incline_deg"], f["posture"]) for f in rows) == [
+        ("F1", "air", 0.0, "supine"),
+        ("F3", "sponge", 20.0, "supine"),
+        ("F5", "air", 40.0, "supine"),
+        ("F7", "sponge", 60.0, "supine"),
+    ]
+    for mattress, s in raised["by_mattress"].items():
+        sel = [f for f in rows if f["mattress"] == mattress]
+        assert s["frames"] == 2 and s["posture_accuracy"] == np.mean([f["estimated_posture"] == "supine" for f in sel])
+        errors = [f["estimated_height_m"] - f["height_m"] for f in sel]
+        assert s["height_median_signed_m"] == pytest.approx(np.median(errors))
+    assert [a["bed_incline_deg"] for a in raised["by_angle"]] == [0.0, 20.0, 40.0, 60.0]
+    for a in raised["by_angle"]:
+        (f,) = [f for f in rows if f["variant"] == a["variant"] and f["mattress"] == a["mattress"]]
+        assert a["estimated"] == {f["estimated_posture"]: 1} and a["frames"] == 1
+        assert a["height_median_signed_m"] == pytest.approx(f["estimated_height_m"] - f["height_m"])
+    text = (out / "real.md").read_text()
+    assert "(0 frames flat, 4 raised, groups F)" in text and "posture accuracy" not in text
+    assert "| F5 | 40 | air | 1 |" in text and "![" not in text
+    assert not (out / "real.png").exists() and not (out / "tilt.png").exists()
 
 
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):
@@ -528,14 +565,14 @@ def test_evaluate_real_on_pmatdata(tiny, tmp_path):
             "--pmatdata",
             str(PMAT),
             "--groups",
-            "BF",
+            "BG",
             "--out",
             str(tmp_path / "o"),
         ],
         capture_output=True,
         text=True,
     )
-    assert r.returncode == 2 and "groups must be letters of BCDE" in r.stderr
+    assert r.returncode == 2 and "groups must be letters of BCDEF" in r.stderr
 
 
 @pytest.mark.slow

@@ -19,7 +19,7 @@ from pressurepose.net.posture import MIRRORED, POSTURES, posture_index, roll_fro
 from pressurepose.sampling.poses import root_axis_angles
 from pressurepose.train.checkpoint import load_network, save_model
 
-PMAT = str(Path(__file__).resolve().parent / "data" / "pmatdata")  # 16 frames of PmatData (its README)
+PMAT = str(Path(__file__).resolve().parent / "data" / "pmatdata")  # 20 frames of PmatData (its README)
 
 
 def test_roll_from_joints_against_the_root_reference(anny32):

@@ -68,15 +68,18 @@ def test_import_pmatdata_writes_predict_ready_images(tmp_path):
     out = tmp_path / "p.npz"
     assert main(["import-pmatdata", "--pmatdata", str(root), "--out", str(out), "--mattress", "air"]) == 0
     with np.load(out, allow_pickle=False) as f:
-        assert f["pressure_mmhg"].shape == (8, 64, 27) and set(f["posture"].tolist()) == {"left", "right"}
-        # group E's documented rolls (20 / 40 deg on wedges); the full-lateral groups have none
-        assert sorted(zip(f["group"].tolist(), f["body_roll_deg"].tolist()))[-2:] == [("E", 20.0), ("E", 40.0)]
+        assert f["pressure_mmhg"].shape == (10, 64, 27) and set(f["posture"].tolist()) == {"left", "right", "supine"}
+        # group E's documented rolls (20 / 40 deg on wedges); the other groups have none
+        assert sorted(f["body_roll_deg"][f["group"] == "E"].tolist()) == [20.0, 40.0]
         assert (f["body_roll_deg"][f["group"] != "E"] == 0).all()
+        # group F's beds, their head raised 0 and 40 deg; the other groups' flat
+        assert sorted(f["bed_incline_deg"][f["group"] == "F"].tolist()) == [0.0, 40.0]
+        assert (f["bed_incline_deg"][f["group"] != "F"] == 0).all()
         assert (f["mattress"] == "air").all() and (f["height_m"] == 1.75).all() and (f["mass_kg"] == 87).all()
         p, first = f["pressure_mmhg"], f["path"][0]
     assert (p >= 0).all() and (p <= 100).all()
     # Same orientation as the reader (row 0 at the head): the loaded rows follow the raw frame's.
     raw = read_frame(root / first)
     assert np.corrcoef((raw > raw.min() + 30).sum(1), (p[0] > 0).sum(1))[0, 1] > 0.9
-    assert read_pressure_file(out).shape == (8, 64, 27)  # predict reads it
+    assert read_pressure_file(out).shape == (10, 64, 27)  # predict reads it
     assert main(["import-pmatdata", "--pmatdata", str(root), "--out", str(out), "--groups", "B"]) == 2

@@ -90,6 +90,9 @@ def _well_formed(record: dict) -> bool:
         ok = isinstance(tilted, list) and all(
             isinstance(r, dict) and all(k in r for k in TILTED_FIELDS) for r in tilted
         )
+    if ok and "raised" in record:  # group F's rows (evaluate-real since session 60): the flat rows' fields
+        raised = record["raised"].get("per_frame") if isinstance(record["raised"], dict) else None
+        ok = isinstance(raised, list) and all(isinstance(r, dict) and all(k in r for k in REAL_FIELDS) for r in raised)
     return ok
 
 
@@ -146,6 +149,8 @@ def run_compare(cfg: CompareConfig) -> Written:
             # Group E's tilts when both read them (a report without them pairs on B-D alone).
             both = "tilted" in a and "tilted" in b
             tilted = compare_tilted(a["tilted"]["per_frame"], b["tilted"]["per_frame"]) if both else None
+            both = "raised" in a and "raised" in b  # group F's raised beds likewise
+            raised = compare_real(a["raised"]["per_frame"], b["raised"]["per_frame"]) if both else None
     except NotComparable as exc:
         raise UserError(f"{exc}: compare two evaluations of the same samples") from None
     record = {"command": "compare", "kind": a["command"], "a": _side(a, cfg.a), "b": _side(b, cfg.b), "result": result}
@@ -153,6 +158,10 @@ def run_compare(cfg: CompareConfig) -> Written:
         record["tilted"] = tilted
     elif a["command"] == "evaluate-real" and ("tilted" in a or "tilted" in b):
         record["tilted_note"] = f"only {'A' if 'tilted' in a else 'B'} read group E's tilted frames: not compared"
+    if a["command"] == "evaluate-real" and raised is not None:
+        record["raised"] = raised
+    elif a["command"] == "evaluate-real" and ("raised" in a or "raised" in b):
+        record["raised_note"] = f"only {'A' if 'raised' in a else 'B'} read group F's raised beds: not compared"
     text, markdown = json.dumps(record, indent=1, allow_nan=False), _markdown(record)  # both before any file
     cfg.out.mkdir(parents=True, exist_ok=True)
     paths = {"json": write_text(cfg.out / "compare.json", text)}
@@ -258,6 +267,14 @@ def _markdown(r: dict) -> str:
     ]
     body = _synthetic_lines(r["result"]) if r["kind"] == "evaluate" else _real_lines(r["result"])
     body += _tilted_lines(r.get("tilted")) + (["", r["tilted_note"]] if "tilted_note" in r else [])
+    if r.get("raised"):
+        body += [
+            "",
+            "Raised beds (group F: supine, the head of the bed raised 0-60 deg; posture = read supine), as above:",
+            "",
+        ]
+        body += _real_lines(r["raised"])[2:]
+    body += ["", r["raised_note"]] if "raised_note" in r else []
     return "\n".join([*lines, *body, ""])
 
 
@@ -281,6 +298,11 @@ def compare(cfg: CompareConfig) -> None:
             f"; tilted {m}: turned +{s['turned_gained']} / -{s['turned_lost']}, roll error "
             f"{s['roll_error_change_median_deg']:+.1f} deg"
             for m, s in (written.record.get("tilted") or {}).items()
+        )
+        head += "".join(
+            f"; raised {m}: supine +{s['posture_gained']} / -{s['posture_lost']}, height error "
+            f"{s['height_abs_change_median_m'] * 100:+.1f} cm"
+            for m, s in (written.record.get("raised") or {}).items()
         )
     print(f"{head} -> {written['markdown']}")
 

@@ -114,6 +114,11 @@ def _summary(synthetic: dict, real: dict) -> dict:
             },
             # group E's tilted bodies (20 / 40 deg on wedges or a pillow): read turned toward their side
             "tilted_turned": {m: s["share_turned"] for m, s in real.get("tilted", {}).get("by_mattress", {}).items()},
+            # group F's raised beds (head of the bed 0-60 deg): read supine, and the heights
+            "raised": {
+                m: {"supine": s["posture_accuracy"], "height_median_signed_m": s["height_median_signed_m"]}
+                for m, s in real.get("raised", {}).get("by_mattress", {}).items()
+            },
         },
     }
 
@@ -149,6 +154,14 @@ def _markdown(s: dict) -> str:
         lines.append(
             "- tilted on wedges or a pillow (group E), read turned 10-135 deg toward their side: "
             + ", ".join(f"{m} {v * 100:.0f}%" for m, v in real["tilted_turned"].items())
+        )
+    if real.get("raised"):
+        lines.append(
+            "- head of the bed raised 0-60 deg (group F, outside the flat-bed scope), read supine: "
+            + ", ".join(
+                f"{m} {v['supine'] * 100:.0f}% (height {v['height_median_signed_m'] * 100:+.1f} cm)"
+                for m, v in real["raised"].items()
+            )
         )
     lines += [
         "- per frame, confusion and scatter: [real/real.md](real/real.md)",

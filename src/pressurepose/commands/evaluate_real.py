@@ -8,7 +8,9 @@ sponge): posture accuracy - the posture read from the estimated root orientation
 - and the estimated height and mass against the subjects' values, with a confusion matrix and scatter
 plots; for a heatmap network, how sharply its heatmaps pin the head and torso (`eval.real.spread_summary`).
 Group E's tilted bodies (20 or 40 deg on wedges or a pillow) are judged apart, by the roll read
-against the documented one (`eval.real.tilt_summary`: real.md's tilt table, tilt.png).
+against the documented one (`eval.real.tilt_summary`: real.md's tilt table, tilt.png); group F's
+supine bodies on a bed whose head is raised 0-60 deg (outside the network's flat-bed scope) apart
+too: the share read supine and the height error, per mattress and per angle.
 
 Frames are normalised as the data's README says (empty level removed, noise threshold, summed force = the
 subject's weight, mmHg; `data.pmatdata.normalise`), clipped at 100 mmHg as the sensor model does. Gender
@@ -35,6 +37,7 @@ import torch
 
 from pressurepose.body.joints import TRUNK_JOINTS
 from pressurepose.commands.evaluate_cloud import run_evaluate_cloud
+from pressurepose.commands.evaluate_real_tables import flat_lines, raised_lines, tilt_lines
 from pressurepose.commands.netopts import options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index, repeated_frames
@@ -43,14 +46,13 @@ from pressurepose.eval.metrics import CAMERA_M
 from pressurepose.eval.real import (
     GROUP_POSTURE,
     POSTURES,
+    RAISED_GROUPS,
+    RAISED_POSTURE,
     TILTED_GROUPS,
-    TURN_DEG,
     documented_roll,
     height_by_load_ends,
     load_ends,
-    load_ends_table,
     read_bodies,
-    spread_lines,
     spread_summary,
     subject_interval,
     tilt_summary,
@@ -71,9 +73,10 @@ class RealEvalConfig:
     """PmatData folder (index.csv, experiment-ii/); "pmatdata" = the packaged copy of experiment II."""
     out: Path = Path("out/evaluate-real")
     """Report folder: real.md, real.json, real.png (groups B-D), tilt.png (group E)."""
-    groups: str = "BCDE"
+    groups: str = "BCDEF"
     """PmatData posture groups: B supine, C right, D left (flat bed: the posture table); E lateral
-    on wedges or a pillow at 20 or 40 deg of roll (the tilt table: the roll read against it)."""
+    on wedges or a pillow at 20 or 40 deg of roll (the tilt table: the roll read against it); F
+    supine, the head of the bed raised 0-60 deg (the raised-bed table)."""
     threshold: float = 20.0
     """Raw noise threshold of the frames' normalisation (data README)."""
     batch: int = 32
@@ -99,10 +102,11 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
         return run_evaluate_cloud(cfg)
     cfg = dataclasses.replace(cfg, pmatdata=resolve_pmatdata(cfg.pmatdata))
 
-    known = "".join(GROUP_POSTURE) + TILTED_GROUPS
+    known = "".join(GROUP_POSTURE) + TILTED_GROUPS + RAISED_GROUPS
     if not cfg.groups or any(g not in known for g in cfg.groups):
         raise UserError(
-            f"groups must be letters of {known} (B supine, C right, D left, E tilted on wedges), got {cfg.groups!r}"
+            f"groups must be letters of {known} (B supine, C right, D left, E tilted on wedges, "
+            f"F head of the bed raised), got {cfg.groups!r}"
         )
     records = [r for r in load_index(cfg.pmatdata) if r.group in cfg.groups]
     if not records:
@@ -113,11 +117,13 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     records = [r for r in records if id(r) not in left_out]
     flat = [r for r in records if r.group in GROUP_POSTURE]
     tilted = [r for r in records if r.group in TILTED_GROUPS]
+    raised = [r for r in records if r.group in RAISED_GROUPS]
     documented = [_documented(r, cfg) for r in tilted]  # a row without its roll stops the run before the network
     net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test, cfg.shift_test)
     t0 = time.perf_counter()
     rows, summary, variants = _flat_report(net, flat, cfg) if flat else ([], {}, {})
     tilt = _tilted_report(net, tilted, documented, cfg) if tilted else None
+    bed = _raised_report(net, raised, cfg) if raised else None
     seconds = time.perf_counter() - t0
     cfg.out.mkdir(parents=True, exist_ok=True)
     record = {
@@ -130,6 +136,7 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
         "by_variant": dict(sorted(variants.items(), key=lambda kv: (kv[0][0], int(kv[0][1:])))),
         "per_frame": rows,
         **({} if tilt is None else {"tilted": tilt}),
+        **({} if bed is None else {"raised": bed}),
     }
     paths = {}
     figures = {"figure": ("real.png", rows, lambda tmp: plot_real(tmp, rows, summary))}
@@ -145,7 +152,8 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
 
 
 def _flat_report(net, records: list, cfg: RealEvalConfig) -> tuple[list[dict], dict, dict]:
-    """Per-frame rows, per-mattress summary and per-variant counts of the flat groups (B-D)."""
+    """Per-frame rows, per-mattress summary and per-variant counts of the flat groups (B-D), or of
+    group F's raised beds (their posture supine, each row with its bed's angle)."""
     images = torch.from_numpy(load_images(records, cfg.threshold))
     heights = [r.height_cm / 100 for r in records]
     masses = [r.weight_kg for r in records]
@@ -159,7 +167,8 @@ def _flat_report(net, records: list, cfg: RealEvalConfig) -> tuple[list[dict], d
             "subject": r.subject,
             "mattress": r.mattress,
             "variant": f"{r.group}{r.index}",
-            "posture": GROUP_POSTURE[r.group],
+            "posture": GROUP_POSTURE.get(r.group, RAISED_POSTURE),
+            **({"bed_incline_deg": r.bed_incline_deg} if r.group in RAISED_GROUPS else {}),
             "estimated_posture": e,
             **({} if read.readout is None else {"readout_posture": read.readout[i]}),
             "roll_deg": float(a),
@@ -208,6 +217,28 @@ def _flat_report(net, records: list, cfg: RealEvalConfig) -> tuple[list[dict], d
         v["frames"] += 1
         v["estimated"][r["estimated_posture"]] = v["estimated"].get(r["estimated_posture"], 0) + 1
     return rows, summary, variants
+
+
+def _raised_report(net, records: list, cfg: RealEvalConfig) -> dict:
+    """Group F's frames: the flat report's rows and per-mattress summary (read supine = right),
+    and per bed angle and mattress the postures read and the median signed height error."""
+    rows, summary, _ = _flat_report(net, records, cfg)
+    by_angle = []
+    for key in sorted({(r["bed_incline_deg"], r["variant"], r["mattress"]) for r in rows}):
+        sel = [r for r in rows if (r["bed_incline_deg"], r["variant"], r["mattress"]) == key]
+        estimated = {e: sum(r["estimated_posture"] == e for r in sel) for e in POSTURES}
+        error = [r["estimated_height_m"] - r["height_m"] for r in sel]
+        by_angle.append(
+            {
+                "bed_incline_deg": key[0],
+                "variant": key[1],
+                "mattress": key[2],
+                "frames": len(sel),
+                "estimated": {e: n for e, n in estimated.items() if n},
+                "height_median_signed_m": float(np.median(error)),
+            }
+        )
+    return {"frames": len(rows), "by_mattress": summary, "by_angle": by_angle, "per_frame": rows}
 
 
 def _tilted_report(net, records: list, documented: list[float], cfg: RealEvalConfig) -> dict:
@@ -263,17 +294,20 @@ def _rel(record, cfg: RealEvalConfig) -> str:
 def _markdown(r: dict) -> str:
     left_out = len(r["repeats_left_out"])
     note = f"{left_out} frame(s) left out (all groups): each repeats another record's file byte for byte (`repeats_left_out`)"
-    tilted = r.get("tilted")
-    counts = f"{r['frames']} frames" + (f" flat, {tilted['frames']} tilted" if tilted else "")
+    tilted, raised = r.get("tilted"), r.get("raised")
+    counts = f"{r['frames']} frames" + (" flat" if tilted or raised else "")
+    counts += (f", {tilted['frames']} tilted" if tilted else "") + (f", {raised['frames']} raised" if raised else "")
     lines = [
         f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'], r['config'].get('shift_test', False))} on PmatData experiment II ({counts}, groups {r['config']['groups']})",
         "",
         *([note, ""] if left_out else []),
     ]
     if r["by_mattress"]:
-        lines += _flat_lines(r)
+        lines += flat_lines(r)
     if tilted:
-        lines += _tilt_lines(tilted)
+        lines += tilt_lines(tilted)
+    if raised:
+        lines += raised_lines(raised)
     lines += [
         "",
         "Intervals: 95%, resampling whole subjects with replacement (a subject's frames are not "
@@ -281,85 +315,6 @@ def _markdown(r: dict) -> str:
     ]
     lines += [f"\n![{name}]({name}.png)" for name, part in (("real", r["by_mattress"]), ("tilt", tilted)) if part]
     return "\n".join(lines + [""])
-
-
-def _flat_lines(r: dict) -> list[str]:
-    """The flat groups' tables: per mattress, confusions, heights by load ends, per variant."""
-    lines = [
-        "| mattress | frames (subjects) | posture accuracy [95% CI] | height MAE (cm) "
-        "| height error median: absolute / signed [95% CI] (cm) | mass MAE (kg) |",
-        "| --- | --- | --- | --- | --- | --- |",
-    ]
-    for name, s in r["by_mattress"].items():
-        lines.append(
-            f"| {name} | {s['frames']} ({s['subjects']}) | {s['posture_accuracy'] * 100:.1f}% "
-            f"[{s['posture_accuracy_ci'][0] * 100:.1f}, {s['posture_accuracy_ci'][1] * 100:.1f}] | "
-            f"{s['height_mae_m'] * 100:.1f} | {s['height_median_abs_m'] * 100:.1f} / "
-            f"{s['height_median_signed_m'] * 100:+.1f} [{s['height_median_signed_ci_m'][0] * 100:+.1f}, "
-            f"{s['height_median_signed_ci_m'][1] * 100:+.1f}] | {s['mass_mae_kg']:.1f} |"
-        )
-    lines += spread_lines({k: s["trunk_spread"] for k, s in r["by_mattress"].items() if "trunk_spread" in s})
-    for name, s in r["by_mattress"].items():
-        lines += [
-            "",
-            f"Confusion ({name}; rows: true, columns: estimated)",
-            "",
-            "| | " + " | ".join(POSTURES) + " |",
-            "| --- |" + " --- |" * len(POSTURES),
-        ]
-        for t, row in s["confusion"].items():
-            lines.append(f"| {t} | " + " | ".join(str(row[e]) for e in POSTURES) + " |")
-    lines += [
-        "",
-        "Height error (median signed, cm; frames) by where the load lies: a frame whose load (the rows "
-        "holding >= 0.2% of its force) reaches the mat's head or foot row may run on beyond the mat",
-        "",
-        *load_ends_table({name: s["height_by_load_ends"] for name, s in r["by_mattress"].items()}, "mattress"),
-    ]
-    lines += [
-        "",
-        "Per posture variant (both mattresses; PmatData's groups: B supine variants, C right, D left)",
-        "",
-        "| variant | posture | frames | correct | " + " | ".join(f"read {e}" for e in POSTURES) + " |",
-        "| --- | --- | --- | --- |" + " --- |" * len(POSTURES),
-    ]
-    for name, v in r["by_variant"].items():
-        counts = [v["estimated"].get(e, 0) for e in POSTURES]
-        lines.append(
-            f"| {name} | {v['posture']} | {v['frames']} | {v['estimated'].get(v['posture'], 0)} | "
-            + " | ".join(map(str, counts))
-            + " |"
-        )
-    readout = {k: s["readout_accuracy"] for k, s in r["by_mattress"].items() if "readout_accuracy" in s}
-    if readout:
-        lines += [
-            "",
-            "The network's posture readout (net.posture; the posture above is its body's): "
-            + ", ".join(f"{k} {v * 100:.1f}%" for k, v in readout.items()),
-        ]
-    return lines
-
-
-def _tilt_lines(t: dict) -> list[str]:
-    """Group E's table: the roll read against the documented one, per mattress and variant."""
-    lines = [
-        "",
-        f"Tilted bodies (group E: lateral on one or two wedges, E1-E4, or a pillow, E5-E6; {t['frames']} frames): "
-        f"the roll read (+ right, - left) against the documented one; turned = read {TURN_DEG:.0f}-135 deg "
-        f"toward the documented side (beyond 135: face down); other way = at least {TURN_DEG:.0f} deg toward the other",
-        "",
-        "| mattress / variant (frames) | documented roll (deg) | read toward that side, median (deg) | abs. roll error, median (deg) "
-        "| turned [95% CI] | other way |",
-        "| --- | --- | --- | --- | --- | --- |",
-    ]
-    for name, s in {**t["by_mattress"], **t["by_variant"]}.items():
-        doc = f"{s['documented_roll_deg']:+.0f}" if "documented_roll_deg" in s else "+-20, +-40"
-        lo, hi = s["share_turned_ci"]
-        lines.append(
-            f"| {name} ({s['frames']}) | {doc} | {s['read_toward_median_deg']:+.1f} | {s['abs_error_median_deg']:.1f} | "
-            f"{s['share_turned'] * 100:.0f}% [{lo * 100:.0f}, {hi * 100:.0f}] | {s['share_other_way'] * 100:.0f}% |"
-        )
-    return lines
 
 
 def evaluate_real(cfg: RealEvalConfig) -> None:
@@ -392,8 +347,14 @@ def evaluate_real(cfg: RealEvalConfig) -> None:
             f"tilted ({k}): {v['share_turned'] * 100:.0f}% turned toward their side, roll error {v['abs_error_median_deg']:.0f} deg"
             for k, v in record["tilted"]["by_mattress"].items()
         ]
-    tilted = f" + {record['tilted']['frames']} tilted" if "tilted" in record else ""
-    print(f"{record['frames']} frames{tilted}; " + "; ".join(parts) + f" -> {written['markdown']}")
+    if "raised" in record:
+        parts += [
+            f"raised beds ({k}): {v['posture_accuracy'] * 100:.0f}% read supine, height error "
+            f"{v['height_median_signed_m'] * 100:+.1f} cm"
+            for k, v in record["raised"]["by_mattress"].items()
+        ]
+    more = "".join(f" + {record[k]['frames']} {k}" for k in ("tilted", "raised") if k in record)
+    print(f"{record['frames']} frames{more}; " + "; ".join(parts) + f" -> {written['markdown']}")
 
 
 __all__ = ["RealEvalConfig", "evaluate_real", "run_evaluate_real"]

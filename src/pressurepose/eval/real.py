@@ -27,6 +27,10 @@ GROUP_POSTURE = {"B": "supine", "C": "right", "D": "left"}  # PmatData's flat gr
 # side its posture names - between the flat groups' supine and full side, so judged by its roll
 # (`tilt_summary`), not by a posture class.
 TILTED_GROUPS = "E"
+# PmatData's group F: supine with the head of the bed raised 0-60 deg (F1 flat ... F7 60 deg), the
+# network's flat-bed scope left; reported apart (posture and height per angle), not in the flat table.
+RAISED_GROUPS = "F"
+RAISED_POSTURE = "supine"
 TURN_DEG = 10.0  # a read roll this far toward a side is turned to it (`tilt_summary`)
 # Where a frame's load lies on the mat (`load_ends`).
 LOAD_ENDS = ("neither", "head only", "foot only", "both", "empty")
@@ -295,6 +299,8 @@ __all__ = [
     "LOAD_ENDS",
     "POSTURES",
     "TILTED_GROUPS",
+    "RAISED_GROUPS",
+    "RAISED_POSTURE",
     "HEAD_END_FRAMES",
     "TURN_DEG",
     "BodyReadings",
