@@ -149,6 +149,9 @@ def main() -> None:
                 if args.shift_test:  # the shipped model read with the shift test
                     both = {"shift_test": True, "stature_weight": args.stature_weight}
                     options.append((f"shift test, stature weight {args.stature_weight}", both))
+                if args.shift_test and args.flip_test:  # and with both tests
+                    both = {"flip_test": True, "shift_test": True, "stature_weight": args.stature_weight}
+                    options.append((f"flip and shift tests, stature weight {args.stature_weight}", both))
             elif args.shift_test:
                 options.append(("shift test", {"shift_test": True}))
             for label, option in options if arch == "heatmap" else []:

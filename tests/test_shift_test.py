@@ -76,6 +76,15 @@ def test_shift_merged_against_a_naive_loop():
         torch.testing.assert_close(out.posture_logits[b], sum(loc.posture_logits[r] for r in rows) / n)
     torch.testing.assert_close(out.features, loc.features[:B], rtol=0, atol=0)
     assert out.centres is loc.centres
+    # moves that do not cancel: each copy is moved back by its own move (not only on average)
+    two = Localisation(
+        loc.joints[: 3 * B], loc.grid_joints[: 3 * B], loc.spread_m2[: 3 * B], loc.logits[: 3 * B], loc.centres
+    )
+    got = shift_merged(two, PITCH, moves=(2, 4))
+    step = torch.tensor([PITCH, 0, 0], dtype=f64)
+    want = (two.joints[:B] + two.joints[B : 2 * B] - 2 * step + two.joints[2 * B :] - 4 * step) / 3
+    torch.testing.assert_close(got.joints, want)
+    assert got.posture_logits is None and got.features is None
     with pytest.raises(ValueError, match="must be even"):
         shift_merged(loc, PITCH, moves=(1, 2, 3, 4))
     with pytest.raises(ValueError, match="holds 5 x B reads"):
@@ -114,6 +123,8 @@ def test_the_shift_test_with_per_image_inputs_and_a_posture_readout(anny32):
     cfg = dict(arch="heatmap", gender_input=True, height_weight=True, ik_steps=1, posture_head=True)
     torch.manual_seed(1)
     plain = PressureNet(NetConfig(**cfg), body=anny32).eval()
+    with torch.no_grad():  # the constant planes (x INPUT_SCALE) made to matter: a wrong person's values would show
+        plain.mod1.enc1[0][0].weight[:, 3:].mul_(1000.0)
     shifted = PressureNet(NetConfig(**cfg, shift_test=True, posture_consistent=True), body=anny32)
     shifted.load_state_dict(plain.state_dict())
     shifted.eval()
@@ -132,7 +143,36 @@ def test_the_shift_test_with_per_image_inputs_and_a_posture_readout(anny32):
         )[-1]
     assert est.joints.shape == (3, NUM_JOINTS, 3) and est.localisation.posture_logits.shape == (3, 4)
     torch.testing.assert_close(est.localisation.joints[1:2], one.localisation.joints, rtol=0, atol=1e-5)
+    torch.testing.assert_close(est.localisation.features[1:2], one.localisation.features, rtol=0, atol=1e-6)
     torch.testing.assert_close(est.joints[1:2], one.joints, rtol=0, atol=1e-4)
+
+
+@pytest.mark.parametrize("chunk", [None, 4])
+def test_the_shift_test_with_the_flip_test(anny32, monkeypatch, chunk):
+    """Both tests: the mean over the moved copies of the flip test's reads, each moved back; the
+    same when the encoder-decoder runs the stacked batch in chunks (HeatmapNet.EVAL_CHUNK)."""
+    from pressurepose.net.heatmap import HeatmapNet
+
+    if chunk is not None:
+        monkeypatch.setattr(HeatmapNet, "EVAL_CHUNK", chunk)
+    cfg = dict(arch="heatmap", gender_input=True, ik_steps=1, flip_test=True)
+    torch.manual_seed(2)
+    flip = PressureNet(NetConfig(**cfg), body=anny32).eval()
+    with torch.no_grad():
+        for w in flip.mod1.maps.parameters():
+            w.mul_(30.0)
+    both = PressureNet(NetConfig(**cfg, shift_test=True), body=anny32)
+    both.load_state_dict(flip.state_dict())
+    both.eval()
+    p = torch.rand(2, 64, 27) * 40 * (torch.rand(2, 64, 27) > 0.5)
+    gender = torch.tensor([0.0, 1.0])
+    moves = (0, *SHIFT_TEST_ROWS)
+    with torch.inference_mode():
+        got = both(NetInputs(p, gender=gender), mesh=False)[-1].localisation
+        reads = [flip(NetInputs(moved_rows(p, k), gender=gender), mesh=False)[-1].localisation for k in moves]
+    want = sum(r.joints - torch.tensor([k * PITCH, 0.0, 0.0]) for r, k in zip(reads, moves)) / len(moves)
+    torch.testing.assert_close(got.joints, want, rtol=0, atol=1e-5)
+    torch.testing.assert_close(got.spread_m2, sum(r.spread_m2 for r in reads) / len(moves), rtol=1e-4, atol=1e-8)
 
 
 def test_shift_test_bad_inputs_and_label(anny32):
@@ -163,6 +203,9 @@ def test_predict_and_evaluate_real_with_the_shift_test(anny32, tmp_path):
     args = ["predict", "--model", str(run), "--out", str(out), "--shift-test", "--no-figures", "--no-meshes"]
     assert main([*args, "--batch-size", "2", str(image)]) == 0
     assert len(json.loads((out / "three_0002.json").read_text())["joints_m"]) == 24
+    both = ["--shift-test", "--flip-test", "--head-end", "auto", "--no-figures", "--no-meshes"]
+    assert main(["predict", "--model", str(run), "--out", str(tmp_path / "both"), *both, str(image)]) == 0
+    assert json.loads((tmp_path / "both" / "three_0000.json").read_text())["head_end"] in ("first row", "last row")
     real = tmp_path / "real"
     assert main(["evaluate-real", "--model", str(run), "--groups", "B", "--shift-test", "--out", str(real)]) == 0
     assert (

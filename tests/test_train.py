@@ -239,7 +239,7 @@ def test_init_keeps_how_the_other_network_is_read(data32, tmp_path):
     common = dict(arch="heatmap", gender_input=False, batch_size=4, val_fraction=0.0, progress=False, epochs=1)
     a = train(TrainConfig.smoke(out=tmp_path / "a", **common), ds)
     weights, rec = read_model(a)
-    read_as = {"ik_steps": 7, "flip_test": True, "stature_weight": 0.25, "stature_head": False}
+    read_as = {"ik_steps": 7, "flip_test": True, "shift_test": True, "stature_weight": 0.25, "stature_head": False}
     net_a, _ = load_network(a)
     save_model(tmp_path / "a2", net_a, dict(rec, net=dict(rec["net"], **read_as)), state=weights)
     b = train(TrainConfig.smoke(out=tmp_path / "b", init=tmp_path / "a2", **common), ds)
