@@ -202,7 +202,9 @@ def test_predict_and_evaluate_real_with_the_shift_test(anny32, tmp_path):
     out = tmp_path / "pred"
     args = ["predict", "--model", str(run), "--out", str(out), "--shift-test", "--no-figures", "--no-meshes"]
     assert main([*args, "--batch-size", "2", str(image)]) == 0
-    assert len(json.loads((out / "three_0002.json").read_text())["joints_m"]) == 24
+    record = json.loads((out / "three_0002.json").read_text())
+    assert len(record["joints_m"]) == 24
+    assert record["inference"] == {"ik_steps": 1, "flip_test": False, "shift_test": True}
     both = ["--shift-test", "--flip-test", "--head-end", "auto", "--no-figures", "--no-meshes"]
     assert main(["predict", "--model", str(run), "--out", str(tmp_path / "both"), *both, str(image)]) == 0
     assert json.loads((tmp_path / "both" / "three_0000.json").read_text())["head_end"] in ("first row", "last row")

@@ -9,7 +9,8 @@ joint's heatmap spread on the mat (its RMS distance from its mean, m), which tel
 pins down from one it guesses
 (docs/network.md "How far to trust a joint"); `load_ends`, whether the image's load
 reaches the mat's head row, its foot row, both or neither - a body the mat cuts shows less of its
-length, and its height is then read from its proportions: docs/network.md),
+length, and its height is then read from its proportions: docs/network.md; `inference`, how the
+network was read: its IK steps, flip test and shift test),
 OUT/<name>.ply (the mesh, mat frame, metres; or .obj / .glb with --mesh-format, written by
 trimesh) and OUT/<name>.png (the pressure image with the
 projected skeleton, each joint marked by its heatmap spread's band for a heatmap network, top and
@@ -207,6 +208,8 @@ def _write_one(
     record = {
         "model": str(cfg.model),
         "backend": net.config.backend,
+        # how the network was read (its own settings or predict's options)
+        "inference": {k: getattr(net.config, k) for k in ("ik_steps", "flip_test", "shift_test")},
         "shape": dict(zip(net.body.shape_names, p.shape[i].tolist())),
         "root_rotation_axis_angle": p.root_rotation[i].tolist(),
         "root_translation_m": p.root_translation[i].tolist(),
