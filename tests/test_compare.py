@@ -298,6 +298,12 @@ def test_compare_cli_pairs_the_raised_beds_when_both_read_them(tmp_path, capsys)
     assert main(["compare", str(flat), str(b), "--out", str(tmp_path / "o2")]) == 0
     record = json.loads((tmp_path / "o2" / "compare.json").read_text())
     assert "raised" not in record and record["raised_note"].startswith("only B read group F")
+    assert main(["compare", str(a), str(flat), "--out", str(tmp_path / "o4")]) == 0
+    assert json.loads((tmp_path / "o4" / "compare.json").read_text())["raised_note"].startswith("only A read group F")
+    other = _write(tmp_path / "other", "real.json", report(raised_b[:6]))  # two raised frames fewer
+    capsys.readouterr()
+    assert main(["compare", str(a), str(other), "--out", str(tmp_path / "o5")]) == 2
+    assert "group F: the two reports read different frames" in capsys.readouterr().err
     damaged = _write(tmp_path / "d", "real.json", {**_real_report(rows), "raised": {"per_frame": [{"file": "x"}]}})
     capsys.readouterr()
     assert main(["compare", str(a), str(damaged), "--out", str(tmp_path / "o3")]) == 2

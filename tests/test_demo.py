@@ -95,8 +95,9 @@ def test_demo_summary_names_the_tilted_and_raised_frames_when_read():
     real = {"per_frame": rows, "by_mattress": {"air": {"posture_accuracy": 0.5, "height_mae_m": 0.1}}}
     tilted = {"by_mattress": {"air": {"share_turned": 0.31}, "sponge": {"share_turned": 0.52}}}
     raised = {"by_mattress": {"air": {"posture_accuracy": 0.9375, "height_median_signed_m": 0.111}}}
-    for with_tilts in (False, True):
-        s = _summary(synthetic, {**real, "tilted": tilted, "raised": raised} if with_tilts else real)
+    for with_tilts, with_raised in ((False, False), (True, False), (False, True), (True, True)):
+        extra = {"tilted": tilted} if with_tilts else {}
+        s = _summary(synthetic, {**real, **extra, **({"raised": raised} if with_raised else {})})
         assert s["real"]["posture_accuracy"] == 0.5
         assert s["real"]["tilted_turned"] == ({"air": 0.31, "sponge": 0.52} if with_tilts else {})
         text = _markdown({**s, "model": "m", "seconds": {"total_s": 1.0}, "samples": 6, "seed": 0})
@@ -104,4 +105,5 @@ def test_demo_summary_names_the_tilted_and_raised_frames_when_read():
             "tilted on wedges or a pillow (group E), read turned 10-135 deg toward their side: air 31%, sponge 52%"
             in text
         ) == with_tilts
-        assert ("group F, outside the flat-bed scope), read supine: air 94% (height +11.1 cm)" in text) == with_tilts
+        line = "group F, outside the flat-bed scope), read supine: air 94% (height error +11.1 cm)"
+        assert (line in text) == with_raised

@@ -421,6 +421,7 @@ def test_evaluate_real_reads_tilted_frames_against_their_rolls(tiny, tmp_path):
     assert set(tilted["by_variant"]) == {"E1 air", "E2 sponge", "E3 sponge", "E4 air"}
     text = (out / "real.md").read_text()
     assert "(12 frames flat, 4 tilted, 4 raised, groups BCDEF)" in text and "posture accuracy" in text
+    assert record["raised"]["frames"] == 4 and {v[0] for v in record["by_variant"]} == {"C", "D"}
     assert "| E4 air (1) | -40 |" in text and "![tilt](tilt.png)" in text
     for name in ("real.png", "tilt.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
@@ -481,9 +482,34 @@ def test_evaluate_real_reads_raised_beds_by_angle(tiny, tmp_path):
         assert a["estimated"] == {f["estimated_posture"]: 1} and a["frames"] == 1
         assert a["height_median_signed_m"] == pytest.approx(f["estimated_height_m"] - f["height_m"])
     text = (out / "real.md").read_text()
-    assert "(0 frames flat, 4 raised, groups F)" in text and "posture accuracy" not in text
+    assert "(4 raised, groups F)" in text and "posture accuracy" not in text
     assert "| F5 | 40 | air | 1 |" in text and "![" not in text
     assert not (out / "real.png").exists() and not (out / "tilt.png").exists()
+    # Two group-F-only reports compare (their raised beds alone).
+    assert main([*args[:-1], str(tmp_path / "real2")]) == 0
+    assert main(["compare", str(out), str(tmp_path / "real2"), "--out", str(tmp_path / "cmp")]) == 0
+    compared = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert compared["result"] == {} and set(compared["raised"]) == {"air", "sponge"}
+    assert compared["raised"]["air"]["posture_gained"] == compared["raised"]["air"]["posture_lost"] == 0
+    # A group F row without its bed angle, or not supine: one line naming the file, nothing written.
+    import shutil
+
+    for old, new in ((",F,5,supine,0,40,", ",F,5,supine,0,,"), (",F,5,supine,0,40,", ",F,5,left,0,40,")):
+        root = tmp_path / "pmat"
+        shutil.rmtree(root, ignore_errors=True)
+        shutil.copytree(PMAT, root)
+        index = root / "index.csv"
+        assert old in index.read_text()
+        index.write_text(index.read_text().replace(old, new))
+        r = subprocess.run(
+            [sys.executable, "-m", "pressurepose.cli", "evaluate-real", "--model", str(run), "--pmatdata", str(root)]
+            + ["--groups", "F", "--out", str(tmp_path / "bad")],
+            capture_output=True,
+            text=True,
+        )
+        assert r.returncode == 2 and "index.csv" in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert ("line 19" in r.stderr) if ",," in new else ("Matrix_Air_F5.txt" in r.stderr)
+        assert not (tmp_path / "bad").exists()
 
 
 def test_evaluate_real_on_pmatdata(tiny, tmp_path):

@@ -207,7 +207,9 @@ def test_predict_and_evaluate_real_with_the_shift_test(anny32, tmp_path):
     assert record["inference"] == {"ik_steps": 1, "flip_test": False, "shift_test": True}
     both = ["--shift-test", "--flip-test", "--head-end", "auto", "--no-figures", "--no-meshes"]
     assert main(["predict", "--model", str(run), "--out", str(tmp_path / "both"), *both, str(image)]) == 0
-    assert json.loads((tmp_path / "both" / "three_0000.json").read_text())["head_end"] in ("first row", "last row")
+    record = json.loads((tmp_path / "both" / "three_0000.json").read_text())
+    assert record["head_end"] in ("first row", "last row")
+    assert record["inference"] == {"ik_steps": 1, "flip_test": True, "shift_test": True}
     real = tmp_path / "real"
     assert main(["evaluate-real", "--model", str(run), "--groups", "B", "--shift-test", "--out", str(real)]) == 0
     assert (

@@ -119,7 +119,8 @@ def _check_pairing(a: dict, b: dict) -> None:
         va, vb = ca.get(key), cb.get(key)
         if key == "groups":  # the posture table's groups (B-D): group E's tilts are not compared
             va, vb = (None if v is None else "".join(sorted(g for g in set(v) if g in GROUP_POSTURE)) for v in (va, vb))
-            if va == vb == "":
+            apart = any(k in a and k in b for k in ("tilted", "raised"))  # groups E or F read by both
+            if va == vb == "" and not apart:
                 raise UserError("neither report read PmatData's groups B-D: compare reads their posture tables")
         if va != vb:
             raise UserError(
@@ -150,7 +151,7 @@ def run_compare(cfg: CompareConfig) -> Written:
             both = "tilted" in a and "tilted" in b
             tilted = compare_tilted(a["tilted"]["per_frame"], b["tilted"]["per_frame"]) if both else None
             both = "raised" in a and "raised" in b  # group F's raised beds likewise
-            raised = compare_real(a["raised"]["per_frame"], b["raised"]["per_frame"]) if both else None
+            raised = _compare_raised(a, b) if both else None
     except NotComparable as exc:
         raise UserError(f"{exc}: compare two evaluations of the same samples") from None
     record = {"command": "compare", "kind": a["command"], "a": _side(a, cfg.a), "b": _side(b, cfg.b), "result": result}
@@ -167,6 +168,13 @@ def run_compare(cfg: CompareConfig) -> Written:
     paths = {"json": write_text(cfg.out / "compare.json", text)}
     paths["markdown"] = write_text(cfg.out / "compare.md", markdown)
     return Written(paths, record)
+
+
+def _compare_raised(a: dict, b: dict) -> dict:
+    try:
+        return compare_real(a["raised"]["per_frame"], b["raised"]["per_frame"])
+    except NotComparable as exc:
+        raise NotComparable(f"group F: {exc}") from None
 
 
 def _synthetic_lines(res: dict) -> list[str]:
@@ -265,7 +273,10 @@ def _markdown(r: dict) -> str:
         f"A: `{r['a']['path']}`; B: `{r['b']['path']}`",
         "",
     ]
-    body = _synthetic_lines(r["result"]) if r["kind"] == "evaluate" else _real_lines(r["result"])
+    if r["kind"] == "evaluate":
+        body = _synthetic_lines(r["result"])
+    else:  # the flat groups' table unless neither report read them (groups E or F alone)
+        body = _real_lines(r["result"]) if r["result"] else ["Groups B-D: read by neither report."]
     body += _tilted_lines(r.get("tilted")) + (["", r["tilted_note"]] if "tilted_note" in r else [])
     if r.get("raised"):
         body += [
@@ -304,6 +315,7 @@ def compare(cfg: CompareConfig) -> None:
             f"{s['height_abs_change_median_m'] * 100:+.1f} cm"
             for m, s in (written.record.get("raised") or {}).items()
         )
+        head = head.removeprefix("; ")
     print(f"{head} -> {written['markdown']}")
 
 

@@ -159,7 +159,7 @@ def _markdown(s: dict) -> str:
         lines.append(
             "- head of the bed raised 0-60 deg (group F, outside the flat-bed scope), read supine: "
             + ", ".join(
-                f"{m} {v['supine'] * 100:.0f}% (height {v['height_median_signed_m'] * 100:+.1f} cm)"
+                f"{m} {v['supine'] * 100:.0f}% (height error {v['height_median_signed_m'] * 100:+.1f} cm)"
                 for m, v in real["raised"].items()
             )
         )

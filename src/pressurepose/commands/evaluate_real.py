@@ -119,6 +119,8 @@ def run_evaluate_real(cfg: RealEvalConfig) -> Written:
     tilted = [r for r in records if r.group in TILTED_GROUPS]
     raised = [r for r in records if r.group in RAISED_GROUPS]
     documented = [_documented(r, cfg) for r in tilted]  # a row without its roll stops the run before the network
+    for r in raised:  # likewise a raised bed's row that is not a supine body on a bed raised 0-90 deg
+        _check_raised(r, cfg)
     net = with_inference_options(load_network(cfg.model)[0], cfg.ik_steps, cfg.flip_test, cfg.shift_test)
     t0 = time.perf_counter()
     rows, summary, variants = _flat_report(net, flat, cfg) if flat else ([], {}, {})
@@ -287,16 +289,32 @@ def _documented(record, cfg: RealEvalConfig) -> float:
         raise UserError(f"{cfg.pmatdata / 'index.csv'}: {_rel(record, cfg)}: {exc}") from None
 
 
+def _check_raised(record, cfg: RealEvalConfig) -> None:
+    """A group F record is a supine body on a bed raised 0 to < 90 deg, or a one-line error."""
+    angle = record.bed_incline_deg
+    if not (np.isfinite(angle) and 0 <= angle < 90) or record.posture != RAISED_POSTURE:
+        raise UserError(
+            f"{cfg.pmatdata / 'index.csv'}: {_rel(record, cfg)}: group F is supine on a bed raised 0 to < 90 deg; "
+            f"this row says {record.posture!r} at {angle} deg"
+        )
+
+
 def _rel(record, cfg: RealEvalConfig) -> str:
     return str(record.path.relative_to(Path(cfg.pmatdata)))
+
+
+def _counts(r: dict, flat: str) -> list[str]:
+    """How many frames a report read: the flat groups' (unless none while others were read), then
+    the tilted and raised ones'."""
+    others = [f"{r[k]['frames']} {k}" for k in ("tilted", "raised") if k in r]
+    return ([f"{r['frames']} frames{flat}"] if r["frames"] or not others else []) + others
 
 
 def _markdown(r: dict) -> str:
     left_out = len(r["repeats_left_out"])
     note = f"{left_out} frame(s) left out (all groups): each repeats another record's file byte for byte (`repeats_left_out`)"
     tilted, raised = r.get("tilted"), r.get("raised")
-    counts = f"{r['frames']} frames" + (" flat" if tilted or raised else "")
-    counts += (f", {tilted['frames']} tilted" if tilted else "") + (f", {raised['frames']} raised" if raised else "")
+    counts = ", ".join(_counts(r, " flat" if tilted or raised else ""))
     lines = [
         f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'], r['config'].get('shift_test', False))} on PmatData experiment II ({counts}, groups {r['config']['groups']})",
         "",
@@ -353,8 +371,7 @@ def evaluate_real(cfg: RealEvalConfig) -> None:
             f"{v['height_median_signed_m'] * 100:+.1f} cm"
             for k, v in record["raised"]["by_mattress"].items()
         ]
-    more = "".join(f" + {record[k]['frames']} {k}" for k in ("tilted", "raised") if k in record)
-    print(f"{record['frames']} frames{more}; " + "; ".join(parts) + f" -> {written['markdown']}")
+    print(" + ".join(_counts(record, "")) + "; " + "; ".join(parts) + f" -> {written['markdown']}")
 
 
 __all__ = ["RealEvalConfig", "evaluate_real", "run_evaluate_real"]

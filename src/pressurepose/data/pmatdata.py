@@ -79,29 +79,40 @@ class PmatRecord:
 
 
 def load_index(root: str | Path) -> list[PmatRecord]:
-    """Rows of PmatData's index.csv (paths made absolute)."""
+    """Rows of PmatData's index.csv (paths made absolute); a row that cannot be read is a one-line
+    UserError naming its line (a missing column, a number that is not one, a group F row without
+    its bed angle)."""
     root = Path(root)
     path = root / "index.csv"
     if not path.is_file():
         raise UserError(f"no index.csv in {root}; point at the pmatdata folder")
     out = []
     with path.open() as fh:
-        for row in csv.DictReader(fh):
-            out.append(
-                PmatRecord(
-                    path=root / row["file"],
-                    subject=int(row["subject"]),
-                    mattress=row["mattress"],
-                    group=row["group"],
-                    index=int(row["index"]),
-                    posture=row["posture"],
-                    bed_incline_deg=float(row["bed_incline_deg"] or 0),
-                    body_roll_deg=float(row.get("body_roll_deg") or 0),
-                    height_cm=float(row["height_cm"]),
-                    weight_kg=float(row["weight_kg"]),
-                )
-            )
+        for line, row in enumerate(csv.DictReader(fh), start=2):
+            try:
+                out.append(_record(root, row))
+            except KeyError as exc:
+                raise UserError(f"{path}: line {line}: no column {exc.args[0]!r}; see the data README") from None
+            except (ValueError, TypeError) as exc:
+                raise UserError(f"{path}: line {line}: {exc}") from None
     return out
+
+
+def _record(root: Path, row: dict) -> PmatRecord:
+    if row["group"] == "F" and not (row["bed_incline_deg"] or "").strip():
+        raise ValueError("a group F row (head of the bed raised) needs its bed_incline_deg")
+    return PmatRecord(
+        path=root / row["file"],
+        subject=int(row["subject"]),
+        mattress=row["mattress"],
+        group=row["group"],
+        index=int(row["index"]),
+        posture=row["posture"],
+        bed_incline_deg=float(row["bed_incline_deg"] or 0),
+        body_roll_deg=float(row.get("body_roll_deg") or 0),
+        height_cm=float(row["height_cm"]),
+        weight_kg=float(row["weight_kg"]),
+    )
 
 
 def repeated_frames(records: list[PmatRecord]) -> list[tuple[PmatRecord, PmatRecord]]:
