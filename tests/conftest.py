@@ -16,6 +16,23 @@ def anny32():
     return load_body_model("anny", dtype=torch.float32)
 
 
+@pytest.fixture
+def untrained_run(anny32, tmp_path):
+    """A factory: an untrained network of the given NetConfig fields (Anny, float32) saved as a run
+    folder under tmp_path; returns (run folder, network)."""
+    from pressurepose.net import NetConfig, PressureNet
+    from pressurepose.train.checkpoint import save_model
+
+    def make(name: str = "run", **fields):
+        net = PressureNet(NetConfig(**fields), body=anny32).eval()
+        run = tmp_path / name
+        run.mkdir()
+        save_model(run, net, {"train": {}, "net": dict(net.config.__dict__)})
+        return run, net
+
+    return make
+
+
 @pytest.fixture(scope="session")
 def smpl_dir(tmp_path_factory):
     folder = tmp_path_factory.mktemp("smpl")

@@ -87,7 +87,7 @@ def test_flip_test_bad_inputs(anny32):
     assert options_label(None, False) == "" and options_label(6, True) == " (flip test, 6 IK steps)"
 
 
-def test_predict_and_evaluate_real_with_the_flip_test(anny32, tmp_path):
+def test_predict_and_evaluate_real_with_the_flip_test(untrained_run, tmp_path):
     """`predict --flip-test` writes its outputs; `evaluate-real --flip-test` names the option in
     its report's title (a tiny untrained heatmap model, two frames)."""
     import json
@@ -95,12 +95,8 @@ def test_predict_and_evaluate_real_with_the_flip_test(anny32, tmp_path):
     import numpy as np
 
     from pressurepose.cli import main
-    from pressurepose.train.checkpoint import save_model
 
-    net = PressureNet(NetConfig(arch="heatmap", gender_input=False, ik_steps=1), body=anny32).eval()
-    run = tmp_path / "run"
-    run.mkdir()
-    save_model(run, net, {"train": {}, "net": dict(net.config.__dict__)})
+    run, _ = untrained_run(arch="heatmap", gender_input=False, ik_steps=1)
     image = tmp_path / "one.npy"
     np.save(image, (np.random.default_rng(0).random((64, 27)) * 30).astype(np.float32))
     out = tmp_path / "pred"
@@ -115,7 +111,7 @@ def test_predict_and_evaluate_real_with_the_flip_test(anny32, tmp_path):
     assert lines[2].startswith("14 frame(s) left out")
 
 
-def test_predict_head_end_auto_gives_the_network_its_inputs(anny32, tmp_path, monkeypatch):
+def test_predict_head_end_auto_gives_the_network_its_inputs(untrained_run, tmp_path, monkeypatch):
     """`--head-end auto` reads the head end with the subject's height, mass and gender for a
     network that takes them, as the estimate itself does."""
     import json
@@ -123,13 +119,8 @@ def test_predict_head_end_auto_gives_the_network_its_inputs(anny32, tmp_path, mo
     import numpy as np
 
     from pressurepose.cli import main
-    from pressurepose.train.checkpoint import save_model
 
-    cfg = NetConfig(arch="heatmap", gender_input=True, height_weight=True, ik_steps=1)
-    net = PressureNet(cfg, body=anny32).eval()
-    run = tmp_path / "run"
-    run.mkdir()
-    save_model(run, net, {"train": {}, "net": dict(net.config.__dict__)})
+    run, _ = untrained_run(arch="heatmap", gender_input=True, height_weight=True, ik_steps=1)
     image = tmp_path / "two.npy"
     np.save(image, (np.random.default_rng(0).random((2, 64, 27)) * 30).astype(np.float32))
     out = tmp_path / "pred"

@@ -187,16 +187,12 @@ def test_shift_test_bad_inputs_and_label(anny32):
     assert options_label(6, False, True) == " (shift test, 6 IK steps)"
 
 
-def test_predict_and_evaluate_real_with_the_shift_test(anny32, tmp_path):
+def test_predict_and_evaluate_real_with_the_shift_test(untrained_run, tmp_path):
     """`predict --shift-test` writes its outputs; `evaluate-real --shift-test` names the option
     in its report's title (a tiny untrained heatmap model)."""
     from pressurepose.cli import main
-    from pressurepose.train.checkpoint import save_model
 
-    net = PressureNet(NetConfig(arch="heatmap", gender_input=False, ik_steps=1), body=anny32).eval()
-    run = tmp_path / "run"
-    run.mkdir()
-    save_model(run, net, {"train": {}, "net": dict(net.config.__dict__)})
+    run, _ = untrained_run(arch="heatmap", gender_input=False, ik_steps=1)
     image = tmp_path / "three.npy"
     np.save(image, (np.random.default_rng(0).random((3, 64, 27)) * 30).astype(np.float32))
     out = tmp_path / "pred"

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import tyro
 
-from pressurepose.commands.netopts import options_label
+from pressurepose.commands.netopts import recorded_options_label
 from pressurepose.commands.outputs import Written
 from pressurepose.errors import UserError
 from pressurepose.eval.compare import (
@@ -75,6 +75,21 @@ def _load(path: Path, name: str) -> dict:
     return record
 
 
+def _compare_raised(a: list[dict], b: list[dict]) -> dict:
+    try:
+        return compare_real(a, b)
+    except NotComparable as exc:
+        raise NotComparable(f"group F: {exc}") from None
+
+
+# The groups `evaluate-real` reports apart from the flat table: their rows' fields, how a pair of
+# reports compares them, and what they are called when only one report read them.
+_APART = {
+    "tilted": (TILTED_FIELDS, compare_tilted, "group E's tilted frames"),
+    "raised": (REAL_FIELDS, _compare_raised, "group F's raised beds"),
+}
+
+
 def _well_formed(record: dict) -> bool:
     if not isinstance(record.get("config"), dict):
         return False
@@ -83,17 +98,13 @@ def _well_formed(record: dict) -> bool:
         if not isinstance(rows, dict) or not isinstance(rows.get("partition"), list) or "vpe_m" not in rows:
             return False
         return all(isinstance(v, list) and len(v) == len(rows["partition"]) for v in rows.values())
-    rows = record.get("per_frame")
-    ok = isinstance(rows, list) and all(isinstance(r, dict) and all(k in r for k in REAL_FIELDS) for r in rows)
-    if ok and "tilted" in record:  # group E's rows (evaluate-real since session 59)
-        tilted = record["tilted"].get("per_frame") if isinstance(record["tilted"], dict) else None
-        ok = isinstance(tilted, list) and all(
-            isinstance(r, dict) and all(k in r for k in TILTED_FIELDS) for r in tilted
-        )
-    if ok and "raised" in record:  # group F's rows (evaluate-real since session 60): the flat rows' fields
-        raised = record["raised"].get("per_frame") if isinstance(record["raised"], dict) else None
-        ok = isinstance(raised, list) and all(isinstance(r, dict) and all(k in r for k in REAL_FIELDS) for r in raised)
-    return ok
+    # the flat groups' rows; group E's (since session 59) and F's (since session 60) when present
+    parts = [(record, REAL_FIELDS)] + [(record[k], part[0]) for k, part in _APART.items() if k in record]
+    return all(isinstance(part, dict) and _rows_ok(part.get("per_frame"), fields) for part, fields in parts)
+
+
+def _rows_ok(rows, fields: tuple[str, ...]) -> bool:
+    return isinstance(rows, list) and all(isinstance(r, dict) and all(k in r for k in fields) for r in rows)
 
 
 def _same_path(x, y) -> bool:
@@ -119,7 +130,7 @@ def _check_pairing(a: dict, b: dict) -> None:
         va, vb = ca.get(key), cb.get(key)
         if key == "groups":  # the posture table's groups (B-D): group E's tilts are not compared
             va, vb = (None if v is None else "".join(sorted(g for g in set(v) if g in GROUP_POSTURE)) for v in (va, vb))
-            apart = any(k in a and k in b for k in ("tilted", "raised"))  # groups E or F read by both
+            apart = any(k in a and k in b for k in _APART)  # groups E or F read by both
             if va == vb == "" and not apart:
                 raise UserError("neither report read PmatData's groups B-D: compare reads their posture tables")
         if va != vb:
@@ -133,7 +144,7 @@ def _side(record: dict, path: Path) -> dict:
     return {
         "path": str(path),
         "model": c.get("model"),
-        "options": options_label(c.get("ik_steps"), bool(c.get("flip_test")), bool(c.get("shift_test"))),
+        "options": recorded_options_label(c),
     }
 
 
@@ -147,22 +158,12 @@ def run_compare(cfg: CompareConfig) -> Written:
             result = compare_synthetic(a["per_sample"], b["per_sample"])
         else:
             result = compare_real(a["per_frame"], b["per_frame"])
-            # Group E's tilts when both read them (a report without them pairs on B-D alone).
-            both = "tilted" in a and "tilted" in b
-            tilted = compare_tilted(a["tilted"]["per_frame"], b["tilted"]["per_frame"]) if both else None
-            both = "raised" in a and "raised" in b  # group F's raised beds likewise
-            raised = _compare_raised(a, b) if both else None
+            apart = _compare_apart(a, b)
     except NotComparable as exc:
         raise UserError(f"{exc}: compare two evaluations of the same samples") from None
     record = {"command": "compare", "kind": a["command"], "a": _side(a, cfg.a), "b": _side(b, cfg.b), "result": result}
-    if a["command"] == "evaluate-real" and tilted is not None:
-        record["tilted"] = tilted
-    elif a["command"] == "evaluate-real" and ("tilted" in a or "tilted" in b):
-        record["tilted_note"] = f"only {'A' if 'tilted' in a else 'B'} read group E's tilted frames: not compared"
-    if a["command"] == "evaluate-real" and raised is not None:
-        record["raised"] = raised
-    elif a["command"] == "evaluate-real" and ("raised" in a or "raised" in b):
-        record["raised_note"] = f"only {'A' if 'raised' in a else 'B'} read group F's raised beds: not compared"
+    if a["command"] == "evaluate-real":
+        record.update(apart)
     text, markdown = json.dumps(record, indent=1, allow_nan=False), _markdown(record)  # both before any file
     cfg.out.mkdir(parents=True, exist_ok=True)
     paths = {"json": write_text(cfg.out / "compare.json", text)}
@@ -170,11 +171,16 @@ def run_compare(cfg: CompareConfig) -> Written:
     return Written(paths, record)
 
 
-def _compare_raised(a: dict, b: dict) -> dict:
-    try:
-        return compare_real(a["raised"]["per_frame"], b["raised"]["per_frame"])
-    except NotComparable as exc:
-        raise NotComparable(f"group F: {exc}") from None
+def _compare_apart(a: dict, b: dict) -> dict:
+    """{key: the paired comparison} for each group both reports read apart (a report without one
+    pairs on the rest), {key_note: ...} for each only one of them read."""
+    out = {}
+    for key, (_, compare, name) in _APART.items():
+        if key in a and key in b:
+            out[key] = compare(a[key]["per_frame"], b[key]["per_frame"])
+        elif key in a or key in b:
+            out[f"{key}_note"] = f"only {'A' if key in a else 'B'} read {name}: not compared"
+    return out
 
 
 def _synthetic_lines(res: dict) -> list[str]:

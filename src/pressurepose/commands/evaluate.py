@@ -18,7 +18,7 @@ import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from pressurepose.body.params import BodyParams
-from pressurepose.commands.netopts import options_label, with_inference_options
+from pressurepose.commands.netopts import recorded_options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.eval import evaluation as E
@@ -208,7 +208,7 @@ def _cm(x: float | None) -> str:
 def _markdown(r: dict) -> str:
     has_base = bool(r["baselines_vpe_m"])
     lines = [
-        f"# Evaluation: {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'], r['config'].get('shift_test', False))} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
+        f"# Evaluation: {r['config']['model']}{recorded_options_label(r['config'])} on {r['config']['data']} ({r['config']['split']}, {r['count']} samples)",
         "",
         "All errors unaligned except PA-MPJPE; 3DVPE as released (camera-facing vertices, two-way, "
         "area-weighted). Seed = Bodies at Rest Table 5, synthetic, best network.",

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pressurepose.commands.netopts import options_label, with_inference_options
+from pressurepose.commands.netopts import recorded_options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.errors import UserError
 from pressurepose.eval.metrics import vpe_to_cloud
@@ -120,7 +120,7 @@ def run_evaluate_cloud(cfg) -> Written:
 def _cloud_markdown(r: dict) -> str:
     o = r["overall"]
     lines = [
-        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'], r['config'].get('shift_test', False))} on {r['config']['data']} ({r['frames']} frames, {o['participants']} participants)",
+        f"# {r['config']['model']}{recorded_options_label(r['config'])} on {r['config']['data']} ({r['frames']} frames, {o['participants']} participants)",
         "",
         f"3DVPE against the point clouds: **{o['vpe_m'] * 100:.2f} cm** (mean of the participants' means, as "
         f"released; {o['vpe_m_over_frames'] * 100:.2f} cm over frames).",

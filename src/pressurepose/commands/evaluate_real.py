@@ -38,7 +38,7 @@ import torch
 from pressurepose.body.joints import TRUNK_JOINTS
 from pressurepose.commands.evaluate_cloud import run_evaluate_cloud
 from pressurepose.commands.evaluate_real_tables import flat_lines, raised_lines, tilt_lines
-from pressurepose.commands.netopts import options_label, with_inference_options
+from pressurepose.commands.netopts import recorded_options_label, with_inference_options
 from pressurepose.commands.outputs import Written, flat_config
 from pressurepose.data.pmatdata import load_images, load_index, repeated_frames
 from pressurepose.errors import UserError
@@ -316,7 +316,7 @@ def _markdown(r: dict) -> str:
     tilted, raised = r.get("tilted"), r.get("raised")
     counts = ", ".join(_counts(r, " flat" if tilted or raised else ""))
     lines = [
-        f"# {r['config']['model']}{options_label(r['config']['ik_steps'], r['config']['flip_test'], r['config'].get('shift_test', False))} on PmatData experiment II ({counts}, groups {r['config']['groups']})",
+        f"# {r['config']['model']}{recorded_options_label(r['config'])} on PmatData experiment II ({counts}, groups {r['config']['groups']})",
         "",
         *([note, ""] if left_out else []),
     ]

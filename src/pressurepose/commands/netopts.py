@@ -39,4 +39,9 @@ def options_label(ik_steps: int | None, flip_test: bool, shift_test: bool = Fals
     return f" ({', '.join(parts)})" if parts else ""
 
 
-__all__ = ["options_label", "with_inference_options"]
+def recorded_options_label(config: dict) -> str:
+    """`options_label` of a report's recorded config (a report from before an option holds no key)."""
+    return options_label(config.get("ik_steps"), bool(config.get("flip_test")), bool(config.get("shift_test")))
+
+
+__all__ = ["options_label", "recorded_options_label", "with_inference_options"]

@@ -45,7 +45,7 @@ import tyro
 from pressurepose.body.joints import J24_NAMES, TRUNK_JOINTS
 from pressurepose.commands.netopts import with_inference_options
 from pressurepose.errors import UserError
-from pressurepose.eval.real import head_end_picks, head_end_spreads, load_ends, posture_of, roll_deg
+from pressurepose.eval.real import head_end_spreads, load_ends, posture_of, roll_deg
 from pressurepose.files import atomic_write, write_text
 from pressurepose.net.inputs import read_pressure_file
 from pressurepose.net.model import GENDER_UNKNOWN, NetInputs
@@ -176,7 +176,7 @@ def _orient(items: list, cfg: PredictConfig, net, device) -> tuple[list, dict[in
             ends[f] = {"head_end": "last row"}
             continue
         mine = [im for _, im, g in items if g == f]
-        images = torch.from_numpy(np.stack([mine[k] for k in head_end_picks(len(mine)).tolist()])).to(device)
+        images = torch.from_numpy(np.stack(mine)).to(device)  # head_end_spreads reads up to 64 of them
         given, turned = head_end_spreads(
             net, images, height_m=cfg.height_m, mass_kg=cfg.mass_kg, gender=GENDERS[cfg.gender]
         )
@@ -237,7 +237,7 @@ def _write_one(
         record["posture_readout"] = dict(zip(POSTURES, prob))
         row["readout_posture"] = POSTURES[int(np.argmax(prob))]
     write_text(out / f"{name}.json", json.dumps(record, indent=1))
-    if not (cfg.meshes or cfg.figures):
+    if est.vertices is None:  # neither meshes nor figures asked for: the body was not skinned
         return {"image": name, **row}
     vertices, faces = est.vertices[i].detach().cpu().numpy(), net.faces.cpu().numpy()
     if cfg.meshes:

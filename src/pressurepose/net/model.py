@@ -291,7 +291,7 @@ class PressureNet(nn.Module):
         return self.estimate(raw, gender, mesh, maps, params=params, localisation=loc)
 
     def _shifting(self) -> bool:
-        return self.config.shift_test and self.config.arch == "heatmap" and not self.training
+        return self.config.shift_test and not self.training  # NetConfig: arch heatmap only
 
     def _agree_with_readout(self, raw, loc: Localisation, params: BodyParams, gender):
         """Where the body lies supine and the readout says prone (or the sides likewise), the

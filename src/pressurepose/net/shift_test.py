@@ -23,12 +23,12 @@ from pressurepose.net.heatmap import Localisation
 SHIFT_TEST_ROWS = (-4, -2, 2, 4)  # the copies besides the image as given (rows toward the foot)
 
 
-def moved_rows(images: torch.Tensor, rows: int) -> torch.Tensor:
-    """(..., R, C) images moved `rows` rows toward higher row numbers (negative: lower); rows
-    leaving are lost, rows entering read 0."""
+def moved_rows(images: torch.Tensor, rows: int, fill: float = 0.0) -> torch.Tensor:
+    """(..., R, C) images (or maps) moved `rows` rows toward higher row numbers (negative: lower);
+    rows leaving are lost, rows entering read `fill`."""
     if rows == 0:
         return images
-    out = torch.zeros_like(images)
+    out = torch.full_like(images, fill)
     R = images.shape[-2]
     if abs(rows) < R:
         out[..., max(rows, 0) : R + min(rows, 0), :] = images[..., max(-rows, 0) : R + min(-rows, 0), :]
@@ -38,15 +38,6 @@ def moved_rows(images: torch.Tensor, rows: int) -> torch.Tensor:
 def shift_stack(pressure: torch.Tensor, moves: tuple[int, ...] = SHIFT_TEST_ROWS) -> torch.Tensor:
     """(B, R, C) -> ((1 + len(moves)) B, R, C): the images as given, then each move's copies."""
     return torch.cat([pressure, *(moved_rows(pressure, k) for k in moves)])
-
-
-def _moved_cells(a: torch.Tensor, cells: int, fill: float) -> torch.Tensor:
-    """(..., H, W) maps moved `cells` cells along H, entering cells set to `fill`."""
-    out = torch.full_like(a, fill)
-    H = a.shape[-2]
-    if abs(cells) < H:
-        out[..., max(cells, 0) : H + min(cells, 0), :] = a[..., max(-cells, 0) : H + min(-cells, 0), :]
-    return out
 
 
 def shift_merged(loc: Localisation, pitch_row_m: float, moves: tuple[int, ...] = SHIFT_TEST_ROWS) -> Localisation:
@@ -75,7 +66,7 @@ def shift_merged(loc: Localisation, pitch_row_m: float, moves: tuple[int, ...] =
         joints=mean([back(part(loc.joints, i), k) for i, k in enumerate(offsets)]),
         grid_joints=mean([back(part(loc.grid_joints, i), k) for i, k in enumerate(offsets)]),
         spread_m2=mean([part(loc.spread_m2, i) for i in range(n)]),
-        logits=mean([_moved_cells(part(loc.logits, i), -k // 2, floor) for i, k in enumerate(offsets)]),
+        logits=mean([moved_rows(part(loc.logits, i), -k // 2, floor) for i, k in enumerate(offsets)]),
         centres=loc.centres,
         posture_logits=None if loc.posture_logits is None else mean([part(loc.posture_logits, i) for i in range(n)]),
         features=None if loc.features is None else part(loc.features, 0),
