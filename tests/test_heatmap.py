@@ -22,6 +22,7 @@ from pressurepose.net.heatmap import (
     cell_centres,
     integral_joints,
     localisation_loss,
+    lowpass,
     soft_argmax,
 )
 from pressurepose.net.ik import (
@@ -366,14 +367,16 @@ def test_heatmap_net_eval_in_chunks_equals_one_pass():
         torch.testing.assert_close(getattr(loc2, name), getattr(loc, name))
 
 
-def test_heatmap_net_fused_inference_matches_the_modules():
+@pytest.mark.parametrize("antialias", [False, True])
+def test_heatmap_net_fused_inference_matches_the_modules(antialias):
     """Without autograd on a CPU the encoder-decoder runs with batch norm folded into fused
-    convolutions: the same outputs as the modules to float32 round-off, and a change of the
-    weights (training between evaluations) is picked up."""
-    from pressurepose.net.heatmap_fused import fusable
+    convolutions: the same outputs as the modules to float32 round-off (the anti-aliased
+    network's low-pass included), and a change of the weights (training between evaluations)
+    is picked up."""
+    from pressurepose.net.heatmap_fused import fusable, fused_trunk
 
     torch.manual_seed(0)
-    net = HeatmapNet(3, 84).eval()
+    net = HeatmapNet(3, 84, antialias=antialias).eval()
     for bn in [m for m in net.modules() if isinstance(m, torch.nn.BatchNorm2d)]:
         bn.running_mean.uniform_(-0.5, 0.5)
         bn.running_var.uniform_(0.5, 2.0)
@@ -390,7 +393,9 @@ def test_heatmap_net_fused_inference_matches_the_modules():
         torch.testing.assert_close(raw, raw_ref.detach(), atol=1e-5, rtol=1e-5)
         for name in ("joints", "grid_joints", "spread_m2", "logits"):
             torch.testing.assert_close(getattr(loc, name), getattr(loc_ref, name).detach(), atol=1e-5, rtol=1e-5)
-        with torch.no_grad():
+        with torch.no_grad():  # the trunk itself, to round-off relative to its (small, untrained) scale
+            for got, ref in zip(fused_trunk(net, x), net._trunk(x)):
+                torch.testing.assert_close(got, ref, atol=1e-5 * float(ref.abs().max()), rtol=1e-4)
             net.dec1[0].weight.mul_(1.5)  # the next round must see it
 
 
@@ -492,3 +497,70 @@ def test_fit_to_joints_refuses_badly_shaped_weights_and_poses(anny32):
                 fit_to_joints(anny32, p, target, w)
     with pytest.raises(ValueError, match=r"params.pose must have shape \(2, 23, 3\)"):
         fit_to_joints(anny32, p.replace(pose=torch.zeros(2, 24, 3)), target)
+
+
+def test_lowpass_against_a_naive_sum_and_it_removes_the_grids_highest_frequency():
+    """`lowpass` is the binomial 3 x 3 blur with zero padding (a naive sum over the nine
+    neighbours), keeps the sum of an image whose load stays off the border, and wipes a pattern
+    alternating from row to row (or column to column) away from the border: the frequency a
+    stride-2 layer would fold onto the slowest one."""
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 4, 9, 7, dtype=f64, generator=g)
+    k = torch.tensor([1.0, 2.0, 1.0], dtype=f64) / 4
+    padded = torch.nn.functional.pad(x, (1, 1, 1, 1))
+    naive = sum(k[i] * k[j] * padded[..., i : i + 9, j : j + 7] for i in range(3) for j in range(3))
+    torch.testing.assert_close(lowpass(x), naive, rtol=0, atol=1e-12)
+    inner = torch.zeros(1, 1, 9, 7, dtype=f64)
+    inner[..., 2:-2, 2:-2] = torch.rand(5, 3, dtype=f64, generator=g)
+    torch.testing.assert_close(lowpass(inner).sum(), inner.sum(), rtol=1e-12, atol=0)
+    rows = (-1.0) ** torch.arange(9, dtype=f64)[:, None] * torch.ones(9, 7, dtype=f64)
+    cols = (-1.0) ** torch.arange(7, dtype=f64) * torch.ones(9, 7, dtype=f64)
+    for pattern in (rows, cols):
+        out = lowpass(x + pattern) - lowpass(x)
+        assert float(out[..., 1:-1, 1:-1].abs().max()) < 1e-12
+
+
+def test_antialias_low_passes_what_each_stride_2_block_reads():
+    """With `antialias` the three stride-2 blocks read a low-passed input: a row-to-row
+    alternating pattern added to a block's input leaves its output unchanged away from the
+    border, where without it the block answers the pattern; the network's outputs differ from
+    the same weights read without it (the option is wired into the forward)."""
+    torch.manual_seed(0)
+    plain = HeatmapNet(3, 84).eval()
+    smooth = HeatmapNet(3, 84, antialias=True).eval()
+    smooth.load_state_dict(plain.state_dict())
+    x = torch.rand(2, 48, 32, 14)
+    alternating = 0.5 * (-1.0) ** torch.arange(32)[:, None].float()
+    with torch.no_grad():
+        for net, changed in ((smooth, False), (plain, True)):
+            a, b = (net.enc2(net.subsampled(v)) for v in (x, x + alternating))
+            interior = (a - b)[..., 2:-2, 2:-2].abs().max()
+            assert (float(interior) > 1e-2) == changed, float(interior)
+        images = torch.rand(2, 3, 64, 27) * 50
+        assert not torch.allclose(smooth(images)[1].logits, plain(images)[1].logits, atol=1e-4)
+
+
+def test_antialias_is_a_heatmap_option_recorded_with_the_network(tmp_path):
+    """`antialias` belongs to arch heatmap (one-line errors otherwise), is saved with the
+    network and rebuilt by `load_network` (the same answers), and a fine-tune cannot start from a
+    network that subsamples differently."""
+    from pressurepose.errors import UserError
+    from pressurepose.train.checkpoint import load_network, save_model
+    from pressurepose.train.config import TrainConfig
+    from pressurepose.train.loop import _load_init
+
+    with pytest.raises(UserError, match="anti-aliased subsampling is for arch 'heatmap'"):
+        NetConfig(arch="fast", antialias=True)
+    with pytest.raises(UserError, match="--antialias is for --arch heatmap"):
+        TrainConfig.fast(antialias=True)
+    torch.manual_seed(0)
+    net = PressureNet(NetConfig(arch="heatmap", gender_input=False, antialias=True, ik_steps=0)).eval()
+    save_model(tmp_path / "aa", net, {"train": {}, "net": dict(net.config.__dict__)})
+    loaded, record = load_network(tmp_path / "aa", body=net.body)
+    assert record["net"]["antialias"] is True and loaded.config.antialias and loaded.mod1.antialias
+    p = torch.rand(2, 64, 27) * 40
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(NetInputs(p))[-1].joints, net(NetInputs(p))[-1].joints)
+    other = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=net.body)
+    with pytest.raises(UserError, match="different network.*antialias"):
+        _load_init(other, tmp_path / "aa")

@@ -22,6 +22,12 @@ The offsets let joints lie off the sensing area (hands over the bed's side) and 
 an auxiliary cross-entropy against a Gaussian (sigma HEATMAP_SIGMA_M) at the true position,
 clamped onto the grid, keeps the heatmap itself on the joint and gives every cell a gradient
 (with the integral loss alone, 17 epochs on 860 images left the joints ~24 cm off). `spread_m2` is the heatmap's variance about its mean: a confidence for the fit.
+With `antialias` (`NetConfig.antialias`, `train --antialias`) each stride-2 convolution reads its
+input through a fixed binomial 3 x 3 low-pass first (`lowpass`): the convolution is linear, so
+this is the convolution's output blurred before it is sampled at every other cell - the
+anti-aliased subsampling of Zhang, "Making convolutional networks shift-invariant again" (ICML
+2019) - and a body moved a row or two reads more nearly the same (docs/network.md
+"Anti-aliased subsampling").
 The parameter head is an MLP on the localised joints (detached: it reads them, it does not
 move them) and the pooled bottleneck features; its raw vector goes through the usual
 `ParamHead` (joint-limit squash, 6D root rotation).
@@ -155,6 +161,17 @@ def cell_centres(mat: MatSpec, rows: int, cols: int) -> torch.Tensor:
     return torch.stack([rr, cc], -1)
 
 
+def lowpass(x: torch.Tensor, kernel: torch.Tensor | None = None) -> torch.Tensor:
+    """Each channel of x (B, C, H, W) blurred by the binomial 3 x 3 kernel ([1, 2, 1] / 4 along
+    each axis), zero padding, stride 1: the sum over the image kept away from its border.
+    kernel: that (3, 3) kernel in x's dtype and device, if kept (else made)."""
+    if kernel is None:
+        k = torch.tensor([0.25, 0.5, 0.25], dtype=x.dtype, device=x.device)
+        kernel = k[:, None] * k[None, :]
+    C = x.shape[1]
+    return F.conv2d(x, kernel.expand(C, 1, 3, 3), padding=1, groups=C)
+
+
 def _conv(cin: int, cout: int, stride: int = 1, kernel: int = 3) -> nn.Sequential:
     return nn.Sequential(
         nn.Conv2d(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=False), nn.BatchNorm2d(cout), nn.SiLU()
@@ -175,9 +192,11 @@ class HeatmapNet(nn.Module):
         dropout: float = 0.1,
         width: int = 1,
         posture: bool = False,
+        antialias: bool = False,
     ) -> None:
         super().__init__()
         mat = mat or MatSpec()
+        self.antialias = antialias
         c = [32 * width, 48 * width, 64 * width, 96 * width, 24 * width]
         self.enc1 = nn.Sequential(_conv(in_channels, c[0], 2, kernel=5), _conv(c[0], c[1]))
         self.enc2 = nn.Sequential(_conv(c[1], c[2], 2), _conv(c[2], c[2]))
@@ -192,6 +211,8 @@ class HeatmapNet(nn.Module):
         rows, cols = (mat.rows + 1) // 2, (mat.cols + 1) // 2
         self.register_buffer("centres", cell_centres(mat, rows, cols).float(), persistent=False)
         self.register_buffer("joint_origin", torch.tensor([*mat.centre_m, 0.1]).float(), persistent=False)
+        k = torch.tensor([0.25, 0.5, 0.25])
+        self.register_buffer("lowpass_kernel", k[:, None] * k[None, :], persistent=False)
         self.fc = nn.Sequential(
             nn.Linear(NUM_JOINTS * 3 + 2 * c[3], 256), nn.SiLU(), nn.Dropout(dropout), nn.Linear(256, out_features)
         )
@@ -206,13 +227,17 @@ class HeatmapNet(nn.Module):
         # mkldnn's convolutions in channels-last: ~20% faster at batch 128 in eval, 7-10% per
         # training step (docs/benchmarks.md "Session 55")
         x = x.contiguous(memory_format=torch.channels_last)
-        e1 = self.enc1(x * self.INPUT_SCALE)  # (B, 48, 32, 14)
-        e2 = self.enc2(e1)  # (B, 64, 16, 7)
-        e3 = self.enc3(e2)  # (B, 96, 8, 4)
+        e1 = self.enc1(self.subsampled(x * self.INPUT_SCALE))  # (B, 48, 32, 14)
+        e2 = self.enc2(self.subsampled(e1))  # (B, 64, 16, 7)
+        e3 = self.enc3(self.subsampled(e2))  # (B, 96, 8, 4)
         up = lambda a, like: F.interpolate(a, size=like.shape[-2:], mode="nearest")  # noqa: E731
         d2 = self.dec2(torch.cat([up(e3, e2), e2], 1))  # (B, 64, 16, 7)
         d1 = self.dec1(torch.cat([up(self.squeeze(d2), e1), e1], 1))  # (B, 32, 32, 14)
         return e3, self.maps(d1)
+
+    def subsampled(self, x: torch.Tensor) -> torch.Tensor:
+        """What a stride-2 block reads: x, low-passed when the network is anti-aliased."""
+        return lowpass(x, self.lowpass_kernel.to(x.dtype)) if self.antialias else x
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, Localisation]:
         if not self.training and x.shape[0] > self.EVAL_CHUNK:  # exact: batch norm uses running stats
@@ -271,5 +296,6 @@ __all__ = [
     "flip_merged",
     "integral_joints",
     "localisation_loss",
+    "lowpass",
     "soft_argmax",
 ]

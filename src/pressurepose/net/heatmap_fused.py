@@ -101,9 +101,9 @@ def fused_trunk(net: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Te
 
 def _fused(net: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     w = _weights(net)
-    e1 = _run(w["enc1"], x.contiguous(memory_format=torch.channels_last))
-    e2 = _run(w["enc2"], e1)
-    e3 = _run(w["enc3"], e2)
+    e1 = _run(w["enc1"], net.subsampled(x.contiguous(memory_format=torch.channels_last)))
+    e2 = _run(w["enc2"], net.subsampled(e1))
+    e3 = _run(w["enc3"], net.subsampled(e2))
     d2 = _run(w["dec2"], torch.cat([F.interpolate(e3, size=e2.shape[-2:], mode="nearest"), e2], 1))
     up = F.interpolate(_run(w["squeeze"], d2), size=e1.shape[-2:], mode="nearest")
     d1 = _run(w["dec1"], torch.cat([up, e1], 1))  # (B, 32, H, W), channels last

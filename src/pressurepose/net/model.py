@@ -66,6 +66,9 @@ class NetConfig:
     # heatmap arch: a posture readout (supine / left / right / prone) on the pooled bottleneck
     # features (net.posture); the body's own posture is unchanged by it.
     posture_head: bool = False
+    # heatmap arch: every stride-2 convolution reads its input low-passed (binomial 3 x 3), so the
+    # subsampling is anti-aliased (net.heatmap.lowpass; training and inference alike).
+    antialias: bool = False
     # heatmap arch with a posture head, eval only: where the body's posture and the readout's
     # differ by left and right alone, read the body again from its localised joints with left
     # and right exchanged, so that the body lies as the readout says (net.posture.to_swap).
@@ -92,6 +95,8 @@ class NetConfig:
             )
         if self.posture_head and self.arch != "heatmap":
             raise UserError(f"the posture head is for arch 'heatmap'; this network is {self.arch!r}")
+        if self.antialias and self.arch != "heatmap":
+            raise UserError(f"anti-aliased subsampling is for arch 'heatmap'; this network is {self.arch!r}")
         if self.posture_consistent and not self.posture_head:
             raise UserError("posture_consistent needs a network with a posture head (train --posture-weight)")
         if not 0 <= self.ik_steps <= 50:
@@ -156,7 +161,9 @@ class PressureNet(nn.Module):
         self.head = ParamHead(config.backend, self.body.shape_names, self.mat)
         D = self.head.size
         self.mod1 = (
-            HeatmapNet(config.in_channels, D, self.mat, config.dropout, config.width, config.posture_head)
+            HeatmapNet(
+                config.in_channels, D, self.mat, config.dropout, config.width, config.posture_head, config.antialias
+            )
             if config.arch == "heatmap"
             else make_cnn(config.arch, config.in_channels, D, config.dropout, config.width)
         )

@@ -159,6 +159,7 @@ NET_FIELDS = {
     "shift_test": "bool",
     "posture_consistent": "bool",
     "posture_head": "bool",
+    "antialias": "bool",
     "texture_sigma_taxels": "number",
     "stature_weight": "number",
     "stature_head": "bool",

@@ -72,6 +72,9 @@ class TrainConfig:
         texture_sigma: the network smooths every reading within its loaded taxels by a Gaussian of
             this many taxels before its channels, in training and in use (detail at the taxel scale
             out, the outline kept; `net.preprocess.smooth_loaded`; 0 = off).
+        antialias: arch heatmap: every stride-2 convolution reads its input through a binomial
+            3 x 3 low-pass, so the subsampling is anti-aliased and a body moved a row or two reads
+            more nearly the same (`NetConfig.antialias`, `net.heatmap.lowpass`).
         average_from: average the weights (batch-norm statistics included) at the end of every epoch
             from this one on; model.safetensors then holds the average and last/model.safetensors the
             last epoch's weights (`train.average`; 0 = off).
@@ -129,6 +132,7 @@ class TrainConfig:
     flatten: float = 0.0
     spread: float = 0.0
     texture_sigma: float = 0.0
+    antialias: bool = False
     lr_gamma: float = 1.0
     average_from: int = 0
     posture_weight: float = 0.0
@@ -195,6 +199,8 @@ class TrainConfig:
             raise UserError(f"texture_sigma must lie in [0, 5] taxels, got {self.texture_sigma}")
         if self.posture_weight < 0:
             raise UserError(f"posture_weight must be >= 0, got {self.posture_weight}")
+        if self.antialias and self.arch != "heatmap":
+            raise UserError(f"--antialias is for --arch heatmap; this run is --arch {self.arch}")
         if (self.posture_weight > 0 or self.posture_only) and self.arch != "heatmap":
             raise UserError(f"the posture readout is for --arch heatmap; this run is --arch {self.arch}")
         if self.posture_only and (self.init is None or self.posture_weight > 0):

@@ -109,6 +109,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         width=cfg.width,
         texture_sigma_taxels=cfg.texture_sigma,
         posture_head=cfg.posture_weight > 0 or cfg.posture_only,
+        antialias=cfg.antialias,
     )
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
@@ -145,7 +146,7 @@ INFERENCE_FIELDS = ("ik_steps", "flip_test", "shift_test", "stature_weight", "st
 
 def _load_init(net: PressureNet, init: Path) -> None:
     """Start from the weights of another run's network (fine-tuning), which must be the same
-    network: same arch, width, modules, inputs, input smoothing and body model. A posture readout
+    network: same arch, width, modules, inputs, input smoothing, subsampling and body model. A posture readout
     the other network lacks starts from fresh weights; one it has that this one lacks is left out.
     Its inference settings (INFERENCE_FIELDS) are kept: a fine-tune of the packaged model reads
     its images as that model does."""
@@ -155,7 +156,16 @@ def _load_init(net: PressureNet, init: Path) -> None:
     weights = {k: v for k, v in weights.items() if k in readout or not k.startswith("mod1.posture.")}
     weights.update({k: own[k] for k in readout if k not in weights})  # a readout the other lacks starts fresh
     other = net_config_from_record(record, Path(init) / MODEL_FILE)
-    fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight", "texture_sigma_taxels")
+    fields = (
+        "arch",
+        "width",
+        "modules",
+        "backend",
+        "gender_input",
+        "height_weight",
+        "texture_sigma_taxels",
+        "antialias",
+    )
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
     if mismatch:
         raise UserError(
