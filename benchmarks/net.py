@@ -2,7 +2,7 @@
 at batch 1 and throughput at batch 128 (CNN + body model + mesh, what `predict` runs).
 
     .venv/bin/python benchmarks/net.py [--archs fast paper] [--batch 128] [--steps 3] [--device cpu]
-                                       [--threads N] [--flip-test] [--shift-test]
+                                       [--threads N] [--flip-test] [--shift-test] [--stature-weight W] [--antialias]
 
 Training steps use the real loop's loss (`train.loop.step_loss`) on random pressure images and
 targets of the right shapes (speed does not depend on the values); Mod2 steps include Mod1's
@@ -79,14 +79,11 @@ def predict_speed(
     B: int,
     steps: int,
     device,
-    flip_test: bool = False,
-    stature_weight: float = 0.0,
-    shift_test: bool = False,
+    **options,
 ) -> tuple[float, float]:
-    """Seconds per batch of B: network + body model + mesh (+ PMR for Mod2's input)."""
-    config = NetConfig(
-        arch=arch, modules=module, flip_test=flip_test, stature_weight=stature_weight, shift_test=shift_test
-    )
+    """Seconds per batch of B: network + body model + mesh (+ PMR for Mod2's input); options are
+    NetConfig fields (flip_test, shift_test, stature_weight, antialias)."""
+    config = NetConfig(arch=arch, modules=module, **options)
     net = PressureNet(config, body=body).to(device).eval()
     # A new batch each call, as in `predict`: nothing computed for one batch's bodies (the
     # body model keeps the last shapes' skeleton pass) may be reused by the next.
@@ -111,6 +108,9 @@ def main() -> None:
     parser.add_argument("--shift-test", action="store_true", help="heatmap: also predict with the shift test")
     parser.add_argument(
         "--stature-weight", type=float, default=0.0, help="heatmap: also predict with this stature_weight (net.stature)"
+    )
+    parser.add_argument(
+        "--antialias", action="store_true", help="heatmap: also predict with anti-aliased subsampling (NetConfig)"
     )
     args = parser.parse_args()
     if args.threads:
@@ -154,6 +154,13 @@ def main() -> None:
                     options.append((f"flip and shift tests, stature weight {args.stature_weight}", both))
             elif args.shift_test:
                 options.append(("shift test", {"shift_test": True}))
+            if args.antialias:  # with the stature weight when one is given: the shipped reading otherwise
+                options.append(
+                    (
+                        "antialias" + (f", stature weight {args.stature_weight}" if args.stature_weight else ""),
+                        {"antialias": True, "stature_weight": args.stature_weight},
+                    )
+                )
             for label, option in options if arch == "heatmap" else []:
                 lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, **option)
                 thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, **option)

@@ -542,8 +542,8 @@ def test_antialias_low_passes_what_each_stride_2_block_reads():
 
 def test_antialias_is_a_heatmap_option_recorded_with_the_network(tmp_path):
     """`antialias` belongs to arch heatmap (one-line errors otherwise), is saved with the
-    network and rebuilt by `load_network` (the same answers), and a fine-tune cannot start from a
-    network that subsamples differently."""
+    network and rebuilt by `load_network` (the same answers); a fine-tune (`--init`) keeps the
+    other network's unless told otherwise, and its weights carry over either way."""
     from pressurepose.errors import UserError
     from pressurepose.train.checkpoint import load_network, save_model
     from pressurepose.train.config import TrainConfig
@@ -561,6 +561,12 @@ def test_antialias_is_a_heatmap_option_recorded_with_the_network(tmp_path):
     p = torch.rand(2, 64, 27) * 40
     with torch.no_grad():
         torch.testing.assert_close(loaded(NetInputs(p))[-1].joints, net(NetInputs(p))[-1].joints)
-    other = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=net.body)
-    with pytest.raises(UserError, match="different network.*antialias"):
-        _load_init(other, tmp_path / "aa")
+    for given, expected in ((None, True), (False, False), (True, True)):  # kept unless given: a fine-tune switches it
+        other = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=net.body).eval()
+        _load_init(other, tmp_path / "aa", antialias=given)
+        assert other.config.antialias == other.mod1.antialias == expected
+        with torch.no_grad():
+            same = torch.allclose(
+                other(NetInputs(p))[-1].localisation.logits, net(NetInputs(p))[-1].localisation.logits
+            )
+        assert same == expected  # the same weights, read with or without the low-pass

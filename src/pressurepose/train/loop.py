@@ -109,7 +109,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         width=cfg.width,
         texture_sigma_taxels=cfg.texture_sigma,
         posture_head=cfg.posture_weight > 0 or cfg.posture_only,
-        antialias=cfg.antialias,
+        antialias=bool(cfg.antialias),
     )
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
@@ -132,7 +132,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         net.mod1.load_state_dict(mod1)
         net.freeze_mod1()
     if cfg.init is not None:
-        _load_init(net, cfg.init)
+        _load_init(net, cfg.init, antialias=cfg.antialias)
     if cfg.stature_weight is not None:  # how the network is read, given: over the other network's
         net.config = dataclasses.replace(net.config, stature_weight=cfg.stature_weight)
     if cfg.posture_only:
@@ -144,9 +144,11 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
 INFERENCE_FIELDS = ("ik_steps", "flip_test", "shift_test", "stature_weight", "stature_head", "posture_consistent")
 
 
-def _load_init(net: PressureNet, init: Path) -> None:
+def _load_init(net: PressureNet, init: Path, antialias: bool | None = None) -> None:
     """Start from the weights of another run's network (fine-tuning), which must be the same
-    network: same arch, width, modules, inputs, input smoothing, subsampling and body model. A posture readout
+    network: same arch, width, modules, inputs, input smoothing and body model. Its subsampling
+    (`antialias`, no weights of its own) is kept unless `antialias` says otherwise: a fine-tune
+    may switch the low-pass on and let the weights adapt to it. A posture readout
     the other network lacks starts from fresh weights; one it has that this one lacks is left out.
     Its inference settings (INFERENCE_FIELDS) are kept: a fine-tune of the packaged model reads
     its images as that model does."""
@@ -156,16 +158,7 @@ def _load_init(net: PressureNet, init: Path) -> None:
     weights = {k: v for k, v in weights.items() if k in readout or not k.startswith("mod1.posture.")}
     weights.update({k: own[k] for k in readout if k not in weights})  # a readout the other lacks starts fresh
     other = net_config_from_record(record, Path(init) / MODEL_FILE)
-    fields = (
-        "arch",
-        "width",
-        "modules",
-        "backend",
-        "gender_input",
-        "height_weight",
-        "texture_sigma_taxels",
-        "antialias",
-    )
+    fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight", "texture_sigma_taxels")
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
     if mismatch:
         raise UserError(
@@ -177,6 +170,9 @@ def _load_init(net: PressureNet, init: Path) -> None:
     # How the other network is read - inference-only settings chosen for its weights (IK steps,
     # flip test, the height's blend with the localised skeleton) - carries over to the fine-tune.
     carried = {f: getattr(other, f) for f in INFERENCE_FIELDS}
+    carried["antialias"] = other.antialias if antialias is None else antialias
+    if net.config.arch == "heatmap":
+        net.mod1.antialias = carried["antialias"]
     if not net.config.posture_head:
         carried["posture_consistent"] = False
     net.config = dataclasses.replace(net.config, **carried)
