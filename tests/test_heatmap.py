@@ -543,7 +543,7 @@ def test_antialias_low_passes_what_each_stride_2_block_reads():
 def test_antialias_is_a_heatmap_option_recorded_with_the_network(tmp_path):
     """`antialias` belongs to arch heatmap (one-line errors otherwise), is saved with the
     network and rebuilt by `load_network` (the same answers); a fine-tune (`--init`) keeps the
-    other network's unless told otherwise, and its weights carry over either way."""
+    other network's low-pass or switches it on when asked, and its weights carry over either way."""
     from pressurepose.errors import UserError
     from pressurepose.train.checkpoint import load_network, save_model
     from pressurepose.train.config import TrainConfig
@@ -561,12 +561,11 @@ def test_antialias_is_a_heatmap_option_recorded_with_the_network(tmp_path):
     p = torch.rand(2, 64, 27) * 40
     with torch.no_grad():
         torch.testing.assert_close(loaded(NetInputs(p))[-1].joints, net(NetInputs(p))[-1].joints)
-    for given, expected in ((None, True), (False, False), (True, True)):  # kept unless given: a fine-tune switches it
-        other = PressureNet(NetConfig(arch="heatmap", gender_input=False), body=net.body).eval()
-        _load_init(other, tmp_path / "aa", antialias=given)
+    save_model(tmp_path / "plain", net, {"train": {}, "net": dict(net.config.__dict__, antialias=False)})
+    for init, given, expected in (("aa", False, True), ("plain", False, False), ("plain", True, True)):
+        other = PressureNet(NetConfig(arch="heatmap", gender_input=False, antialias=given), body=net.body).eval()
+        _load_init(other, tmp_path / init, antialias=given)  # kept; switched on when given
         assert other.config.antialias == other.mod1.antialias == expected
         with torch.no_grad():
-            same = torch.allclose(
-                other(NetInputs(p))[-1].localisation.logits, net(NetInputs(p))[-1].localisation.logits
-            )
-        assert same == expected  # the same weights, read with or without the low-pass
+            logits = other(NetInputs(p))[-1].localisation.logits
+        assert torch.allclose(logits, net(NetInputs(p))[-1].localisation.logits) == expected  # same weights

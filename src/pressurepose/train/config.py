@@ -74,8 +74,8 @@ class TrainConfig:
             out, the outline kept; `net.preprocess.smooth_loaded`; 0 = off).
         antialias: arch heatmap: every stride-2 convolution reads its input through a binomial
             3 x 3 low-pass, so the subsampling is anti-aliased and a body moved a row or two reads
-            more nearly the same (`NetConfig.antialias`, `net.heatmap.lowpass`). Not given: off from
-            random weights, the other network's with --init (given, a fine-tune switches it).
+            more nearly the same (`NetConfig.antialias`, `net.heatmap.lowpass`). With --init a network
+            that has it keeps it, and --antialias switches it on for one that lacks it.
         average_from: average the weights (batch-norm statistics included) at the end of every epoch
             from this one on; model.safetensors then holds the average and last/model.safetensors the
             last epoch's weights (`train.average`; 0 = off).
@@ -133,7 +133,7 @@ class TrainConfig:
     flatten: float = 0.0
     spread: float = 0.0
     texture_sigma: float = 0.0
-    antialias: bool | None = None
+    antialias: bool = False
     lr_gamma: float = 1.0
     average_from: int = 0
     posture_weight: float = 0.0

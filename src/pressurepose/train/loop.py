@@ -109,7 +109,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         width=cfg.width,
         texture_sigma_taxels=cfg.texture_sigma,
         posture_head=cfg.posture_weight > 0 or cfg.posture_only,
-        antialias=bool(cfg.antialias),
+        antialias=cfg.antialias,
     )
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
@@ -144,11 +144,11 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
 INFERENCE_FIELDS = ("ik_steps", "flip_test", "shift_test", "stature_weight", "stature_head", "posture_consistent")
 
 
-def _load_init(net: PressureNet, init: Path, antialias: bool | None = None) -> None:
+def _load_init(net: PressureNet, init: Path, antialias: bool = False) -> None:
     """Start from the weights of another run's network (fine-tuning), which must be the same
-    network: same arch, width, modules, inputs, input smoothing and body model. Its subsampling
-    (`antialias`, no weights of its own) is kept unless `antialias` says otherwise: a fine-tune
-    may switch the low-pass on and let the weights adapt to it. A posture readout
+    network: same arch, width, modules, inputs, input smoothing and body model. Its low-pass
+    before subsampling (`antialias`, no weights of its own) is kept, and `antialias` switches it
+    on for a network that lacks it (the fine-tune lets the weights adapt). A posture readout
     the other network lacks starts from fresh weights; one it has that this one lacks is left out.
     Its inference settings (INFERENCE_FIELDS) are kept: a fine-tune of the packaged model reads
     its images as that model does."""
@@ -170,7 +170,7 @@ def _load_init(net: PressureNet, init: Path, antialias: bool | None = None) -> N
     # How the other network is read - inference-only settings chosen for its weights (IK steps,
     # flip test, the height's blend with the localised skeleton) - carries over to the fine-tune.
     carried = {f: getattr(other, f) for f in INFERENCE_FIELDS}
-    carried["antialias"] = other.antialias if antialias is None else antialias
+    carried["antialias"] = other.antialias or antialias
     if net.config.arch == "heatmap":
         net.mod1.antialias = carried["antialias"]
     if not net.config.posture_head:
