@@ -154,7 +154,7 @@ def main() -> None:
                     options.append((f"flip and shift tests, stature weight {args.stature_weight}", both))
             elif args.shift_test:
                 options.append(("shift test", {"shift_test": True}))
-            if args.antialias:  # with the stature weight when one is given: the shipped reading otherwise
+            if args.antialias:  # with --stature-weight's blend when one is given (0 otherwise)
                 options.append(
                     (
                         "antialias" + (f", stature weight {args.stature_weight}" if args.stature_weight else ""),

@@ -521,23 +521,42 @@ def test_lowpass_against_a_naive_sum_and_it_removes_the_grids_highest_frequency(
 
 
 def test_antialias_low_passes_what_each_stride_2_block_reads():
-    """With `antialias` the three stride-2 blocks read a low-passed input: a row-to-row
-    alternating pattern added to a block's input leaves its output unchanged away from the
-    border, where without it the block answers the pattern; the network's outputs differ from
-    the same weights read without it (the option is wired into the forward)."""
+    """With `antialias` each of the three stride-2 blocks (enc1, enc2, enc3) reads, in the
+    network's own forward, the binomial low-pass of what the block before it wrote (of the
+    scaled input for enc1), and without it the plain input; the network keeps that kernel; and a
+    row-to-row alternating pattern added to a block's input leaves its output unchanged away
+    from the border with the low-pass, where the plain block answers it."""
     torch.manual_seed(0)
     plain = HeatmapNet(3, 84).eval()
     smooth = HeatmapNet(3, 84, antialias=True).eval()
     smooth.load_state_dict(plain.state_dict())
-    x = torch.rand(2, 48, 32, 14)
+    torch.testing.assert_close(smooth.lowpass_kernel, torch.tensor([[1.0, 2, 1], [2, 4, 2], [1, 2, 1]]) / 16)
+    x = torch.rand(2, 3, 64, 27) * 50
+    for net in (smooth, plain):
+        seen = {}
+        blocks = ("enc1", "enc2", "enc3")
+        hooks = [
+            getattr(net, b).register_forward_pre_hook(lambda m, a, b=b: seen.__setitem__(b + " in", a[0]))
+            for b in blocks
+        ]
+        hooks += [
+            getattr(net, b).register_forward_hook(lambda m, a, o, b=b: seen.__setitem__(b + " out", o)) for b in blocks
+        ]
+        with torch.no_grad():  # the modules' forward (the fused path is held to it elsewhere)
+            net._trunk(x)
+        for h in hooks:
+            h.remove()
+        wrote = {"enc1": x * net.INPUT_SCALE, "enc2": seen["enc1 out"], "enc3": seen["enc2 out"]}
+        for b in blocks:
+            expected = lowpass(wrote[b]) if net.antialias else wrote[b]
+            torch.testing.assert_close(seen[b + " in"], expected, rtol=1e-5, atol=1e-6 * float(expected.abs().max()))
+    e1 = torch.rand(2, 48, 32, 14)
     alternating = 0.5 * (-1.0) ** torch.arange(32)[:, None].float()
     with torch.no_grad():
         for net, changed in ((smooth, False), (plain, True)):
-            a, b = (net.enc2(net.subsampled(v)) for v in (x, x + alternating))
+            a, b = (net.enc2(net.subsampled(v)) for v in (e1, e1 + alternating))
             interior = (a - b)[..., 2:-2, 2:-2].abs().max()
             assert (float(interior) > 1e-2) == changed, float(interior)
-        images = torch.rand(2, 3, 64, 27) * 50
-        assert not torch.allclose(smooth(images)[1].logits, plain(images)[1].logits, atol=1e-4)
 
 
 def test_antialias_is_a_heatmap_option_recorded_with_the_network(tmp_path):
@@ -545,14 +564,18 @@ def test_antialias_is_a_heatmap_option_recorded_with_the_network(tmp_path):
     network and rebuilt by `load_network` (the same answers); a fine-tune (`--init`) keeps the
     other network's low-pass or switches it on when asked, and its weights carry over either way."""
     from pressurepose.errors import UserError
-    from pressurepose.train.checkpoint import load_network, save_model
+    from pressurepose.train.checkpoint import load_network, net_config_from_record, save_model
     from pressurepose.train.config import TrainConfig
-    from pressurepose.train.loop import _load_init
+    from pressurepose.train.loop import build_network
 
     with pytest.raises(UserError, match="anti-aliased subsampling is for arch 'heatmap'"):
         NetConfig(arch="fast", antialias=True)
     with pytest.raises(UserError, match="--antialias is for --arch heatmap"):
         TrainConfig.fast(antialias=True)
+    with pytest.raises(UserError, match="config.net.antialias"):
+        net_config_from_record({"net": {"arch": "heatmap", "antialias": "yes"}}, tmp_path / "model.safetensors")
+    built = build_network(TrainConfig.fast(arch="heatmap", gender_input=False, antialias=True), torch.device("cpu"))
+    assert built.config.antialias and built.mod1.antialias
     torch.manual_seed(0)
     net = PressureNet(NetConfig(arch="heatmap", gender_input=False, antialias=True, ik_steps=0)).eval()
     save_model(tmp_path / "aa", net, {"train": {}, "net": dict(net.config.__dict__)})
@@ -563,8 +586,8 @@ def test_antialias_is_a_heatmap_option_recorded_with_the_network(tmp_path):
         torch.testing.assert_close(loaded(NetInputs(p))[-1].joints, net(NetInputs(p))[-1].joints)
     save_model(tmp_path / "plain", net, {"train": {}, "net": dict(net.config.__dict__, antialias=False)})
     for init, given, expected in (("aa", False, True), ("plain", False, False), ("plain", True, True)):
-        other = PressureNet(NetConfig(arch="heatmap", gender_input=False, antialias=given), body=net.body).eval()
-        _load_init(other, tmp_path / init, antialias=given)  # kept; switched on when given
+        cfg = TrainConfig.fast(arch="heatmap", gender_input=False, antialias=given, init=tmp_path / init)
+        other = build_network(cfg, torch.device("cpu")).eval()  # kept; switched on when given
         assert other.config.antialias == other.mod1.antialias == expected
         with torch.no_grad():
             logits = other(NetInputs(p))[-1].localisation.logits

@@ -24,7 +24,7 @@ clamped onto the grid, keeps the heatmap itself on the joint and gives every cel
 (with the integral loss alone, 17 epochs on 860 images left the joints ~24 cm off). `spread_m2` is the heatmap's variance about its mean: a confidence for the fit.
 With `antialias` (`NetConfig.antialias`, `train --antialias`) each stride-2 convolution reads its
 input through a fixed binomial 3 x 3 low-pass first (`lowpass`): the convolution is linear, so
-this is the convolution's output blurred before it is sampled at every other cell - the
+this is (away from the border) the convolution's output blurred before it is sampled at every other cell - the
 anti-aliased subsampling of Zhang, "Making convolutional networks shift-invariant again" (ICML
 2019) - and a body moved a row or two reads more nearly the same (docs/network.md
 "Anti-aliased subsampling").
@@ -161,15 +161,19 @@ def cell_centres(mat: MatSpec, rows: int, cols: int) -> torch.Tensor:
     return torch.stack([rr, cc], -1)
 
 
+def binomial_kernel(dtype: torch.dtype = torch.float32, device=None) -> torch.Tensor:
+    """(3, 3) the binomial low-pass: [1, 2, 1] / 4 along each axis (sums to 1)."""
+    k = torch.tensor([0.25, 0.5, 0.25], dtype=dtype, device=device)
+    return k[:, None] * k[None, :]
+
+
 def lowpass(x: torch.Tensor, kernel: torch.Tensor | None = None) -> torch.Tensor:
-    """Each channel of x (B, C, H, W) blurred by the binomial 3 x 3 kernel ([1, 2, 1] / 4 along
-    each axis), zero padding, stride 1: the sum over the image kept away from its border.
-    kernel: that (3, 3) kernel in x's dtype and device, if kept (else made)."""
-    if kernel is None:
-        k = torch.tensor([0.25, 0.5, 0.25], dtype=x.dtype, device=x.device)
-        kernel = k[:, None] * k[None, :]
+    """Each channel of x (B, C, H, W) blurred by `binomial_kernel`, zero padding, stride 1: the
+    sum over the image kept away from its border. kernel: that kernel in x's dtype and device,
+    if kept (else made)."""
+    kernel = binomial_kernel(x.dtype, x.device) if kernel is None else kernel
     C = x.shape[1]
-    return F.conv2d(x, kernel.expand(C, 1, 3, 3), padding=1, groups=C)
+    return F.conv2d(x, kernel.expand(C, 1, 3, 3).contiguous(), padding=1, groups=C)
 
 
 def _conv(cin: int, cout: int, stride: int = 1, kernel: int = 3) -> nn.Sequential:
@@ -211,8 +215,7 @@ class HeatmapNet(nn.Module):
         rows, cols = (mat.rows + 1) // 2, (mat.cols + 1) // 2
         self.register_buffer("centres", cell_centres(mat, rows, cols).float(), persistent=False)
         self.register_buffer("joint_origin", torch.tensor([*mat.centre_m, 0.1]).float(), persistent=False)
-        k = torch.tensor([0.25, 0.5, 0.25])
-        self.register_buffer("lowpass_kernel", k[:, None] * k[None, :], persistent=False)
+        self.register_buffer("lowpass_kernel", binomial_kernel(), persistent=False)
         self.fc = nn.Sequential(
             nn.Linear(NUM_JOINTS * 3 + 2 * c[3], 256), nn.SiLU(), nn.Dropout(dropout), nn.Linear(256, out_features)
         )
@@ -296,6 +299,7 @@ __all__ = [
     "flip_merged",
     "integral_joints",
     "localisation_loss",
+    "binomial_kernel",
     "lowpass",
     "soft_argmax",
 ]

@@ -75,7 +75,8 @@ class TrainConfig:
         antialias: arch heatmap: every stride-2 convolution reads its input through a binomial
             3 x 3 low-pass, so the subsampling is anti-aliased and a body moved a row or two reads
             more nearly the same (`NetConfig.antialias`, `net.heatmap.lowpass`). With --init a network
-            that has it keeps it, and --antialias switches it on for one that lacks it.
+            that has it keeps it (--no-antialias does not switch it off), and --antialias switches
+            it on for one that lacks it.
         average_from: average the weights (batch-norm statistics included) at the end of every epoch
             from this one on; model.safetensors then holds the average and last/model.safetensors the
             last epoch's weights (`train.average`; 0 = off).
