@@ -295,11 +295,11 @@ def localisation_loss(
 __all__ = [
     "HeatmapNet",
     "Localisation",
+    "binomial_kernel",
     "cell_centres",
     "flip_merged",
     "integral_joints",
     "localisation_loss",
-    "binomial_kernel",
     "lowpass",
     "soft_argmax",
 ]

@@ -98,6 +98,10 @@ def step_loss(
 
 
 def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
+    init = _read_init(cfg.init) if cfg.init is not None else None
+    # the low-pass before subsampling has no weights: a fine-tune keeps the other network's, and
+    # --antialias switches it on for one that lacks it
+    inherited = init is not None and init[2].antialias and cfg.arch == "heatmap"
     netcfg = NetConfig(
         arch=cfg.arch,
         backend=cfg.backend,
@@ -109,7 +113,7 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         width=cfg.width,
         texture_sigma_taxels=cfg.texture_sigma,
         posture_head=cfg.posture_weight > 0 or cfg.posture_only,
-        antialias=cfg.antialias,
+        antialias=cfg.antialias or inherited,
     )
     if cfg.module == 2:
         weights, record = read_model(cfg.mod1)
@@ -131,8 +135,8 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         check_tensor_shapes(mod1, {k: v.shape for k, v in net.mod1.state_dict().items()}, Path(cfg.mod1) / MODEL_FILE)
         net.mod1.load_state_dict(mod1)
         net.freeze_mod1()
-    if cfg.init is not None:
-        _load_init(net, cfg.init, antialias=cfg.antialias)
+    if init is not None:
+        _load_init(net, cfg.init, *init)
     if cfg.stature_weight is not None:  # how the network is read, given: over the other network's
         net.config = dataclasses.replace(net.config, stature_weight=cfg.stature_weight)
     if cfg.posture_only:
@@ -144,20 +148,22 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
 INFERENCE_FIELDS = ("ik_steps", "flip_test", "shift_test", "stature_weight", "stature_head", "posture_consistent")
 
 
-def _load_init(net: PressureNet, init: Path, antialias: bool = False) -> None:
-    """Start from the weights of another run's network (fine-tuning), which must be the same
-    network: same arch, width, modules, inputs, input smoothing and body model. Its low-pass
-    before subsampling (`antialias`, no weights of its own) is kept, and `antialias` switches it
-    on for a network that lacks it (the fine-tune lets the weights adapt). A posture readout
-    the other network lacks starts from fresh weights; one it has that this one lacks is left out.
-    Its inference settings (INFERENCE_FIELDS) are kept: a fine-tune of the packaged model reads
-    its images as that model does."""
+def _read_init(init: Path) -> tuple[dict, dict, NetConfig]:
+    """The weights, config record and NetConfig of the network a fine-tune starts from."""
     weights, record = read_model(init)
+    return weights, record, net_config_from_record(record, Path(init) / MODEL_FILE)
+
+
+def _load_init(net: PressureNet, init: Path, weights: dict, record: dict, other: NetConfig) -> None:
+    """Start from the weights of another run's network `other` (fine-tuning, read by `_read_init`),
+    which must be the same network: same arch, width, modules, inputs, input smoothing and body
+    model. A posture readout the other network lacks starts from fresh weights; one it has that
+    this one lacks is left out. Its inference settings (INFERENCE_FIELDS) are kept: a fine-tune
+    of the packaged model reads its images as that model does."""
     own = net.trainable_state()
     readout = {k for k in own if k.startswith("mod1.posture.")}
     weights = {k: v for k, v in weights.items() if k in readout or not k.startswith("mod1.posture.")}
     weights.update({k: own[k] for k in readout if k not in weights})  # a readout the other lacks starts fresh
-    other = net_config_from_record(record, Path(init) / MODEL_FILE)
     fields = ("arch", "width", "modules", "backend", "gender_input", "height_weight", "texture_sigma_taxels")
     mismatch = [f for f in fields if getattr(other, f) != getattr(net.config, f)]
     if mismatch:
@@ -170,9 +176,6 @@ def _load_init(net: PressureNet, init: Path, antialias: bool = False) -> None:
     # How the other network is read - inference-only settings chosen for its weights (IK steps,
     # flip test, the height's blend with the localised skeleton) - carries over to the fine-tune.
     carried = {f: getattr(other, f) for f in INFERENCE_FIELDS}
-    carried["antialias"] = other.antialias or antialias
-    if net.config.arch == "heatmap":
-        net.mod1.antialias = carried["antialias"]
     if not net.config.posture_head:
         carried["posture_consistent"] = False
     net.config = dataclasses.replace(net.config, **carried)
