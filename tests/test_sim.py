@@ -449,8 +449,14 @@ def test_sim1_and_sim2_rest_a_half_sitting_body_on_a_raised_bed(anny64):
     assert (sim.depth_mm[0] < 0).sum() > 50 and torch.equal(sim.contact, (sim.depth_mm < 0).to(sim.contact.dtype))
     # The articulated settling engine rests it on the raised bed itself (no MuJoCo: its steps
     # are its re-posings; `sim.raised`, tests/test_raised_rest.py), loading both sections too.
+    # Settled within the re-posing cap (a body still moving there reports cap + 1), in fewer steps
+    # than MuJoCo's; the count itself moves with the machine's round-off (21 on an AVX2 CPU, 22 on
+    # an AVX-512 one), so it is not pinned.
+    from pressurepose.sim.articulated_config import ArticulatedConfig
+
     again = simulate_poses(anny64, params, bed=bed, settle="articulated")
-    assert again.reason == [""] and 0 < int(again.settle_steps[0]) <= 21 < int(sim.settle_steps[0])
+    cap = ArticulatedConfig().outer
+    assert again.reason == [""] and 0 < int(again.settle_steps[0]) <= cap < int(sim.settle_steps[0])
     rows = (again.pressure_mmhg[0].sum(-1) > 0).nonzero().flatten()
     assert int(rows.min()) < 16 < int(rows.max())
 
