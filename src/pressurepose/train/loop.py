@@ -98,10 +98,10 @@ def step_loss(
 
 
 def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
-    init = _read_init(cfg.init) if cfg.init is not None else None
+    init_weights, init_record, init_cfg = _read_init(cfg.init) if cfg.init is not None else (None, None, None)
     # the low-pass before subsampling has no weights: a fine-tune keeps the other network's, and
     # --antialias switches it on for one that lacks it
-    inherited = init is not None and init[2].antialias and cfg.arch == "heatmap"
+    inherited = init_cfg is not None and init_cfg.antialias and cfg.arch == "heatmap"
     netcfg = NetConfig(
         arch=cfg.arch,
         backend=cfg.backend,
@@ -135,8 +135,8 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
         check_tensor_shapes(mod1, {k: v.shape for k, v in net.mod1.state_dict().items()}, Path(cfg.mod1) / MODEL_FILE)
         net.mod1.load_state_dict(mod1)
         net.freeze_mod1()
-    if init is not None:
-        _load_init(net, cfg.init, *init)
+    if init_cfg is not None:
+        _load_init(net, cfg.init, init_weights, init_record, init_cfg)
     if cfg.stature_weight is not None:  # how the network is read, given: over the other network's
         net.config = dataclasses.replace(net.config, stature_weight=cfg.stature_weight)
     if cfg.posture_only:
