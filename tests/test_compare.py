@@ -198,6 +198,22 @@ def test_compare_cli_writes_both_reports(tmp_path, capsys):
     assert "B = b (6 IK steps) against A = a" in md and "| MPJPE (mm) |" in md and "| supine | 6 |" in md
 
 
+def test_compare_finds_a_relative_data_path_from_its_report(tmp_path, monkeypatch, capsys):
+    """A report records --data as typed (relative to where evaluate ran); B's may be absolute.
+    Compare finds both again from another folder, and still refuses two different datasets."""
+    (tmp_path / "work" / "data" / "set").mkdir(parents=True)
+    (tmp_path / "work" / "data" / "other").mkdir()
+    ps = {"partition": ["supine"] * 4, "gender": ["male"] * 4, "vpe_m": [0.03] * 4, "mpjpe_m": [0.09] * 4}
+    a = _write(tmp_path / "work" / "eval" / "a", "report.json", _syn_report(ps, data="data/set"))
+    b = _write(tmp_path / "b", "report.json", _syn_report(ps, data=str(tmp_path / "work" / "data" / "set")))
+    c = _write(tmp_path / "c", "report.json", _syn_report(ps, data=str(tmp_path / "work" / "data" / "other")))
+    monkeypatch.chdir(tmp_path)  # not where evaluate ran: data/set is not found from here
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o")]) == 0
+    assert "4 samples" in capsys.readouterr().out
+    assert main(["compare", str(a), str(c), "--out", str(tmp_path / "o2")]) == 2
+    assert "the same dataset" in capsys.readouterr().err and not (tmp_path / "o2").exists()
+
+
 def test_compare_reads_the_posture_groups_only(tmp_path, capsys):
     """A report read with group E's tilts (the default since session 59) pairs with one without:
     compare reads the posture table's groups B-D."""

@@ -7,6 +7,7 @@ names the file, the field and what was expected (a `UserError`), never a traceba
 - `field`: one field of a decoded record, of the expected kind (`KINDS`);
 - `inside`: a path recorded in a file, confined to its folder (no absolute paths, no `..`
   escaping it, no symlink leading out);
+- `resolve_recorded`: a path a report or run recorded as typed, found again from elsewhere;
 - `check_tensor_shapes`: the tensors of a weights file against the network's;
 - `BoundedUnpickler`: the base of the restricted unpicklers - no global outside an allow
   list, and no allocation beyond what the file's size can need (`budget`).
@@ -146,6 +147,17 @@ def inside(root: str | os.PathLike, relative: Any, path: str | os.PathLike, name
     if rel.is_absolute() or ".." in rel.parts or not target.is_relative_to(base) or target == base:
         raise UserError(f"{path}: field {name!r} must be a relative path inside {root}, got {relative!r}")
     return Path(root) / rel
+
+
+def resolve_recorded(recorded: str | None, near: str | os.PathLike) -> Path | None:
+    """A path recorded in a report or run (as the user typed it, maybe relative to the folder
+    the command ran in): as given, else relative to the record's folder `near` or its parents;
+    None when none of them exists."""
+    if not recorded or not isinstance(recorded, str):
+        return None
+    p, near = Path(recorded), Path(near)
+    candidates = [p] if p.is_absolute() else [Path.cwd() / p, near / p, near.parent / p, near.parent.parent / p]
+    return next((c for c in candidates if c.exists()), None)
 
 
 def check_tensor_shapes(found: dict, expected: dict, path: str | os.PathLike, hint: str = "") -> None:

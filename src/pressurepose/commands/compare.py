@@ -27,6 +27,7 @@ from pressurepose.eval.compare import (
 )
 from pressurepose.eval.real import GROUP_POSTURE
 from pressurepose.files import write_text
+from pressurepose.validate import resolve_recorded
 
 _KINDS = {"evaluate": "report.json", "evaluate-real": "real.json"}
 _LABELS = {
@@ -107,21 +108,23 @@ def _rows_ok(rows, fields: tuple[str, ...]) -> bool:
     return isinstance(rows, list) and all(isinstance(r, dict) and all(k in r for k in fields) for r in rows)
 
 
-def _same_path(x, y) -> bool:
-    """Two recorded paths name one dataset: equal as written, or the same folder here."""
+def _same_path(x, y, near_x: Path, near_y: Path) -> bool:
+    """Two recorded paths name one dataset: equal as written, or the same folder once each is
+    found again (as given, or relative to its report's folder or their parents)."""
     if x == y:
         return True
+    px, py = resolve_recorded(x, near_x), resolve_recorded(y, near_y)
     try:
-        return Path(x).samefile(y)
-    except (OSError, TypeError):
+        return px is not None and py is not None and px.samefile(py)
+    except OSError:
         return False
 
 
-def _check_pairing(a: dict, b: dict) -> None:
+def _check_pairing(a: dict, b: dict, near_a: Path, near_b: Path) -> None:
     """The two reports' settings that decide which samples (and images) they read agree."""
     ca, cb = a["config"], b["config"]
     if a["command"] == "evaluate":
-        if not _same_path(ca.get("data"), cb.get("data")):
+        if not _same_path(ca.get("data"), cb.get("data"), near_a, near_b):
             raise UserError(f"A read {ca.get('data')} and B {cb.get('data')}: evaluate both on the same dataset")
         keys, what = ("split", "limit"), "was evaluated with"
     else:
@@ -152,7 +155,7 @@ def run_compare(cfg: CompareConfig) -> Written:
     a, b = _load(cfg.a, "A"), _load(cfg.b, "B")
     if a["command"] != b["command"]:
         raise UserError(f"A is an `{a['command']}` report and B an `{b['command']}` one: compare like with like")
-    _check_pairing(a, b)
+    _check_pairing(a, b, *(p if p.is_dir() else p.parent for p in (cfg.a, cfg.b)))
     try:
         if a["command"] == "evaluate":
             result = compare_synthetic(a["per_sample"], b["per_sample"])

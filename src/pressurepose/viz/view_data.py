@@ -35,8 +35,8 @@ from pressurepose.viz.view_sources import (
     NpzImages,
     json_number,
     open_samples,
-    resolve_recorded,
 )
+from pressurepose.validate import resolve_recorded
 
 
 class Browser:

@@ -49,16 +49,6 @@ class NpzImages(torch.utils.data.Dataset):
         return {k: (v[i] if v[i].ndim else v[i].item()) for k, v in self.arrays.items()}
 
 
-def resolve_recorded(recorded: str | None, near: Path) -> Path | None:
-    """A path recorded in a report or run (as the user typed it, maybe relative to the folder
-    the command ran in): as given, else relative to the folder's parents."""
-    if not recorded:
-        return None
-    p = Path(recorded)
-    candidates = [p] if p.is_absolute() else [Path.cwd() / p, near / p, near.parent / p, near.parent.parent / p]
-    return next((c for c in candidates if c.exists()), None)
-
-
 def open_samples(data: Path, split: str | None):
     """The samples of a dataset folder (shards, verified lazily: a bad shard is reported
     when read), a folder of training .npz files, or one .npz - in the order
@@ -98,5 +88,4 @@ __all__ = [
     "NpzImages",
     "json_number",
     "open_samples",
-    "resolve_recorded",
 ]
