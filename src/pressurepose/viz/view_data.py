@@ -26,6 +26,7 @@ import torch
 from pressurepose.body.joints import J24_NAMES
 from pressurepose.body.params import BodyParams
 from pressurepose.errors import UserError
+from pressurepose.validate import resolve_recorded
 from pressurepose.viz.view_sources import (
     HINT,
     IMAGES,
@@ -36,7 +37,6 @@ from pressurepose.viz.view_sources import (
     json_number,
     open_samples,
 )
-from pressurepose.validate import resolve_recorded
 
 
 class Browser:
