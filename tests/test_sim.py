@@ -14,6 +14,7 @@ from pressurepose.body.params import BodyParams
 from pressurepose.errors import UserError
 from pressurepose.maps import EMPTY_HEIGHT_M, depth_map, mesh_centroid
 from pressurepose.mat import MatSpec
+from pressurepose.sim.articulated_config import ArticulatedConfig
 from pressurepose.sim.foundation import FAIL_NO_SUPPORT, simulate_pressure
 from pressurepose.sim.mattress import GRAVITY_M_S2, MMHG_PA, MattressParams
 from pressurepose.sim.objects import capsule_mesh, settle_capsule
@@ -452,8 +453,6 @@ def test_sim1_and_sim2_rest_a_half_sitting_body_on_a_raised_bed(anny64):
     # Settled within the re-posing cap (a body still moving there reports cap + 1), in fewer steps
     # than MuJoCo's; the count itself moves with the machine's round-off (21 on an AVX2 CPU, 22 on
     # an AVX-512 one), so it is not pinned.
-    from pressurepose.sim.articulated_config import ArticulatedConfig
-
     again = simulate_poses(anny64, params, bed=bed, settle="articulated")
     cap = ArticulatedConfig().outer
     assert again.reason == [""] and 0 < int(again.settle_steps[0]) <= cap < int(sim.settle_steps[0])
