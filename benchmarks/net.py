@@ -3,11 +3,13 @@ at batch 1 and throughput at batch 128 (CNN + body model + mesh, what `predict` 
 
     .venv/bin/python benchmarks/net.py [--archs fast paper] [--batch 128] [--steps 3] [--device cpu]
                                        [--threads N] [--flip-test] [--shift-test] [--stature-weight W] [--antialias]
+                                       [--width N] [--bf16]
 
 Training steps use the real loop's loss (`train.loop.step_loss`) on random pressure images and
 targets of the right shapes (speed does not depend on the values); Mod2 steps include Mod1's
 frozen pass, both meshes, PMR and the PMR losses. Median over `--steps` timed steps after one
-warm-up step.
+warm-up step. `--bf16` adds a heatmap training row under training's --bf16 (the encoder-decoder
+under bfloat16 autocast), timed in alternation with the float32 row.
 """
 
 from __future__ import annotations
@@ -53,10 +55,13 @@ def _median_time(fn, steps: int, device) -> tuple[float, float]:
     return statistics.median(wall), statistics.median(cpu)
 
 
-def train_speed(body, arch: str, module: int, B: int, steps: int, device) -> float:
-    net = PressureNet(NetConfig(arch=arch, modules=module), body=body).to(device)
+def train_step(body, arch: str, module: int, B: int, device, width: int = 1, bf16: bool = False):
+    """One training step of the network (a closure), as `train.loop` runs it."""
+    net = PressureNet(NetConfig(arch=arch, modules=module, width=width), body=body).to(device)
     if module == 2:
         net.freeze_mod1()
+    if bf16:
+        net.mod1.trunk_dtype = torch.bfloat16  # as train.loop does for --bf16
     net.train()
     opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=1e-5)
     cfg = TrainConfig(preset="fast", module=module, mod1="x" if module == 2 else None).resolved()
@@ -68,8 +73,20 @@ def train_speed(body, arch: str, module: int, B: int, steps: int, device) -> flo
         loss.backward()
         opt.step()
 
-    wall, cpu = _median_time(step, steps, device)
-    return B / wall, B / cpu
+    return step
+
+
+def train_speeds(steps_by_label: dict, B: int, steps: int, device, rounds: int = 2) -> dict:
+    """{label: (images/s wall, images/s per CPU-s)}: each step timed in `rounds` alternating
+    rounds (a machine's drift falls on all alike), the median of all timed steps."""
+    wall: dict = {k: [] for k in steps_by_label}
+    cpu: dict = {k: [] for k in steps_by_label}
+    for _ in range(rounds):
+        for label, step in steps_by_label.items():
+            w, c = _median_time(step, steps, device)
+            wall[label].append(w)
+            cpu[label].append(c)
+    return {k: (B / statistics.median(wall[k]), B / statistics.median(cpu[k])) for k in steps_by_label}
 
 
 def predict_speed(
@@ -83,7 +100,7 @@ def predict_speed(
 ) -> tuple[float, float]:
     """Seconds per batch of B: network + body model + mesh (+ PMR for Mod2's input); options are
     NetConfig fields (flip_test, shift_test, stature_weight, antialias)."""
-    config = NetConfig(arch=arch, modules=module, **options)
+    config = NetConfig(arch=arch, modules=module, **options)  # options may hold width
     net = PressureNet(config, body=body).to(device).eval()
     # A new batch each call, as in `predict`: nothing computed for one batch's bodies (the
     # body model keeps the last shapes' skeleton pass) may be reused by the next.
@@ -112,6 +129,8 @@ def main() -> None:
     parser.add_argument(
         "--antialias", action="store_true", help="heatmap: also predict with anti-aliased subsampling (NetConfig)"
     )
+    parser.add_argument("--width", type=int, default=1, help="channel multiplier of every network (NetConfig)")
+    parser.add_argument("--bf16", action="store_true", help="heatmap: also train under --bf16 (bfloat16 trunk)")
     args = parser.parse_args()
     if args.threads:
         # On a machine shared with other jobs, OpenMP threads that wait for a descheduled
@@ -131,14 +150,21 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- |")
     for arch in args.archs:
         for module in (1,) if arch == "heatmap" else (1, 2):  # heatmap: one module
-            ips_w, ips_c = train_speed(body, arch, module, args.batch, args.steps, device)
-            lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device)
-            thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device)
+            steps = {"": train_step(body, arch, module, args.batch, device, args.width)}
+            if args.bf16 and arch == "heatmap":
+                steps[", bf16"] = train_step(body, arch, module, args.batch, device, args.width, bf16=True)
+            speeds = train_speeds(steps, args.batch, args.steps, device)
+            ips_w, ips_c = speeds[""]
+            lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, width=args.width)
+            thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, width=args.width)
             print(
                 f"| {arch} | {module} | {ips_w:.1f} / {ips_c:.1f} | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
                 f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",
                 flush=True,
             )
+            if ", bf16" in speeds:
+                ips_w, ips_c = speeds[", bf16"]
+                print(f"| {arch}, bf16 (training only) | {module} | {ips_w:.1f} / {ips_c:.1f} | - | - |", flush=True)
             # heatmap inference options, each a row of its own
             options = [("flip test", {"flip_test": True})] if args.flip_test else []
             if args.stature_weight > 0:
@@ -162,8 +188,10 @@ def main() -> None:
                     )
                 )
             for label, option in options if arch == "heatmap" else []:
-                lat_w, lat_c = predict_speed(body, arch, module, 1, max(10, args.steps), device, **option)
-                thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, **option)
+                lat_w, lat_c = predict_speed(
+                    body, arch, module, 1, max(10, args.steps), device, width=args.width, **option
+                )
+                thr_w, thr_c = predict_speed(body, arch, module, 128, args.steps, device, width=args.width, **option)
                 print(
                     f"| {arch}, {label} | {module} | - | {1000 * lat_w:.1f} / {1000 * lat_c:.1f} "
                     f"| {128 / thr_w:.1f} / {128 / thr_c:.1f} |",

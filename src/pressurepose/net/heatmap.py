@@ -201,6 +201,7 @@ class HeatmapNet(nn.Module):
         super().__init__()
         mat = mat or MatSpec()
         self.antialias = antialias
+        self.trunk_dtype: torch.dtype | None = None  # training's --bf16 (not saved: use is float32)
         c = [32 * width, 48 * width, 64 * width, 96 * width, 24 * width]
         self.enc1 = nn.Sequential(_conv(in_channels, c[0], 2, kernel=5), _conv(c[0], c[1]))
         self.enc2 = nn.Sequential(_conv(c[1], c[2], 2), _conv(c[2], c[2]))
@@ -225,8 +226,17 @@ class HeatmapNet(nn.Module):
         self.posture = PostureHead(2 * c[3]) if posture else None  # net/posture.py
 
     def _trunk(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The encoder-decoder by the modules: (bottleneck e3, maps (B, 4 J, H, W)); without
-        autograd on a CPU `heatmap_fused.fused_trunk` computes the same faster."""
+        """The encoder-decoder by the modules: (bottleneck e3, maps (B, 4 J, H, W)) in float32;
+        without autograd on a CPU `heatmap_fused.fused_trunk` computes the same faster. With
+        `trunk_dtype` set (training's --bf16) its convolutions run in training mode under
+        autocast to that dtype."""
+        if self.trunk_dtype is None or not self.training:
+            return self._trunk_layers(x)
+        with torch.autocast(x.device.type, dtype=self.trunk_dtype):
+            e3, maps = self._trunk_layers(x)
+        return e3.float(), maps.float()
+
+    def _trunk_layers(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         # mkldnn's convolutions in channels-last: ~20% faster at batch 128 in eval, 7-10% per
         # training step (docs/benchmarks.md "Session 55")
         x = x.contiguous(memory_format=torch.channels_last)

@@ -77,6 +77,10 @@ class TrainConfig:
             more nearly the same (`NetConfig.antialias`, `net.heatmap.lowpass`). With --init a network
             that has it keeps it (--no-antialias does not switch it off), and --antialias switches
             it on for one that lacks it.
+        bf16: arch heatmap: run the encoder-decoder's forward and backward under bfloat16 autocast
+            (weights, optimiser, losses, body model and IK stay float32; validation and use are
+            float32). ~1.6x the training step on CPUs with bfloat16 units (avx512_bf16 / AMX);
+            slower without them (a warning says so). docs/benchmarks.md "Session 65".
         average_from: average the weights (batch-norm statistics included) at the end of every epoch
             from this one on; model.safetensors then holds the average and last/model.safetensors the
             last epoch's weights (`train.average`; 0 = off).
@@ -135,6 +139,7 @@ class TrainConfig:
     spread: float = 0.0
     texture_sigma: float = 0.0
     antialias: bool = False
+    bf16: bool = False
     lr_gamma: float = 1.0
     average_from: int = 0
     posture_weight: float = 0.0
@@ -203,6 +208,8 @@ class TrainConfig:
             raise UserError(f"posture_weight must be >= 0, got {self.posture_weight}")
         if self.antialias and self.arch != "heatmap":
             raise UserError(f"--antialias is for --arch heatmap; this run is --arch {self.arch}")
+        if self.bf16 and self.arch != "heatmap":
+            raise UserError(f"--bf16 is for --arch heatmap; this run is --arch {self.arch}")
         if (self.posture_weight > 0 or self.posture_only) and self.arch != "heatmap":
             raise UserError(f"the posture readout is for --arch heatmap; this run is --arch {self.arch}")
         if self.posture_only and (self.init is None or self.posture_weight > 0):
@@ -247,13 +254,15 @@ class TrainConfig:
 
 
 # Fields a resumed run may change without becoming a different run.
-# stature_weight says how the network is read, not how it is trained.
+# stature_weight says how the network is read, not how it is trained; bf16, like device, is the
+# arithmetic, not the network (a run moved to a CPU without bfloat16 units goes on in float32).
 RESUMABLE_CHANGES = (
     "epochs",
     "progress",
     "num_workers",
     "in_memory",
     "device",
+    "bf16",
     "data",
     "out",
     "save_every",

@@ -148,6 +148,18 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
 INFERENCE_FIELDS = ("ik_steps", "flip_test", "shift_test", "stature_weight", "stature_head", "posture_consistent")
 
 
+def cpu_has_bf16() -> bool:
+    """Whether oneDNN runs bfloat16 natively here (avx512_bf16 / AMX), not by emulation."""
+    return torch.backends.mkldnn.is_available() and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
+def _train_in_bf16(net: PressureNet, device: torch.device) -> None:
+    """--bf16: the encoder-decoder trains under bfloat16 autocast (net.heatmap `trunk_dtype`)."""
+    if device.type == "cpu" and not cpu_has_bf16():
+        log.warning("--bf16: this CPU has no bfloat16 units (avx512_bf16 / AMX): training will be slower than float32")
+    net.mod1.trunk_dtype = torch.bfloat16
+
+
 def _read_init(init: Path) -> tuple[dict, dict, NetConfig]:
     """The weights, config record and NetConfig of the network a fine-tune starts from."""
     weights, record = read_model(init)
@@ -232,6 +244,8 @@ def train(
     if cfg.in_memory:
         dataset = in_memory(dataset)
     net = build_network(cfg, device)
+    if cfg.bf16:
+        _train_in_bf16(net, device)
     record = {"train": cfg.to_json(), "net": {**net.config.__dict__}}
     cfg.save(run / "config.json", record["net"])
     params = [p for p in net.parameters() if p.requires_grad]
