@@ -45,7 +45,8 @@ class TrainConfig:
         gender_input: give the gender as an input (as the original did).
         height_weight: give height and mass as input planes.
         dropout: dropout rate (the seed's 0.1).
-        width: channel multiplier of the fast CNN (1: 1.3 M parameters; 2: ~5 M).
+        width: channel multiplier of the network (fast CNN: 1.3 M parameters at 1, ~5 M at 2; heatmap:
+            0.43 M at 1, 1.5 M at 2).
         shift_rows: augmentation: move training images (and labels) by up to this many rows along the bed.
         shift_cols: augmentation: the same across the bed, in columns.
         mirror: augmentation: share of training images mirrored left-right with their labels
