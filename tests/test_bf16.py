@@ -10,7 +10,7 @@ from pressurepose.cli import main
 from pressurepose.commands.train import run_train as train
 from pressurepose.errors import UserError
 from pressurepose.net.heatmap import HeatmapNet
-from pressurepose.train import loop
+from pressurepose.train import loop, precision
 from pressurepose.train.checkpoint import load_network
 from pressurepose.train.config import TrainConfig
 from pressurepose.train.data import TensorDictDataset, synthetic_arrays
@@ -91,11 +91,11 @@ def test_bf16_training_learns_as_float32_and_saves_a_float32_network(small, tmp_
 
 
 def test_bf16_warns_on_a_cpu_without_bfloat16_units(small, tmp_path, monkeypatch, caplog):
-    monkeypatch.setattr(loop, "cpu_has_bf16", lambda: False)
+    monkeypatch.setattr(precision, "cpu_has_bf16", lambda: False)
     cfg = TrainConfig.smoke(
         out=tmp_path / "run", arch="heatmap", epochs=1, batch_size=8, bf16=True, val_fraction=0.0, progress=False
     )
-    with caplog.at_level(logging.WARNING, logger="pressurepose.train.loop"):
+    with caplog.at_level(logging.WARNING, logger="pressurepose.train.precision"):
         train(cfg, small)
     assert "no bfloat16 units" in caplog.text
 

@@ -10,10 +10,7 @@ metrics.png: `commands.train`).
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
-import json
 import logging
 import time
 from collections.abc import Callable
@@ -23,7 +20,6 @@ import numpy as np
 import torch
 
 from pressurepose.errors import UserError
-from pressurepose.files import atomic_write
 from pressurepose.net.heatmap import localisation_loss
 from pressurepose.net.losses import Targets, joint_error_m, module_loss
 from pressurepose.net.model import NetConfig, NetInputs, PressureNet
@@ -41,10 +37,11 @@ from pressurepose.train.checkpoint import (
 )
 from pressurepose.train.config import RESUMABLE_CHANGES, TrainConfig
 from pressurepose.train.data import collate, in_memory, open_dataset
-from pressurepose.validate import check_tensor_shapes, field, read_json_object, read_jsonl
+from pressurepose.train.metrics import read_metrics, write_metrics
+from pressurepose.train.precision import train_in_bf16
+from pressurepose.validate import check_tensor_shapes, field, read_json_object
 
 log = logging.getLogger(__name__)
-METRICS = "metrics.jsonl"
 
 
 def pick_device(name: str) -> torch.device:
@@ -148,18 +145,6 @@ def build_network(cfg: TrainConfig, device: torch.device) -> PressureNet:
 INFERENCE_FIELDS = ("ik_steps", "flip_test", "shift_test", "stature_weight", "stature_head", "posture_consistent")
 
 
-def cpu_has_bf16() -> bool:
-    """Whether oneDNN runs bfloat16 natively here (avx512_bf16 / AMX), not by emulation."""
-    return torch.backends.mkldnn.is_available() and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-
-
-def _train_in_bf16(net: PressureNet, device: torch.device) -> None:
-    """--bf16: the encoder-decoder trains under bfloat16 autocast (net.heatmap `trunk_dtype`)."""
-    if device.type == "cpu" and not cpu_has_bf16():
-        log.warning("--bf16: this CPU has no bfloat16 units (avx512_bf16 / AMX): training will be slower than float32")
-    net.mod1.trunk_dtype = torch.bfloat16
-
-
 def _read_init(init: Path) -> tuple[dict, dict, NetConfig]:
     """The weights, config record and NetConfig of the network a fine-tune starts from."""
     weights, record = read_model(init)
@@ -245,7 +230,7 @@ def train(
         dataset = in_memory(dataset)
     net = build_network(cfg, device)
     if cfg.bf16:
-        _train_in_bf16(net, device)
+        train_in_bf16(net, device)
     record = {"train": cfg.to_json(), "net": {**net.config.__dict__}}
     cfg.save(run / "config.json", record["net"])
     params = [p for p in net.parameters() if p.requires_grad]
@@ -277,7 +262,7 @@ def train(
         if epoch % cfg.save_every == 0 or epoch == cfg.epochs:
             save_checkpoint(run, net, opt, epoch, record, average)
             _save_models(run, net, record, average)
-            _write_metrics(run, history)
+            write_metrics(run, history)
             if on_save is not None:
                 on_save(run, history)
         log.info(
@@ -388,26 +373,6 @@ class _progress:
         if self.enabled:
             self.bar.__exit__(*exc)
         return False
-
-
-def read_metrics(run: Path) -> list[dict]:
-    """The rows of a run's metrics.jsonl, each with its epoch (UserError naming the file)."""
-    path = run / METRICS
-    rows = read_jsonl(path, "training metrics", "; delete it to resume without the earlier epochs' metrics")
-    for number, row in enumerate(rows, 1):
-        field(row, "epoch", "count", path, f"line {number}: ")
-    return rows
-
-
-def _write_metrics(run: Path, history: list[dict]) -> None:
-    text = "".join(json.dumps(r) + "\n" for r in history)
-    atomic_write(run / METRICS, lambda tmp: Path(tmp).write_text(text))
-    keys = list(dict.fromkeys(k for r in history for k in r))
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=keys)
-    writer.writeheader()
-    writer.writerows(history)
-    atomic_write(run / "metrics.csv", lambda tmp: Path(tmp).write_text(buf.getvalue()))
 
 
 __all__ = ["evaluate", "pick_device", "read_metrics", "train"]
