@@ -24,6 +24,7 @@ from pressurepose.net import NetConfig, NetInputs, PressureNet
 from pressurepose.net.losses import Targets
 from pressurepose.train.config import TrainConfig
 from pressurepose.train.loop import step_loss
+from pressurepose.train.precision import train_in_bf16
 
 
 def _batch(B: int, device, seed: int = 0) -> tuple[NetInputs, Targets]:
@@ -61,7 +62,7 @@ def train_step(body, arch: str, module: int, B: int, device, width: int = 1, bf1
     if module == 2:
         net.freeze_mod1()
     if bf16:
-        net.mod1.trunk_dtype = torch.bfloat16  # as train.loop does for --bf16
+        train_in_bf16(net, device)
     net.train()
     opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=1e-5)
     cfg = TrainConfig(preset="fast", module=module, mod1="x" if module == 2 else None).resolved()
@@ -99,8 +100,8 @@ def predict_speed(
     **options,
 ) -> tuple[float, float]:
     """Seconds per batch of B: network + body model + mesh (+ PMR for Mod2's input); options are
-    NetConfig fields (flip_test, shift_test, stature_weight, antialias)."""
-    config = NetConfig(arch=arch, modules=module, **options)  # options may hold width
+    NetConfig fields (width, flip_test, shift_test, stature_weight, antialias)."""
+    config = NetConfig(arch=arch, modules=module, **options)
     net = PressureNet(config, body=body).to(device).eval()
     # A new batch each call, as in `predict`: nothing computed for one batch's bodies (the
     # body model keeps the last shapes' skeleton pass) may be reused by the next.

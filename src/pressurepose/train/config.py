@@ -80,8 +80,9 @@ class TrainConfig:
             it on for one that lacks it.
         bf16: arch heatmap: run the encoder-decoder's forward and backward under bfloat16 autocast
             (weights, optimiser, losses, body model and IK stay float32; validation and use are
-            float32). ~1.6x the training step on CPUs with bfloat16 units (avx512_bf16 / AMX);
-            slower without them (a warning says so). docs/benchmarks.md "Session 65".
+            float32). On a CPU with bfloat16 units (avx512_bf16 / AMX) 2.1x the bare training step and
+            1.47x the epoch with augmentations; slower without them (a warning says so).
+            docs/benchmarks.md "Session 65".
         average_from: average the weights (batch-norm statistics included) at the end of every epoch
             from this one on; model.safetensors then holds the average and last/model.safetensors the
             last epoch's weights (`train.average`; 0 = off).
